@@ -1,0 +1,205 @@
+"""The ``napari-lbs`` console script: one sub-command per step, each a thin wrapper over `_core`.
+
+Bad input exits 2 with one line naming the culprit; success prints a one-line summary on
+stderr. See CONTRACT.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from napari_lbs import __version__
+
+_EXPECTED_ERRORS = (ValueError, FileNotFoundError, IsADirectoryError, PermissionError)
+
+
+class _ProgressBar:
+    """A terminal progress bar on stderr (silent when stderr is not a terminal)."""
+
+    def __init__(self, label: str) -> None:
+        self.label = label
+        self.enabled = sys.stderr.isatty()
+        self.start = time.perf_counter()
+
+    def __call__(self, done: int, total: int) -> None:
+        if not self.enabled or total <= 0:
+            return
+        width = 30
+        filled = int(width * done / total)
+        elapsed = time.perf_counter() - self.start
+        sys.stderr.write(f"\r{self.label} [{'#' * filled}{'.' * (width - filled)}] {done}/{total} {elapsed:.0f}s")
+        if done >= total:
+            sys.stderr.write("\n")
+        sys.stderr.flush()
+
+
+def _summary(text: str) -> None:
+    print(text, file=sys.stderr)
+
+
+def _provenance(config, **extra) -> dict:
+    return {"napari_lbs": __version__, "config": config.to_dict(), **extra}
+
+
+def _cmd_config(args) -> None:
+    from napari_lbs._core import load_config, write_config
+
+    if args.check:
+        load_config(args.check)
+        _summary(f"{args.check}: valid experiment config")
+        return
+    if not args.write:
+        raise ValueError("--write: expected a file to write the default config to")
+    path = write_config(args.write)
+    _summary(f"wrote the default experiment config to {path}")
+
+
+def _cmd_simulate(args) -> None:
+    from napari_lbs._core import load_config, random_particle_field, simulate_hologram, write_particles
+    from napari_lbs._core._io import atomic_path
+
+    import tifffile
+
+    config = load_config(args.config)
+    size = args.size if args.size is not None else config.tile.size
+    count = args.particles if args.particles is not None else config.particles.per_tile
+    if size < 16:
+        raise ValueError(f"--size: expected at least 16 pixels, got {size}")
+    if count < 0:
+        raise ValueError(f"--particles: expected a non-negative count, got {count}")
+    field = random_particle_field(
+        (size, size),
+        count=count,
+        diameter_min_um=config.particles.diameter_min_um,
+        diameter_max_um=config.particles.diameter_max_um,
+        layers_um=config.layer_depths_um(),
+        pixel_um=config.optics.pixel_um,
+        seed=args.seed,
+    )
+    hologram = simulate_hologram(field, wavelength_um=config.optics.wavelength_um, medium_index=config.optics.medium_index, shadowing=args.shadowing)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    description = json.dumps(_provenance(config, seed=args.seed, particles=len(field), shadowing=args.shadowing, pixel_um=config.optics.pixel_um))
+    with atomic_path(out / "hologram.tif") as temporary:
+        tifffile.imwrite(temporary, hologram, description=description, metadata=None)
+    write_particles(out / "particles.csv", field.table())
+    _summary(f"simulated a {size}x{size} hologram of {len(field)} particles -> {out / 'hologram.tif'}, {out / 'particles.csv'}")
+
+
+def _read_inputs(args, config):
+    from napari_lbs._core import read_hologram
+
+    hologram = read_hologram(args.holo, log=_summary)
+    background = None
+    if getattr(args, "background", None):
+        background = read_hologram(args.background, log=_summary)
+        if background.shape != hologram.shape:
+            raise ValueError(f"{args.background}: expected the hologram's shape {hologram.shape}, got {background.shape}")
+    return hologram, background
+
+
+def _cmd_backprop(args) -> None:
+    from napari_lbs._core import backpropagate, load_config
+    from napari_lbs._core._io import atomic_path
+
+    import tifffile
+
+    config = load_config(args.config)
+    hologram, background = _read_inputs(args, config)
+    z_um = config.volume.planes_um()
+    description = json.dumps({"z_um": list(z_um), **_provenance(config, source=str(args.holo), background=args.background)})
+    start = time.perf_counter()
+    with atomic_path(Path(args.out)) as temporary:
+        # Written straight into a memory-mapped TIFF: a deep stack never has to fit in RAM.
+        stack = tifffile.memmap(temporary, shape=(len(z_um),) + hologram.shape, dtype=np.float32, description=description, metadata=None)
+        backpropagate(
+            hologram,
+            z_um,
+            wavelength_um=config.optics.wavelength_um,
+            pixel_um=config.optics.pixel_um,
+            medium_index=config.optics.medium_index,
+            background=background,
+            out=stack,
+            progress=_ProgressBar("backprop"),
+        )
+        stack.flush()
+        del stack
+    _summary(f"back-propagated {args.holo} to {len(z_um)} planes ({z_um[0]:g}-{z_um[-1]:g} um) in {time.perf_counter() - start:.1f} s -> {args.out}")
+
+
+def _cmd_demo(args) -> None:
+    from napari_lbs._core import SAMPLE_PROVENANCE, backpropagate, load_config, load_sample_hologram, write_json, write_stack
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    config = load_config(None)
+    hologram = load_sample_hologram()
+    if args.quick:
+        hologram = hologram[:256, :256]
+    z_um = config.volume.planes_um()
+    start = time.perf_counter()
+    stack = backpropagate(hologram, z_um, wavelength_um=config.optics.wavelength_um, pixel_um=config.optics.pixel_um, medium_index=config.optics.medium_index, progress=_ProgressBar("backprop"))
+    seconds = time.perf_counter() - start
+    stack_path = write_stack(out / "zstack.tif", stack, z_um=z_um, metadata=_provenance(config, source=SAMPLE_PROVENANCE["source"]))
+    summary = {"hologram_shape": list(hologram.shape), "planes": len(z_um), "z_um": [z_um[0], z_um[-1]], "zstack": str(stack_path), "backprop_seconds": round(seconds, 3), "sample": SAMPLE_PROVENANCE}
+    write_json(out / "summary.json", summary)
+    print(stack_path)
+    _summary(f"demo: back-propagated the built-in {hologram.shape[0]}x{hologram.shape[1]} hologram to {len(z_um)} planes in {seconds:.1f} s -> {stack_path}")
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="napari-lbs", description="Learning from better simulation for in-line particle holography.")
+    parser.add_argument("--version", action="version", version=f"napari-lbs {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("config", help="write (or check) an experiment config")
+    p.add_argument("--write", metavar="FILE", help="write the default config to FILE")
+    p.add_argument("--check", metavar="FILE", help="validate FILE")
+    p.set_defaults(run=_cmd_config)
+
+    p = sub.add_parser("simulate", help="simulate a hologram of a random particle field with its ground truth")
+    p.add_argument("--config", required=True)
+    p.add_argument("--out", required=True, metavar="DIR")
+    p.add_argument("--size", type=int, help="window edge in pixels (default: tile.size)")
+    p.add_argument("--particles", type=int, help="number of particles (default: particles.per_tile)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--shadowing", action="store_true", help="propagate layer by layer so particles shadow each other")
+    p.set_defaults(run=_cmd_simulate)
+
+    p = sub.add_parser("backprop", help="back-propagate a hologram into a float32 z-stack TIFF")
+    p.add_argument("holo", metavar="HOLO")
+    p.add_argument("--config", required=True)
+    p.add_argument("--out", required=True, metavar="STACK.tif")
+    p.add_argument("--background", metavar="BG")
+    p.set_defaults(run=_cmd_backprop)
+
+    p = sub.add_parser("demo", help="run the pipeline on the built-in real hologram")
+    p.add_argument("--out", default="napari-lbs-demo", metavar="DIR")
+    p.add_argument("--quick", action="store_true", help="a small, fast run")
+    p.set_defaults(run=_cmd_demo)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``napari-lbs`` console script."""
+    args = _parser().parse_args(argv)
+    try:
+        args.run(args)
+    except _EXPECTED_ERRORS as error:
+        message = str(error).splitlines()[0] if str(error) else type(error).__name__
+        print(f"napari-lbs {args.command}: error: {message}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"napari-lbs {args.command}: interrupted; nothing partial was written", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

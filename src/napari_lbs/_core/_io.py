@@ -1,0 +1,201 @@
+"""Reading holograms and writing stacks, particle tables and JSON — atomically.
+
+Every writer goes to a temporary name beside the target and renames it into place, so an
+interrupted write never leaves a half-written file where a good one was.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+import tempfile
+from collections.abc import Callable, Sequence
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+__all__ = [
+    "InputError",
+    "atomic_write_bytes",
+    "atomic_path",
+    "read_hologram",
+    "as_hologram",
+    "read_stack",
+    "write_stack",
+    "read_particles",
+    "write_particles",
+    "write_json",
+    "PARTICLE_COLUMNS",
+]
+
+PARTICLE_COLUMNS = ("x_um", "y_um", "z_um", "diameter_um")
+_MIN_HOLOGRAM_PX = 16
+
+
+class InputError(ValueError):
+    """Input that cannot be used; the message names the culprit in one line."""
+
+
+@contextmanager
+def atomic_path(path: Path):
+    """Yield a temporary path beside ``path``; rename it onto ``path`` only if the block succeeds."""
+    path = Path(path)
+    if path.parent and not path.parent.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part" + path.suffix, dir=path.parent)
+    os.close(handle)
+    temporary = Path(temporary)
+    try:
+        yield temporary
+        os.replace(temporary, path)
+    finally:
+        if temporary.exists():
+            temporary.unlink()
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically; return ``path``."""
+    with atomic_path(path) as temporary:
+        temporary.write_bytes(data)
+    return Path(path)
+
+
+def write_json(path: str | Path, payload: dict) -> Path:
+    """Write ``payload`` as indented JSON, atomically."""
+    return atomic_write_bytes(Path(path), (json.dumps(payload, indent=2, sort_keys=False) + "\n").encode("utf-8"))
+
+
+def as_hologram(image: np.ndarray, *, name: str = "hologram", channel: int | None = None, log: Callable[[str], None] | None = None) -> np.ndarray:
+    """Validate an image as a hologram and return it as a 2-D float32 array.
+
+    RGB(A) images are reduced to one channel: ``channel`` if given, else the channel with the
+    largest standard deviation (a colour sensor under a laser records the hologram in the
+    channel of the laser's colour; the seed's hologram is red). ``log`` receives a message
+    saying which channel was kept.
+
+    Raises
+    ------
+    InputError
+        Not 2-D (after the channel reduction), smaller than 16 px, or containing NaN/inf.
+    """
+    array = np.asarray(image)
+    if array.dtype.kind not in "uif" and array.dtype != bool:
+        raise InputError(f"{name}: expected a numeric image, got dtype {array.dtype}")
+    if array.ndim == 3 and array.shape[-1] in (3, 4):
+        colour = array[..., :3].astype(np.float32)
+        if channel is None:
+            channel = int(np.argmax(colour.reshape(-1, 3).std(axis=0)))
+        if not 0 <= channel < 3:
+            raise InputError(f"{name}: expected channel 0, 1 or 2, got {channel}")
+        if log is not None:
+            log(f"{name}: RGB image reduced to its {('red', 'green', 'blue')[channel]} channel (index {channel})")
+        array = colour[..., channel]
+    if array.ndim != 2:
+        raise InputError(f"{name}: expected a 2-D image (rows, cols) or RGB, got shape {array.shape}")
+    if min(array.shape) < _MIN_HOLOGRAM_PX:
+        raise InputError(f"{name}: expected at least {_MIN_HOLOGRAM_PX}x{_MIN_HOLOGRAM_PX} pixels, got {array.shape}")
+    # Keep the input's precision: float64 stays float64; integers become float32.
+    out = array if array.dtype in (np.float32, np.float64) else array.astype(np.float32)
+    if not np.all(np.isfinite(out)):
+        raise InputError(f"{name}: contains NaN or infinite values ({int(np.count_nonzero(~np.isfinite(out)))} pixels)")
+    return out
+
+
+def read_hologram(path: str | Path, *, channel: int | None = None, log: Callable[[str], None] | None = None) -> np.ndarray:
+    """Read a hologram from TIFF, PNG or BMP as a 2-D float array (see `as_hologram`)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: file not found")
+    suffix = path.suffix.lower()
+    try:
+        if suffix in (".tif", ".tiff"):
+            import tifffile
+
+            image = tifffile.imread(path)
+        else:
+            from PIL import Image
+
+            with Image.open(path) as handle:
+                image = np.asarray(handle)
+    except Exception as error:  # any decoder failure is the file's fault: say which file
+        raise InputError(f"{path}: cannot be read as an image ({type(error).__name__}: {error})") from None
+    return as_hologram(image, name=str(path), channel=channel, log=log)
+
+
+def write_stack(path: str | Path, stack: np.ndarray, *, z_um: Sequence[float], metadata: dict | None = None) -> Path:
+    """Write a float32 ``(z, y, x)`` stack as TIFF with ``{"z_um": [...], ...}`` as ImageDescription JSON."""
+    import tifffile
+
+    stack = np.asarray(stack)
+    if stack.ndim != 3 or stack.shape[0] != len(z_um):
+        raise InputError(f"stack: expected shape (len(z_um)={len(z_um)}, y, x), got {stack.shape}")
+    description = json.dumps({"z_um": [float(z) for z in z_um], **(metadata or {})})
+    with atomic_path(Path(path)) as temporary:
+        tifffile.imwrite(temporary, stack.astype(np.float32, copy=False), description=description, metadata=None, photometric="minisblack")
+    return Path(path)
+
+
+def read_stack(path: str | Path) -> tuple[np.ndarray, dict]:
+    """Read a stack written by `write_stack`; return ``(stack, description_dict)``."""
+    import tifffile
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: file not found")
+    with tifffile.TiffFile(path) as handle:
+        stack = handle.asarray()
+        text = handle.pages[0].description
+    try:
+        description = json.loads(text) if text else {}
+    except json.JSONDecodeError:
+        description = {}
+    return stack, description
+
+
+def write_particles(path: str | Path, table: dict[str, np.ndarray]) -> Path:
+    """Write a particle table (CONTRACT.md): ``x_um,y_um,z_um,diameter_um`` then any other columns."""
+    missing = [c for c in PARTICLE_COLUMNS if c not in table]
+    if missing:
+        raise InputError(f"particle table: missing column {missing[0]}")
+    columns = list(PARTICLE_COLUMNS) + [c for c in table if c not in PARTICLE_COLUMNS]
+    count = len(np.asarray(table["x_um"]))
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(columns)
+    for i in range(count):
+        writer.writerow([_format(table[c][i]) for c in columns])
+    return atomic_write_bytes(Path(path), buffer.getvalue().encode("utf-8"))
+
+
+def _format(value: object) -> str:
+    if isinstance(value, (float, np.floating)):
+        return f"{float(value):.6g}"
+    return str(value)
+
+
+def read_particles(path: str | Path) -> dict[str, np.ndarray]:
+    """Read a particle table; numeric columns become float64 arrays."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: file not found")
+    with path.open(newline="", encoding="utf-8") as handle:
+        rows = list(csv.reader(handle))
+    if not rows:
+        raise InputError(f"{path}: empty file, expected a header {','.join(PARTICLE_COLUMNS)}")
+    header = [h.strip() for h in rows[0]]
+    missing = [c for c in PARTICLE_COLUMNS if c not in header]
+    if missing:
+        raise InputError(f"{path}: missing column {missing[0]} (header: {','.join(header)})")
+    table: dict[str, np.ndarray] = {}
+    for index, name in enumerate(header):
+        values = [row[index] for row in rows[1:] if row]
+        try:
+            table[name] = np.array(values, dtype=np.float64)
+        except ValueError:
+            if name in PARTICLE_COLUMNS:
+                raise InputError(f"{path}: column {name} is not numeric") from None
+            table[name] = np.array(values, dtype=object)
+    return table

@@ -1,0 +1,55 @@
+"""The one pattern for long work: ``progress(done, total)`` and ``should_stop()`` callbacks.
+
+Every long-running `_core` function takes two keyword-only callables, both optional:
+
+- ``progress(done, total)`` is called after each step (a z chunk, a GA generation, a batch);
+- ``should_stop()`` is polled between steps; when it returns True the function stops at the
+  next step boundary. Functions whose partial result is meaningful (calibration, training)
+  return it marked as stopped; the others raise `Stopped` and leave nothing half-written.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+__all__ = ["ProgressCallback", "StopCallback", "Stopped", "Steps"]
+
+ProgressCallback = Callable[[int, int], None]
+StopCallback = Callable[[], bool]
+
+
+class Stopped(RuntimeError):
+    """Raised by a long function whose caller asked it to stop and that has no partial result."""
+
+
+class Steps:
+    """Counts the steps of one long job and relays them to the callbacks.
+
+    Parameters
+    ----------
+    total : int
+        Number of steps the job will report.
+    progress, should_stop : callable or None
+        The caller's callbacks (see the module docstring).
+    """
+
+    def __init__(self, total: int, *, progress: ProgressCallback | None, should_stop: StopCallback | None) -> None:
+        self.total = int(total)
+        self.done = 0
+        self._progress = progress
+        self._should_stop = should_stop
+
+    def stop_requested(self) -> bool:
+        """True once the caller asked to stop."""
+        return bool(self._should_stop is not None and self._should_stop())
+
+    def check(self) -> None:
+        """Raise `Stopped` if the caller asked to stop."""
+        if self.stop_requested():
+            raise Stopped(f"stopped after {self.done} of {self.total} steps")
+
+    def advance(self, count: int = 1) -> None:
+        """Record ``count`` finished steps and report them."""
+        self.done += count
+        if self._progress is not None:
+            self._progress(self.done, self.total)

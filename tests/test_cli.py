@@ -1,0 +1,63 @@
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import tifffile
+
+from napari_lbs._cli import main
+from napari_lbs._core import read_particles
+
+
+def run(*args):
+    return subprocess.run([sys.executable, "-m", "napari_lbs._cli", *map(str, args)], capture_output=True, text=True)
+
+
+def test_config_simulate_backprop_end_to_end(tmp_path):
+    config = tmp_path / "c.toml"
+    assert main(["config", "--write", str(config)]) == 0
+    config.write_text(config.read_text().replace("z_step_um = 50.0", "z_step_um = 500.0"))
+    assert main(["simulate", "--config", str(config), "--out", str(tmp_path / "sim"), "--size", "64", "--particles", "3", "--seed", "5"]) == 0
+    hologram = tifffile.imread(tmp_path / "sim" / "hologram.tif")
+    assert hologram.dtype == np.float32 and hologram.shape == (64, 64)
+    assert len(np.unique(hologram)) > 1000  # unquantised
+    truth = read_particles(tmp_path / "sim" / "particles.csv")
+    assert truth["x_um"].size == 3
+    assert main(["backprop", str(tmp_path / "sim" / "hologram.tif"), "--config", str(config), "--out", str(tmp_path / "stack.tif")]) == 0
+    with tifffile.TiffFile(tmp_path / "stack.tif") as handle:
+        stack = handle.asarray()
+        description = json.loads(handle.pages[0].description)
+    assert stack.shape == (7, 64, 64) and stack.dtype == np.float32
+    assert description["z_um"] == [1800.0, 2300.0, 2800.0, 3300.0, 3800.0, 4300.0, 4800.0]
+    assert description["config"]["volume"]["z_step_um"] == 500.0
+
+
+@pytest.mark.parametrize(
+    ("args", "culprit"),
+    [
+        (["backprop", "missing.tif", "--config", "{config}", "--out", "{tmp}/s.tif"], "missing.tif"),
+        (["backprop", "{tmp}/rgbstack.tif", "--config", "{config}", "--out", "{tmp}/s.tif"], "rgbstack.tif"),
+        (["backprop", "{tmp}/h.tif", "--config", "{tmp}/bad.toml", "--out", "{tmp}/s.tif"], "volume.z_max_um"),
+        (["backprop", "{tmp}/h.tif", "--config", "{config}", "--out", "{tmp}/s.tif", "--background", "{tmp}/small.tif"], "small.tif"),
+    ],
+)
+def test_bad_input_exits_2_with_one_line_naming_the_culprit(tmp_path, args, culprit):
+    config = tmp_path / "c.toml"
+    main(["config", "--write", str(config)])
+    (tmp_path / "bad.toml").write_text("[volume]\nz_min_um = 3000.0\nz_max_um = 2000.0\n")
+    tifffile.imwrite(tmp_path / "h.tif", np.ones((32, 32), np.float32))
+    tifffile.imwrite(tmp_path / "small.tif", np.ones((16, 16), np.float32))
+    tifffile.imwrite(tmp_path / "rgbstack.tif", np.ones((5, 32, 32), np.float32))
+    result = run(*[a.format(config=config, tmp=tmp_path) for a in args])
+    assert result.returncode == 2
+    assert len(result.stderr.strip().splitlines()) == 1 and culprit in result.stderr
+    assert "Traceback" not in result.stderr
+    assert not (tmp_path / "s.tif").exists()
+
+
+def test_demo_quick_writes_a_zstack_and_summary(tmp_path):
+    assert main(["demo", "--out", str(tmp_path), "--quick"]) == 0
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    stack = tifffile.imread(summary["zstack"])
+    assert stack.shape == (61, 256, 256)
