@@ -61,3 +61,19 @@ def test_demo_quick_writes_a_zstack_and_summary(tmp_path):
     summary = json.loads((tmp_path / "summary.json").read_text())
     stack = tifffile.imread(summary["zstack"])
     assert stack.shape == (61, 256, 256)
+
+
+def test_calibrate_writes_contract_json(tmp_path):
+    from napari_lbs._core import load_sample_hologram
+
+    tifffile.imwrite(tmp_path / "h.tif", load_sample_hologram()[:256, :512])
+    config = tmp_path / "c.toml"
+    main(["config", "--write", str(config)])
+    assert main(["calibrate", str(tmp_path / "h.tif"), "--config", str(config), "--out", str(tmp_path / "cal.json"), "--generations", "2", "--population", "6", "--seed", "3"]) == 0
+    payload = json.loads((tmp_path / "cal.json").read_text())
+    assert set(payload["params"]) >= {"N_R", "N_sigma", "gamma"}
+    assert isinstance(payload["ssim"], float) and payload["roi"][2] == 256 and payload["roi"][1] == 0
+    assert payload["history"][0].keys() >= {"generation", "best_fitness"} and len(payload["history"]) == 2
+    assert payload["seconds"] > 0 and payload["provenance"]["seed"] == 3
+    result = run("calibrate", tmp_path / "h.tif", "--config", config, "--out", tmp_path / "c2.json", "--roi", "400", "0")
+    assert result.returncode == 2 and "roi" in result.stderr and len(result.stderr.strip().splitlines()) == 1

@@ -133,6 +133,25 @@ def _cmd_backprop(args) -> None:
     _summary(f"back-propagated {args.holo} to {len(z_um)} planes ({z_um[0]:g}-{z_um[-1]:g} um) in {time.perf_counter() - start:.1f} s -> {args.out}")
 
 
+def _cmd_calibrate(args) -> None:
+    from napari_lbs._core import CalibrationSettings, calibrate_hologram, load_config, write_json
+
+    config = load_config(args.config)
+    hologram, background = _read_inputs(args, config)
+    settings = CalibrationSettings(mode=args.mode, generations=args.generations, population=args.population, runs=args.runs, seed=args.seed)
+    result = calibrate_hologram(hologram, config, roi=args.roi, background=background, settings=settings, progress=_ProgressBar("calibrate"))
+    payload = result.to_json()
+    payload["provenance"] = _provenance(config, source=str(args.holo), background=args.background, seed=args.seed)
+    write_json(args.out, payload)
+    p = result.params
+    x, y, size = result.roi
+    chosen = "" if args.roi else f" (chosen: {result.roi_choice})"
+    _summary(
+        f"calibrated on the {size}² tile at x={x}, y={y}{chosen}: N_R={p.N_R:.4f}, N_sigma={p.N_sigma:.4f}, gamma={p.gamma:.4f}, "
+        f"SSIM={result.ssim:.4f}, {result.evaluations} evaluations in {result.seconds:.1f} s -> {args.out}"
+    )
+
+
 def _cmd_demo(args) -> None:
     from napari_lbs._core import SAMPLE_PROVENANCE, backpropagate, load_config, load_sample_hologram, write_json, write_stack
 
@@ -178,6 +197,19 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, metavar="STACK.tif")
     p.add_argument("--background", metavar="BG")
     p.set_defaults(run=_cmd_backprop)
+
+    p = sub.add_parser("calibrate", help="fit Holo-processing (noise + gamma) to one tile of a real hologram")
+    p.add_argument("holo", metavar="HOLO")
+    p.add_argument("--config", required=True)
+    p.add_argument("--out", required=True, metavar="CALIB.json")
+    p.add_argument("--roi", type=int, nargs=2, metavar=("X", "Y"), help="top-left pixel of the reference tile (default: the tool picks)")
+    p.add_argument("--background", metavar="BG")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--mode", choices=("robust", "seed"), default="robust", help="robust (default) or the seed code's conventions")
+    p.add_argument("--generations", type=int, default=100)
+    p.add_argument("--population", type=int, default=12)
+    p.add_argument("--runs", type=int, default=1)
+    p.set_defaults(run=_cmd_calibrate)
 
     p = sub.add_parser("demo", help="run the pipeline on the built-in real hologram")
     p.add_argument("--out", default="napari-lbs-demo", metavar="DIR")

@@ -4,6 +4,18 @@ Long-running functions take keyword-only ``progress(done, total)`` and ``should_
 callbacks (see `napari_lbs._core._progress`).
 """
 
+from napari_lbs._core._calibration import (
+    PARAM_BOUNDS,
+    CalibrationResult,
+    CalibrationSettings,
+    HoloParams,
+    calibrate,
+    calibrate_hologram,
+    choose_reference_tile,
+    experimental_reference,
+    holo_processing,
+    score_params,
+)
 from napari_lbs._core._config import (
     ConfigError,
     ExperimentConfig,
@@ -48,6 +60,16 @@ from napari_lbs._core._synthesis import (
 )
 
 __all__ = [
+    "PARAM_BOUNDS",
+    "CalibrationResult",
+    "CalibrationSettings",
+    "HoloParams",
+    "calibrate",
+    "calibrate_hologram",
+    "choose_reference_tile",
+    "experimental_reference",
+    "holo_processing",
+    "score_params",
     "ConfigError",
     "ExperimentConfig",
     "OpticsConfig",
