@@ -31,7 +31,7 @@ def test_shipped_sample_is_bit_identical_to_the_seed_bmp(real_hologram_bmp):
 )
 def test_bad_images_are_refused_with_the_culprit(tmp_path, array, message):
     path = tmp_path / "bad.tif"
-    tifffile.imwrite(path, array)
+    tifffile.imwrite(path, array, photometric="minisblack")
     with pytest.raises(InputError, match=message) as info:
         read_hologram(path)
     assert "bad.tif" in str(info.value) and "\n" not in str(info.value)

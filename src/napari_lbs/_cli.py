@@ -152,6 +152,21 @@ def _cmd_calibrate(args) -> None:
     )
 
 
+def _cmd_evaluate(args) -> None:
+    from napari_lbs._core import read_particles, score_particles, seed_scores
+
+    pred, truth = read_particles(args.pred), read_particles(args.truth)
+    tolerances = {"lateral_tol_um": args.lateral_tol_um, "axial_tol_um": args.axial_tol_um}
+    metrics = score_particles(pred, truth, **tolerances)
+    seed = seed_scores(pred, truth, **tolerances)
+    if args.json:
+        print(json.dumps({**metrics, "seed_scoring": seed, **tolerances}))
+    _summary(
+        f"one-to-one: TP {metrics['tp']}, FP {metrics['fp']}, FN {metrics['fn']}, ER {100 * metrics['er']:.2f} %, JI {metrics['ji']:.3f} "
+        f"(seed's scoring, which counts repeats: ER {100 * seed['er']:.2f} %, JI {seed['ji']:.3f})"
+    )
+
+
 def _cmd_demo(args) -> None:
     from napari_lbs._core import SAMPLE_PROVENANCE, backpropagate, load_config, load_sample_hologram, write_json, write_stack
 
@@ -210,6 +225,14 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--population", type=int, default=12)
     p.add_argument("--runs", type=int, default=1)
     p.set_defaults(run=_cmd_calibrate)
+
+    p = sub.add_parser("evaluate", help="score a particle table against a reference, one-to-one")
+    p.add_argument("pred", metavar="PRED.csv")
+    p.add_argument("truth", metavar="TRUTH.csv")
+    p.add_argument("--lateral-tol-um", type=float, default=22.0)
+    p.add_argument("--axial-tol-um", type=float, default=150.0)
+    p.add_argument("--json", action="store_true", help="print the metrics JSON on stdout")
+    p.set_defaults(run=_cmd_evaluate)
 
     p = sub.add_parser("demo", help="run the pipeline on the built-in real hologram")
     p.add_argument("--out", default="napari-lbs-demo", metavar="DIR")

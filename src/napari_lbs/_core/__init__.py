@@ -37,6 +37,7 @@ from napari_lbs._core._io import (
     write_particles,
     write_stack,
 )
+from napari_lbs._core._metrics import AXIAL_TOL_UM, LATERAL_TOL_UM, match_particles, score_particles, seed_scores
 from napari_lbs._core._optics import (
     backpropagate,
     padded_shape,
@@ -87,6 +88,11 @@ __all__ = [
     "write_json",
     "write_particles",
     "write_stack",
+    "AXIAL_TOL_UM",
+    "LATERAL_TOL_UM",
+    "match_particles",
+    "score_particles",
+    "seed_scores",
     "backpropagate",
     "padded_shape",
     "propagate",
