@@ -92,7 +92,7 @@ def _cmd_simulate(args) -> None:
     _summary(f"simulated a {size}x{size} hologram of {len(field)} particles -> {out / 'hologram.tif'}, {out / 'particles.csv'}")
 
 
-def _read_inputs(args, config):
+def _read_inputs(args):
     from napari_lbs._core import read_hologram
 
     hologram = read_hologram(args.holo, log=_summary)
@@ -111,7 +111,7 @@ def _cmd_backprop(args) -> None:
     import tifffile
 
     config = load_config(args.config)
-    hologram, background = _read_inputs(args, config)
+    hologram, background = _read_inputs(args)
     z_um = config.volume.planes_um()
     description = json.dumps({"z_um": list(z_um), **_provenance(config, source=str(args.holo), background=args.background)})
     start = time.perf_counter()
@@ -137,7 +137,7 @@ def _cmd_calibrate(args) -> None:
     from napari_lbs._core import CalibrationSettings, calibrate_hologram, load_config, write_json
 
     config = load_config(args.config)
-    hologram, background = _read_inputs(args, config)
+    hologram, background = _read_inputs(args)
     settings = CalibrationSettings(mode=args.mode, generations=args.generations, population=args.population, runs=args.runs, seed=args.seed)
     result = calibrate_hologram(hologram, config, roi=args.roi, background=background, settings=settings, progress=_ProgressBar("calibrate"))
     payload = result.to_json()

@@ -150,11 +150,10 @@ class ExperimentConfig:
     @classmethod
     def from_dict(cls, data: dict) -> "ExperimentConfig":
         """Build from a nested dict; unknown sections or keys and wrong types raise `ConfigError`."""
-        sections = {f.name: f.type for f in dataclasses.fields(cls)}
         section_classes = {"optics": OpticsConfig, "volume": VolumeConfig, "particles": ParticlesConfig, "tile": TileConfig}
-        unknown = set(data) - set(sections)
+        unknown = set(data) - set(section_classes)
         if unknown:
-            raise ConfigError(f"{sorted(unknown)[0]}: unknown section; expected one of {sorted(sections)}")
+            raise ConfigError(f"{sorted(unknown)[0]}: unknown section; expected one of {sorted(section_classes)}")
         built = {}
         for name, section_cls in section_classes.items():
             values = data.get(name, {})
