@@ -148,8 +148,8 @@ def _normalise_planes(planes: np.ndarray, *, mode: str) -> np.ndarray:
     return unit
 
 
-def _reference_image(magnitudes: np.ndarray, *, gamma: float, invert: bool, mode: str) -> np.ndarray:
-    """Planes ``|·|`` → per-plane normalisation → (inversion) → gamma → depth average, in [0, 1]."""
+def _processed_planes(magnitudes: np.ndarray, *, gamma: float, invert: bool, mode: str) -> np.ndarray:
+    """Planes ``|·|`` → per-plane normalisation → (inversion) → gamma, in [0, 1]."""
     unit = _normalise_planes(magnitudes, mode=mode)
     if invert:
         unit = 1.0 - unit
@@ -157,7 +157,12 @@ def _reference_image(magnitudes: np.ndarray, *, gamma: float, invert: bool, mode
         unit = unit**gamma
         if mode == "seed":
             unit = np.floor(unit * 255.0) / 255.0
-    return unit.mean(axis=0)
+    return unit
+
+
+def _reference_image(magnitudes: np.ndarray, *, gamma: float, invert: bool, mode: str) -> np.ndarray:
+    """Depth average of `_processed_planes`: a reference image ``I_e`` or ``I_s``."""
+    return _processed_planes(magnitudes, gamma=gamma, invert=invert, mode=mode).mean(axis=0)
 
 
 class _SSIM:
@@ -214,8 +219,8 @@ def holo_processing(
     rng = np.random.default_rng(seed)
     noisy = hologram + rng.normal(params.N_R * np.ptp(hologram), params.N_sigma * hologram.std(), hologram.shape).astype(hologram.dtype)
     magnitudes = np.abs(propagate(noisy, -np.asarray(planes_um, float), wavelength_um=wavelength_um, pixel_um=pixel_um, medium_index=medium_index))
-    unit = _normalise_planes(magnitudes, mode=mode) ** params.gamma
-    return unit.mean(axis=0) if average else unit.astype(np.float32)
+    planes = _processed_planes(magnitudes, gamma=params.gamma, invert=False, mode=mode)
+    return planes.mean(axis=0) if average else planes.astype(np.float32)
 
 
 def experimental_reference(stack: np.ndarray, *, mode: str = "robust") -> np.ndarray:
