@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from napari_lbs import __version__
+from napari_lbs._core._metrics import AXIAL_TOL_UM, LATERAL_TOL_UM
 
 _EXPECTED_ERRORS = (ValueError, FileNotFoundError, IsADirectoryError, PermissionError)
 
@@ -229,8 +230,8 @@ def _parser() -> argparse.ArgumentParser:
     p = sub.add_parser("evaluate", help="score a particle table against a reference, one-to-one")
     p.add_argument("pred", metavar="PRED.csv")
     p.add_argument("truth", metavar="TRUTH.csv")
-    p.add_argument("--lateral-tol-um", type=float, default=22.0)
-    p.add_argument("--axial-tol-um", type=float, default=150.0)
+    p.add_argument("--lateral-tol-um", type=float, default=LATERAL_TOL_UM)
+    p.add_argument("--axial-tol-um", type=float, default=AXIAL_TOL_UM)
     p.add_argument("--json", action="store_true", help="print the metrics JSON on stdout")
     p.set_defaults(run=_cmd_evaluate)
 
