@@ -153,6 +153,71 @@ def _cmd_calibrate(args) -> None:
     )
 
 
+def _read_calibration(path) -> dict:
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: calibration file not found")
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as error:
+        raise ValueError(f"{path}: not valid JSON ({error})") from None
+
+
+def _cmd_generate(args) -> None:
+    from napari_lbs._core import InputProcessing, generate_dataset, load_config
+
+    config = load_config(args.config)
+    if args.calibration:
+        calibration = _read_calibration(args.calibration)
+        processing = InputProcessing.from_calibration(calibration)
+    else:
+        calibration, processing = None, InputProcessing()
+    start = time.perf_counter()
+    dataset = generate_dataset(args.out, config, groups=args.groups, processing=processing, calibration=calibration, seed=args.seed, progress=_ProgressBar("generate"))
+    seconds = time.perf_counter() - start
+    planes = len(dataset.groups) * len(dataset.planes_um)
+    kind = f"calibrated ({args.calibration})" if calibration else "uncalibrated: Holo-processing (0, 0, 1)"
+    _summary(f"wrote {len(dataset.groups)} groups ({planes} input planes, {kind}) in {seconds:.1f} s -> {args.out}")
+
+
+def _cmd_train(args) -> None:
+    from napari_lbs._core import TrainingSettings, train_model
+
+    settings = TrainingSettings(
+        preset=args.preset,
+        epochs=args.epochs,
+        batch_size=args.batch_size,
+        learning_rate=args.learning_rate,
+        device=args.device,
+        seed=args.seed,
+        validation_groups=args.validation_groups,
+        patch_size=args.patch_size,
+        foreground_weight=args.foreground_weight,
+    )
+    result = train_model(args.data, args.out, settings=settings, resume=args.resume, progress=_ProgressBar("train"))
+    best = result.log["best"]
+    record = next(e for e in result.log["epochs"] if e["epoch"] == best["epoch"])["validation"]
+    stopped = " (stopped)" if result.stopped else ""
+    _summary(
+        f"trained {settings.preset} for {len(result.log['epochs'])} epochs in {result.log['seconds']:.0f} s{stopped}; best epoch {best['epoch']}: "
+        f"validation ER {100 * record['er']:.2f} %, JI {record['ji']:.3f} (one-to-one, held-out synthetic groups) -> {args.out}"
+    )
+
+
+def _cmd_predict(args) -> None:
+    from napari_lbs._core import load_config, load_model, predict_particles, write_json, write_particles
+
+    model = load_model(args.model, device=args.device)
+    config = load_config(args.config) if args.config else None
+    hologram, background = _read_inputs(args)
+    result = predict_particles(hologram, model, config, background=background, progress=_ProgressBar("predict"))
+    out = Path(args.out)
+    write_particles(out, result.particles)
+    write_json(out.with_suffix(".json"), {**result.provenance, "source": str(args.holo), "background_file": args.background, "particles": str(out)})
+    count = len(result.particles["x_um"])
+    _summary(f"found {count} particles in {args.holo} in {result.seconds:.1f} s -> {out} (provenance: {out.with_suffix('.json')})")
+
+
 def _cmd_evaluate(args) -> None:
     from napari_lbs._core import read_particles, score_particles, seed_scores
 
@@ -226,6 +291,38 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--population", type=int, default=12)
     p.add_argument("--runs", type=int, default=1)
     p.set_defaults(run=_cmd_calibrate)
+
+    p = sub.add_parser("generate", help="write a synthetic training set (HCS + Holo-processing)")
+    p.add_argument("--config", required=True)
+    p.add_argument("--calibration", metavar="CALIB.json", help="calibrated Holo-processing (default: none, the seed's normal simulation)")
+    p.add_argument("--groups", type=int, default=256)
+    p.add_argument("--out", required=True, metavar="DATA")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(run=_cmd_generate)
+
+    p = sub.add_parser("train", help="train the U-Net on a synthetic training set")
+    p.add_argument("data", metavar="DATA")
+    p.add_argument("--out", required=True, metavar="MODEL.pt")
+    p.add_argument("--preset", choices=("small", "paper"), default="small")
+    p.add_argument("--epochs", type=int, default=10)
+    p.add_argument("--batch-size", type=int, default=8)
+    p.add_argument("--learning-rate", type=float, help="Adam's rate (default: 1e-3 small, 1e-4 paper)")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--validation-groups", type=int, default=0, help="held-out groups (default: one eighth)")
+    p.add_argument("--patch-size", type=int, default=0, help="train on random square patches (default: whole tiles)")
+    p.add_argument("--foreground-weight", type=float, default=1.0, help="MSE weight of label pixels (default 1: the seed's plain MSE)")
+    p.add_argument("--resume", action="store_true", help="continue from MODEL.last.pt")
+    p.set_defaults(run=_cmd_train)
+
+    p = sub.add_parser("predict", help="reconstruct the particles of a hologram with a trained model")
+    p.add_argument("holo", metavar="HOLO")
+    p.add_argument("--model", required=True, metavar="MODEL.pt")
+    p.add_argument("--out", required=True, metavar="PARTICLES.csv")
+    p.add_argument("--config", help="optics and depths (default: the model's)")
+    p.add_argument("--background", metavar="BG")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
+    p.set_defaults(run=_cmd_predict)
 
     p = sub.add_parser("evaluate", help="score a particle table against a reference, one-to-one")
     p.add_argument("pred", metavar="PRED.csv")

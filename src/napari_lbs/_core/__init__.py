@@ -2,7 +2,13 @@
 
 Long-running functions take keyword-only ``progress(done, total)`` and ``should_stop()``
 callbacks (see `napari_lbs._core._progress`).
+
+The names from the network, training and prediction modules need torch; they are listed
+here like the others but imported on first use (PEP 562), so ``import napari_lbs._core``
+stays light.
 """
+
+import importlib
 
 from napari_lbs._core._calibration import (
     PARAM_BOUNDS,
@@ -12,10 +18,21 @@ from napari_lbs._core._calibration import (
     calibrate,
     calibrate_hologram,
     choose_reference_tile,
+    experimental_planes,
     experimental_reference,
     holo_processing,
     score_params,
 )
+from napari_lbs._core._dataset import (
+    DATASET_FORMAT,
+    InputProcessing,
+    SyntheticDataset,
+    dataset_summary,
+    generate_dataset,
+    open_dataset,
+    synthetic_group,
+)
+from napari_lbs._core._detection import PlaneLinker, detect_particles
 from napari_lbs._core._config import (
     ConfigError,
     ExperimentConfig,
@@ -60,6 +77,22 @@ from napari_lbs._core._synthesis import (
     simulate_hologram,
 )
 
+_TORCH_NAMES = {
+    "_network": ("MODEL_FORMAT", "PRESETS", "LoadedModel", "UNet", "build_network", "check_model_matches", "load_model", "network_outputs", "resolve_device", "save_model"),
+    "_training": ("THRESHOLD_FRACTIONS", "TrainingResult", "TrainingSettings", "train_model"),
+    "_prediction": ("PredictionResult", "predict_particles", "tile_layout"),
+}
+_LAZY = {name: module for module, names in _TORCH_NAMES.items() for name in names}
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        value = getattr(importlib.import_module(f"napari_lbs._core.{_LAZY[name]}"), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
 __all__ = [
     "PARAM_BOUNDS",
     "CalibrationResult",
@@ -69,6 +102,7 @@ __all__ = [
     "calibrate_hologram",
     "choose_reference_tile",
     "experimental_reference",
+    "experimental_planes",
     "holo_processing",
     "score_params",
     "ConfigError",
@@ -112,4 +146,14 @@ __all__ = [
     "layer_images",
     "random_particle_field",
     "simulate_hologram",
+    "DATASET_FORMAT",
+    "InputProcessing",
+    "SyntheticDataset",
+    "dataset_summary",
+    "generate_dataset",
+    "open_dataset",
+    "synthetic_group",
+    "PlaneLinker",
+    "detect_particles",
+    *_LAZY,
 ]

@@ -46,6 +46,7 @@ __all__ = [
     "PARAM_BOUNDS",
     "holo_processing",
     "experimental_reference",
+    "experimental_planes",
     "choose_reference_tile",
     "calibrate",
     "calibrate_hologram",
@@ -226,6 +227,15 @@ def holo_processing(
 def experimental_reference(stack: np.ndarray, *, mode: str = "robust") -> np.ndarray:
     """Reference experimental image ``I_e`` from a tile's raw reconstruction planes (particles bright)."""
     return _reference_image(np.asarray(stack), gamma=1.0, invert=True, mode=mode)
+
+
+def experimental_planes(stack: np.ndarray, *, invert: bool, mode: str = "robust") -> np.ndarray:
+    """A tile's raw reconstruction planes as the network sees them, float32 in [0, 1].
+
+    Each plane is min–max normalised and, with ``invert``, inverted (the seed's ``255 - I``),
+    exactly the planes that `experimental_reference` averages into ``I_e``.
+    """
+    return _processed_planes(np.asarray(stack), gamma=1.0, invert=invert, mode=mode).astype(np.float32)
 
 
 class _Fitness:

@@ -1,0 +1,297 @@
+"""Better synthetic training data: random groups through HCS and Holo-processing, on disk.
+
+A *group* is one random particle field in a ``tile.size`` window (seed paper Sec. 2.1: 12
+particles on layers 1800–4800 µm every 200 µm), its simulated hologram turned into one
+input plane per layer by Holo-processing with the calibrated parameters, and one label plane
+per layer (3x3 squares of value 4 x diameter, `label_planes`).
+
+The data set folder (documented in docs/dataset.md)::
+
+    DATA/dataset.json            what the set is: format, config, processing, seed, planes, groups
+    DATA/groups/group_00000.tif  series 0: input planes (z, y, x) float32
+                                 series 1: label planes (z, y, x) float32 (zlib)
+                                 ImageDescription JSON of page 0: group, seed, z_um, particles
+
+Every group is drawn from the seed ``[seed, group]`` alone, so a set is the same whatever
+order, interruptions or resumptions produced it; each group file is written atomically and
+a rerun with the same settings only writes the groups that are missing.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from napari_lbs import __version__
+from napari_lbs._core._calibration import HoloParams, holo_processing
+from napari_lbs._core._config import ExperimentConfig
+from napari_lbs._core._io import InputError, atomic_path, write_json
+from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
+from napari_lbs._core._synthesis import ParticleField, label_planes, random_particle_field, simulate_hologram
+
+__all__ = ["InputProcessing", "SyntheticDataset", "synthetic_group", "generate_dataset", "open_dataset", "dataset_summary", "DATASET_FORMAT"]
+
+DATASET_FORMAT = "napari-lbs-dataset"
+_FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class InputProcessing:
+    """How network inputs are made, for synthetic training planes and for real planes alike.
+
+    Attributes
+    ----------
+    params : HoloParams
+        Holo-processing of synthetic holograms; (0, 0, 1) is the seed's "normal simulation".
+    invert_experiment : bool
+        Whether real reconstruction planes are inverted (``1 - I``) before the network. The
+        calibration fits synthetic planes to *inverted* experimental ones (``I_e``), so a
+        calibrated set inverts; an uncalibrated one does not.
+    mode : {"robust", "seed"}
+        Per-plane normalisation: float (robust) or the seed's 8-bit stretch.
+    """
+
+    params: HoloParams = field(default_factory=HoloParams)
+    invert_experiment: bool = False
+    mode: str = "robust"
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("robust", "seed"):
+            raise InputError(f"mode: expected 'robust' or 'seed', got {self.mode!r}")
+
+    @classmethod
+    def from_calibration(cls, calibration: dict) -> InputProcessing:
+        """The processing a calibration JSON (CONTRACT.md) implies."""
+        try:
+            params = HoloParams(*(float(calibration["params"][key]) for key in ("N_R", "N_sigma", "gamma")))
+        except (KeyError, TypeError, ValueError) as error:
+            raise InputError(f"calibration: expected params N_R, N_sigma and gamma, missing or invalid {error}") from None
+        mode = (calibration.get("settings") or {}).get("mode", "robust")
+        return cls(params=params, invert_experiment=True, mode=mode)
+
+    def to_dict(self) -> dict:
+        return {"params": self.params.as_dict(), "invert_experiment": self.invert_experiment, "mode": self.mode}
+
+    @classmethod
+    def from_dict(cls, payload: dict) -> InputProcessing:
+        return cls(params=HoloParams(**payload["params"]), invert_experiment=bool(payload["invert_experiment"]), mode=payload["mode"])
+
+
+def synthetic_group(
+    config: ExperimentConfig,
+    processing: InputProcessing,
+    *,
+    seed: int | list[int],
+    shape: tuple[int, int] | None = None,
+    count: int | None = None,
+) -> tuple[np.ndarray, np.ndarray, ParticleField]:
+    """One training group: ``(inputs, labels, field)``.
+
+    Parameters
+    ----------
+    config : ExperimentConfig
+        Optics, particle sizes, layers (``z_min_um`` … ``z_max_um`` every ``layer_step_um``).
+    processing : InputProcessing
+        Holo-processing applied to the simulated hologram.
+    seed : int or list of int
+        Seeds the particle field and the noise.
+    shape, count : optional
+        Window (default ``tile.size`` square) and particle count (default ``per_tile``).
+
+    Returns
+    -------
+    inputs, labels : (n_layers, rows, cols) float32
+    field : ParticleField
+    """
+    rng = np.random.default_rng(seed)
+    planes_um = config.layer_depths_um()
+    size = config.tile.size
+    particles = random_particle_field(
+        shape or (size, size),
+        count=config.particles.per_tile if count is None else count,
+        diameter_min_um=config.particles.diameter_min_um,
+        diameter_max_um=config.particles.diameter_max_um,
+        layers_um=planes_um,
+        pixel_um=config.optics.pixel_um,
+        seed=rng,
+    )
+    optics = {"wavelength_um": config.optics.wavelength_um, "medium_index": config.optics.medium_index}
+    hologram = simulate_hologram(particles, **optics)
+    inputs = holo_processing(hologram, processing.params, planes_um=planes_um, pixel_um=config.optics.pixel_um, seed=rng, mode=processing.mode, average=False, **optics)
+    return inputs, label_planes(particles, planes_um), particles
+
+
+@dataclass
+class SyntheticDataset:
+    """A data set folder: its description and the groups present on disk."""
+
+    path: Path
+    spec: dict
+    groups: list[int]
+    complete: bool
+    stopped: bool = False
+
+    @property
+    def config(self) -> ExperimentConfig:
+        return ExperimentConfig.from_dict(self.spec["config"])
+
+    @property
+    def processing(self) -> InputProcessing:
+        return InputProcessing.from_dict(self.spec["processing"])
+
+    @property
+    def planes_um(self) -> list[float]:
+        return list(self.spec["planes_um"])
+
+    def group_path(self, group: int) -> Path:
+        return self.path / "groups" / f"group_{group:05d}.tif"
+
+    def read_group(self, group: int) -> tuple[np.ndarray, np.ndarray, dict]:
+        """``(inputs, labels, description)`` of one group."""
+        import tifffile
+
+        path = self.group_path(group)
+        if not path.is_file():
+            raise InputError(f"{path}: group file not found")
+        with tifffile.TiffFile(path) as handle:
+            inputs = handle.series[0].asarray()
+            labels = handle.series[1].asarray()
+            description = json.loads(handle.pages[0].description)
+        return inputs, labels, description
+
+    def arrays(self, groups: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        """Input and label planes of ``groups`` stacked: two ``(len(groups) * n_planes, rows, cols)`` float32 arrays."""
+        size, planes = self.spec["tile_size"], len(self.spec["planes_um"])
+        inputs = np.empty((len(groups) * planes, size, size), np.float32)
+        labels = np.empty_like(inputs)
+        for index, group in enumerate(groups):
+            inputs[index * planes : (index + 1) * planes], labels[index * planes : (index + 1) * planes], _ = self.read_group(group)
+        return inputs, labels
+
+
+def _spec(config: ExperimentConfig, processing: InputProcessing, seed: int) -> dict:
+    return {
+        "format": DATASET_FORMAT,
+        "version": _FORMAT_VERSION,
+        "config": config.to_dict(),
+        "processing": processing.to_dict(),
+        "seed": int(seed),
+        "planes_um": [float(z) for z in config.layer_depths_um()],
+        "tile_size": int(config.tile.size),
+        "particles_per_group": int(config.particles.per_tile),
+    }
+
+
+_IDENTITY_KEYS = ("format", "version", "config", "processing", "seed", "planes_um", "tile_size", "particles_per_group")
+
+
+def _group_is_valid(path: Path, planes: int, size: int) -> bool:
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(path) as handle:
+            return len(handle.series) == 2 and all(s.shape == (planes, size, size) for s in handle.series)
+    except Exception:  # an unreadable file is simply regenerated
+        return False
+
+
+def generate_dataset(
+    out_dir: str | Path,
+    config: ExperimentConfig,
+    *,
+    groups: int,
+    processing: InputProcessing = InputProcessing(),
+    calibration: dict | None = None,
+    seed: int = 0,
+    progress: ProgressCallback | None = None,
+    should_stop: StopCallback | None = None,
+) -> SyntheticDataset:
+    """Write ``groups`` synthetic groups into ``out_dir`` (the `napari-lbs generate` step).
+
+    Resumable: groups already in ``out_dir`` from the same settings are kept, so a stopped
+    or interrupted run continues where it ended, and asking for more groups extends a set. A
+    folder holding a set made with other settings is refused rather than mixed.
+
+    Parameters
+    ----------
+    out_dir : path
+        The data set folder (created if needed).
+    config : ExperimentConfig
+    groups : int
+        Number of groups (the seed: 256).
+    processing : InputProcessing
+        How synthetic planes are processed (`InputProcessing.from_calibration`).
+    calibration : dict, optional
+        The calibration JSON, recorded as provenance.
+    seed : int
+    progress, should_stop
+        One step per group. A stop ends after the current group; the set is then marked
+        incomplete and a rerun finishes it.
+    """
+    if int(groups) < 1:
+        raise InputError(f"groups: expected a positive number of groups, got {groups}")
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: expected a folder for the data set, got a file")
+    spec = _spec(config, processing, seed)
+    manifest = out / "dataset.json"
+    if manifest.is_file():
+        existing = json.loads(manifest.read_text(encoding="utf-8"))
+        differing = [key for key in _IDENTITY_KEYS if existing.get(key) != spec[key]]
+        if differing:
+            raise InputError(f"{out}: holds a data set made with other settings (differs in {', '.join(differing)}); choose another folder")
+    spec.update(groups=int(groups), calibration=calibration, napari_lbs=__version__)
+    (out / "groups").mkdir(parents=True, exist_ok=True)
+    write_json(manifest, {**spec, "complete": False})
+    dataset = SyntheticDataset(out, spec, [], complete=False)
+    planes_um = spec["planes_um"]
+    steps = Steps(int(groups), progress=progress, should_stop=should_stop)
+    import tifffile
+
+    for group in range(int(groups)):
+        if steps.stop_requested():
+            dataset.stopped = True
+            break
+        path = dataset.group_path(group)
+        if not _group_is_valid(path, len(planes_um), config.tile.size):
+            inputs, labels, particles = synthetic_group(config, processing, seed=[int(seed), group])
+            description = json.dumps({
+                "group": group,
+                "seed": [int(seed), group],
+                "z_um": planes_um,
+                "particles": {key: [float(v) for v in values] for key, values in particles.table().items()},
+            })
+            with atomic_path(path) as temporary, tifffile.TiffWriter(temporary) as writer:
+                writer.write(inputs, description=description, metadata=None, photometric="minisblack")
+                writer.write(labels, compression="zlib", metadata=None, photometric="minisblack")
+        dataset.groups.append(group)
+        steps.advance()
+    dataset.complete = len(dataset.groups) == int(groups)
+    write_json(manifest, {**spec, "complete": dataset.complete})
+    return dataset
+
+
+def open_dataset(path: str | Path) -> SyntheticDataset:
+    """Open a data set folder written by `generate_dataset`."""
+    path = Path(path)
+    manifest = path / "dataset.json"
+    if not manifest.is_file():
+        raise InputError(f"{path}: not a napari-lbs data set (no dataset.json)")
+    try:
+        spec = json.loads(manifest.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as error:
+        raise InputError(f"{manifest}: not valid JSON ({error})") from None
+    if spec.get("format") != DATASET_FORMAT or spec.get("version") != _FORMAT_VERSION:
+        raise InputError(f"{manifest}: expected format {DATASET_FORMAT} version {_FORMAT_VERSION}, got {spec.get('format')} {spec.get('version')}")
+    dataset = SyntheticDataset(path, spec, [], complete=bool(spec.get("complete")))
+    dataset.groups = [g for g in range(int(spec["groups"])) if dataset.group_path(g).is_file()]
+    return dataset
+
+
+def dataset_summary(dataset: SyntheticDataset) -> dict:
+    """What a training log records about its data."""
+    return {"path": str(dataset.path), "groups": len(dataset.groups), "complete": dataset.complete, **{k: dataset.spec[k] for k in ("seed", "planes_um", "tile_size", "processing")}}
+

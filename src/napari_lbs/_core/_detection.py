@@ -1,0 +1,146 @@
+"""From network output planes to particles: decode the 3x3 squares and merge them through depth.
+
+The network paints each in-focus particle as a 3x3 square of value ``LABEL_SCALE x diameter``
+on the plane nearest its depth; a real particle is in focus over several neighbouring planes,
+so its squares repeat there. Decoding, plane by plane (streaming: a deep stack never has to
+be held):
+
+1. threshold the output; each 8-connected blob is a per-plane detection with its response
+   sum, its response-weighted centroid and its best 3x3 mean (the largest mean of a 3x3
+   window centred in the blob: a label square's value);
+2. link a blob to the blobs of the previous plane that touch it (1-pixel tolerance), so one
+   particle's detections through depth form one chain (union–find);
+3. each chain becomes one particle at the centroid of its strongest blob, its depth refined by
+   a parabola through the chain's response sums around the strongest plane, its diameter the
+   blob's best 3x3 mean / ``LABEL_SCALE``.
+
+``score`` is the 3x3 mean relative to the label of the smallest particle the model was trained
+for, clipped to [0, 1]: 1 means "as strong as a true square".
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from scipy import ndimage
+
+from napari_lbs._core._io import InputError
+from napari_lbs._core._synthesis import LABEL_SCALE
+
+__all__ = ["PlaneLinker", "detect_particles"]
+
+_EIGHT_CONNECTED = np.ones((3, 3), dtype=bool)
+
+
+class PlaneLinker:
+    """Accumulates output planes in depth order and merges detections into particles.
+
+    Parameters
+    ----------
+    planes_um : sequence of float
+        Depth of each plane (µm), in the order planes will be added.
+    pixel_um : float
+        Pixel pitch (µm).
+    threshold : float
+        Output value (label units, 4 x µm) above which a pixel belongs to a detection.
+    full_value : float
+        Label value that scores 1 (``LABEL_SCALE x`` the smallest trained diameter).
+    origin_um : (x, y)
+        Position of pixel (0, 0), for outputs of a crop.
+    """
+
+    def __init__(self, planes_um: Sequence[float], *, pixel_um: float, threshold: float, full_value: float, origin_um: tuple[float, float] = (0.0, 0.0)) -> None:
+        if threshold <= 0:
+            raise InputError(f"threshold: expected a positive output value, got {threshold}")
+        self.planes_um = np.asarray(planes_um, dtype=np.float64)
+        self.pixel_um = float(pixel_um)
+        self.threshold = float(threshold)
+        self.full_value = float(full_value)
+        self.origin_um = origin_um
+        self._previous: tuple[int, np.ndarray, np.ndarray] | None = None  # (plane, labels, blob ids)
+        self._blobs: list[tuple[int, float, float, float, float]] = []  # plane, row, col, response sum, 3x3 mean
+        self._parent: list[int] = []
+
+    def _root(self, blob: int) -> int:
+        while self._parent[blob] != blob:
+            self._parent[blob] = self._parent[self._parent[blob]]
+            blob = self._parent[blob]
+        return blob
+
+    def add(self, plane: int, output: np.ndarray) -> None:
+        """Add the output (label units) of plane ``plane``; planes must come in increasing order."""
+        output = np.asarray(output, dtype=np.float32)
+        labels, count = ndimage.label(output > self.threshold, structure=_EIGHT_CONNECTED)
+        if count == 0:
+            self._previous = None
+            return
+        index = np.arange(1, count + 1)
+        sums = ndimage.sum_labels(output, labels, index)
+        centroids = ndimage.center_of_mass(output, labels, index)
+        # 3x3 means over the pixels inside the image, so a square clipped by the edge keeps its value
+        square_means = ndimage.uniform_filter(output, size=3, mode="constant") / ndimage.uniform_filter(np.ones_like(output), size=3, mode="constant")
+        best_squares = ndimage.maximum(square_means, labels, index)
+        ids = np.empty(count + 1, dtype=np.int64)
+        for k, (total, (row, col), square) in enumerate(zip(sums, centroids, best_squares, strict=True), start=1):
+            ids[k] = len(self._blobs)
+            self._blobs.append((plane, float(row), float(col), float(total), float(square)))
+            self._parent.append(ids[k])
+        if self._previous is not None and self._previous[0] == plane - 1:
+            _, previous_labels, previous_ids = self._previous
+            grown = ndimage.grey_dilation(previous_labels, size=(3, 3))
+            touching = (labels > 0) & (grown > 0)
+            for current, earlier in set(zip(labels[touching].tolist(), grown[touching].tolist(), strict=True)):
+                a, b = self._root(int(ids[current])), self._root(int(previous_ids[earlier]))
+                if a != b:
+                    self._parent[a] = b
+        self._previous = (plane, labels, ids)
+
+    def particles(self) -> dict[str, np.ndarray]:
+        """The particle table: x_um, y_um, z_um, diameter_um, score, planes (chain length)."""
+        chains: dict[int, list[int]] = {}
+        for blob in range(len(self._blobs)):
+            chains.setdefault(self._root(blob), []).append(blob)
+        rows = []
+        for members in chains.values():
+            by_plane: dict[int, float] = {}
+            for blob in members:
+                plane = self._blobs[blob][0]
+                by_plane[plane] = by_plane.get(plane, 0.0) + self._blobs[blob][3]
+            best = max(members, key=lambda b: self._blobs[b][3])
+            plane, row, col, _, square_mean = self._blobs[best]
+            rows.append((
+                self.origin_um[0] + col * self.pixel_um,
+                self.origin_um[1] + row * self.pixel_um,
+                self._refined_depth(plane, by_plane),
+                square_mean / LABEL_SCALE,
+                min(max(square_mean / self.full_value, 0.0), 1.0),
+                len(by_plane),
+            ))
+        rows.sort(key=lambda r: (r[2], r[1], r[0]))
+        columns = ("x_um", "y_um", "z_um", "diameter_um", "score", "planes")
+        table = np.asarray(rows, dtype=np.float64).reshape(-1, len(columns))
+        return {name: table[:, i] for i, name in enumerate(columns)}
+
+    def _refined_depth(self, plane: int, by_plane: dict[int, float]) -> float:
+        z = float(self.planes_um[plane])
+        if plane - 1 not in by_plane or plane + 1 not in by_plane or not 0 < plane < len(self.planes_um) - 1:
+            return z
+        left, centre, right = by_plane[plane - 1], by_plane[plane], by_plane[plane + 1]
+        curvature = left - 2 * centre + right
+        if curvature >= 0:
+            return z
+        offset = 0.5 * (left - right) / curvature  # vertex of the parabola, in planes, within ±0.5
+        step = 0.5 * (self.planes_um[plane + 1] - self.planes_um[plane - 1])
+        return z + float(np.clip(offset, -0.5, 0.5)) * float(step)
+
+
+def detect_particles(outputs: np.ndarray, planes_um: Sequence[float], *, pixel_um: float, threshold: float, full_value: float) -> dict[str, np.ndarray]:
+    """Particles from a ``(planes, rows, cols)`` output volume in label units (see `PlaneLinker`)."""
+    outputs = np.asarray(outputs)
+    if outputs.ndim != 3 or outputs.shape[0] != len(planes_um):
+        raise InputError(f"outputs: expected shape (len(planes_um)={len(planes_um)}, rows, cols), got {outputs.shape}")
+    linker = PlaneLinker(planes_um, pixel_um=pixel_um, threshold=threshold, full_value=full_value)
+    for plane, output in enumerate(outputs):
+        linker.add(plane, output)
+    return linker.particles()

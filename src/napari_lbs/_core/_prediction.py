@@ -1,0 +1,141 @@
+"""Prediction: a whole hologram → reconstruction planes → U-Net tile by tile → particles.
+
+The whole hologram is back-propagated (so a tile keeps its true surroundings, which the seed's
+per-tile back-propagation lost), cut into overlapping tiles of the size the model was trained
+for, each tile-plane normalised exactly as the training inputs were (`experimental_planes`),
+and the network's outputs stitched back with every pixel taken from the tile whose centre is
+nearest. A particle on a tile edge is thus seen whole by a neighbouring tile. The stitched
+output planes are decoded and merged through depth by `PlaneLinker`, plane chunk by plane
+chunk, so memory stays bounded whatever the depth of the stack.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from napari_lbs import __version__
+from napari_lbs._core._calibration import experimental_planes
+from napari_lbs._core._config import ExperimentConfig
+from napari_lbs._core._detection import PlaneLinker
+from napari_lbs._core._io import InputError, as_hologram
+from napari_lbs._core._network import LoadedModel, check_model_matches, load_model, network_outputs
+from napari_lbs._core._optics import backpropagate
+from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
+
+__all__ = ["PredictionResult", "predict_particles", "tile_layout"]
+
+_PLANES_PER_CHUNK = 8
+
+
+@dataclass
+class PredictionResult:
+    """Particles (CONTRACT.md table plus ``score`` and ``planes``) and how they were found."""
+
+    particles: dict[str, np.ndarray]
+    provenance: dict
+    seconds: float
+
+
+def tile_layout(length: int, *, size: int, margin: int) -> list[tuple[int, int, int]]:
+    """Overlapping tiles along one axis: ``(start, keep_from, keep_to)`` in image pixels.
+
+    Tiles of ``size`` overlap by at least ``2 * margin``; each keeps the pixels nearer its
+    centre than any other tile's, so the kept parts partition ``[0, length)``.
+    """
+    if size > length:
+        raise InputError(f"tile.size: a {size}-pixel tile is larger than the image ({length} pixels)")
+    stride = max(size - 2 * margin, 1)
+    starts = list(range(0, length - size, stride)) + [length - size]
+    bounds = [0] + [(a + size + b) // 2 for a, b in zip(starts[:-1], starts[1:], strict=True)] + [length]
+    return [(start, bounds[i], bounds[i + 1]) for i, start in enumerate(starts)]
+
+
+def predict_particles(
+    hologram: np.ndarray,
+    model: LoadedModel | str | Path,
+    config: ExperimentConfig | None = None,
+    *,
+    background: np.ndarray | None = None,
+    planes_um: Sequence[float] | None = None,
+    margin_px: int = 32,
+    device: str = "auto",
+    progress: ProgressCallback | None = None,
+    should_stop: StopCallback | None = None,
+) -> PredictionResult:
+    """Reconstruct the particle field of one hologram (the `napari-lbs predict` step).
+
+    Parameters
+    ----------
+    hologram : (rows, cols) array
+        Intensity hologram (at least one tile in each direction).
+    model : LoadedModel or path
+        A model file from `train_model`.
+    config : ExperimentConfig, optional
+        Optics and reconstruction depths; default the model's own. A config whose optics or
+        tile size differ from the model's, or whose depths leave its training range, is refused.
+    background : (rows, cols) array, optional
+        Hologram without particles (divided out before back-propagation).
+    planes_um : sequence of float, optional
+        Reconstruction depths (µm); default ``config.volume.planes_um()``.
+    margin_px : int
+        Half the minimum overlap of neighbouring tiles (pixels), at most a quarter tile.
+    device : {"auto", "cpu", "cuda"}
+    progress, should_stop
+        One step per reconstruction plane; a stop raises `Stopped`.
+    """
+    start_time = time.perf_counter()
+    hologram = as_hologram(hologram)
+    if background is not None:
+        background = as_hologram(background, name="background")
+        if background.shape != hologram.shape:
+            raise InputError(f"background: expected the hologram's shape {hologram.shape}, got {background.shape}")
+    loaded = model if isinstance(model, LoadedModel) else load_model(model, device=device)
+    meta = loaded.meta
+    config = config if config is not None else loaded.config
+    planes = [float(z) for z in (planes_um if planes_um is not None else config.volume.planes_um())]
+    check_model_matches(meta, config, planes_um=planes)
+    size = int(meta["tile_size"])
+    margin_px = min(int(margin_px), size // 4)
+    rows = tile_layout(hologram.shape[0], size=size, margin=margin_px)
+    cols = tile_layout(hologram.shape[1], size=size, margin=margin_px)
+    invert, mode = bool(meta["processing"]["invert_experiment"]), meta["processing"]["mode"]
+    optics = {"wavelength_um": config.optics.wavelength_um, "pixel_um": config.optics.pixel_um, "medium_index": config.optics.medium_index}
+    linker = PlaneLinker(planes, pixel_um=config.optics.pixel_um, threshold=float(meta["threshold"]), full_value=float(meta["full_value"]))
+    steps = Steps(len(planes), progress=progress, should_stop=should_stop)
+    for first in range(0, len(planes), _PLANES_PER_CHUNK):
+        steps.check()
+        chunk = planes[first : first + _PLANES_PER_CHUNK]
+        magnitudes = backpropagate(hologram, chunk, background=background, **optics)
+        tiles = np.stack([magnitudes[:, r : r + size, c : c + size] for r, _, _ in rows for c, _, _ in cols], axis=1)
+        inputs = experimental_planes(tiles.reshape(-1, size, size), invert=invert, mode=mode)
+        outputs = network_outputs(loaded.network, inputs, output_scale=float(meta["output_scale"])).reshape(tiles.shape)
+        for offset in range(len(chunk)):
+            plane = np.empty(hologram.shape, np.float32)
+            index = 0
+            for r, r_from, r_to in rows:
+                for c, c_from, c_to in cols:
+                    plane[r_from:r_to, c_from:c_to] = outputs[offset, index, r_from - r : r_to - r, c_from - c : c_to - c]
+                    index += 1
+            linker.add(first + offset, plane)
+        steps.advance(len(chunk))
+    seconds = time.perf_counter() - start_time
+    provenance = {
+        "napari_lbs": __version__,
+        "model": str(loaded.path) if loaded.path else None,
+        "model_sha256": loaded.sha256,
+        "model_preset": meta["preset"],
+        "model_epoch": meta.get("epoch"),
+        "threshold": meta["threshold"],
+        "processing": meta["processing"],
+        "config": config.to_dict(),
+        "planes_um": [planes[0], planes[-1], len(planes)],
+        "tiles": [len(rows), len(cols), size, margin_px],
+        "background": background is not None,
+        "seconds": round(seconds, 3),
+    }
+    return PredictionResult(linker.particles(), provenance, seconds)
