@@ -56,11 +56,45 @@ def test_bad_input_exits_2_with_one_line_naming_the_culprit(tmp_path, args, culp
     assert not (tmp_path / "s.tif").exists()
 
 
-def test_demo_quick_writes_a_zstack_and_summary(tmp_path):
+def test_demo_quick_runs_the_whole_pipeline(tmp_path):
     assert main(["demo", "--out", str(tmp_path), "--quick"]) == 0
     summary = json.loads((tmp_path / "summary.json").read_text())
     stack = tifffile.imread(summary["zstack"])
     assert stack.shape == (61, 256, 256)
+    assert set(summary["calibration"]["params"]) >= {"N_R", "N_sigma", "gamma"}
+    assert (tmp_path / "model.pt").is_file() and (tmp_path / "data" / "dataset.json").is_file()
+    table = read_particles(summary["particles"])
+    assert len(table["x_um"]) == summary["particle_count"]
+    assert json.loads((tmp_path / "particles.json").read_text())["model_sha256"] == summary["model_sha256"]
+
+
+def test_generate_train_predict_evaluate_end_to_end(tmp_path):
+    config = tmp_path / "c.toml"
+    main(["config", "--write", str(config)])
+    text = config.read_text().replace("z_max_um = 4800.0", "z_max_um = 2200.0").replace("z_step_um = 50.0", "z_step_um = 100.0")
+    config.write_text(text.replace("size = 256", "size = 32").replace("per_tile = 12", "per_tile = 2"))
+    calibration = tmp_path / "cal.json"
+    calibration.write_text(json.dumps({"params": {"N_R": -0.5, "N_sigma": 0.2, "gamma": 0.9}, "ssim": 0.7}))
+    assert main(["generate", "--config", str(config), "--calibration", str(calibration), "--groups", "3", "--out", str(tmp_path / "data"), "--seed", "1"]) == 0
+    spec = json.loads((tmp_path / "data" / "dataset.json").read_text())
+    assert spec["complete"] and spec["calibration"]["params"]["N_R"] == -0.5 and spec["processing"]["invert_experiment"]
+    assert main(["train", str(tmp_path / "data"), "--out", str(tmp_path / "m.pt"), "--epochs", "1", "--device", "cpu", "--seed", "2"]) == 0
+    log = json.loads((tmp_path / "m.json").read_text())
+    assert log["settings"]["seed"] == 2 and len(log["epochs"]) == 1 and log["validation_groups"] == [2]
+    assert main(["simulate", "--config", str(config), "--out", str(tmp_path / "sim"), "--size", "64", "--particles", "3"]) == 0
+    assert main(["predict", str(tmp_path / "sim" / "hologram.tif"), "--model", str(tmp_path / "m.pt"), "--out", str(tmp_path / "p.csv"), "--config", str(config)]) == 0
+    header = (tmp_path / "p.csv").read_text().splitlines()[0].split(",")
+    assert header[:4] == ["x_um", "y_um", "z_um", "diameter_um"] and "score" in header
+    assert json.loads((tmp_path / "p.json").read_text())["model_sha256"] == log["best"]["sha256"]
+    result = run("evaluate", tmp_path / "p.csv", tmp_path / "sim" / "particles.csv", "--json")
+    assert result.returncode == 0 and json.loads(result.stdout)["n_truth"] == 3
+    # a config for other optics is refused, naming the key; nothing is written
+    config.write_text(config.read_text().replace("wavelength_um = 0.66", "wavelength_um = 0.532"))
+    result = run("predict", tmp_path / "sim" / "hologram.tif", "--model", tmp_path / "m.pt", "--out", tmp_path / "q.csv", "--config", config)
+    assert result.returncode == 2 and "optics.wavelength_um" in result.stderr and len(result.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "q.csv").exists()
+    result = run("train", tmp_path / "nothing", "--out", tmp_path / "x.pt")
+    assert result.returncode == 2 and "nothing" in result.stderr
 
 
 def test_calibrate_writes_contract_json(tmp_path):

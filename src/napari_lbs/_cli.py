@@ -234,23 +234,87 @@ def _cmd_evaluate(args) -> None:
 
 
 def _cmd_demo(args) -> None:
-    from napari_lbs._core import SAMPLE_PROVENANCE, backpropagate, load_config, load_sample_hologram, write_json, write_stack
+    from dataclasses import replace
+
+    from napari_lbs._core import (
+        SAMPLE_PROVENANCE,
+        CalibrationSettings,
+        InputProcessing,
+        TrainingSettings,
+        backpropagate,
+        calibrate_hologram,
+        generate_dataset,
+        load_config,
+        load_sample_hologram,
+        predict_particles,
+        train_model,
+        write_json,
+        write_particles,
+        write_stack,
+    )
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     config = load_config(None)
     hologram = load_sample_hologram()
-    if args.quick:
+    if args.quick:  # one tile, few planes, a token of each step: checks the plumbing in about a minute
         hologram = hologram[:256, :256]
-    z_um = config.volume.planes_um()
+        config = replace(config, particles=replace(config.particles, per_tile=6))
+        calibration_settings, groups = CalibrationSettings(generations=4, population=6, fields=1, seed=args.seed), 3
+        training = TrainingSettings(epochs=1, patch_size=64, validation_groups=1, foreground_weight=30.0, seed=args.seed)
+    else:
+        calibration_settings, groups = CalibrationSettings(generations=40, seed=args.seed), 64
+        training = TrainingSettings(epochs=4, foreground_weight=30.0, seed=args.seed)
+    timings = {}
     start = time.perf_counter()
+    z_um = config.volume.planes_um()
     stack = backpropagate(hologram, z_um, wavelength_um=config.optics.wavelength_um, pixel_um=config.optics.pixel_um, medium_index=config.optics.medium_index, progress=_ProgressBar("backprop"))
-    seconds = time.perf_counter() - start
     stack_path = write_stack(out / "zstack.tif", stack, z_um=z_um, metadata=_provenance(config, source=SAMPLE_PROVENANCE["source"]))
-    summary = {"hologram_shape": list(hologram.shape), "planes": len(z_um), "z_um": [z_um[0], z_um[-1]], "zstack": str(stack_path), "backprop_seconds": round(seconds, 3), "sample": SAMPLE_PROVENANCE}
+    del stack
+    timings["backprop"] = time.perf_counter() - start
+
+    start = time.perf_counter()
+    calibration = calibrate_hologram(hologram, config, settings=calibration_settings, progress=_ProgressBar("calibrate")).to_json()
+    write_json(out / "calibration.json", calibration)
+    timings["calibrate"] = time.perf_counter() - start
+
+    start = time.perf_counter()
+    processing = InputProcessing.from_calibration(calibration)
+    generate_dataset(out / "data", config, groups=groups, processing=processing, calibration=calibration, seed=args.seed, progress=_ProgressBar("generate"))
+    timings["generate"] = time.perf_counter() - start
+
+    start = time.perf_counter()
+    trained = train_model(out / "data", out / "model.pt", settings=training, progress=_ProgressBar("train"))
+    timings["train"] = time.perf_counter() - start
+
+    result = predict_particles(hologram, trained.model_path, config, device=training.device, progress=_ProgressBar("predict"))
+    particles_path = write_particles(out / "particles.csv", result.particles)
+    write_json(out / "particles.json", {**result.provenance, "source": SAMPLE_PROVENANCE["source"]})
+    timings["predict"] = result.seconds
+    best = trained.log["best"]
+    validation = next(e for e in trained.log["epochs"] if e["epoch"] == best["epoch"])["validation"]
+    summary = {
+        "hologram_shape": list(hologram.shape),
+        "planes": len(z_um),
+        "z_um": [z_um[0], z_um[-1]],
+        "zstack": str(stack_path),
+        "calibration": {"params": calibration["params"], "ssim": calibration["ssim"], "roi": calibration["roi"]},
+        "groups": groups,
+        "model": str(trained.model_path),
+        "model_sha256": best["sha256"],
+        "validation": {key: validation[key] for key in ("er", "ji", "tp", "fp", "fn", "threshold")},
+        "particles": str(particles_path),
+        "particle_count": len(result.particles["x_um"]),
+        "seconds": {key: round(value, 2) for key, value in timings.items()},
+        "sample": SAMPLE_PROVENANCE,
+        "quick": bool(args.quick),
+    }
     write_json(out / "summary.json", summary)
-    print(stack_path)
-    _summary(f"demo: back-propagated the built-in {hologram.shape[0]}x{hologram.shape[1]} hologram to {len(z_um)} planes in {seconds:.1f} s -> {stack_path}")
+    print(particles_path)
+    _summary(
+        f"demo: calibrated (SSIM {calibration['ssim']:.3f}), {groups} groups, trained ({trained.log['seconds']:.0f} s; synthetic validation ER {100 * validation['er']:.1f} %, "
+        f"JI {validation['ji']:.3f}), found {summary['particle_count']} particles in the built-in hologram -> {out}"
+    )
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -332,9 +396,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print the metrics JSON on stdout")
     p.set_defaults(run=_cmd_evaluate)
 
-    p = sub.add_parser("demo", help="run the pipeline on the built-in real hologram")
+    p = sub.add_parser("demo", help="run the whole pipeline on the built-in real hologram")
     p.add_argument("--out", default="napari-lbs-demo", metavar="DIR")
-    p.add_argument("--quick", action="store_true", help="a small, fast run")
+    p.add_argument("--quick", action="store_true", help="a token run on one tile (about a minute)")
+    p.add_argument("--seed", type=int, default=0)
     p.set_defaults(run=_cmd_demo)
     return parser
 

@@ -1,8 +1,12 @@
-"""napari sample data: the seed paper's real hologram as an Image layer (µm scale)."""
+"""napari sample data: the seed paper's real hologram and a seeded synthetic hologram with its truth."""
 
 from __future__ import annotations
 
-from napari_lbs._core import SAMPLE_PROVENANCE, load_config, load_sample_hologram
+from napari_lbs._core import SAMPLE_PROVENANCE, load_config, load_sample_hologram, random_particle_field, simulate_hologram
+
+SYNTHETIC_SEED = 2024
+SYNTHETIC_SHAPE = (512, 512)
+SYNTHETIC_PARTICLES = 48
 
 
 def real_hologram():
@@ -11,3 +15,27 @@ def real_hologram():
     pixel_um = config.optics.pixel_um
     metadata = {"provenance": SAMPLE_PROVENANCE, "config": config.to_dict()}
     return [(load_sample_hologram(), {"name": "LBS real hologram", "scale": (pixel_um, pixel_um), "units": "µm", "metadata": metadata}, "image")]
+
+
+def synthetic_hologram():
+    """A seeded 512² hologram of 48 opaque particles (default config) and its ground-truth Points."""
+    from napari_lbs._widgets import particles_layer_data
+
+    config = load_config(None)
+    field = random_particle_field(
+        SYNTHETIC_SHAPE,
+        count=SYNTHETIC_PARTICLES,
+        diameter_min_um=config.particles.diameter_min_um,
+        diameter_max_um=config.particles.diameter_max_um,
+        layers_um=config.layer_depths_um(),
+        pixel_um=config.optics.pixel_um,
+        seed=SYNTHETIC_SEED,
+    )
+    hologram = simulate_hologram(field, wavelength_um=config.optics.wavelength_um, medium_index=config.optics.medium_index)
+    pixel_um = config.optics.pixel_um
+    provenance = {"seed": SYNTHETIC_SEED, "particles": SYNTHETIC_PARTICLES, "config": config.to_dict(), "model": "opaque discs, superposed layers (HCS)"}
+    data, features = particles_layer_data(field.table())
+    return [
+        (hologram, {"name": "synthetic hologram", "scale": (pixel_um, pixel_um), "units": "µm", "metadata": {"provenance": provenance}}, "image"),
+        (data, {"name": "synthetic truth", "features": features, "size": features["diameter_um"], "face_color": "transparent", "border_color": "yellow", "out_of_slice_display": True, "metadata": {"provenance": provenance}}, "points"),
+    ]

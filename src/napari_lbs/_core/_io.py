@@ -172,7 +172,7 @@ def write_particles(path: str | Path, table: dict[str, np.ndarray]) -> Path:
 
 def _format(value: object) -> str:
     if isinstance(value, (float, np.floating)):
-        return f"{float(value):.6g}"
+        return f"{float(value):.9g}"  # sub-nanometre for any position in µm up to metres
     return str(value)
 
 

@@ -1,0 +1,165 @@
+"""Learning benchmarks (issue 4): training throughput, prediction time, the seed's simulation experiment.
+
+Sub-commands (each prints ratios against a baseline measured in the same run):
+
+``throughput``
+    Training planes per second (256² planes, batch 8, forward + backward + Adam) for both
+    presets, channels-last (what `train_model` uses) against the default memory layout.
+``predict [--model M]``
+    `predict_particles` on the real 1024² hologram at 61 planes (1800–4800 µm): wall time,
+    peak memory (tracemalloc, numpy + torch CPU tensors are not all traced: also ru_maxrss),
+    and the share spent in back-propagation alone (the floor). Target: <= 60 s with ``small``.
+    Without ``--model`` a token model is trained first (3 groups, 1 epoch; its accuracy is
+    irrelevant here, only the time).
+``sim [--groups G] [--minutes T] [--preset P] [--device D]``
+    The seed's simulation experiment (Sec. 3.1): 60 particles of 20–30 µm per 256² group on 63
+    layers 30 µm apart (1800–3660 µm), Holo-processing (0, 0, 1). Trains on G groups for at
+    most T minutes (the stop keeps the best epoch by synthetic validation), then tests on a
+    768² field of 3x3 groups (540 particles, ppp 0.136 at 26.82 µm voxels) simulated as one
+    hologram, with one-to-one scoring and, beside it, the seed's scoring. The seed reports
+    ER 97.21 %, JI 0.97 (with its own scoring and a GPU).
+
+Run: python benchmarks/bench_learning.py throughput|predict|sim [options]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from napari_lbs._core import (
+    ExperimentConfig,
+    InputProcessing,
+    TrainingSettings,
+    count_for_ppp,
+    generate_dataset,
+    load_config,
+    load_sample_hologram,
+    predict_particles,
+    random_particle_field,
+    score_particles,
+    seed_scores,
+    simulate_hologram,
+    train_model,
+)
+
+SIM_CONFIG = ExperimentConfig.from_dict({
+    "volume": {"z_min_um": 1800.0, "z_max_um": 3660.0, "z_step_um": 30.0},
+    "particles": {"diameter_min_um": 20.0, "diameter_max_um": 30.0, "per_tile": 60, "layer_step_um": 30.0},
+    "tile": {"size": 256},
+})
+
+
+def throughput() -> None:
+    import torch
+
+    from napari_lbs._core import build_network
+
+    for preset in ("small", "paper"):
+        rates = {}
+        for layout in ("contiguous", "channels_last"):
+            network = build_network(preset)
+            fmt = torch.channels_last if layout == "channels_last" else torch.contiguous_format
+            network = network.to(memory_format=fmt)
+            optimizer = torch.optim.Adam(network.parameters(), 1e-3)
+            x = torch.rand(8, 1, 256, 256).contiguous(memory_format=fmt)
+            y = torch.rand(8, 1, 256, 256)
+            best = np.inf
+            for _ in range(3 if preset == "small" else 2):
+                start = time.perf_counter()
+                optimizer.zero_grad()
+                loss = ((network(x) - y) ** 2).mean()
+                loss.backward()
+                optimizer.step()
+                best = min(best, time.perf_counter() - start)
+            rates[layout] = 8 / best
+        print(f"{preset:5s}: {rates['channels_last']:6.2f} planes/s channels-last, {rates['contiguous']:6.2f} contiguous (x{rates['channels_last'] / rates['contiguous']:.2f})")
+
+
+def _token_model(folder: Path) -> Path:
+    config = load_config(None)
+    dataset = generate_dataset(folder / "data", config, groups=3, seed=0)
+    return train_model(dataset, folder / "token.pt", settings=TrainingSettings(epochs=1, patch_size=64, validation_groups=1, foreground_weight=30.0)).model_path
+
+
+def predict(model: str | None) -> None:
+    from napari_lbs._core import backpropagate
+
+    hologram = load_sample_hologram()
+    config = load_config(None)
+    with tempfile.TemporaryDirectory() as folder:
+        model_path = Path(model) if model else _token_model(Path(folder))
+        start = time.perf_counter()
+        backpropagate(hologram, config.volume.planes_um(), wavelength_um=config.optics.wavelength_um, pixel_um=config.optics.pixel_um)
+        floor = time.perf_counter() - start
+        rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        result = predict_particles(hologram, model_path, config, device="cpu")
+        rss_after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(f"predict 1024² x {len(config.volume.planes_um())} planes: {result.seconds:.1f} s (target <= 60 s), {len(result.particles['x_um'])} particles, tiles {result.provenance['tiles']}")
+    print(f"back-propagation alone: {floor:.2f} s ({100 * floor / result.seconds:.0f} % of the prediction); peak RSS {rss_after:.0f} MiB (was {rss_before:.0f} MiB before predict)")
+
+
+def sim(groups: int, minutes: float, preset: str, device: str, patch: int, epochs: int) -> None:
+    folder = Path(tempfile.mkdtemp(prefix="napari-lbs-sim-"))
+    start = time.perf_counter()
+    dataset = generate_dataset(folder / "data", SIM_CONFIG, groups=groups, processing=InputProcessing(), seed=0)
+    generate_seconds = time.perf_counter() - start
+    deadline = time.perf_counter() + 60 * minutes
+    settings = TrainingSettings(preset=preset, epochs=epochs, batch_size=8, device=device, patch_size=patch, foreground_weight=30.0, validation_groups=max(2, groups // 8))
+    trained = train_model(dataset, folder / "sim.pt", settings=settings, should_stop=lambda: time.perf_counter() > deadline)
+    # Test field: 3x3 groups of 60 particles each, one hologram (the seed spliced 9 groups).
+    truth = random_particle_field((768, 768), count=9 * 60, diameter_min_um=20, diameter_max_um=30, layers_um=SIM_CONFIG.layer_depths_um(), pixel_um=2.2, seed=12345)
+    ppp = 9 * 60 / count_for_ppp(1.0, (768, 768), pixel_um=2.2, voxel_um=26.82)
+    hologram = simulate_hologram(truth, wavelength_um=0.66)
+    result = predict_particles(hologram, trained.model_path, SIM_CONFIG, device=device)
+    one_to_one = score_particles(result.particles, truth.table())
+    seed_style = seed_scores(result.particles, truth.table())
+    report = {
+        "groups": groups,
+        "preset": preset,
+        "patch_size": patch,
+        "generate_seconds": round(generate_seconds, 1),
+        "train_seconds": trained.log["seconds"],
+        "epochs_done": len(trained.log["epochs"]),
+        "stopped_by_budget": trained.stopped,
+        "best": trained.log["best"],
+        "predict_seconds": round(result.seconds, 1),
+        "ppp": round(ppp, 4),
+        "one_to_one": one_to_one,
+        "seed_scoring": seed_style,
+    }
+    print(json.dumps(report, indent=1))
+    print(f"sim experiment: ER {100 * one_to_one['er']:.2f} %, JI {one_to_one['ji']:.3f} one-to-one "
+          f"(seed's scoring: ER {100 * seed_style['er']:.2f} %, JI {seed_style['ji']:.3f}); the seed reports ER 97.21 %, JI 0.97")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    sub.add_parser("throughput")
+    p = sub.add_parser("predict")
+    p.add_argument("--model")
+    p = sub.add_parser("sim")
+    p.add_argument("--groups", type=int, default=24)
+    p.add_argument("--minutes", type=float, default=22.0)
+    p.add_argument("--preset", default="small")
+    p.add_argument("--device", default="auto")
+    p.add_argument("--patch", type=int, default=128)
+    p.add_argument("--epochs", type=int, default=100)
+    args = parser.parse_args()
+    if args.command == "throughput":
+        throughput()
+    elif args.command == "predict":
+        predict(args.model)
+    else:
+        sim(args.groups, args.minutes, args.preset, args.device, args.patch, args.epochs)
+
+
+if __name__ == "__main__":
+    main()
