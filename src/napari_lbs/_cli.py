@@ -218,6 +218,27 @@ def _cmd_predict(args) -> None:
     _summary(f"found {count} particles in {args.holo} in {result.seconds:.1f} s -> {out} (provenance: {out.with_suffix('.json')})")
 
 
+def _cmd_diagnose(args) -> None:
+    from napari_lbs._core import DiagnosisSettings, diagnose_hologram, load_config, write_report
+
+    config = load_config(args.config)
+    hologram, background = _read_inputs(args)
+    calibration = _read_calibration(args.calibration) if args.calibration else None
+    settings = DiagnosisSettings(sim_tiles=args.sim_tiles, evaluations=args.evaluations, seed=args.seed)
+    diagnosis = diagnose_hologram(hologram, config, background=background, tile_px=args.tile, settings=settings, progress=_ProgressBar("diagnose"))
+    if args.roi:
+        x, y = args.roi
+        size = args.tile or config.tile.size
+        diagnosis.report["roi"] = {"x": x, "y": y, "tile_index": (y // size) * (hologram.shape[1] // size) + x // size}
+    provenance = _provenance(config, source=str(args.holo), background=args.background, calibration=calibration, seed=args.seed)
+    paths = write_report(diagnosis, args.out, provenance=provenance)
+    verdict = diagnosis.report["verdict"]
+    _summary(
+        f"gap {diagnosis.report['gap']['baseline']:.2f} (baseline); verdict: {verdict['id'] or 'nothing missing'} (shrink {100 * verdict['shrink']:.0f} %, "
+        f"residual {verdict['residual']:.2f}) in {diagnosis.seconds:.0f} s -> {paths[0]}"
+    )
+
+
 def _cmd_evaluate(args) -> None:
     from napari_lbs._core import read_particles, score_particles, seed_scores
 
@@ -387,6 +408,19 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--background", metavar="BG")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     p.set_defaults(run=_cmd_predict)
+
+    p = sub.add_parser("diagnose", help="diagnose the sim-to-real gap of a hologram: where, which effect, how much")
+    p.add_argument("holo", metavar="HOLO")
+    p.add_argument("--config", required=True)
+    p.add_argument("--out", required=True, metavar="REPORT_DIR")
+    p.add_argument("--roi", type=int, nargs=2, metavar=("X", "Y"), help="a reference tile to mark in the report (all tiles are used)")
+    p.add_argument("--background", metavar="BG")
+    p.add_argument("--calibration", metavar="CALIB.json", help="recorded as provenance (the baseline is refitted in the hologram domain)")
+    p.add_argument("--tile", type=int, help="tile edge in pixels (default: tile.size)")
+    p.add_argument("--sim-tiles", type=int, default=8)
+    p.add_argument("--evaluations", type=int, default=40)
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(run=_cmd_diagnose)
 
     p = sub.add_parser("evaluate", help="score a particle table against a reference, one-to-one")
     p.add_argument("pred", metavar="PRED.csv")

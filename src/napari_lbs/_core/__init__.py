@@ -33,6 +33,19 @@ from napari_lbs._core._dataset import (
     synthetic_group,
 )
 from napari_lbs._core._detection import PlaneLinker, detect_particles
+from napari_lbs._core._effects import BASELINE, EFFECTS, OPTICAL_EFFECTS, Effect, optical_hologram, sensor_image
+from napari_lbs._core._gap import (
+    SUMMARY_GROUPS,
+    Diagnosis,
+    DiagnosisSettings,
+    diagnose_hologram,
+    diagnose_tiles,
+    gap_statistic,
+    real_spread,
+    tile_summaries,
+    where_gap,
+    write_report,
+)
 from napari_lbs._core._config import (
     ConfigError,
     ExperimentConfig,
@@ -155,5 +168,21 @@ __all__ = [
     "synthetic_group",
     "PlaneLinker",
     "detect_particles",
+    "BASELINE",
+    "EFFECTS",
+    "OPTICAL_EFFECTS",
+    "Effect",
+    "optical_hologram",
+    "sensor_image",
+    "SUMMARY_GROUPS",
+    "Diagnosis",
+    "DiagnosisSettings",
+    "diagnose_hologram",
+    "diagnose_tiles",
+    "gap_statistic",
+    "real_spread",
+    "tile_summaries",
+    "where_gap",
+    "write_report",
     *_LAZY,
 ]

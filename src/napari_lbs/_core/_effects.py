@@ -1,0 +1,160 @@
+"""The effect catalog: parametric extensions of the seed's simulator, for diagnosis and for data.
+
+The simulator is split in two stages so that fitting is cheap:
+
+*optics* (`optical_hologram`)
+    the intensity a sensor would see, from a particle field: the seed's opaque discs on
+    superposed layers, optionally with ``particle_phase`` (transparent, refracting spheres),
+    ``coherence`` (partial spatial coherence: a source of angular size θ blurs a layer's
+    scattered field by σ = θ·z), ``multiple_scattering`` (layer-by-layer shadowing) and
+    ``spherical_wave`` (a point source at distance L: a layer at z is magnified by
+    M = L / (L − z) and seen at the equivalent distance M·z).
+*sensor* (`sensor_image`)
+    what the camera makes of it: the baseline's fringe contrast ``c``, read noise ``sigma``
+    and response gamma (the seed's Gaussian noise + gamma, in the hologram domain so that
+    experiment and simulation share one code path; the seed's noise offset N_R·R acts as a
+    fringe contrast once the image is normalised by its mean), plus ``illumination``
+    (a Gaussian beam envelope, off-centre), ``parasitic_fringes`` (a static etalon fringe),
+    ``shot_noise`` (Poisson, signal dependent), ``sensor_blur`` (pixel crosstalk / MTF, on
+    the recorded image, noise included) and ``quantization`` (bit depth and saturation).
+
+Every effect has physically sensible bounds, a neutral value (the effect switched off) and
+two injection strengths used by the withheld-effect validation. Parameters are plain dicts
+``{effect_id: {param: value}}``; an effect absent from the dict is off.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from napari_lbs._core._io import InputError
+from napari_lbs._core._optics import superpose
+from napari_lbs._core._synthesis import ParticleField, disc_coverage, layer_images, simulate_hologram
+
+__all__ = ["Effect", "EFFECTS", "BASELINE", "optical_hologram", "sensor_image", "OPTICAL_EFFECTS"]
+
+
+@dataclass(frozen=True)
+class Effect:
+    """One candidate effect.
+
+    Attributes
+    ----------
+    id : str
+        CONTRACT.md id.
+    bounds : dict of (low, high)
+        Fit range of each parameter.
+    neutral : dict
+        Parameter values at which the effect does nothing.
+    injections : tuple of dict
+        A weak and a strong setting for the injection–recovery suite.
+    """
+
+    id: str
+    description: str
+    bounds: dict
+    neutral: dict
+    injections: tuple
+
+
+BASELINE = Effect("baseline", "seed's simulator: opaque discs, Gaussian noise, gamma", {"contrast": (0.2, 1.6), "sigma": (0.0, 0.3), "gamma": (0.5, 2.0)}, {"contrast": 1.0, "sigma": 0.0, "gamma": 1.0}, ())
+
+EFFECTS: dict[str, Effect] = {e.id: e for e in (
+    Effect("illumination", "Gaussian beam envelope / vignetting", {"depth": (0.0, 0.8), "x0": (-0.5, 0.5), "y0": (-0.5, 0.5)}, {"depth": 0.0, "x0": 0.0, "y0": 0.0}, ({"depth": 0.25, "x0": 0.2, "y0": -0.1}, {"depth": 0.5, "x0": 0.2, "y0": -0.1})),
+    Effect("shot_noise", "Poisson photon noise", {"log10_photons": (1.0, 4.0)}, {"log10_photons": 9.0}, ({"log10_photons": 2.3}, {"log10_photons": 1.6})),
+    Effect("quantization", "bit depth and saturation", {"bits": (3.0, 10.0), "saturation": (1.05, 3.0)}, {"bits": 16.0, "saturation": 1e3}, ({"bits": 5.0, "saturation": 1.6}, {"bits": 4.0, "saturation": 1.25})),
+    Effect("sensor_blur", "pixel integration / sensor MTF", {"sigma_px": (0.0, 2.0)}, {"sigma_px": 0.0}, ({"sigma_px": 0.8}, {"sigma_px": 1.4})),
+    Effect("coherence", "partial spatial coherence (source size)", {"theta_mrad": (0.0, 3.0)}, {"theta_mrad": 0.0}, ({"theta_mrad": 0.6}, {"theta_mrad": 1.2})),
+    Effect("particle_phase", "transparent, refracting spheres", {"phase_rad": (0.0, 6.0), "transmission": (0.0, 1.0)}, {"phase_rad": 0.0, "transmission": 0.0}, ({"phase_rad": 2.0, "transmission": 0.6}, {"phase_rad": 4.0, "transmission": 0.9})),
+    Effect("multiple_scattering", "shadowing between particle layers", {"on": (1.0, 1.0)}, {"on": 0.0}, ({"on": 1.0}, {"on": 1.0})),
+    Effect("parasitic_fringes", "static etalon fringes", {"amplitude": (0.0, 0.2), "period_px": (6.0, 60.0), "angle_rad": (0.0, 3.1416)}, {"amplitude": 0.0, "period_px": 20.0, "angle_rad": 0.0}, ({"amplitude": 0.04, "period_px": 14.0, "angle_rad": 0.7}, {"amplitude": 0.1, "period_px": 14.0, "angle_rad": 0.7})),
+    Effect("spherical_wave", "diverging illumination (point source at L)", {"source_mm": (8.0, 200.0)}, {"source_mm": 1e9}, ({"source_mm": 40.0}, {"source_mm": 15.0})),
+)}
+OPTICAL_EFFECTS = ("coherence", "particle_phase", "multiple_scattering", "spherical_wave")
+
+
+def _param(effects: dict, effect: str, name: str) -> float:
+    return float(effects.get(effect, EFFECTS[effect].neutral)[name]) if effect in effects else float(EFFECTS[effect].neutral[name])
+
+
+def _sphere_fields(field: ParticleField, depth: float, *, transmission: float, phase_rad: float) -> np.ndarray:
+    """Scattered field ``t - 1`` of the spheres of one layer, ``t = τ exp(iφ0 sqrt(1 - (r/R)²))`` inside."""
+    mask = field.z_um == depth
+    coverage = disc_coverage(field.shape, field.x_um[mask], field.y_um[mask], field.diameter_um[mask], pixel_um=field.pixel_um)
+    profile = np.zeros(field.shape, np.float32)  # normalised thickness of the sphere under each pixel
+    rows, cols = np.indices(field.shape, dtype=np.float32)
+    for x, y, d in zip(field.x_um[mask], field.y_um[mask], field.diameter_um[mask], strict=True):
+        r2 = ((cols - x / field.pixel_um) ** 2 + (rows - y / field.pixel_um) ** 2) / (d / 2 / field.pixel_um) ** 2
+        np.maximum(profile, np.sqrt(np.clip(1 - r2, 0, 1)), out=profile)
+    transmitted = transmission * np.exp(1j * phase_rad * profile)
+    return (coverage * (transmitted - 1.0)).astype(np.complex64)
+
+
+def optical_hologram(field: ParticleField, effects: dict, *, wavelength_um: float, medium_index: float = 1.0) -> np.ndarray:
+    """Sensor intensity of a particle field with the optical effects of ``effects`` (float32, unobstructed = 1)."""
+    unknown = set(effects) - set(EFFECTS)
+    if unknown:
+        raise InputError(f"effects: unknown effect id {sorted(unknown)[0]!r}; expected one of {', '.join(EFFECTS)}")
+    if _param(effects, "multiple_scattering", "on") >= 0.5:
+        return simulate_hologram(field, wavelength_um=wavelength_um, medium_index=medium_index, shadowing=True)
+    source_um = _param(effects, "spherical_wave", "source_mm") * 1000.0
+    if source_um < 1e11:
+        # a point source at L: the layer at z is seen magnified by M = L/(L - z), at distance M z
+        centre_x, centre_y = (field.shape[1] - 1) * field.pixel_um / 2, (field.shape[0] - 1) * field.pixel_um / 2
+        magnification = source_um / (source_um - field.z_um)
+        field = ParticleField(centre_x + magnification * (field.x_um - centre_x), centre_y + magnification * (field.y_um - centre_y), field.z_um * magnification, field.diameter_um * magnification, field.shape, field.pixel_um)
+    depths = field.layers_um()
+    if depths.size == 0:
+        return np.ones(field.shape, np.float32)
+    transmission, phase = _param(effects, "particle_phase", "transmission"), _param(effects, "particle_phase", "phase_rad")
+    if transmission > 0 or phase > 0:
+        fields = [_sphere_fields(field, z, transmission=transmission, phase_rad=phase) for z in depths]
+    else:
+        fields = [-image for image in layer_images(field)[1]]
+    theta = _param(effects, "coherence", "theta_mrad") * 1e-3
+    if theta > 0:
+        fields = [_blur(f, theta * z / field.pixel_um) for f, z in zip(fields, depths, strict=True)]
+    scattered = superpose(fields, depths, wavelength_um=wavelength_um, pixel_um=field.pixel_um, medium_index=medium_index)
+    return (np.abs(1.0 + scattered) ** 2).astype(np.float32)
+
+
+def _blur(image: np.ndarray, sigma_px: float) -> np.ndarray:
+    if np.iscomplexobj(image):
+        return (ndimage.gaussian_filter(image.real, sigma_px) + 1j * ndimage.gaussian_filter(image.imag, sigma_px)).astype(image.dtype)
+    return ndimage.gaussian_filter(image, sigma_px)
+
+
+def sensor_image(intensity: np.ndarray, baseline: dict, effects: dict, *, noise: np.ndarray) -> np.ndarray:
+    """What the camera records of ``intensity``: baseline contrast, envelope, fringes, blur, gamma, noise, quantisation.
+
+    ``noise`` is a standard-normal array of the image's shape (fixed per tile: common random
+    numbers make the fit deterministic).
+    """
+    rows, cols = intensity.shape
+    image = 1.0 + float(baseline["contrast"]) * (intensity.astype(np.float32) - 1.0)
+    depth = _param(effects, "illumination", "depth")
+    if depth > 0:
+        y, x = np.ogrid[-0.5 : 0.5 : rows * 1j, -0.5 : 0.5 : cols * 1j]
+        r2 = (x - _param(effects, "illumination", "x0")) ** 2 + (y - _param(effects, "illumination", "y0")) ** 2
+        image = image * (1.0 - depth * (1.0 - np.exp(-r2 / 0.18))).astype(np.float32)
+    amplitude = _param(effects, "parasitic_fringes", "amplitude")
+    if amplitude > 0:
+        angle, period = _param(effects, "parasitic_fringes", "angle_rad"), _param(effects, "parasitic_fringes", "period_px")
+        y, x = np.ogrid[:rows, :cols]
+        image = image * (1.0 + amplitude * np.cos(2 * np.pi * (x * np.cos(angle) + y * np.sin(angle)) / period)).astype(np.float32)
+    image = np.clip(image, 0.0, None) ** float(baseline["gamma"])
+    photons = 10.0 ** _param(effects, "shot_noise", "log10_photons")
+    # Poisson(N I)/N by its normal approximation, and Gaussian read noise, from one fixed draw
+    scale = np.sqrt(image / photons + float(baseline["sigma"]) ** 2)
+    image = image + scale * noise
+    blur = _param(effects, "sensor_blur", "sigma_px")
+    if blur > 0:  # pixel crosstalk / MTF acts on the recorded charge, noise included
+        image = ndimage.gaussian_filter(image, blur)
+    bits, saturation = _param(effects, "quantization", "bits"), _param(effects, "quantization", "saturation")
+    if bits < 16:
+        levels = 2.0 ** round(bits) - 1
+        image = np.round(np.clip(image / saturation, 0.0, 1.0) * levels) / levels * saturation
+    return image.astype(np.float32)

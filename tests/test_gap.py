@@ -1,0 +1,143 @@
+"""Effect catalog and gap diagnosis (issue 6): physics of each effect, the gap statistic, and a
+fast injection–recovery check (the full suite is benchmarks/bench_diagnosis.py)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from napari_lbs._core import (
+    BASELINE,
+    EFFECTS,
+    ExperimentConfig,
+    InputError,
+    SUMMARY_GROUPS,
+    DiagnosisSettings,
+    diagnose_tiles,
+    gap_statistic,
+    optical_hologram,
+    random_particle_field,
+    sensor_image,
+    simulate_hologram,
+    tile_summaries,
+    write_report,
+)
+
+CONFIG = ExperimentConfig()
+NEUTRAL = dict(BASELINE.neutral)
+
+
+def field(shape=(64, 64), count=2, seed=0):
+    return random_particle_field(shape, count=count, diameter_min_um=20, diameter_max_um=30, layers_um=CONFIG.layer_depths_um(), pixel_um=2.2, seed=seed)
+
+
+def test_every_contract_effect_is_in_the_catalog_with_bounds_containing_its_injections():
+    assert set(EFFECTS) >= {"illumination", "shot_noise", "quantization", "sensor_blur", "coherence", "particle_phase", "multiple_scattering", "parasitic_fringes", "spherical_wave"}
+    for effect in EFFECTS.values():
+        for injection in effect.injections:
+            for name, value in injection.items():
+                low, high = effect.bounds[name]
+                assert low <= value <= high, (effect.id, name)
+
+
+def test_neutral_settings_reproduce_the_seed_simulator_exactly():
+    particles = field()
+    reference = simulate_hologram(particles, wavelength_um=0.66)
+    neutral = {e.id: dict(e.neutral) for e in EFFECTS.values()}
+    np.testing.assert_allclose(optical_hologram(particles, {k: v for k, v in neutral.items() if k in ("coherence", "particle_phase", "multiple_scattering", "spherical_wave")}, wavelength_um=0.66), reference, atol=2e-5)
+    noise = np.zeros((64, 64), np.float32)
+    np.testing.assert_allclose(sensor_image(reference, NEUTRAL, {k: v for k, v in neutral.items() if k not in ("coherence", "particle_phase", "multiple_scattering", "spherical_wave")}, noise=noise), reference, atol=1e-5)
+
+
+def test_shot_noise_variance_grows_with_the_signal_as_poisson():
+    rng = np.random.default_rng(0)
+    flat = np.full((200, 200), 1.0, np.float32)
+    for level in (0.5, 2.0):
+        image = sensor_image(flat * level, NEUTRAL, {"shot_noise": {"log10_photons": 2.0}}, noise=rng.standard_normal(flat.shape).astype(np.float32))
+        # Poisson: var(N I)/N² = I / N, within 5 % (40 000 samples)
+        assert image.var() == pytest.approx(level / 100.0, rel=0.05)
+
+
+def test_quantization_leaves_at_most_2_to_the_bits_levels_and_clips_at_saturation():
+    rng = np.random.default_rng(1)
+    intensity = rng.uniform(0.0, 2.0, (64, 64)).astype(np.float32)
+    image = sensor_image(intensity, NEUTRAL, {"quantization": {"bits": 4.0, "saturation": 1.5}}, noise=np.zeros((64, 64), np.float32))
+    assert np.unique(image).size <= 16 and image.max() == pytest.approx(1.5)
+
+
+def test_sensor_blur_removes_high_frequencies_and_keeps_the_mean():
+    particles = field(seed=2)
+    sharp = simulate_hologram(particles, wavelength_um=0.66)
+    blurred = sensor_image(sharp, NEUTRAL, {"sensor_blur": {"sigma_px": 1.5}}, noise=np.zeros_like(sharp))
+    window = np.outer(np.hanning(64), np.hanning(64))  # no edge leakage
+    high = lambda a: np.abs(np.fft.fft2((a - a.mean()) * window))[20:44, 20:44].sum()  # noqa: E731 - the highest frequencies
+    assert high(blurred) < 0.2 * high(sharp) and blurred.mean() == pytest.approx(sharp.mean(), rel=1e-3)
+
+
+def test_transparent_spheres_conserve_light_where_opaque_discs_remove_it():
+    from napari_lbs._core import ParticleField, disc_coverage
+
+    one = ParticleField(np.array([140.8]), np.array([140.8]), np.array([2000.0]), np.array([30.0]), (128, 128), 2.2)
+    area = disc_coverage((128, 128), one.x_um, one.y_um, one.diameter_um, pixel_um=2.2).mean()
+    opaque = optical_hologram(one, {}, wavelength_um=0.66)
+    glass = optical_hologram(one, {"particle_phase": {"phase_rad": 3.0, "transmission": 1.0}}, wavelength_um=0.66)
+    # <|1 + s|²> = 1 - a for an opaque disc of area fraction a (extinction), 1 for a lossless sphere
+    assert opaque.mean() == pytest.approx(1.0 - area, abs=0.1 * area)
+    assert glass.mean() == pytest.approx(1.0, abs=0.1 * area)
+    assert np.std(glass) > 0.01  # the phase still makes a hologram
+
+
+def test_spherical_wave_magnifies_far_layers():
+    from napari_lbs._core import ParticleField
+
+    one = ParticleField(np.array([100.0]), np.array([70.4]), np.array([4000.0]), np.array([25.0]), (64, 64), 2.2)
+    plane = optical_hologram(one, {}, wavelength_um=0.66)
+    spherical = optical_hologram(one, {"spherical_wave": {"source_mm": 20.0}}, wavelength_um=0.66)
+    # the shadow's centre moves away from the window centre by M = L / (L - z) = 1.25
+    centre = lambda h: np.average(np.arange(64), weights=(1 - h).clip(0).sum(axis=0))  # noqa: E731
+    assert centre(spherical) - 31.5 == pytest.approx(1.25 * (centre(plane) - 31.5), abs=1.0)
+
+
+def test_summaries_cover_every_kind_and_the_gap_statistic_behaves():
+    rng = np.random.default_rng(3)
+    values, names = tile_summaries(simulate_hologram(field(), wavelength_um=0.66), config=CONFIG)
+    assert {g for _, g in names} == set(SUMMARY_GROUPS) and np.all(np.isfinite(values))
+    a = rng.normal(0, 1, (10, 30))
+    assert gap_statistic(a, a.copy())[0] == 0.0
+    assert gap_statistic(a, a + 3.0)[0] > 10.0
+
+
+def pseudo_tiles(effects, *, count=8, seed=7, baseline=None):
+    rng = np.random.default_rng(seed)
+    tiles = []
+    for _ in range(count):
+        intensity = optical_hologram(field(count=2, seed=rng), {k: v for k, v in effects.items() if k in ("coherence", "particle_phase", "multiple_scattering", "spherical_wave")}, wavelength_um=0.66)
+        sensor = {k: v for k, v in effects.items() if k not in ("coherence", "particle_phase", "multiple_scattering", "spherical_wave")}
+        tiles.append(sensor_image(intensity, baseline or {"contrast": 0.8, "sigma": 0.04, "gamma": 1.2}, sensor, noise=rng.standard_normal((64, 64)).astype(np.float32)))
+    return tiles
+
+
+FAST = DiagnosisSettings(sim_tiles=6, evaluations=60, confirm=2)
+
+
+def test_control_with_nothing_withheld_gives_the_null_verdict(tmp_path):
+    diagnosis = diagnose_tiles(pseudo_tiles({}), CONFIG, settings=FAST, particles_per_tile=2)
+    report = diagnosis.report
+    assert report["verdict"]["id"] is None
+    assert {e["id"] for e in report["effects"]} == set(EFFECTS)
+    paths = write_report(diagnosis, tmp_path / "r")
+    payload = json.loads((tmp_path / "r" / "report.json").read_text())
+    assert payload["gap"]["metric"] and "baseline" in payload["gap"] and payload["verdict"].keys() >= {"id", "shrink", "residual"}
+    assert all(p.exists() for p in paths) and (tmp_path / "r" / "gap_where.png").stat().st_size > 1000
+
+
+def test_a_withheld_strong_effect_is_named_and_adding_it_shrinks_the_gap():
+    diagnosis = diagnose_tiles(pseudo_tiles({"sensor_blur": EFFECTS["sensor_blur"].injections[1]}), CONFIG, settings=FAST, particles_per_tile=2)
+    report = diagnosis.report
+    assert report["gap"]["baseline"] > 1.0
+    assert report["verdict"]["id"] == "sensor_blur" and report["verdict"]["shrink"] >= 0.5
+
+
+def test_too_few_tiles_are_refused():
+    with pytest.raises(InputError, match="at least 4 tiles"):
+        diagnose_tiles(pseudo_tiles({}, count=3), CONFIG, settings=FAST)
