@@ -117,7 +117,7 @@ def pseudo_tiles(effects, *, count=8, seed=7, baseline=None):
     return tiles
 
 
-FAST = DiagnosisSettings(sim_tiles=6, evaluations=60, confirm=2)
+FAST = DiagnosisSettings(sim_tiles=6, evaluations=60)
 
 
 def test_control_with_nothing_withheld_gives_the_null_verdict(tmp_path):

@@ -168,3 +168,21 @@ def test_synthetic_sample_and_particle_csv_reader_writer_round_trip(make_napari_
     reread = viewer.open(str(path), plugin="napari-lbs")[0]
     np.testing.assert_allclose(reread.data, truth.data, rtol=0, atol=1e-5)
     np.testing.assert_allclose(reread.features["diameter_um"], truth.features["diameter_um"], rtol=1e-6)
+
+
+def test_diagnosis_widget_maps_the_gap_over_the_hologram_and_writes_the_report(make_napari_viewer, qtbot, tmp_path):
+    viewer = make_napari_viewer()
+    config_path, config = tiny_config_file(tmp_path / "c.toml")
+    hologram, _ = simulated(config, shape=(128, 128), count=8)
+    viewer.add_image(hologram, name="holo", scale=(2.2, 2.2))
+    widget = dock(viewer, "6 Gap diagnosis")
+    widget.hologram.value = viewer.layers["holo"]
+    widget.tile.value = 128
+    assert not widget._run.enabled and "fewer than 4 tiles" in widget._status.value
+    widget.tile.value = 64
+    widget.sim_tiles.value, widget.evaluations.value = 3, 6
+    widget.output.value = tmp_path / "report"
+    run_to_end(qtbot, widget)
+    assert json.loads((tmp_path / "report" / "report.json").read_text())["verdict"].keys() >= {"id", "shrink", "residual"}
+    layer = viewer.layers["gap by region"]
+    assert layer.data.shape == (2, 2) and tuple(layer.scale) == pytest.approx((140.8, 140.8))

@@ -33,7 +33,7 @@ from napari_lbs._core import (
     write_json,
 )
 
-__all__ = ["BackpropWidget", "CalibrationWidget", "GenerateWidget", "TrainingWidget", "PredictionWidget", "particles_layer_data"]
+__all__ = ["BackpropWidget", "CalibrationWidget", "GenerateWidget", "TrainingWidget", "PredictionWidget", "DiagnosisWidget", "particles_layer_data"]
 
 _LAZY_BYTES = 1 << 30  # stacks larger than this are computed plane by plane on demand
 
@@ -581,3 +581,58 @@ class PredictionWidget(_StepWidget):
             metadata=metadata,
         )
         self._done(message)
+
+
+class DiagnosisWidget(_StepWidget):
+    """Sim-to-real gap diagnosis of a hologram: where it lies (map over the hologram), which effect, how much."""
+
+    title = "gap diagnosis"
+
+    def __init__(self, napari_viewer) -> None:
+        import napari
+
+        self.hologram = create_widget(annotation=napari.layers.Image, label="hologram", name="hologram")
+        self.config = FileEdit(label="config (TOML, empty = default)", name="config", filter="*.toml", value="")
+        self.tile = SpinBox(label="tile (px, 0 = tile.size)", name="tile", value=0, min=0, max=8192)
+        self.sim_tiles = SpinBox(label="simulated tiles", name="sim_tiles", value=8, min=2, max=256)
+        self.evaluations = SpinBox(label="evaluations per fit", name="evaluations", value=40, min=5, max=10000)
+        self.seed = SpinBox(label="seed", name="seed", value=0, min=0, max=2**31 - 1)
+        self.output = FileEdit(label="report folder", name="output", mode="d", value="lbs-diagnosis")
+        super().__init__(napari_viewer, [self.hologram, self.config, self.tile, self.sim_tiles, self.evaluations, self.seed, self.output])
+        self.diagnosis = None
+
+    def problem(self):
+        problem = _hologram_problem(self.hologram.value) or _config_problem(self.config)
+        if problem:
+            return problem
+        size = self.tile.value or _config_from(self.config).tile.size
+        rows, cols = self.hologram.value.data.shape[:2]
+        if (rows // size) * (cols // size) < 4:
+            return f"tile: {size}-pixel tiles give fewer than 4 tiles of the {rows}x{cols} hologram; choose a smaller tile"
+        return None
+
+    def prepare(self):
+        from napari_lbs._core import DiagnosisSettings
+
+        settings = DiagnosisSettings(sim_tiles=self.sim_tiles.value, evaluations=self.evaluations.value, seed=self.seed.value)
+        layer = self.hologram.value
+        return _hologram_data(layer), _config_from(self.config), self.tile.value or None, settings, Path(self.output.value), layer
+
+    def work(self, job, *, progress, should_stop, report):
+        from napari_lbs._core import diagnose_hologram, write_report
+
+        hologram, config, tile, settings, output, layer = job
+        diagnosis = diagnose_hologram(hologram, config, tile_px=tile, settings=settings, progress=progress, should_stop=should_stop)
+        write_report(diagnosis, output, provenance={"source": layer.name, "config": config.to_dict(), "seed": settings.seed})
+        return diagnosis, output, layer, tile or config.tile.size
+
+    def show(self, outcome):
+        diagnosis, output, layer, size = outcome
+        self.diagnosis = diagnosis
+        report = diagnosis.report
+        rows, cols = layer.data.shape[0] // size, layer.data.shape[1] // size
+        where = np.asarray(report["gap"]["by_region"], np.float32).reshape(rows, cols)
+        scale = tuple(np.asarray(layer.scale[-2:]) * size)
+        self._viewer.add_image(where, name="gap by region", scale=scale, translate=tuple(np.asarray(layer.translate[-2:]) + (np.asarray(scale) - np.asarray(layer.scale[-2:])) / 2), colormap="magma", opacity=0.45, blending="additive", metadata={"report": report, "folder": str(output)})
+        verdict = report["verdict"]
+        self._done(f"gap {report['gap']['baseline']:.2f}; verdict {verdict['id'] or 'nothing missing'} (shrink {100 * verdict['shrink']:.0f} %) → {output / 'report.md'}")

@@ -64,7 +64,7 @@ BASELINE = Effect("baseline", "seed's simulator: opaque discs, Gaussian noise, g
 
 EFFECTS: dict[str, Effect] = {e.id: e for e in (
     Effect("illumination", "Gaussian beam envelope / vignetting", {"depth": (0.0, 0.8), "x0": (-0.5, 0.5), "y0": (-0.5, 0.5)}, {"depth": 0.0, "x0": 0.0, "y0": 0.0}, ({"depth": 0.25, "x0": 0.2, "y0": -0.1}, {"depth": 0.5, "x0": 0.2, "y0": -0.1})),
-    Effect("shot_noise", "Poisson photon noise", {"log10_photons": (1.0, 4.0)}, {"log10_photons": 9.0}, ({"log10_photons": 2.3}, {"log10_photons": 1.6})),
+    Effect("shot_noise", "Poisson photon noise", {"log10_photons": (0.5, 4.0)}, {"log10_photons": 9.0}, ({"log10_photons": 1.9}, {"log10_photons": 1.4})),
     Effect("quantization", "bit depth and saturation", {"bits": (3.0, 10.0), "saturation": (1.05, 3.0)}, {"bits": 16.0, "saturation": 1e3}, ({"bits": 5.0, "saturation": 1.6}, {"bits": 4.0, "saturation": 1.25})),
     Effect("sensor_blur", "pixel integration / sensor MTF", {"sigma_px": (0.0, 2.0)}, {"sigma_px": 0.0}, ({"sigma_px": 0.8}, {"sigma_px": 1.4})),
     Effect("coherence", "partial spatial coherence (source size)", {"theta_mrad": (0.0, 3.0)}, {"theta_mrad": 0.0}, ({"theta_mrad": 0.6}, {"theta_mrad": 1.2})),
