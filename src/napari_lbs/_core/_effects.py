@@ -70,7 +70,7 @@ EFFECTS: dict[str, Effect] = {e.id: e for e in (
     Effect("coherence", "partial spatial coherence (source size)", {"theta_mrad": (0.0, 3.0)}, {"theta_mrad": 0.0}, ({"theta_mrad": 0.6}, {"theta_mrad": 1.2})),
     Effect("particle_phase", "transparent, refracting spheres", {"phase_rad": (0.0, 6.0), "transmission": (0.0, 1.0)}, {"phase_rad": 0.0, "transmission": 0.0}, ({"phase_rad": 2.0, "transmission": 0.6}, {"phase_rad": 4.0, "transmission": 0.9})),
     Effect("multiple_scattering", "shadowing between particle layers", {"on": (1.0, 1.0)}, {"on": 0.0}, ({"on": 1.0}, {"on": 1.0})),
-    Effect("parasitic_fringes", "static etalon fringes", {"amplitude": (0.0, 0.2), "period_px": (6.0, 60.0), "angle_rad": (0.0, 3.1416)}, {"amplitude": 0.0, "period_px": 20.0, "angle_rad": 0.0}, ({"amplitude": 0.04, "period_px": 14.0, "angle_rad": 0.7}, {"amplitude": 0.1, "period_px": 14.0, "angle_rad": 0.7})),
+    Effect("parasitic_fringes", "static etalon fringes", {"amplitude": (0.0, 0.2), "period_px": (4.0, 24.0), "angle_rad": (0.0, 3.1416)}, {"amplitude": 0.0, "period_px": 20.0, "angle_rad": 0.0}, ({"amplitude": 0.04, "period_px": 14.0, "angle_rad": 0.7}, {"amplitude": 0.1, "period_px": 14.0, "angle_rad": 0.7})),
     Effect("spherical_wave", "diverging illumination (point source at L)", {"source_mm": (8.0, 200.0)}, {"source_mm": 1e9}, ({"source_mm": 40.0}, {"source_mm": 15.0})),
 )}
 OPTICAL_EFFECTS = ("coherence", "particle_phase", "multiple_scattering", "spherical_wave")
