@@ -67,7 +67,7 @@ EFFECTS: dict[str, Effect] = {e.id: e for e in (
     Effect("shot_noise", "Poisson photon noise", {"log10_photons": (0.5, 4.0)}, {"log10_photons": 9.0}, ({"log10_photons": 1.9}, {"log10_photons": 1.4})),
     Effect("quantization", "bit depth and saturation", {"bits": (3.0, 10.0), "saturation": (1.05, 3.0)}, {"bits": 16.0, "saturation": 1e3}, ({"bits": 5.0, "saturation": 1.6}, {"bits": 4.0, "saturation": 1.25})),
     Effect("sensor_blur", "pixel integration / sensor MTF", {"sigma_px": (0.0, 2.0)}, {"sigma_px": 0.0}, ({"sigma_px": 0.8}, {"sigma_px": 1.4})),
-    Effect("coherence", "partial spatial coherence (source size)", {"theta_mrad": (0.0, 3.0)}, {"theta_mrad": 0.0}, ({"theta_mrad": 0.6}, {"theta_mrad": 1.2})),
+    Effect("coherence", "partial spatial coherence (source size)", {"theta_mrad": (0.0, 3.0)}, {"theta_mrad": 0.0}, ({"theta_mrad": 1.2}, {"theta_mrad": 2.4})),
     Effect("particle_phase", "transparent, refracting spheres", {"phase_rad": (0.0, 6.0), "transmission": (0.0, 1.0)}, {"phase_rad": 0.0, "transmission": 0.0}, ({"phase_rad": 2.0, "transmission": 0.6}, {"phase_rad": 4.0, "transmission": 0.9})),
     Effect("multiple_scattering", "shadowing between particle layers", {"on": (1.0, 1.0)}, {"on": 0.0}, ({"on": 1.0}, {"on": 1.0})),
     Effect("parasitic_fringes", "static etalon fringes", {"amplitude": (0.0, 0.2), "period_px": (4.0, 24.0), "angle_rad": (0.0, 3.1416)}, {"amplitude": 0.0, "period_px": 20.0, "angle_rad": 0.0}, ({"amplitude": 0.04, "period_px": 14.0, "angle_rad": 0.7}, {"amplitude": 0.1, "period_px": 14.0, "angle_rad": 0.7})),

@@ -231,11 +231,16 @@ def _fit(model: _Model, real: np.ndarray, effect_ids: Sequence[str], *, start: d
         values = [low] if low == high else list(np.linspace(low, high, 4)[1:])
         grid_points = [{**point, key: v} for point in grid_points for v in values]
     best = (np.inf, None, None)
-    per_point = max(evaluations // len(grid_points), 10)
+    # a short fit at each grid point of the optical parameters, then the rest of the budget on the best point
+    per_point = max(evaluations // (2 * len(grid_points)), 8) if len(grid_points) > 1 else evaluations
     for optical in grid_points:
         result = optimize.minimize(loss, x0, args=(optical,), method="Nelder-Mead", options={"maxfev": per_point, "xatol": 1e-3, "fatol": 1e-3, "initial_simplex": _simplex(x0)})
         if result.fun < best[0]:
             best = (float(result.fun), result.x, optical)
+    if len(grid_points) > 1:
+        result = optimize.minimize(loss, best[1], args=(best[2],), method="Nelder-Mead", options={"maxfev": evaluations, "xatol": 1e-3, "fatol": 1e-3, "initial_simplex": _simplex(np.clip(best[1], 0, 1))})
+        if result.fun < best[0]:
+            best = (float(result.fun), result.x, best[2])
     baseline, effects = unpack(best[1], best[2])
     return baseline, effects, best[0]
 
