@@ -13,7 +13,7 @@ import napari
 from qtpy.QtWidgets import QApplication
 
 FIGURES = Path(__file__).resolve().parents[1] / "docs" / "figures"
-WIDGETS = ["1 Back-propagation", "2 Calibration", "3 Synthetic data", "4 Training", "5 Prediction"]
+WIDGETS = ["1 Back-propagation", "2 Calibration", "3 Synthetic data", "4 Training", "5 Prediction", "6 Gap diagnosis"]
 
 
 def settle(seconds: float = 0.5) -> None:
