@@ -4,8 +4,12 @@ Every long-running `_core` function takes two keyword-only callables, both optio
 
 - ``progress(done, total)`` is called after each step (a z chunk, a GA generation, a batch);
 - ``should_stop()`` is polled between steps; when it returns True the function stops at the
-  next step boundary. Functions whose partial result is meaningful (calibration, training)
-  return it marked as stopped; the others raise `Stopped` and leave nothing half-written.
+  next step boundary. Functions whose partial result is meaningful (calibration, data
+  generation, training) return it marked as stopped; the others (back-propagation,
+  prediction, diagnosis) raise `Stopped` and leave nothing half-written.
+
+Training also takes ``report(record)``, called with a dict after each batch and epoch, for
+live plots.
 """
 
 from __future__ import annotations
