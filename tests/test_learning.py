@@ -264,3 +264,21 @@ def test_prediction_runs_on_a_hologram_larger_than_a_tile_and_carries_provenance
         predict_particles(hologram, tiny_model.model_path, should_stop=lambda: True)
     with pytest.raises(InputError, match="larger than the image"):
         predict_particles(hologram[:40, :90], tiny_model.model_path)
+
+
+def test_detections_of_one_particle_at_distant_depths_merge_laterally_only_when_asked():
+    planes = np.arange(1800.0, 2800.0, 100.0)
+    outputs = np.zeros((10, 40, 40), np.float32)
+    outputs[2, 10:13, 10:13] = 100.0  # one sphere seen at 2000 um ...
+    outputs[7, 11:14, 10:13] = 60.0  # ... and again, weaker, 500 um deeper, one pixel off
+    outputs[5, 30:33, 30:33] = 90.0  # a different particle
+    separate = detect_particles(outputs, planes, pixel_um=2.0, threshold=20.0, full_value=80.0)
+    assert len(separate["x_um"]) == 3
+    from napari_lbs._core import PlaneLinker
+
+    linker = PlaneLinker(planes, pixel_um=2.0, threshold=20.0, full_value=80.0, merge_lateral_um=10.0)
+    for plane, output in enumerate(outputs):
+        linker.add(plane, output)
+    merged = linker.particles()
+    assert len(merged["x_um"]) == 2
+    assert sorted(merged["z_um"]) == pytest.approx([2000.0, 2300.0])  # the stronger detection is kept

@@ -72,6 +72,9 @@ def tile_summaries(tile: np.ndarray, *, config: ExperimentConfig) -> tuple[np.nd
     for low, high in zip(_BANDS[:-1], _BANDS[1:], strict=True):
         band = power[(radius >= low) & (radius < high)]
         add(f"log power {low:.3f}-{high:.3f} cyc/px", "band", np.log10(band.mean() + 1e-12))
+    # a narrow spectral peak (etalon fringes) stands out of its band: peak over median power, 0.03-0.3 cycles/px
+    ring = power[(radius >= 0.03) & (radius < 0.3)]
+    add("log spectral peak / median", "band", np.log10(ring.max() / (np.median(ring) + 1e-12)))
     # depth: planes of the back-propagated tile
     optics = {"wavelength_um": config.optics.wavelength_um, "pixel_um": config.optics.pixel_um, "medium_index": config.optics.medium_index}
     planes = np.abs(propagate(image.astype(np.float32), -_depths(config), **optics))

@@ -105,7 +105,7 @@ def predict_particles(
     cols = tile_layout(hologram.shape[1], size=size, margin=margin_px)
     invert, mode = bool(meta["processing"]["invert_experiment"]), meta["processing"]["mode"]
     optics = {"wavelength_um": config.optics.wavelength_um, "pixel_um": config.optics.pixel_um, "medium_index": config.optics.medium_index}
-    linker = PlaneLinker(planes, pixel_um=config.optics.pixel_um, threshold=float(meta["threshold"]), full_value=float(meta["full_value"]))
+    linker = PlaneLinker(planes, pixel_um=config.optics.pixel_um, threshold=float(meta["threshold"]), full_value=float(meta["full_value"]), merge_lateral_um=float(meta.get("merge_lateral_um", 0.0)))
     steps = Steps(len(planes), progress=progress, should_stop=should_stop)
     for first in range(0, len(planes), _PLANES_PER_CHUNK):
         steps.check()

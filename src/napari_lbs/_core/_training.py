@@ -110,6 +110,11 @@ class TrainingResult:
         return self.log.get("best")
 
 
+def merge_lateral_um(config) -> float:
+    """Detections closer than half the smallest trained diameter are one particle (`PlaneLinker`)."""
+    return 0.5 * config.particles.diameter_min_um
+
+
 def _validate(network, dataset: SyntheticDataset, groups: list[int], *, output_scale: float, full_value: float) -> dict:
     """Loss and, for each threshold of the grid, one-to-one metrics summed over the groups."""
     config = dataset.config
@@ -122,7 +127,7 @@ def _validate(network, dataset: SyntheticDataset, groups: list[int], *, output_s
         count += labels.size
         truth = {key: np.asarray(values) for key, values in description["particles"].items()}
         for fraction in THRESHOLD_FRACTIONS:
-            linker = PlaneLinker(dataset.planes_um, pixel_um=config.optics.pixel_um, threshold=fraction * full_value, full_value=full_value)
+            linker = PlaneLinker(dataset.planes_um, pixel_um=config.optics.pixel_um, threshold=fraction * full_value, full_value=full_value, merge_lateral_um=merge_lateral_um(config))
             for plane, output in enumerate(outputs):
                 linker.add(plane, output)
             metrics = score_particles(linker.particles(), truth)
@@ -245,6 +250,7 @@ def train_model(
         "planes_um": dataset.planes_um,
         "output_scale": output_scale,
         "full_value": full_value,
+        "merge_lateral_um": merge_lateral_um(config),
         "dataset": dataset_summary(dataset),
         "settings": asdict(settings),
         "napari_lbs": __version__,
