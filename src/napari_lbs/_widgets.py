@@ -197,15 +197,27 @@ class _StepWidget(Container):
         self._last_message = message
 
 
-def _config_from(edit: FileEdit):
+def _chosen(edit: FileEdit) -> Path | None:
+    """The file an optional FileEdit names, or None when it is left empty (magicgui shows empty as ".")."""
     path = edit.value
-    return load_config(path if path and str(path) not in ("", ".") and Path(path).is_file() else None)
+    return Path(path) if path and str(path) not in ("", ".") else None
+
+
+def _missing(edit: FileEdit, label: str) -> str | None:
+    """Why an optional file input is invalid (named but absent), or None."""
+    path = _chosen(edit)
+    return f"{label}: {path} not found" if path is not None and not path.is_file() else None
+
+
+def _config_from(edit: FileEdit):
+    path = _chosen(edit)
+    return load_config(path if path is not None and path.is_file() else None)
 
 
 def _config_problem(edit: FileEdit) -> str | None:
-    path = edit.value
-    if path and str(path) not in ("", ".") and not Path(path).is_file():
-        return f"config: {path} not found"
+    missing = _missing(edit, "config")
+    if missing:
+        return missing
     try:
         _config_from(edit)
     except ValueError as error:
@@ -377,14 +389,11 @@ class GenerateWidget(_StepWidget):
         super().__init__(napari_viewer, [self.config, self.calibration, self.groups, self.seed, self.output])
 
     def problem(self):
-        path = self.calibration.value
-        if path and str(path) not in ("", ".") and not Path(path).is_file():
-            return f"calibration: {path} not found"
-        return _config_problem(self.config)
+        return _missing(self.calibration, "calibration") or _config_problem(self.config)
 
     def prepare(self):
-        path = self.calibration.value
-        calibration = json.loads(Path(path).read_text()) if path and str(path) not in ("", ".") else None
+        path = _chosen(self.calibration)
+        calibration = json.loads(path.read_text()) if path is not None else None
         processing = InputProcessing.from_calibration(calibration) if calibration else InputProcessing()
         return _config_from(self.config), processing, calibration, self.groups.value, self.seed.value, Path(self.output.value)
 
@@ -532,16 +541,11 @@ class PredictionWidget(_StepWidget):
             return problem
         if not Path(self.model.value).is_file():
             return f"model: {self.model.value} not found"
-        path = self.reference.value
-        if path and str(path) not in ("", ".") and not Path(path).is_file():
-            return f"reference: {path} not found"
-        return _config_problem(self.config)
+        return _missing(self.reference, "reference") or _config_problem(self.config)
 
     def prepare(self):
-        path = self.config.value
-        config = load_config(path) if path and str(path) not in ("", ".") else None
-        reference = self.reference.value
-        reference = read_particles(reference) if reference and str(reference) not in ("", ".") else None
+        config = load_config(_chosen(self.config)) if _chosen(self.config) is not None else None
+        reference = read_particles(_chosen(self.reference)) if _chosen(self.reference) is not None else None
         return _hologram_data(self.hologram.value), Path(self.model.value), config, self.device.value, reference, self.hologram.value.name
 
     def work(self, job, *, progress, should_stop, report):

@@ -77,7 +77,7 @@ OPTICAL_EFFECTS = ("coherence", "particle_phase", "multiple_scattering", "spheri
 
 
 def _param(effects: dict, effect: str, name: str) -> float:
-    return float(effects.get(effect, EFFECTS[effect].neutral)[name]) if effect in effects else float(EFFECTS[effect].neutral[name])
+    return float(effects.get(effect, EFFECTS[effect].neutral)[name])
 
 
 def _sphere_fields(field: ParticleField, depth: float, *, transmission: float, phase_rad: float) -> np.ndarray:

@@ -29,13 +29,14 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from scipy import ndimage, optimize, stats
 
 from napari_lbs._core._config import ExperimentConfig
 from napari_lbs._core._effects import BASELINE, EFFECTS, OPTICAL_EFFECTS, optical_hologram, sensor_image
-from napari_lbs._core._io import InputError
+from napari_lbs._core._io import InputError, as_hologram, atomic_path, atomic_write_bytes, write_json
 from napari_lbs._core._optics import propagate
 from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
 from napari_lbs._core._synthesis import random_particle_field
@@ -391,8 +392,6 @@ def diagnose_hologram(
     should_stop: StopCallback | None = None,
 ) -> Diagnosis:
     """Diagnose one hologram: cut it into non-overlapping tiles (default ``tile.size``) and run `diagnose_tiles`."""
-    from napari_lbs._core._io import as_hologram
-
     image = as_hologram(hologram)
     if background is not None:
         image = image / np.maximum(as_hologram(background, name="background"), 1e-6)
@@ -408,14 +407,10 @@ def diagnose_hologram(
 
 def write_report(diagnosis: Diagnosis, out_dir, *, provenance: dict | None = None) -> list:
     """Write ``report.json`` (CONTRACT.md), ``report.md`` and PNG figures into ``out_dir``; return the paths."""
-    from pathlib import Path
-
     import matplotlib
 
     matplotlib.use("Agg", force=False)
     from matplotlib.figure import Figure
-
-    from napari_lbs._core._io import atomic_path, write_json
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -494,7 +489,5 @@ def write_report(diagnosis: Diagnosis, out_dir, *, provenance: dict | None = Non
         "",
     ]
     paths.append(out / "report.md")
-    from napari_lbs._core._io import atomic_write_bytes
-
     atomic_write_bytes(out / "report.md", "\n".join(lines).encode("utf-8"))
     return paths
