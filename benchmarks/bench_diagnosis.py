@@ -2,17 +2,18 @@
 
 Sub-commands:
 
-``suite [--tile PX] [--tiles N] [--evaluations E]``
+``suite [--tile PX] [--tiles N] [--particles P] [--evaluations E] [--controls C]``
     Injection and recovery: for every effect id, pseudo-experiments made with that effect on
     at its weak and its strong setting (`Effect.injections`) on top of a known baseline
     (contrast 0.8, read noise 0.04, gamma 1.2), diagnosed by a simulator that withholds it;
     plus controls with nothing withheld. Prints top-1 accuracy of the verdict, the shrink of
     the confirmed effect, the controls' false-alarm rate, and the time per diagnosis against
     the time of one baseline fit measured in the same run.
-``independent``
-    Pseudo-experiments from Lorenz–Mie theory (pylorenzmie; transparent polystyrene spheres,
-    n = 1.59 in water, a model the diagnosis never uses): the verdict should be
-    ``particle_phase``.
+``independent [--index N] ...``
+    Pseudo-experiments from Lorenz–Mie theory (pylorenzmie, a model the diagnosis never uses):
+    transparent spheres of refractive index N in water (1.59: polystyrene; 1.37: cell-like).
+    The verdict should be ``particle_phase`` wherever the sphere's refracted light stays within
+    the sensor's bandwidth.
 ``real``
     The seed's real 1024² hologram, 256² tiles: the full diagnosis, timed (target <= 10 min),
     report written to docs/figures/diagnosis-real/.
@@ -59,9 +60,8 @@ def pseudo_tiles(effects: dict, *, tile: int, count: int, particles: int, seed: 
     return tiles
 
 
-def suite(tile: int, tiles: int, evaluations: int, controls: int) -> None:
+def suite(tile: int, tiles: int, particles: int, evaluations: int, controls: int) -> None:
     settings = DiagnosisSettings(sim_tiles=6, evaluations=evaluations)
-    particles = max(1, round(12 * tile * tile / 256**2))
     cases = [(effect_id, strength) for effect_id in EFFECTS for strength in (0, 1)] + [(None, c) for c in range(controls)]
     rows = []
     start = time.perf_counter()
@@ -92,7 +92,7 @@ def suite(tile: int, tiles: int, evaluations: int, controls: int) -> None:
           f"{(time.perf_counter() - start) / len(rows):.1f} s per diagnosis ({tiles} tiles of {tile}²)")
 
 
-def independent(tile: int, tiles: int, evaluations: int) -> None:
+def independent(tile: int, tiles: int, particles: int, evaluations: int, sphere_index: float) -> None:
     # pylorenzmie is a test/benchmark extra: the diagnosis itself never uses it
     from pylorenzmie.theory import LorenzMie, Sphere
     from pylorenzmie.theory.Instrument import Instrument
@@ -100,11 +100,10 @@ def independent(tile: int, tiles: int, evaluations: int) -> None:
     config = ExperimentConfig.from_dict({"optics": {"wavelength_um": 0.66, "pixel_um": 2.2, "medium_index": 1.33}})
     rng = np.random.default_rng(42)
     instrument = Instrument(wavelength=0.66, magnification=2.2, n_m=1.33)
-    particles = max(1, round(12 * tile * tile / 256**2))
     real = []
     for _ in range(tiles):
         spheres = [
-            Sphere(a_p=rng.uniform(10, 15) + 1e-6, n_p=1.59, k_p=0.0, x_p=rng.uniform(0, tile), y_p=rng.uniform(0, tile), z_p=rng.choice(config.layer_depths_um()) / 2.2)
+            Sphere(a_p=rng.uniform(10, 15) + 1e-6, n_p=sphere_index, k_p=0.0, x_p=rng.uniform(0, tile), y_p=rng.uniform(0, tile), z_p=rng.choice(config.layer_depths_um()) / 2.2)
             for _ in range(particles)
         ]
         model = LorenzMie(coordinates=LorenzMie.meshgrid((tile, tile)), particle=spheres, instrument=instrument)
@@ -113,7 +112,9 @@ def independent(tile: int, tiles: int, evaluations: int) -> None:
     start = time.perf_counter()
     report = diagnose_tiles(real, config, settings=DiagnosisSettings(sim_tiles=6, evaluations=evaluations), particles_per_tile=particles).report
     print(json.dumps({"verdict": report["verdict"], "baseline_gap": round(report["gap"]["baseline"], 2), "seconds": round(time.perf_counter() - start, 1), "effects": [(e["id"], round(e["shrink"], 2)) for e in report["effects"]]}))
-    print("expected verdict: particle_phase (polystyrene spheres in water are transparent); got", report["verdict"]["id"])
+    phase_rad = 2 * np.pi / 0.66 * (sphere_index - 1.33) * 25.0
+    print(f"spheres n = {sphere_index} in water: phase delay through a 25 um sphere {phase_rad:.0f} rad; "
+          f"expected verdict particle_phase where the refracted light stays within the sensor's bandwidth; got {report['verdict']['id']}")
 
 
 def real() -> None:
@@ -133,17 +134,20 @@ def main() -> None:
     sub = parser.add_subparsers(dest="command", required=True)
     for name in ("suite", "independent"):
         p = sub.add_parser(name)
-        p.add_argument("--tile", type=int, default=64)
-        p.add_argument("--tiles", type=int, default=8)
+        p.add_argument("--tile", type=int, default=128)
+        p.add_argument("--tiles", type=int, default=16)
+        p.add_argument("--particles", type=int, default=12, help="particles per tile")
         p.add_argument("--evaluations", type=int, default=60)
         if name == "suite":
-            p.add_argument("--controls", type=int, default=3)
+            p.add_argument("--controls", type=int, default=4)
+        else:
+            p.add_argument("--index", type=float, default=1.59, help="refractive index of the spheres (water: 1.33)")
     sub.add_parser("real")
     args = parser.parse_args()
     if args.command == "suite":
-        suite(args.tile, args.tiles, args.evaluations, args.controls)
+        suite(args.tile, args.tiles, args.particles, args.evaluations, args.controls)
     elif args.command == "independent":
-        independent(args.tile, args.tiles, args.evaluations)
+        independent(args.tile, args.tiles, args.particles, args.evaluations, args.index)
     else:
         real()
 

@@ -98,6 +98,21 @@ def test_spherical_wave_magnifies_far_layers():
     assert centre(spherical) - 31.5 == pytest.approx(1.25 * (centre(plane) - 31.5), abs=1.0)
 
 
+def test_a_static_fringe_is_measured_at_its_period_and_angle_under_a_particle_scene():
+    from napari_lbs._core import measured_fringe
+
+    rng = np.random.default_rng(4)
+    period_px, angle_rad = 9.0, 2.0
+    tiles = [
+        sensor_image(simulate_hologram(field((128, 128), count=12, seed=rng), wavelength_um=0.66), NEUTRAL, {"parasitic_fringes": {"amplitude": 0.05, "period_px": period_px, "angle_rad": angle_rad}}, noise=rng.standard_normal((128, 128)).astype(np.float32) * 0.03)
+        for _ in range(6)
+    ]
+    fy, fx = measured_fringe(tiles)
+    # within one frequency bin (1/128 cycles/px); the angle of a fringe is defined modulo π
+    assert np.hypot(fy, fx) == pytest.approx(1 / period_px, abs=1 / 128)
+    assert min(abs(np.arctan2(fy, fx) % np.pi - angle_rad), np.pi - abs(np.arctan2(fy, fx) % np.pi - angle_rad)) < 0.1
+
+
 def test_summaries_cover_every_kind_and_the_gap_statistic_behaves():
     rng = np.random.default_rng(3)
     values, names = tile_summaries(simulate_hologram(field(), wavelength_um=0.66), config=CONFIG)

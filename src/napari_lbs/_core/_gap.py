@@ -1,11 +1,13 @@
 """Diagnosing the sim-to-real gap: where it lies, which unmodelled effect causes it, how far it shrinks.
 
 Measurements (`tile_summaries`): one code path for real and simulated tiles, none needing the
-two scenes to be aligned — per spatial-frequency band (radial power spectrum), per depth
-(contrast, focal-spot tail and sharpness of back-propagated planes), per image region
-(illumination tilt and curvature within a tile; which real tiles differ most), intensity
-statistics (quantiles, moments, clipped fraction), noise character (wavelet σ, variance
-against mean, distinct levels) and particle appearance (autocorrelation of the fringes).
+two scenes to be aligned — per spatial-frequency band (radial power spectrum, and the power at
+the experiment's static-fringe frequency), per depth (contrast and relative sharpness of 8
+back-propagated planes, sharpness-weighted depth), per image region (illumination tilt and
+curvature within a tile; which real tiles differ most), intensity statistics (quantiles,
+moments, clipped fraction), noise character (wavelet σ, variance against mean, distinct
+levels) and particle appearance through focus (brightest focal spots and darkest cores over
+all planes, dark-core area, autocorrelation of the fringes).
 
 The gap between a set of real tiles ``R`` and simulated tiles ``S`` is the excess
 standardised χ² over the K summaries::
@@ -19,9 +21,9 @@ absolute difference failed.)
 
 Attribution (`diagnose_tiles`): fit the baseline (seed's simulator, `EFFECTS` module) to half
 of the real tiles, screen every effect by regressing the standardised residual on its
-signature, confirm the most significant ones (largest |t|) by adding each and refitting all parameters, score
-every model on the other half (tiles never used for a fit), rank, and name a verdict — or
-``null`` when the baseline already explains the data or nothing shrinks the gap enough.
+signature, confirm the most significant ones (largest |t|) by adding each and refitting all
+parameters, score every model on the other half (tiles never used for a fit), rank, and name
+a verdict — or ``null`` when no effect removes enough of the gap on the held-out tiles.
 """
 
 from __future__ import annotations
@@ -41,21 +43,30 @@ from napari_lbs._core._optics import propagate
 from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
 from napari_lbs._core._synthesis import random_particle_field
 
-__all__ = ["tile_summaries", "gap_statistic", "real_spread", "write_report", "where_gap", "diagnose_tiles", "diagnose_hologram", "DiagnosisSettings", "Diagnosis", "SUMMARY_GROUPS"]
+__all__ = ["tile_summaries", "measured_fringe", "gap_statistic", "real_spread", "write_report", "where_gap", "diagnose_tiles", "diagnose_hologram", "DiagnosisSettings", "Diagnosis", "SUMMARY_GROUPS"]
 
 SUMMARY_GROUPS = ("band", "depth", "region", "intensity", "noise", "appearance")
 _BANDS = np.geomspace(1 / 64, 0.5, 9)  # cycles per pixel: 8 bands
 _LAGS = (1, 2, 4, 8, 16)
-_VERDICT_MIN_GAP = 1.0  # below this excess χ² the baseline explains the data
+# A verdict needs the best effect to remove at least this much excess χ² on held-out tiles
+# (refitting a null model to noise removes less: the controls of the suite) and this share of it.
+_VERDICT_MIN_REDUCTION = 0.5
 _VERDICT_MIN_SHRINK = 0.3
+_DESIGN_POINTS = 16  # Sobol start points of a fit that adds parameters
 
 
-def _depths(config: ExperimentConfig, count: int = 4) -> np.ndarray:
+def _depths(config: ExperimentConfig, count: int = 8) -> np.ndarray:
+    """``count`` planes spread evenly inside the volume (µm)."""
     return np.linspace(config.volume.z_min_um, config.volume.z_max_um, count + 2)[1:-1]
 
 
-def tile_summaries(tile: np.ndarray, *, config: ExperimentConfig) -> tuple[np.ndarray, list[tuple[str, str]]]:
-    """Summary vector of one hologram tile and the (name, group) of each entry."""
+def tile_summaries(tile: np.ndarray, *, config: ExperimentConfig, fringe_frequency: tuple[float, float] | None = None) -> tuple[np.ndarray, list[tuple[str, str]]]:
+    """Summary vector of one hologram tile and the (name, group) of each entry.
+
+    ``fringe_frequency`` (cycles/px, (fy, fx)): where to measure the power of a static fringe,
+    normally the experiment's strongest spectral peak (`measured_fringe`); real and simulated
+    tiles must be summarised with the same one. Default: this tile's own strongest peak.
+    """
     image = np.asarray(tile, np.float64)
     image = image / image.mean()
     rows, cols = image.shape
@@ -67,23 +78,41 @@ def tile_summaries(tile: np.ndarray, *, config: ExperimentConfig) -> tuple[np.nd
         names.append((name, group))
 
     # band: radially averaged power of the Hann-windowed fluctuation, 8 log bands
-    window = np.outer(np.hanning(rows), np.hanning(cols))
-    power = np.abs(np.fft.fft2((image - 1.0) * window)) ** 2 / window.sum()
+    power = _power_spectrum(image)
     radius = np.hypot(*np.meshgrid(np.fft.fftfreq(rows), np.fft.fftfreq(cols), indexing="ij"))
     for low, high in zip(_BANDS[:-1], _BANDS[1:], strict=True):
         band = power[(radius >= low) & (radius < high)]
         add(f"log power {low:.3f}-{high:.3f} cyc/px", "band", np.log10(band.mean() + 1e-12))
-    # a narrow spectral peak (etalon fringes) stands out of its band: peak over median power, 0.03-0.3 cycles/px
-    ring = power[(radius >= 0.03) & (radius < 0.3)]
-    add("log spectral peak / median", "band", np.log10(ring.max() / (np.median(ring) + 1e-12)))
-    # depth: planes of the back-propagated tile
+    # a static (etalon) fringe stands out of the ring of its own spatial frequency: power at the
+    # fringe's frequency over the median of that ring (a particle's rings spread over all angles)
+    fy, fx = fringe_frequency if fringe_frequency is not None else _peak_frequency(power)
+    row, col = int(round(fy * rows)) % rows, int(round(fx * cols)) % cols
+    ring = power[np.abs(radius - radius[row, col]) < 1.5 / min(rows, cols)]
+    # the 3x3 bins around it: the window spreads a fringe over neighbouring bins, and nine bins fluctuate less than one
+    near = np.take(np.take(power, np.arange(row - 1, row + 2) % rows, axis=0), np.arange(col - 1, col + 2) % cols, axis=1)
+    add("log power at the fringe frequency / its ring's median", "band", np.log10(near.mean() / (np.median(ring) + 1e-12)))
+    # depth: planes of the back-propagated tile, per plane (never only the depth average)
     optics = {"wavelength_um": config.optics.wavelength_um, "pixel_um": config.optics.pixel_um, "medium_index": config.optics.medium_index}
-    planes = np.abs(propagate(image.astype(np.float32), -_depths(config), **optics))
-    for z, plane in zip(_depths(config), planes, strict=True):
-        mean = plane.mean()
-        add(f"contrast at {z:.0f} um", "depth", plane.std() / mean)
-        add(f"focal-spot tail q99.9/q50 at {z:.0f} um", "depth", np.quantile(plane, 0.999) / np.median(plane))
-        add(f"dark-core tail q0.1/q50 at {z:.0f} um", "depth", np.quantile(plane, 0.001) / np.median(plane))
+    depths = _depths(config)
+    planes = np.abs(propagate(image.astype(np.float32), -depths, **optics))
+    medians = np.median(planes.reshape(len(depths), -1), axis=1)
+    sharpness = []
+    for z, plane, median in zip(depths, planes, medians, strict=True):
+        add(f"contrast at {z:.0f} um", "depth", plane.std() / median)
+        # edge energy: largest where the particles of that depth are in focus
+        sharpness.append(np.mean(np.gradient(plane / median, axis=0) ** 2 + np.gradient(plane / median, axis=1) ** 2))
+    sharpness = np.asarray(sharpness)
+    for z, value in zip(depths, sharpness / sharpness.mean(), strict=True):
+        add(f"relative sharpness at {z:.0f} um", "depth", value)
+    add("sharpness-weighted depth / volume", "depth", float(np.sum(sharpness * depths) / sharpness.sum()) / config.volume.z_max_um)
+    # appearance through focus: brightest focal spots and darkest cores anywhere in the volume
+    brightest = (planes / medians[:, None, None]).max(axis=0)
+    darkest = (planes / medians[:, None, None]).min(axis=0)
+    for q, value in zip((0.99, 0.999), np.quantile(brightest, (0.99, 0.999)), strict=True):
+        add(f"focal spots: q{q} of the brightest plane", "appearance", value)
+    for q, value in zip((0.001, 0.01), np.quantile(darkest, (0.001, 0.01)), strict=True):
+        add(f"dark cores: q{q} of the darkest plane", "appearance", value)
+    add("dark-core area: fraction below half the background", "appearance", np.mean(darkest < 0.5))
     # region: smooth illumination over the tile (tilt and curvature of a quadratic fit)
     smooth = ndimage.uniform_filter(image, size=max(rows // 8, 3))
     y, x = np.mgrid[-0.5 : 0.5 : rows * 1j, -0.5 : 0.5 : cols * 1j]
@@ -92,8 +121,9 @@ def tile_summaries(tile: np.ndarray, *, config: ExperimentConfig) -> tuple[np.nd
     add("illumination tilt |grad|", "region", np.hypot(coefficients[1], coefficients[2]))
     add("illumination curvature", "region", coefficients[3])
     # intensity statistics
-    for q in (0.005, 0.05, 0.25, 0.5, 0.75, 0.95, 0.995):
-        add(f"quantile {q}", "intensity", np.quantile(image, q))
+    quantiles = (0.005, 0.05, 0.25, 0.5, 0.75, 0.95, 0.995)
+    for q, value in zip(quantiles, np.quantile(image, quantiles), strict=True):
+        add(f"quantile {q}", "intensity", value)
     add("skewness", "intensity", stats.skew(image.ravel()))
     add("log kurtosis", "intensity", np.log10(stats.kurtosis(image.ravel(), fisher=False)))
     add("clipped fraction", "intensity", np.mean(image >= image.max() - 1e-9 * abs(image.max())))
@@ -116,6 +146,13 @@ def tile_summaries(tile: np.ndarray, *, config: ExperimentConfig) -> tuple[np.nd
     for lag in _LAGS:
         add(f"autocorrelation at {lag} px", "appearance", 0.5 * ((centred[lag:] * centred[:-lag]).mean() + (centred[:, lag:] * centred[:, :-lag]).mean()) / norm)
     return np.asarray(values), names
+
+
+def _power_spectrum(image: np.ndarray) -> np.ndarray:
+    """Power of the Hann-windowed fluctuation of a mean-normalised image."""
+    rows, cols = image.shape
+    window = np.outer(np.hanning(rows), np.hanning(cols))
+    return np.abs(np.fft.fft2((image - 1.0) * window)) ** 2 / window.sum()
 
 
 def real_spread(real: np.ndarray) -> np.ndarray:
@@ -181,8 +218,9 @@ class Diagnosis:
 class _Model:
     """Simulated tiles of one effect set, with fixed fields and noise (common random numbers)."""
 
-    def __init__(self, config: ExperimentConfig, *, shape, count: int, settings: DiagnosisSettings) -> None:
+    def __init__(self, config: ExperimentConfig, *, shape, count: int, settings: DiagnosisSettings, fringe_frequency: tuple[float, float]) -> None:
         self.config = config
+        self.fringe_frequency = fringe_frequency
         rng = np.random.default_rng([settings.seed, 11])
         self.fields = [
             random_particle_field(shape, count=count, diameter_min_um=config.particles.diameter_min_um, diameter_max_um=config.particles.diameter_max_um, layers_um=config.layer_depths_um(), pixel_um=config.optics.pixel_um, seed=rng)
@@ -203,17 +241,25 @@ class _Model:
         return [sensor_image(intensity, baseline, sensor, noise=noise) for intensity, noise in zip(self.optical(effects), self.noise, strict=True)]
 
     def summaries(self, baseline: dict, effects: dict) -> np.ndarray:
-        return np.stack([tile_summaries(t, config=self.config)[0] for t in self.tiles(baseline, effects)])
+        return np.stack([tile_summaries(t, config=self.config, fringe_frequency=self.fringe_frequency)[0] for t in self.tiles(baseline, effects)])
 
 
-def _fit(model: _Model, real: np.ndarray, effect_ids: Sequence[str], *, start: dict, evaluations: int, spread: np.ndarray) -> tuple[dict, dict, float]:
-    """Fit the baseline and the listed effects' continuous parameters to ``real`` (Nelder–Mead in unit coordinates)."""
+def _fit(model: _Model, real: np.ndarray, effect_ids: Sequence[str], *, start: dict, measured: dict, evaluations: int, spread: np.ndarray) -> tuple[dict, dict, float]:
+    """Fit the baseline and the listed effects' parameters to ``real`` (Nelder–Mead in unit coordinates).
+
+    ``measured`` maps (effect, parameter) to a value read off the real tiles (e.g. the fringe
+    period), held fixed; optical parameters are searched on a small grid (each point
+    re-simulates the fields); the rest are fitted continuously, starting from the best of a
+    few points along each effect's range (the midpoint of a range can sit in a flat valley).
+    """
     bounds = [(("baseline", name), b) for name, b in BASELINE.bounds.items()]
     grid_params = {}
     for effect in effect_ids:
         for name, (low, high) in EFFECTS[effect].bounds.items():
+            if (effect, name) in measured:
+                continue
             if effect in OPTICAL_EFFECTS:
-                grid_params[(effect, name)] = (low, high)  # optical parameters: a small grid (each point re-simulates)
+                grid_params[(effect, name)] = (low, high)
             else:
                 bounds.append(((effect, name), (low, high)))
 
@@ -221,7 +267,7 @@ def _fit(model: _Model, real: np.ndarray, effect_ids: Sequence[str], *, start: d
         params = {"baseline": {}, **{e: dict(EFFECTS[e].neutral) for e in effect_ids}}
         for ((effect, name), (low, high)), u in zip(bounds, np.clip(unit, 0, 1), strict=True):
             params[effect][name] = low + (high - low) * float(u)
-        for (effect, name), value in optical.items():
+        for (effect, name), value in {**optical, **{k: v for k, v in measured.items() if k[0] in effect_ids}}.items():
             params[effect][name] = value
         return params["baseline"], {e: params[e] for e in effect_ids}
 
@@ -230,15 +276,23 @@ def _fit(model: _Model, real: np.ndarray, effect_ids: Sequence[str], *, start: d
         return gap_statistic(real, model.summaries(baseline, effects), spread=spread)[0]
 
     x0 = np.array([(start.get(key, (low + high) / 2) - low) / (high - low) if high > low else 0.5 for key, (low, high) in bounds])
+    is_new = np.array([key not in start for key, _ in bounds])
     grid_points = [{}]
     for key, (low, high) in grid_params.items():
         values = [low] if low == high else list(np.linspace(low, high, 4)[1:])
         grid_points = [{**point, key: v} for point in grid_points for v in values]
+    starts = [x0]
+    if is_new.any():
+        # the previous optimum plus new parameters at a few points of their range, and a
+        # space-filling design of the whole cube: an added effect often needs the baseline's
+        # parameters to move too (blur matters only once there is noise to blur)
+        starts = [np.where(is_new, u, x0) for u in (0.2, 0.5, 0.8)] + list(stats.qmc.Sobol(len(x0), seed=0).random(_DESIGN_POINTS))
     best = (np.inf, None, None)
     # a short fit at each grid point of the optical parameters, then the rest of the budget on the best point
     per_point = max(evaluations // (2 * len(grid_points)), 8) if len(grid_points) > 1 else evaluations
     for optical in grid_points:
-        result = optimize.minimize(loss, x0, args=(optical,), method="Nelder-Mead", options={"maxfev": per_point, "xatol": 1e-3, "fatol": 1e-3, "initial_simplex": _simplex(x0)})
+        first = min(starts, key=lambda x: loss(x, optical))
+        result = optimize.minimize(loss, first, args=(optical,), method="Nelder-Mead", options={"maxfev": max(per_point - len(starts), 8), "xatol": 1e-3, "fatol": 1e-3, "initial_simplex": _simplex(first)})
         if result.fun < best[0]:
             best = (float(result.fun), result.x, optical)
     if len(grid_points) > 1:
@@ -252,6 +306,43 @@ def _fit(model: _Model, real: np.ndarray, effect_ids: Sequence[str], *, start: d
 def _simplex(x0: np.ndarray) -> np.ndarray:
     step = np.where(x0 > 0.5, -0.25, 0.25)
     return np.vstack([x0] + [x0 + np.eye(len(x0))[i] * step[i] for i in range(len(x0))])
+
+
+def _with_measured(effect_id: str, setting: dict, measured: dict) -> dict:
+    """An effect setting with the parameters measured on the real tiles put in."""
+    return {**setting, **{name: value for (effect, name), value in measured.items() if effect == effect_id}}
+
+
+def _peak_frequency(power: np.ndarray) -> tuple[float, float]:
+    """(fy, fx) in cycles/px of the bin that stands out most from its ring's median power,
+    within the `parasitic_fringes` period bounds (a particle scene's power falls steeply with
+    frequency, so the absolute maximum would sit at the longest period)."""
+    rows, cols = power.shape
+    fy, fx = np.meshgrid(np.fft.fftfreq(rows), np.fft.fftfreq(cols), indexing="ij")
+    shortest, longest = EFFECTS["parasitic_fringes"].bounds["period_px"]
+    radius = np.hypot(fy, fx)
+    ring = np.round(radius * min(rows, cols)).astype(int)
+    ring_median = ndimage.median(power, labels=ring, index=np.arange(ring.max() + 1))
+    contrast = np.where((radius >= 1 / longest) & (radius <= 1 / shortest), power / (np.asarray(ring_median)[ring] + 1e-30), -np.inf)
+    peak = np.unravel_index(np.argmax(contrast), power.shape)
+    return float(fy[peak]), float(fx[peak])
+
+
+def measured_fringe(tiles: Sequence[np.ndarray]) -> tuple[float, float]:
+    """Frequency (fy, fx) in cycles/px of a static fringe: the peak of the tiles' mean power spectrum.
+
+    An etalon fringe has the same frequency in every tile, so it adds up in the mean spectrum
+    while the particles' rings (random positions) average into a smooth background. Only
+    frequencies within the `parasitic_fringes` period bounds are searched.
+    """
+    # geometric mean over tiles: a particle's speckle-like power fluctuates from tile to tile, a fringe's does not
+    return _peak_frequency(np.exp(np.mean([np.log(_power_spectrum(np.asarray(t, np.float64) / np.mean(t)) + 1e-30) for t in tiles], axis=0)))
+
+
+def _fringe_parameters(frequency: tuple[float, float]) -> dict:
+    """The `parasitic_fringes` period (px) and angle (rad) of a frequency (fy, fx)."""
+    fy, fx = frequency
+    return {("parasitic_fringes", "period_px"): float(1.0 / np.hypot(fy, fx)), ("parasitic_fringes", "angle_rad"): float(np.arctan2(fy, fx) % np.pi)}
 
 
 def diagnose_tiles(
@@ -287,17 +378,19 @@ def diagnose_tiles(
     if any(t.shape != shape for t in tiles):
         raise InputError("real tiles: expected tiles of one shape")
     count = particles_per_tile if particles_per_tile is not None else max(1, round(config.particles.per_tile * shape[0] * shape[1] / config.tile.size**2))
-    summaries = [tile_summaries(t, config=config) for t in tiles]
+    fringe_frequency = measured_fringe(tiles[0::2])  # from the fitting half only
+    measured = _fringe_parameters(fringe_frequency)
+    summaries = [tile_summaries(t, config=config, fringe_frequency=fringe_frequency) for t in tiles]
     names = summaries[0][1]
     real = np.stack([s[0] for s in summaries])
     fit_real, held_real = real[0::2], real[1::2]
     spread = real_spread(real)  # the experiment's own tile-to-tile spread: the unit of every gap
     gap = lambda a, b: gap_statistic(a, b, spread=spread)  # noqa: E731
-    model = _Model(config, shape=shape, count=count, settings=settings)
+    model = _Model(config, shape=shape, count=count, settings=settings, fringe_frequency=fringe_frequency)
     steps = Steps(2 + settings.confirm + 1, progress=progress, should_stop=should_stop)
 
     steps.check()
-    base_params, _, _ = _fit(model, fit_real, [], start={("baseline", k): v for k, v in BASELINE.neutral.items()}, evaluations=settings.evaluations, spread=spread)
+    base_params, _, _ = _fit(model, fit_real, [], start={}, measured=measured, evaluations=settings.evaluations, spread=spread)
     base_sim = model.summaries(base_params, {})
     baseline_gap = gap(held_real, base_sim)[0]
     steps.advance()
@@ -307,7 +400,7 @@ def diagnose_tiles(
     _, z_residual = gap(fit_real, base_sim)
     screening = {}
     for effect_id, effect in EFFECTS.items():
-        signature_sim = model.summaries(base_params, {effect_id: effect.injections[1]})
+        signature_sim = model.summaries(base_params, {effect_id: _with_measured(effect_id, effect.injections[1], measured)})
         _, z_signature = gap(signature_sim, base_sim)
         signature = z_signature  # how far the effect moves the simulation, in z units
         norm = float(signature @ signature)
@@ -328,7 +421,7 @@ def diagnose_tiles(
         if effect_id in confirmed:
             steps.check()
             start_params = {("baseline", k): v for k, v in base_params.items()}
-            baseline_params, effect_params, _ = _fit(model, fit_real, [effect_id], start=start_params, evaluations=settings.evaluations, spread=spread)
+            baseline_params, effect_params, _ = _fit(model, fit_real, [effect_id], start=start_params, measured=measured, evaluations=settings.evaluations, spread=spread)
             gap_after = gap(held_real, model.summaries(baseline_params, effect_params))[0]
             fitted[effect_id] = (baseline_params, effect_params)
             entry["params"] = {**effect_params[effect_id], **{f"baseline.{k}": v for k, v in baseline_params.items()}}
@@ -336,7 +429,8 @@ def diagnose_tiles(
         else:
             # not refitted: the best of a coarse scan (off, weak, strong) with the baseline's parameters
             scan = [(baseline_gap, dict(EFFECTS[effect_id].neutral))]
-            scan += [(gap(held_real, model.summaries(base_params, {effect_id: setting}))[0], dict(setting)) for setting in EFFECTS[effect_id].injections]
+            settings_scanned = [_with_measured(effect_id, setting, measured) for setting in EFFECTS[effect_id].injections]
+            scan += [(gap(held_real, model.summaries(base_params, {effect_id: setting}))[0], setting) for setting in settings_scanned]
             gap_after, entry["params"] = min(scan, key=lambda pair: pair[0])
         entry["gap_after"] = float(gap_after)
         entry["shrink"] = float(1.0 - gap_after / baseline_gap) if baseline_gap > 0 else 0.0
@@ -344,8 +438,8 @@ def diagnose_tiles(
     effects_report.sort(key=lambda e: (not e["confirmed"], e["gap_after"]))
 
     best = effects_report[0]
-    if baseline_gap < _VERDICT_MIN_GAP or not best["confirmed"] or best["shrink"] < _VERDICT_MIN_SHRINK:
-        verdict = {"id": None, "shrink": float(max(best["shrink"], 0.0)) if baseline_gap >= _VERDICT_MIN_GAP else 0.0, "residual": float(baseline_gap if baseline_gap < _VERDICT_MIN_GAP or best["shrink"] < _VERDICT_MIN_SHRINK else best["gap_after"])}
+    if not best["confirmed"] or baseline_gap - best["gap_after"] < _VERDICT_MIN_REDUCTION or best["shrink"] < _VERDICT_MIN_SHRINK:
+        verdict = {"id": None, "shrink": 0.0, "residual": float(baseline_gap)}  # nothing missing that these data can show
     else:
         verdict = {"id": best["id"], "shrink": best["shrink"], "residual": best["gap_after"]}
 
@@ -359,7 +453,7 @@ def diagnose_tiles(
         pair = [confirmed_sorted[0]["id"], confirmed_sorted[1]["id"]]
         start_params = {("baseline", k): v for k, v in fitted[pair[0]][0].items()}
         start_params.update({(pair[0], k): v for k, v in fitted[pair[0]][1][pair[0]].items()})
-        baseline_params, effect_params, _ = _fit(model, fit_real, pair, start=start_params, evaluations=settings.evaluations, spread=spread)
+        baseline_params, effect_params, _ = _fit(model, fit_real, pair, start=start_params, measured=measured, evaluations=settings.evaluations, spread=spread)
         waterfall.append({"model": f"+{pair[0]}+{pair[1]}", "gap": float(gap(held_real, model.summaries(baseline_params, effect_params))[0])})
     steps.advance()
 
