@@ -60,7 +60,7 @@ class Effect:
     injections: tuple
 
 
-BASELINE = Effect("baseline", "seed's simulator: opaque discs, Gaussian noise, gamma", {"contrast": (0.2, 1.6), "sigma": (0.0, 0.3), "gamma": (0.5, 2.0)}, {"contrast": 1.0, "sigma": 0.0, "gamma": 1.0}, ())
+BASELINE = Effect("baseline", "seed's simulator: opaque discs, Gaussian noise, gamma", {"contrast": (0.2, 1.6), "sigma": (0.001, 0.3), "gamma": (0.5, 2.0)}, {"contrast": 1.0, "sigma": 0.0, "gamma": 1.0}, ())
 
 EFFECTS: dict[str, Effect] = {e.id: e for e in (
     Effect("illumination", "Gaussian beam envelope / vignetting", {"depth": (0.0, 0.8), "x0": (-0.5, 0.5), "y0": (-0.5, 0.5)}, {"depth": 0.0, "x0": 0.0, "y0": 0.0}, ({"depth": 0.25, "x0": 0.2, "y0": -0.1}, {"depth": 0.5, "x0": 0.2, "y0": -0.1})),

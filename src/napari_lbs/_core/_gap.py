@@ -52,7 +52,6 @@ _LAGS = (1, 2, 4, 8, 16)
 # (refitting a null model to noise removes less: the controls of the suite) and this share of it.
 _VERDICT_MIN_REDUCTION = 0.5
 _VERDICT_MIN_SHRINK = 0.3
-_DESIGN_POINTS = 16  # Sobol start points of a fit that adds parameters
 
 
 def _depths(config: ExperimentConfig, count: int = 8) -> np.ndarray:
@@ -245,12 +244,11 @@ class _Model:
 
 
 def _fit(model: _Model, real: np.ndarray, effect_ids: Sequence[str], *, start: dict, measured: dict, evaluations: int, spread: np.ndarray) -> tuple[dict, dict, float]:
-    """Fit the baseline and the listed effects' parameters to ``real`` (Nelder–Mead in unit coordinates).
+    """Fit the baseline and the listed effects' parameters to ``real`` (in unit coordinates; returns baseline, effects, χ²).
 
     ``measured`` maps (effect, parameter) to a value read off the real tiles (e.g. the fringe
     period), held fixed; optical parameters are searched on a small grid (each point
-    re-simulates the fields); the rest are fitted continuously, starting from the best of a
-    few points along each effect's range (the midpoint of a range can sit in a flat valley).
+    re-simulates the fields); new continuous parameters are searched globally, then polished.
     """
     bounds = [(("baseline", name), b) for name, b in BASELINE.bounds.items()]
     grid_params = {}
@@ -265,8 +263,8 @@ def _fit(model: _Model, real: np.ndarray, effect_ids: Sequence[str], *, start: d
 
     def unpack(unit, optical):
         params = {"baseline": {}, **{e: dict(EFFECTS[e].neutral) for e in effect_ids}}
-        for ((effect, name), (low, high)), u in zip(bounds, np.clip(unit, 0, 1), strict=True):
-            params[effect][name] = low + (high - low) * float(u)
+        for (key, (low, high)), u in zip(bounds, np.clip(unit, 0, 1), strict=True):
+            params[key[0]][key[1]] = _from_unit(key, float(u), low, high)
         for (effect, name), value in {**optical, **{k: v for k, v in measured.items() if k[0] in effect_ids}}.items():
             params[effect][name] = value
         return params["baseline"], {e: params[e] for e in effect_ids}
@@ -275,36 +273,62 @@ def _fit(model: _Model, real: np.ndarray, effect_ids: Sequence[str], *, start: d
         baseline, effects = unpack(unit, optical)
         return gap_statistic(real, model.summaries(baseline, effects), spread=spread)[0]
 
-    x0 = np.array([(start.get(key, (low + high) / 2) - low) / (high - low) if high > low else 0.5 for key, (low, high) in bounds])
+    # the previous optimum, with each new parameter at its weakest in-bounds setting (nearest to off)
+    x0 = np.array([_to_unit(key, start[key] if key in start else (EFFECTS[key[0]].neutral[key[1]] if key[0] in EFFECTS else (low + high) / 2), low, high) for key, (low, high) in bounds])
     is_new = np.array([key not in start for key, _ in bounds])
     grid_points = [{}]
     for key, (low, high) in grid_params.items():
         values = [low] if low == high else list(np.linspace(low, high, 4)[1:])
         grid_points = [{**point, key: v} for point in grid_points for v in values]
-    starts = [x0]
-    if is_new.any():
-        # the previous optimum plus new parameters at a few points of their range, and a
-        # space-filling design of the whole cube: an added effect often needs the baseline's
-        # parameters to move too (blur matters only once there is noise to blur)
-        starts = [np.where(is_new, u, x0) for u in (0.2, 0.5, 0.8)] + list(stats.qmc.Sobol(len(x0), seed=0).random(_DESIGN_POINTS))
-    best = (np.inf, None, None)
-    # a short fit at each grid point of the optical parameters, then the rest of the budget on the best point
-    per_point = max(evaluations // (2 * len(grid_points)), 8) if len(grid_points) > 1 else evaluations
-    for optical in grid_points:
-        first = min(starts, key=lambda x: loss(x, optical))
-        result = optimize.minimize(loss, first, args=(optical,), method="Nelder-Mead", options={"maxfev": max(per_point - len(starts), 8), "xatol": 1e-3, "fatol": 1e-3, "initial_simplex": _simplex(first)})
-        if result.fun < best[0]:
-            best = (float(result.fun), result.x, optical)
-    if len(grid_points) > 1:
-        result = optimize.minimize(loss, best[1], args=(best[2],), method="Nelder-Mead", options={"maxfev": evaluations, "xatol": 1e-3, "fatol": 1e-3, "initial_simplex": _simplex(np.clip(best[1], 0, 1))})
-        if result.fun < best[0]:
-            best = (float(result.fun), result.x, best[2])
+    nelder_mead = {"xatol": 1e-3, "fatol": 1e-3}
+    if len(grid_points) == 1 and is_new.any():
+        # New continuous parameters: a global search of the cube (DIRECT-L), then a local polish
+        # from the better of its optimum and the previous optimum with the new parameters added.
+        # Precise summaries (noise level, bit depth) make narrow, curved valleys in which a
+        # simplex started from one point stalls; an added effect often needs the baseline's
+        # parameters to move too (blur matters only once there is noise to blur).
+        searched = optimize.direct(loss, [(0.0, 1.0)] * len(x0), args=({},), maxfun=max(2 * evaluations // 3, 8), locally_biased=True)
+        first = min((searched.x, x0), key=lambda x: loss(x, {}))
+        result = optimize.minimize(loss, first, args=({},), method="Nelder-Mead", options={"maxfev": max(evaluations // 3, 8), "initial_simplex": _simplex(first, 0.05), **nelder_mead})
+        best = (float(result.fun), result.x, {})
+    else:
+        # optical parameters: a short fit at each grid point from the previous optimum, then the
+        # rest of the budget on the best point
+        best = (np.inf, None, None)
+        per_point = max(evaluations // (2 * len(grid_points)), 8) if len(grid_points) > 1 else evaluations
+        for optical in grid_points:
+            result = optimize.minimize(loss, x0, args=(optical,), method="Nelder-Mead", options={"maxfev": per_point, "initial_simplex": _simplex(x0), **nelder_mead})
+            if result.fun < best[0]:
+                best = (float(result.fun), result.x, optical)
+        if len(grid_points) > 1:
+            result = optimize.minimize(loss, best[1], args=(best[2],), method="Nelder-Mead", options={"maxfev": evaluations, "initial_simplex": _simplex(np.clip(best[1], 0, 1)), **nelder_mead})
+            if result.fun < best[0]:
+                best = (float(result.fun), result.x, best[2])
     baseline, effects = unpack(best[1], best[2])
     return baseline, effects, best[0]
 
 
-def _simplex(x0: np.ndarray) -> np.ndarray:
-    step = np.where(x0 > 0.5, -0.25, 0.25)
+# Fitted on a log scale: a noise level matters by its order of magnitude, and a linear scale
+# would leave the small values a real camera has squeezed against the lower bound.
+_LOG_SCALED = {("baseline", "sigma")}
+
+
+def _from_unit(key: tuple, unit: float, low: float, high: float) -> float:
+    if key in _LOG_SCALED:
+        return float(low * (high / low) ** unit)
+    return low + (high - low) * unit
+
+
+def _to_unit(key: tuple, value: float, low: float, high: float) -> float:
+    if high <= low:
+        return 0.5
+    if key in _LOG_SCALED:
+        return float(np.clip(np.log(max(value, low) / low) / np.log(high / low), 0.0, 1.0))
+    return float(np.clip((value - low) / (high - low), 0.0, 1.0))
+
+
+def _simplex(x0: np.ndarray, size: float = 0.25) -> np.ndarray:
+    step = np.where(x0 > 0.5, -size, size)
     return np.vstack([x0] + [x0 + np.eye(len(x0))[i] * step[i] for i in range(len(x0))])
 
 
