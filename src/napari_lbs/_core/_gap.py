@@ -52,6 +52,7 @@ _LAGS = (1, 2, 4, 8, 16)
 # (refitting a null model to noise removes less: the controls of the suite) and this share of it.
 _VERDICT_MIN_REDUCTION = 0.5
 _VERDICT_MIN_SHRINK = 0.3
+_DESIGN_POINTS = 16  # Sobol points tried by a fit that adds parameters
 
 
 def _depths(config: ExperimentConfig, count: int = 8) -> np.ndarray:
@@ -251,10 +252,18 @@ def _fit(model: _Model, real: np.ndarray, effect_ids: Sequence[str], *, start: d
     re-simulates the fields); new continuous parameters are searched globally, then polished.
     """
     bounds = [(("baseline", name), b) for name, b in BASELINE.bounds.items()]
+    photon_transfer = "shot_noise" in effect_ids
+    if photon_transfer:
+        # Read and photon noise as a camera's photon-transfer curve: the total noise at the mean
+        # level and the share of its variance that grows with the signal. In (sigma, photons) the
+        # good fits lie along a curved valley of constant total noise; here it is a straight axis.
+        bounds[[key for key, _ in bounds].index(("baseline", "sigma"))] = (("noise", "total"), BASELINE.bounds["sigma"])
+        bounds.append((("noise", "photon_share"), (0.0, 1.0)))
+        start = {**start, ("noise", "total"): start.get(("baseline", "sigma"), 0.05), ("noise", "photon_share"): 0.0}
     grid_params = {}
     for effect in effect_ids:
         for name, (low, high) in EFFECTS[effect].bounds.items():
-            if (effect, name) in measured:
+            if (effect, name) in measured or (photon_transfer and effect == "shot_noise"):
                 continue
             if effect in OPTICAL_EFFECTS:
                 grid_params[(effect, name)] = (low, high)
@@ -262,9 +271,14 @@ def _fit(model: _Model, real: np.ndarray, effect_ids: Sequence[str], *, start: d
                 bounds.append(((effect, name), (low, high)))
 
     def unpack(unit, optical):
-        params = {"baseline": {}, **{e: dict(EFFECTS[e].neutral) for e in effect_ids}}
+        params = {"baseline": {}, "noise": {}, **{e: dict(EFFECTS[e].neutral) for e in effect_ids}}
         for (key, (low, high)), u in zip(bounds, np.clip(unit, 0, 1), strict=True):
             params[key[0]][key[1]] = _from_unit(key, float(u), low, high)
+        if photon_transfer:
+            total, share = params["noise"]["total"], params["noise"]["photon_share"]
+            params["baseline"]["sigma"] = float(total * np.sqrt(1.0 - share))
+            # photon variance at the mean level is 1/N: N = 1 / (share · total²), "off" at most
+            params["shot_noise"]["log10_photons"] = float(min(-np.log10(share * total**2 + 1e-300), EFFECTS["shot_noise"].neutral["log10_photons"]))
         for (effect, name), value in {**optical, **{k: v for k, v in measured.items() if k[0] in effect_ids}}.items():
             params[effect][name] = value
         return params["baseline"], {e: params[e] for e in effect_ids}
@@ -282,14 +296,15 @@ def _fit(model: _Model, real: np.ndarray, effect_ids: Sequence[str], *, start: d
         grid_points = [{**point, key: v} for point in grid_points for v in values]
     nelder_mead = {"xatol": 1e-3, "fatol": 1e-3}
     if len(grid_points) == 1 and is_new.any():
-        # New continuous parameters: a global search of the cube (DIRECT-L), then a local polish
-        # from the better of its optimum and the previous optimum with the new parameters added.
-        # Precise summaries (noise level, bit depth) make narrow, curved valleys in which a
-        # simplex started from one point stalls; an added effect often needs the baseline's
-        # parameters to move too (blur matters only once there is noise to blur).
-        searched = optimize.direct(loss, [(0.0, 1.0)] * len(x0), args=({},), maxfun=max(2 * evaluations // 3, 8), locally_biased=True)
-        first = min((searched.x, x0), key=lambda x: loss(x, {}))
-        result = optimize.minimize(loss, first, args=({},), method="Nelder-Mead", options={"maxfev": max(evaluations // 3, 8), "initial_simplex": _simplex(first, 0.05), **nelder_mead})
+        # New continuous parameters: precise summaries (noise level, bit depth) make narrow,
+        # curved valleys in which a simplex from one start stalls, and an added effect often
+        # needs the baseline's parameters to move too (blur matters only once there is noise to
+        # blur). So: the previous optimum, the best of a space-filling design, and a global
+        # search (DIRECT-L) compete, and the best of them is polished with a simplex.
+        design = [x0, *stats.qmc.Sobol(len(x0), seed=0).random(_DESIGN_POINTS)]
+        searched = optimize.direct(loss, [(0.0, 1.0)] * len(x0), args=({},), maxfun=max(evaluations // 2, 8), locally_biased=True)
+        first = min([*design, searched.x], key=lambda x: loss(x, {}))
+        result = optimize.minimize(loss, first, args=({},), method="Nelder-Mead", options={"maxfev": max(evaluations // 2, 8), "initial_simplex": _simplex(first, 0.1), **nelder_mead})
         best = (float(result.fun), result.x, {})
     else:
         # optical parameters: a short fit at each grid point from the previous optimum, then the
@@ -310,7 +325,7 @@ def _fit(model: _Model, real: np.ndarray, effect_ids: Sequence[str], *, start: d
 
 # Fitted on a log scale: a noise level matters by its order of magnitude, and a linear scale
 # would leave the small values a real camera has squeezed against the lower bound.
-_LOG_SCALED = {("baseline", "sigma")}
+_LOG_SCALED = {("baseline", "sigma"), ("noise", "total")}
 
 
 def _from_unit(key: tuple, unit: float, low: float, high: float) -> float:
