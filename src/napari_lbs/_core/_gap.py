@@ -299,9 +299,10 @@ def _fit(model: _Model, real: np.ndarray, effect_ids: Sequence[str], *, start: d
         # New continuous parameters: precise summaries (noise level, bit depth) make narrow,
         # curved valleys in which a simplex from one start stalls, and an added effect often
         # needs the baseline's parameters to move too (blur matters only once there is noise to
-        # blur). So: the previous optimum, the best of a space-filling design, and a global
+        # blur). So: the previous optimum (with the new parameters at their weakest setting
+        # and at 20/50/80 % of their range), the best of a space-filling design, and a global
         # search (DIRECT-L) compete, and the best of them is polished with a simplex.
-        design = [x0, *stats.qmc.Sobol(len(x0), seed=0).random(_DESIGN_POINTS)]
+        design = [x0, *[np.where(is_new, u, x0) for u in (0.2, 0.5, 0.8)], *stats.qmc.Sobol(len(x0), seed=0).random(_DESIGN_POINTS)]
         searched = optimize.direct(loss, [(0.0, 1.0)] * len(x0), args=({},), maxfun=max(evaluations // 2, 8), locally_biased=True)
         first = min([*design, searched.x], key=lambda x: loss(x, {}))
         result = optimize.minimize(loss, first, args=({},), method="Nelder-Mead", options={"maxfev": max(evaluations // 2, 8), "initial_simplex": _simplex(first, 0.1), **nelder_mead})
