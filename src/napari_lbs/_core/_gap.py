@@ -95,19 +95,18 @@ def tile_summaries(tile: np.ndarray, *, config: ExperimentConfig, fringe_frequen
     optics = {"wavelength_um": config.optics.wavelength_um, "pixel_um": config.optics.pixel_um, "medium_index": config.optics.medium_index}
     depths = _depths(config)
     planes = np.abs(propagate(image.astype(np.float32), -depths, **optics))
-    medians = np.median(planes.reshape(len(depths), -1), axis=1)
+    planes = planes / np.median(planes.reshape(len(depths), -1), axis=1)[:, None, None]  # background ≈ 1 in every plane
     sharpness = []
-    for z, plane, median in zip(depths, planes, medians, strict=True):
-        add(f"contrast at {z:.0f} um", "depth", plane.std() / median)
+    for z, plane in zip(depths, planes, strict=True):
+        add(f"contrast at {z:.0f} um", "depth", plane.std())
         # edge energy: largest where the particles of that depth are in focus
-        sharpness.append(np.mean(np.gradient(plane / median, axis=0) ** 2 + np.gradient(plane / median, axis=1) ** 2))
+        sharpness.append(np.mean(np.gradient(plane, axis=0) ** 2 + np.gradient(plane, axis=1) ** 2))
     sharpness = np.asarray(sharpness)
     for z, value in zip(depths, sharpness / sharpness.mean(), strict=True):
         add(f"relative sharpness at {z:.0f} um", "depth", value)
     add("sharpness-weighted depth / volume", "depth", float(np.sum(sharpness * depths) / sharpness.sum()) / config.volume.z_max_um)
     # appearance through focus: brightest focal spots and darkest cores anywhere in the volume
-    brightest = (planes / medians[:, None, None]).max(axis=0)
-    darkest = (planes / medians[:, None, None]).min(axis=0)
+    brightest, darkest = planes.max(axis=0), planes.min(axis=0)
     for q, value in zip((0.99, 0.999), np.quantile(brightest, (0.99, 0.999)), strict=True):
         add(f"focal spots: q{q} of the brightest plane", "appearance", value)
     for q, value in zip((0.001, 0.01), np.quantile(darkest, (0.001, 0.01)), strict=True):
@@ -304,7 +303,7 @@ def _fit(model: _Model, real: np.ndarray, effect_ids: Sequence[str], *, start: d
         # search (DIRECT-L) compete, and the best of them is polished with a simplex.
         design = [x0, *[np.where(is_new, u, x0) for u in (0.2, 0.5, 0.8)], *stats.qmc.Sobol(len(x0), seed=0).random(_DESIGN_POINTS)]
         searched = optimize.direct(loss, [(0.0, 1.0)] * len(x0), args=({},), maxfun=max(evaluations // 2, 8), locally_biased=True)
-        first = min([*design, searched.x], key=lambda x: loss(x, {}))
+        first = min([(loss(x, {}), x) for x in design] + [(searched.fun, searched.x)], key=lambda pair: pair[0])[1]
         result = optimize.minimize(loss, first, args=({},), method="Nelder-Mead", options={"maxfev": max(evaluations // 2, 8), "initial_simplex": _simplex(first, 0.1), **nelder_mead})
         best = (float(result.fun), result.x, {})
     else:
