@@ -5,10 +5,10 @@ Sub-commands:
 ``suite [--tile PX] [--tiles N] [--particles P] [--evaluations E] [--controls C]``
     Injection and recovery: for every effect id, pseudo-experiments made with that effect on
     at its weak and its strong setting (`Effect.injections`) on top of a known baseline
-    (contrast 0.8, read noise 0.04, gamma 1.2), diagnosed by a simulator that withholds it;
-    plus controls with nothing withheld. Prints top-1 accuracy of the verdict, the shrink of
-    the confirmed effect, the controls' false-alarm rate, and the time per diagnosis against
-    the time of one baseline fit measured in the same run.
+    (contrast 0.8, read noise 0.04, gamma 1.2), diagnosed by a simulator that has to find it;
+    plus controls with nothing withheld. Prints one JSON line per case, then top-1 accuracy of
+    the verdict, the median shrink of a correctly named effect, the controls' false alarms and
+    the mean time per diagnosis.
 ``independent [--index N] ...``
     Pseudo-experiments from Lorenz–Mie theory (pylorenzmie, a model the diagnosis never uses):
     transparent spheres of refractive index N in water (1.59: polystyrene; 1.37: cell-like).
