@@ -4,14 +4,16 @@ Sub-commands:
 
 ``suite [--tile PX] [--tiles N] [--particles P] [--evaluations E] [--controls C]``
     Injection and recovery: for every effect id, pseudo-experiments made with that effect on
-    at its weak and its strong setting (`Effect.injections`) on top of a known baseline
-    (contrast 0.8, read noise 0.04, gamma 1.2), diagnosed by a simulator that has to find it;
-    plus controls with nothing withheld. Prints one JSON line per case, then top-1 accuracy of
+    at its weak and its strong setting (`Effect.injections`, at `Effect.injection_density`
+    times P particles per tile) on top of a known baseline (contrast 0.8, read noise 0.04,
+    gamma 1.2), diagnosed by a simulator that has to find it; plus C controls with nothing
+    withheld, the last at the densest injection's density. Prints one JSON line per case, then top-1 accuracy of
     the verdict, the median shrink of a correctly named effect, the controls' false alarms and
     the mean time per diagnosis.
-``independent [--index N] ...``
+``independent [--index N] [--supersample S] ...``
     Pseudo-experiments from Lorenz–Mie theory (pylorenzmie, a model the diagnosis never uses):
-    transparent spheres of refractive index N in water (1.59: polystyrene; 1.37: cell-like).
+    transparent spheres of refractive index N in water (1.59: polystyrene; 1.37: cell-like),
+    the intensity averaged over S × S points per pixel (a pixel integrates over its area).
     The verdict should be ``particle_phase`` wherever the sphere's refracted light stays within
     the sensor's bandwidth.
 ``real``
@@ -62,18 +64,23 @@ def pseudo_tiles(effects: dict, *, tile: int, count: int, particles: int, seed: 
 
 def suite(tile: int, tiles: int, particles: int, evaluations: int, controls: int) -> None:
     settings = DiagnosisSettings(sim_tiles=6, evaluations=evaluations)
-    cases = [(effect_id, strength) for effect_id in EFFECTS for strength in (0, 1)] + [(None, c) for c in range(controls)]
+    # (effect, strength, density); the last control sits at the densest injection's density
+    densest = max(density for effect in EFFECTS.values() for density in effect.injection_density)
+    cases = [(effect_id, strength, EFFECTS[effect_id].injection_density[strength]) for effect_id in EFFECTS for strength in (0, 1)]
+    cases += [(None, c, densest if c == controls - 1 else 1.0) for c in range(controls)]
     rows = []
     start = time.perf_counter()
-    for index, (effect_id, strength) in enumerate(cases):
+    for index, (effect_id, strength, density) in enumerate(cases):
         effects = {} if effect_id is None else {effect_id: EFFECTS[effect_id].injections[strength]}
+        case_particles = round(particles * density)
         case_start = time.perf_counter()
-        report = diagnose_tiles(pseudo_tiles(effects, tile=tile, count=tiles, particles=particles, seed=100 + index), CONFIG, settings=settings, particles_per_tile=particles).report
+        report = diagnose_tiles(pseudo_tiles(effects, tile=tile, count=tiles, particles=case_particles, seed=100 + index), CONFIG, settings=settings, particles_per_tile=case_particles).report
         verdict = report["verdict"]
         own = next((e for e in report["effects"] if e["id"] == effect_id), None)
         rows.append({
             "withheld": effect_id,
             "strength": ["weak", "strong"][strength] if effect_id else "control",
+            "particles_per_tile": case_particles,
             "baseline_gap": round(report["gap"]["baseline"], 2),
             "verdict": verdict["id"],
             "correct": verdict["id"] == effect_id,
@@ -92,7 +99,7 @@ def suite(tile: int, tiles: int, particles: int, evaluations: int, controls: int
           f"{(time.perf_counter() - start) / len(rows):.1f} s per diagnosis ({tiles} tiles of {tile}²)")
 
 
-def independent(tile: int, tiles: int, particles: int, evaluations: int, sphere_index: float) -> None:
+def independent(tile: int, tiles: int, particles: int, evaluations: int, sphere_index: float, supersample: int) -> None:
     # pylorenzmie is a test/benchmark extra: the diagnosis itself never uses it
     from pylorenzmie.theory import LorenzMie, Sphere
     from pylorenzmie.theory.Instrument import Instrument
@@ -106,8 +113,12 @@ def independent(tile: int, tiles: int, particles: int, evaluations: int, sphere_
             Sphere(a_p=rng.uniform(10, 15) + 1e-6, n_p=sphere_index, k_p=0.0, x_p=rng.uniform(0, tile), y_p=rng.uniform(0, tile), z_p=rng.choice(config.layer_depths_um()) / 2.2)
             for _ in range(particles)
         ]
-        model = LorenzMie(coordinates=LorenzMie.meshgrid((tile, tile)), particle=spheres, instrument=instrument)
-        intensity = model.hologram().reshape(tile, tile).astype(np.float32)
+        # a camera pixel integrates the intensity over its area: sample supersample² points per
+        # pixel and average (pixel-centre samples alias the spheres' wide-angle refracted light)
+        offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
+        coordinates = np.stack(np.meshgrid(np.add.outer(np.arange(tile), offsets).ravel(), np.add.outer(np.arange(tile), offsets).ravel())).reshape(2, -1)
+        model = LorenzMie(coordinates=coordinates, particle=spheres, instrument=instrument)
+        intensity = model.hologram().reshape(tile, supersample, tile, supersample).mean(axis=(1, 3)).astype(np.float32)
         real.append(sensor_image(intensity, TRUE_BASELINE, {}, noise=rng.standard_normal((tile, tile)).astype(np.float32)))
     start = time.perf_counter()
     report = diagnose_tiles(real, config, settings=DiagnosisSettings(sim_tiles=6, evaluations=evaluations), particles_per_tile=particles).report
@@ -139,15 +150,16 @@ def main() -> None:
         p.add_argument("--particles", type=int, default=12, help="particles per tile")
         p.add_argument("--evaluations", type=int, default=60)
         if name == "suite":
-            p.add_argument("--controls", type=int, default=4)
+            p.add_argument("--controls", type=int, default=5, help="controls; the last at the densest injection density")
         else:
             p.add_argument("--index", type=float, default=1.59, help="refractive index of the spheres (water: 1.33)")
+            p.add_argument("--supersample", type=int, default=3, help="intensity samples per pixel edge, averaged (pixel area integration)")
     sub.add_parser("real")
     args = parser.parse_args()
     if args.command == "suite":
         suite(args.tile, args.tiles, args.particles, args.evaluations, args.controls)
     elif args.command == "independent":
-        independent(args.tile, args.tiles, args.particles, args.evaluations, args.index)
+        independent(args.tile, args.tiles, args.particles, args.evaluations, args.index, args.supersample)
     else:
         real()
 

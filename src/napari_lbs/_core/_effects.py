@@ -51,6 +51,10 @@ class Effect:
         Parameter values at which the effect does nothing.
     injections : tuple of dict
         A weak and a strong setting for the injection–recovery suite.
+    injection_density : tuple of float
+        Particle density of the weak and the strong injection, relative to the suite's own
+        density: an effect whose strength is set by the scene rather than by a parameter
+        (shadowing between layers grows with how often particles overlap in projection).
     """
 
     id: str
@@ -58,6 +62,7 @@ class Effect:
     bounds: dict
     neutral: dict
     injections: tuple
+    injection_density: tuple = (1.0, 1.0)
 
 
 BASELINE = Effect("baseline", "seed's simulator: opaque discs, Gaussian noise, gamma", {"contrast": (0.2, 1.6), "sigma": (0.001, 0.3), "gamma": (0.5, 2.0)}, {"contrast": 1.0, "sigma": 0.0, "gamma": 1.0}, ())
@@ -69,7 +74,7 @@ EFFECTS: dict[str, Effect] = {e.id: e for e in (
     Effect("sensor_blur", "pixel integration / sensor MTF", {"sigma_px": (0.0, 2.0)}, {"sigma_px": 0.0}, ({"sigma_px": 0.8}, {"sigma_px": 1.4})),
     Effect("coherence", "partial spatial coherence (source size)", {"theta_mrad": (0.0, 3.0)}, {"theta_mrad": 0.0}, ({"theta_mrad": 1.2}, {"theta_mrad": 2.4})),
     Effect("particle_phase", "transparent, refracting spheres", {"phase_rad": (0.0, 6.0), "transmission": (0.0, 1.0)}, {"phase_rad": 0.0, "transmission": 0.0}, ({"phase_rad": 2.0, "transmission": 0.6}, {"phase_rad": 4.0, "transmission": 0.9})),
-    Effect("multiple_scattering", "shadowing between particle layers", {"on": (1.0, 1.0)}, {"on": 0.0}, ({"on": 1.0}, {"on": 1.0})),
+    Effect("multiple_scattering", "shadowing between particle layers", {"on": (1.0, 1.0)}, {"on": 0.0}, ({"on": 1.0}, {"on": 1.0}), (6.0, 12.0)),
     Effect("parasitic_fringes", "static etalon fringes", {"amplitude": (0.0, 0.2), "period_px": (4.0, 24.0), "angle_rad": (0.0, 3.1416)}, {"amplitude": 0.0, "period_px": 20.0, "angle_rad": 0.0}, ({"amplitude": 0.04, "period_px": 14.0, "angle_rad": 0.7}, {"amplitude": 0.1, "period_px": 14.0, "angle_rad": 0.7})),
     Effect("spherical_wave", "diverging illumination (point source at L)", {"source_mm": (8.0, 200.0)}, {"source_mm": 1e9}, ({"source_mm": 40.0}, {"source_mm": 15.0})),
 )}
