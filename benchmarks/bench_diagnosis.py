@@ -2,7 +2,7 @@
 
 Sub-commands:
 
-``suite [--tile PX] [--tiles N] [--particles P] [--evaluations E] [--controls C]``
+``suite [--tile PX] [--tiles N] [--particles P] [--evaluations E] [--controls C] [--jobs J]``
     Injection and recovery: for every effect id, pseudo-experiments made with that effect on
     at its weak and its strong setting (`Effect.injections`, at `Effect.injection_density`
     times P particles per tile) on top of a known baseline (contrast 0.8, read noise 0.04,
@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -62,33 +63,43 @@ def pseudo_tiles(effects: dict, *, tile: int, count: int, particles: int, seed: 
     return tiles
 
 
-def suite(tile: int, tiles: int, particles: int, evaluations: int, controls: int) -> None:
+def _suite_case(case: tuple) -> dict:
+    """Diagnose one withheld-effect case: (index, effect id or None, strength, density, options)."""
+    index, effect_id, strength, density, (tile, tiles, particles, evaluations) = case
+    effects = {} if effect_id is None else {effect_id: EFFECTS[effect_id].injections[strength]}
+    case_particles = round(particles * density)
+    case_start = time.perf_counter()
     settings = DiagnosisSettings(sim_tiles=6, evaluations=evaluations)
+    report = diagnose_tiles(pseudo_tiles(effects, tile=tile, count=tiles, particles=case_particles, seed=100 + index), CONFIG, settings=settings, particles_per_tile=case_particles).report
+    verdict = report["verdict"]
+    own = next((e for e in report["effects"] if e["id"] == effect_id), None)
+    return {
+        "withheld": effect_id,
+        "strength": ["weak", "strong"][strength] if effect_id else "control",
+        "particles_per_tile": case_particles,
+        "baseline_gap": round(report["gap"]["baseline"], 2),
+        "verdict": verdict["id"],
+        "correct": verdict["id"] == effect_id,
+        "shrink_of_withheld": round(own["shrink"], 2) if own else None,
+        "ablated_gap_of_withheld": round(own["gap_ablated"], 2) if own and "gap_ablated" in own else None,
+        "confirmed": bool(own and own["confirmed"]),
+        "seconds": round(time.perf_counter() - case_start, 1),
+    }
+
+
+def suite(tile: int, tiles: int, particles: int, evaluations: int, controls: int, jobs: int) -> None:
     # (effect, strength, density); the last control sits at the densest injection's density
     densest = max(density for effect in EFFECTS.values() for density in effect.injection_density)
     cases = [(effect_id, strength, EFFECTS[effect_id].injection_density[strength]) for effect_id in EFFECTS for strength in (0, 1)]
     cases += [(None, c, densest if c == controls - 1 else 1.0) for c in range(controls)]
-    rows = []
+    options = (tile, tiles, particles, evaluations)
     start = time.perf_counter()
-    for index, (effect_id, strength, density) in enumerate(cases):
-        effects = {} if effect_id is None else {effect_id: EFFECTS[effect_id].injections[strength]}
-        case_particles = round(particles * density)
-        case_start = time.perf_counter()
-        report = diagnose_tiles(pseudo_tiles(effects, tile=tile, count=tiles, particles=case_particles, seed=100 + index), CONFIG, settings=settings, particles_per_tile=case_particles).report
-        verdict = report["verdict"]
-        own = next((e for e in report["effects"] if e["id"] == effect_id), None)
-        rows.append({
-            "withheld": effect_id,
-            "strength": ["weak", "strong"][strength] if effect_id else "control",
-            "particles_per_tile": case_particles,
-            "baseline_gap": round(report["gap"]["baseline"], 2),
-            "verdict": verdict["id"],
-            "correct": verdict["id"] == effect_id,
-            "shrink_of_withheld": round(own["shrink"], 2) if own else None,
-            "confirmed": bool(own and own["confirmed"]),
-            "seconds": round(time.perf_counter() - case_start, 1),
-        })
-        print(json.dumps(rows[-1]), flush=True)
+    rows = []
+    # each case is seeded by its index, so the rows do not depend on how many run at once
+    with ProcessPoolExecutor(max_workers=jobs) as pool:
+        for row in pool.map(_suite_case, [(index, *case, options) for index, case in enumerate(cases)]):
+            rows.append(row)
+            print(json.dumps(row), flush=True)
     injected = [r for r in rows if r["withheld"]]
     controls_rows = [r for r in rows if not r["withheld"]]
     top1 = np.mean([r["correct"] for r in injected])
@@ -96,7 +107,7 @@ def suite(tile: int, tiles: int, particles: int, evaluations: int, controls: int
     print(f"top-1 {100 * top1:.0f} % over {len(injected)} withheld-effect cases (target >= 90 %); "
           f"median shrink of the named effect {np.median(shrinks) if shrinks else float('nan'):.2f} (target >= 0.5); "
           f"false alarms on controls {sum(not r['correct'] for r in controls_rows)}/{len(controls_rows)}; "
-          f"{(time.perf_counter() - start) / len(rows):.1f} s per diagnosis ({tiles} tiles of {tile}²)")
+          f"{(time.perf_counter() - start) / len(rows) * jobs:.1f} s per diagnosis ({tiles} tiles of {tile}², {jobs} at once)")
 
 
 def independent(tile: int, tiles: int, particles: int, evaluations: int, sphere_index: float, supersample: int) -> None:
@@ -151,13 +162,14 @@ def main() -> None:
         p.add_argument("--evaluations", type=int, default=60)
         if name == "suite":
             p.add_argument("--controls", type=int, default=5, help="controls; the last at the densest injection density")
+            p.add_argument("--jobs", type=int, default=1, help="cases diagnosed at once (processes)")
         else:
             p.add_argument("--index", type=float, default=1.59, help="refractive index of the spheres (water: 1.33)")
             p.add_argument("--supersample", type=int, default=3, help="intensity samples per pixel edge, averaged (pixel area integration)")
     sub.add_parser("real")
     args = parser.parse_args()
     if args.command == "suite":
-        suite(args.tile, args.tiles, args.particles, args.evaluations, args.controls)
+        suite(args.tile, args.tiles, args.particles, args.evaluations, args.controls, args.jobs)
     elif args.command == "independent":
         independent(args.tile, args.tiles, args.particles, args.evaluations, args.index, args.supersample)
     else:

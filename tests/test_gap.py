@@ -169,6 +169,9 @@ def test_a_withheld_strong_effect_is_named_and_adding_it_shrinks_the_gap(effect_
     report = diagnosis.report
     assert report["gap"]["baseline"] > 1.0
     assert report["verdict"]["id"] == effect_id and report["verdict"]["shrink"] >= 0.5
+    # the shrink is the effect's own: switching it off in its own fit gives the gap back
+    named = next(e for e in report["effects"] if e["id"] == effect_id)
+    assert named["gap_ablated"] - named["gap_after"] >= 0.5
 
 
 def test_too_few_tiles_are_refused():
