@@ -7,9 +7,9 @@ Sub-commands:
     at its weak and its strong setting (`Effect.injections`, at `Effect.injection_density`
     times P particles per tile) on top of a known baseline (contrast 0.8, read noise 0.04,
     gamma 1.2), diagnosed by a simulator that has to find it; plus C controls with nothing
-    withheld, the last at the densest injection's density. Prints one JSON line per case, then top-1 accuracy of
-    the verdict, the median shrink of a correctly named effect, the controls' false alarms and
-    the mean time per diagnosis.
+    withheld, the last at the densest injection's density; J cases at once (processes). Prints
+    one JSON line per case, then top-1 accuracy of the verdict, the median shrink of a
+    correctly named effect, the controls' false alarms and the mean time per diagnosis.
 ``independent [--index N] [--supersample S] ...``
     Pseudo-experiments from Lorenz–Mie theory (pylorenzmie, a model the diagnosis never uses):
     transparent spheres of refractive index N in water (1.59: polystyrene; 1.37: cell-like),

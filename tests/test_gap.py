@@ -114,6 +114,7 @@ def test_shadowing_between_layers_grows_with_the_injection_density():
     assert dense > 3.0 * base
     assert departure(1) < 1e-3  # one particle: nothing to shadow
 
+
 def test_a_static_fringe_is_measured_at_its_period_and_angle_under_a_particle_scene():
     from napari_lbs._core import measured_fringe
 
