@@ -22,8 +22,10 @@ absolute difference failed.)
 Attribution (`diagnose_tiles`): fit the baseline (seed's simulator, `EFFECTS` module) to half
 of the real tiles, screen every effect by regressing the standardised residual on its
 signature, confirm the most significant ones (largest |t|) by adding each and refitting all
-parameters, score every model on the other half (tiles never used for a fit), rank, and name
-a verdict — or ``null`` when no effect removes enough of the gap on the held-out tiles.
+parameters, score every model on the other half (tiles never used for a fit), ablate each
+confirmed fit (the same parameters with the effect switched off), rank, and name a verdict —
+or ``null`` when no effect removes enough of the gap on the held-out tiles, against the
+baseline and against its own ablated fit.
 """
 
 from __future__ import annotations
