@@ -25,6 +25,7 @@ from napari_lbs._core._calibration import (
 )
 from napari_lbs._core._dataset import (
     DATASET_FORMAT,
+    DatasetLayout,
     InputProcessing,
     SyntheticDataset,
     dataset_summary,
@@ -32,7 +33,8 @@ from napari_lbs._core._dataset import (
     open_dataset,
     synthetic_group,
 )
-from napari_lbs._core._detection import PlaneLinker, detect_particles
+from napari_lbs._core._detection import PeakDecoder, PlaneLinker, detect_particles, suppress
+from napari_lbs._core._heatmaps import FocusSpec, FocusTargets, context_indices, focus_targets
 from napari_lbs._core._effects import BASELINE, EFFECTS, OPTICAL_EFFECTS, Effect, optical_hologram, sensor_image
 from napari_lbs._core._gap import (
     SUMMARY_GROUPS,
@@ -68,7 +70,7 @@ from napari_lbs._core._io import (
     write_particles,
     write_stack,
 )
-from napari_lbs._core._metrics import AXIAL_TOL_UM, LATERAL_TOL_UM, match_particles, score_particles, seed_scores
+from napari_lbs._core._metrics import AXIAL_TOL_UM, LATERAL_TOL_UM, depth_errors_um, match_particles, score_particles, seed_scores
 from napari_lbs._core._optics import (
     backpropagate,
     padded_shape,
@@ -92,8 +94,8 @@ from napari_lbs._core._synthesis import (
 )
 
 _TORCH_NAMES = {
-    "_network": ("MODEL_FORMAT", "PRESETS", "LoadedModel", "UNet", "build_network", "check_model_matches", "load_model", "network_outputs", "resolve_device", "save_model"),
-    "_training": ("THRESHOLD_FRACTIONS", "TrainingResult", "TrainingSettings", "train_model"),
+    "_network": ("MODEL_FORMAT", "PRESETS", "FORMULATIONS", "focus_maps", "LoadedModel", "UNet", "build_network", "check_model_matches", "load_model", "network_outputs", "resolve_device", "save_model"),
+    "_training": ("THRESHOLD_FRACTIONS", "FOCUS_THRESHOLDS", "TrainingResult", "TrainingSettings", "train_model"),
     "_prediction": ("PredictionResult", "predict_particles", "tile_layout"),
 }
 _LAZY = {name: module for module, names in _TORCH_NAMES.items() for name in names}
@@ -141,6 +143,7 @@ __all__ = [
     "match_particles",
     "score_particles",
     "seed_scores",
+    "depth_errors_um",
     "backpropagate",
     "padded_shape",
     "propagate",
@@ -161,6 +164,7 @@ __all__ = [
     "random_particle_field",
     "simulate_hologram",
     "DATASET_FORMAT",
+    "DatasetLayout",
     "InputProcessing",
     "SyntheticDataset",
     "dataset_summary",
@@ -169,6 +173,12 @@ __all__ = [
     "synthetic_group",
     "PlaneLinker",
     "detect_particles",
+    "PeakDecoder",
+    "suppress",
+    "FocusSpec",
+    "FocusTargets",
+    "context_indices",
+    "focus_targets",
     "BASELINE",
     "EFFECTS",
     "OPTICAL_EFFECTS",

@@ -1,14 +1,22 @@
 """Better synthetic training data: random groups through HCS and Holo-processing, on disk.
 
-A *group* is one random particle field in a ``tile.size`` window (seed paper Sec. 2.1: 12
-particles on layers 1800–4800 µm every 200 µm), its simulated hologram turned into one
-input plane per layer by Holo-processing with the calibrated parameters, and one label plane
-per layer (3x3 squares of value 4 x diameter, `label_planes`).
+A *group* is one random particle field in a ``tile.size`` window, its simulated hologram
+turned into input planes by Holo-processing with the calibrated parameters, the label planes
+of the seed's formulation (3x3 squares of value 4 x diameter, `label_planes`) and the ground
+truth. Two layouts (`DatasetLayout`):
+
+``stack`` (default, for the ``focus`` formulation)
+    the input planes are the reconstruction grid of the config (``z_min_um`` … ``z_max_um``
+    every ``z_step_um``) extended by ``context_planes`` on each side, so that a network can
+    see the planes around any depth of the volume; particles at continuous depths (or on the
+    seed's layers, ``depths="layers"``). Inputs are stored as float16 (they lie in [0, 1]).
+``layers`` (the seed's data, Sec. 2.1)
+    12 particles on layers 1800–4800 µm every ``layer_step_um``, one input plane per layer.
 
 The data set folder (documented in docs/dataset.md)::
 
-    DATA/dataset.json            what the set is: format, config, processing, seed, planes, groups
-    DATA/groups/group_00000.tif  series 0: input planes (z, y, x) float32
+    DATA/dataset.json            what the set is: format, config, processing, layout, seed, planes, groups
+    DATA/groups/group_00000.tif  series 0: input planes (z, y, x) float32 or float16
                                  series 1: label planes (z, y, x) float32 (zlib)
                                  ImageDescription JSON of page 0: group, seed, z_um, particles
 
@@ -32,10 +40,10 @@ from napari_lbs._core._io import InputError, atomic_path, write_json
 from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
 from napari_lbs._core._synthesis import ParticleField, label_planes, random_particle_field, simulate_hologram
 
-__all__ = ["InputProcessing", "SyntheticDataset", "synthetic_group", "generate_dataset", "open_dataset", "dataset_summary", "DATASET_FORMAT"]
+__all__ = ["DatasetLayout", "InputProcessing", "SyntheticDataset", "synthetic_group", "generate_dataset", "open_dataset", "dataset_summary", "DATASET_FORMAT"]
 
 DATASET_FORMAT = "napari-lbs-dataset"
-_FORMAT_VERSION = 1
+_FORMAT_VERSION = 2  # 2 added the layout; version 1 sets are the layers layout
 
 
 @dataclass(frozen=True)
@@ -80,6 +88,51 @@ class InputProcessing:
         return cls(params=HoloParams(**payload["params"]), invert_experiment=bool(payload["invert_experiment"]), mode=payload["mode"])
 
 
+@dataclass(frozen=True)
+class DatasetLayout:
+    """Which planes a data set stores and where its particles sit.
+
+    Attributes
+    ----------
+    kind : {"stack", "layers"}
+        See the module docstring.
+    context_planes : int
+        ``stack``: planes stored beyond each end of the reconstruction grid, so the planes around
+        the first and last depths exist too (a model's context reach must not exceed it).
+    depths : {"uniform", "layers"}
+        ``stack``: particle depths uniform over ``z_min_um`` … ``z_max_um`` or on the seed's
+        layers (every ``layer_step_um``).
+    """
+
+    kind: str = "stack"
+    context_planes: int = 8
+    depths: str = "uniform"
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("stack", "layers"):
+            raise InputError(f"layout: expected 'stack' or 'layers', got {self.kind!r}")
+        if self.depths not in ("uniform", "layers"):
+            raise InputError(f"depths: expected 'uniform' or 'layers', got {self.depths!r}")
+        if not 0 <= int(self.context_planes) <= 64:
+            raise InputError(f"context_planes: expected 0..64 planes, got {self.context_planes!r}")
+
+    def planes_um(self, config: ExperimentConfig) -> tuple[float, ...]:
+        """The depths (µm) whose input planes a group stores."""
+        if self.kind == "layers":
+            return config.layer_depths_um()
+        grid = config.volume.planes_um()
+        step = config.volume.z_step_um
+        margin = int(self.context_planes)
+        return tuple(grid[0] + i * step for i in range(-margin, 0)) + grid + tuple(grid[-1] + i * step for i in range(1, margin + 1))
+
+    def to_dict(self) -> dict:
+        return {"kind": self.kind} if self.kind == "layers" else {"kind": self.kind, "context_planes": int(self.context_planes), "depths": self.depths}
+
+    @classmethod
+    def from_dict(cls, payload: dict | None) -> DatasetLayout:
+        return cls(kind="layers") if not payload or payload.get("kind") == "layers" else cls(**payload)
+
+
 def synthetic_group(
     config: ExperimentConfig,
     processing: InputProcessing,
@@ -87,6 +140,7 @@ def synthetic_group(
     seed: int | list[int],
     shape: tuple[int, int] | None = None,
     count: int | None = None,
+    layout: DatasetLayout = DatasetLayout(kind="layers"),
 ) -> tuple[np.ndarray, np.ndarray, ParticleField]:
     """One training group: ``(inputs, labels, field)``.
 
@@ -100,21 +154,24 @@ def synthetic_group(
         Seeds the particle field and the noise.
     shape, count : optional
         Window (default ``tile.size`` square) and particle count (default ``per_tile``).
+    layout : DatasetLayout
+        Which planes to make and where particles sit (default: the seed's layers).
 
     Returns
     -------
-    inputs, labels : (n_layers, rows, cols) float32
+    inputs, labels : (len(layout.planes_um(config)), rows, cols) float32
     field : ParticleField
     """
     rng = np.random.default_rng(seed)
-    planes_um = config.layer_depths_um()
+    planes_um = layout.planes_um(config)
     size = config.tile.size
     particles = random_particle_field(
         shape or (size, size),
         count=config.particles.per_tile if count is None else count,
         diameter_min_um=config.particles.diameter_min_um,
         diameter_max_um=config.particles.diameter_max_um,
-        layers_um=planes_um,
+        layers_um=config.layer_depths_um() if layout.kind == "layers" or layout.depths == "layers" else (config.volume.z_min_um, config.volume.z_max_um),
+        continuous=layout.kind == "stack" and layout.depths == "uniform",
         pixel_um=config.optics.pixel_um,
         seed=rng,
     )
@@ -146,6 +203,10 @@ class SyntheticDataset:
     def planes_um(self) -> list[float]:
         return list(self.spec["planes_um"])
 
+    @property
+    def layout(self) -> DatasetLayout:
+        return DatasetLayout.from_dict(self.spec.get("layout"))
+
     def group_path(self, group: int) -> Path:
         return self.path / "groups" / f"group_{group:05d}.tif"
 
@@ -162,30 +223,33 @@ class SyntheticDataset:
             description = json.loads(handle.pages[0].description)
         return inputs, labels, description
 
-    def arrays(self, groups: list[int]) -> tuple[np.ndarray, np.ndarray]:
-        """Input and label planes of ``groups`` stacked: two ``(len(groups) * n_planes, rows, cols)`` float32 arrays."""
+    def arrays(self, groups: list[int], *, dtype=np.float32) -> tuple[np.ndarray, np.ndarray, list[dict]]:
+        """Input and label planes of ``groups``, two ``(len(groups), n_planes, rows, cols)`` arrays, and their particle tables."""
         size, planes = self.spec["tile_size"], len(self.spec["planes_um"])
-        inputs = np.empty((len(groups) * planes, size, size), np.float32)
-        labels = np.empty_like(inputs)
+        inputs = np.empty((len(groups), planes, size, size), dtype)
+        labels = np.empty((len(groups), planes, size, size), np.float32)
+        tables = []
         for index, group in enumerate(groups):
-            inputs[index * planes : (index + 1) * planes], labels[index * planes : (index + 1) * planes], _ = self.read_group(group)
-        return inputs, labels
+            inputs[index], labels[index], description = self.read_group(group)
+            tables.append({key: np.asarray(values, np.float64) for key, values in description["particles"].items()})
+        return inputs, labels, tables
 
 
-def _spec(config: ExperimentConfig, processing: InputProcessing, seed: int) -> dict:
+def _spec(config: ExperimentConfig, processing: InputProcessing, layout: DatasetLayout, seed: int) -> dict:
     return {
         "format": DATASET_FORMAT,
         "version": _FORMAT_VERSION,
         "config": config.to_dict(),
         "processing": processing.to_dict(),
+        "layout": layout.to_dict(),
         "seed": int(seed),
-        "planes_um": [float(z) for z in config.layer_depths_um()],
+        "planes_um": [float(z) for z in layout.planes_um(config)],
         "tile_size": int(config.tile.size),
         "particles_per_group": int(config.particles.per_tile),
     }
 
 
-_IDENTITY_KEYS = ("format", "version", "config", "processing", "seed", "planes_um", "tile_size", "particles_per_group")
+_IDENTITY_KEYS = ("format", "version", "config", "processing", "layout", "seed", "planes_um", "tile_size", "particles_per_group")
 
 
 def _group_is_valid(path: Path, planes: int, size: int) -> bool:
@@ -204,6 +268,7 @@ def generate_dataset(
     *,
     groups: int,
     processing: InputProcessing = InputProcessing(),
+    layout: DatasetLayout = DatasetLayout(),
     calibration: dict | None = None,
     seed: int = 0,
     progress: ProgressCallback | None = None,
@@ -224,6 +289,8 @@ def generate_dataset(
         Number of groups (the seed: 256).
     processing : InputProcessing
         How synthetic planes are processed (`InputProcessing.from_calibration`).
+    layout : DatasetLayout
+        Which planes each group stores (default: the reconstruction stack with context).
     calibration : dict, optional
         The calibration JSON, recorded as provenance.
     seed : int
@@ -236,7 +303,7 @@ def generate_dataset(
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: expected a folder for the data set, got a file")
-    spec = _spec(config, processing, seed)
+    spec = _spec(config, processing, layout, seed)
     manifest = out / "dataset.json"
     if manifest.is_file():
         existing = json.loads(manifest.read_text(encoding="utf-8"))
@@ -257,7 +324,9 @@ def generate_dataset(
             break
         path = dataset.group_path(group)
         if not _group_is_valid(path, len(planes_um), config.tile.size):
-            inputs, labels, particles = synthetic_group(config, processing, seed=[int(seed), group])
+            inputs, labels, particles = synthetic_group(config, processing, seed=[int(seed), group], layout=layout)
+            if layout.kind == "stack":  # values in [0, 1]: float16 keeps 11 bits and halves the cache
+                inputs = inputs.astype(np.float16)
             description = json.dumps({
                 "group": group,
                 "seed": [int(seed), group],
@@ -284,8 +353,8 @@ def open_dataset(path: str | Path) -> SyntheticDataset:
         spec = json.loads(manifest.read_text(encoding="utf-8"))
     except json.JSONDecodeError as error:
         raise InputError(f"{manifest}: not valid JSON ({error})") from None
-    if spec.get("format") != DATASET_FORMAT or spec.get("version") != _FORMAT_VERSION:
-        raise InputError(f"{manifest}: expected format {DATASET_FORMAT} version {_FORMAT_VERSION}, got {spec.get('format')} {spec.get('version')}")
+    if spec.get("format") != DATASET_FORMAT or spec.get("version") not in (1, _FORMAT_VERSION):
+        raise InputError(f"{manifest}: expected format {DATASET_FORMAT} version 1 or {_FORMAT_VERSION}, got {spec.get('format')} {spec.get('version')}")
     dataset = SyntheticDataset(path, spec, [], complete=bool(spec.get("complete")))
     dataset.groups = [g for g in range(int(spec["groups"])) if dataset.group_path(g).is_file()]
     return dataset
@@ -293,5 +362,5 @@ def open_dataset(path: str | Path) -> SyntheticDataset:
 
 def dataset_summary(dataset: SyntheticDataset) -> dict:
     """What a training log records about its data."""
-    return {"path": str(dataset.path), "groups": len(dataset.groups), "complete": dataset.complete, **{k: dataset.spec[k] for k in ("seed", "planes_um", "tile_size", "processing")}}
+    return {"path": str(dataset.path), "groups": len(dataset.groups), "complete": dataset.complete, "layout": dataset.layout.to_dict(), **{k: dataset.spec[k] for k in ("seed", "planes_um", "tile_size", "processing")}}
 

@@ -1,6 +1,18 @@
-"""From network output planes to particles: decode the 3x3 squares and merge them through depth.
+"""From network output planes to particles.
 
-The network paints each in-focus particle as a 3x3 square of value ``LABEL_SCALE x diameter``
+Two decoders, one per formulation (`napari_lbs._core._network`).
+
+``focus``: `PeakDecoder` and `suppress`
+    The network gives, per plane, a particle-centre probability, a sub-plane depth offset and
+    a diameter (`napari_lbs._core._heatmaps`). Planes stream in depth order; a voxel is a
+    candidate when its probability is the largest of its 3 planes x ``(2 window_px + 1)²``
+    neighbourhood and at least ``floor``. Its lateral position is the probability-weighted
+    centroid of its 3x3 pixels, its depth the plane's plus the regressed offset, its diameter
+    the regressed one, its score the probability. `suppress` then keeps one particle per peak:
+    strongest first, every weaker candidate within ``lateral_um`` and ``axial_um`` is dropped.
+
+``seed``: `PlaneLinker`
+    The network paints each in-focus particle as a 3x3 square of value ``LABEL_SCALE x diameter``
 on the plane nearest its depth; a real particle is in focus over several neighbouring planes,
 so its squares repeat there. Decoding, plane by plane (streaming: a deep stack never has to
 be held):
@@ -32,7 +44,7 @@ from scipy import ndimage
 from napari_lbs._core._io import InputError
 from napari_lbs._core._synthesis import LABEL_SCALE
 
-__all__ = ["PlaneLinker", "detect_particles"]
+__all__ = ["PeakDecoder", "suppress", "PlaneLinker", "detect_particles"]
 
 _EIGHT_CONNECTED = np.ones((3, 3), dtype=bool)
 
@@ -164,3 +176,108 @@ def detect_particles(outputs: np.ndarray, planes_um: Sequence[float], *, pixel_u
     for plane, output in enumerate(outputs):
         linker.add(plane, output)
     return linker.particles()
+
+
+class PeakDecoder:
+    """3-D peak finding over streamed ``focus`` output planes (see the module docstring).
+
+    Parameters
+    ----------
+    planes_um : sequence of float
+        Depth of each plane (µm), increasing, in the order planes will be added.
+    pixel_um : float
+        Pixel pitch (µm).
+    step_um : float
+        The depth unit of the offsets (the training stack's plane spacing, µm).
+    floor : float
+        Smallest probability kept as a candidate (the final threshold is applied later).
+    window_px : int
+        Lateral half-width of the local-maximum neighbourhood (pixels).
+    origin_um : (x, y)
+        Position of pixel (0, 0), for outputs of a crop.
+    """
+
+    def __init__(self, planes_um: Sequence[float], *, pixel_um: float, step_um: float, floor: float = 0.05, window_px: int = 2, origin_um: tuple[float, float] = (0.0, 0.0)) -> None:
+        if not 0 < floor < 1:
+            raise InputError(f"floor: expected a probability in (0, 1), got {floor}")
+        self.planes_um = np.asarray(planes_um, dtype=np.float64)
+        self.pixel_um, self.step_um, self.floor = float(pixel_um), float(step_um), float(floor)
+        self.size = 2 * int(window_px) + 1
+        self.origin_um = origin_um
+        self._window: list[tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []  # (plane, p, offset, diameter, lateral max)
+        self._rows: list[tuple[float, float, float, float, float]] = []
+
+    def add(self, plane: int, probability: np.ndarray, offset: np.ndarray, diameter_um: np.ndarray) -> None:
+        """Add plane ``plane`` (increasing): probability, offset (planes), diameter (µm), each ``(rows, cols)``.
+
+        A plane is decoded once its next neighbour has arrived (or at `candidates`), so at most
+        three planes are held whatever the depth of the stack.
+        """
+        probability = np.asarray(probability, np.float32)
+        if self._window and plane != self._window[-1][0] + 1:
+            self._flush()  # a gap in depth: the planes on either side are not neighbours
+        lateral_max = ndimage.maximum_filter(probability, size=self.size, mode="constant", cval=0.0)
+        self._window.append((plane, probability, np.asarray(offset, np.float32), np.asarray(diameter_um, np.float32), lateral_max))
+        if len(self._window) >= 2:
+            self._emit(len(self._window) - 2)
+        if len(self._window) == 3:
+            self._window.pop(0)
+
+    def _emit(self, middle: int) -> None:
+        """Candidates of ``self._window[middle]`` given its neighbours in the window."""
+        plane, probability, offset, diameter, _ = self._window[middle]
+        neighbourhood = np.max(np.stack([w[4] for w in self._window[max(middle - 1, 0) : middle + 2]]), axis=0)
+        peaks = np.argwhere((probability >= neighbourhood) & (probability >= self.floor))
+        rows, cols = probability.shape
+        for row, col in peaks:
+            r0, r1, c0, c1 = max(row - 1, 0), min(row + 2, rows), max(col - 1, 0), min(col + 2, cols)
+            weights = probability[r0:r1, c0:c1]
+            r_grid, c_grid = np.mgrid[r0:r1, c0:c1]
+            total = float(weights.sum())
+            row_c, col_c = float((weights * r_grid).sum() / total), float((weights * c_grid).sum() / total)
+            self._rows.append((
+                self.origin_um[0] + col_c * self.pixel_um,
+                self.origin_um[1] + row_c * self.pixel_um,
+                float(self.planes_um[plane]) + self.step_um * float(np.clip(offset[row, col], -1.0, 1.0)),
+                max(float(diameter[row, col]), 0.0),
+                float(probability[row, col]),
+            ))
+
+    def _flush(self) -> None:
+        """Decode the last plane held (it has no next neighbour) and start afresh."""
+        if self._window:
+            self._emit(len(self._window) - 1)
+        self._window = []
+
+    def candidates(self) -> dict[str, np.ndarray]:
+        """All candidates so far (call once all planes are added): x_um, y_um, z_um, diameter_um, score."""
+        self._flush()
+        table = np.asarray(self._rows, dtype=np.float64).reshape(-1, 5)
+        return {name: table[:, i] for i, name in enumerate(("x_um", "y_um", "z_um", "diameter_um", "score"))}
+
+
+def suppress(candidates: dict[str, np.ndarray], *, threshold: float, lateral_um: float, axial_um: float) -> dict[str, np.ndarray]:
+    """One particle per peak: candidates scoring at least ``threshold``, strongest first, each
+    removing the weaker ones within ``lateral_um`` in (x, y) *and* ``axial_um`` in z.
+
+    Returns the kept rows of ``candidates`` (same columns), sorted by depth.
+    """
+    keep = np.flatnonzero(candidates["score"] >= threshold)
+    keep = keep[np.argsort(-candidates["score"][keep], kind="stable")]
+    xy = np.column_stack([candidates["x_um"][keep], candidates["y_um"][keep]])
+    z = candidates["z_um"][keep]
+    kept: list[int] = []
+    if keep.size:
+        from scipy.spatial import cKDTree
+
+        tree = cKDTree(xy)
+        suppressed = np.zeros(keep.size, bool)
+        for i in range(keep.size):
+            if suppressed[i]:
+                continue
+            kept.append(int(keep[i]))
+            near = np.asarray(tree.query_ball_point(xy[i], lateral_um), dtype=np.int64)
+            suppressed[near[np.abs(z[near] - z[i]) <= axial_um]] = True
+    kept_index = np.asarray(kept, np.int64)
+    kept_index = kept_index[np.lexsort((candidates["x_um"][kept_index], candidates["y_um"][kept_index], candidates["z_um"][kept_index]))]
+    return {name: values[kept_index] for name, values in candidates.items()}

@@ -1,4 +1,13 @@
-"""The seed's modified U-Net (Sec. 2.3, Fig. 4) and the model file that carries it.
+"""The U-Net (the seed's, Sec. 2.3, Fig. 4, and its multi-plane variant) and the model file that carries it.
+
+Two formulations share the network body:
+
+``seed``
+    one reconstruction plane in, one label plane out (3x3 squares of 4 x diameter), MSE.
+``focus``
+    the planes around a depth in (``context`` offsets, as channels: the network sees how a
+    particle's image changes through focus), and three maps out for the centre plane: a
+    particle-centre logit, the sub-plane depth offset and the diameter (see `_heatmaps`).
 
 Presets
 -------
@@ -7,6 +16,8 @@ Presets
     level, 2x2 max pooling between levels), a decoder that up-samples (nearest, as Keras'
     ``UpSampling2D``) and concatenates the encoder's skip connection at every level, and a
     1x1 convolution to one output channel. Trained with MSE and Adam, as the seed.
+``medium``
+    A quarter of the channels, 16-32-64-128-128 (1.2 M parameters).
 ``small``
     The same shape with an eighth of the channels, 8-16-32-64-64: trains on a CPU in minutes
     and predicts a 256² plane in about 25 ms on two cores.
@@ -16,9 +27,10 @@ a multiple of 2^(levels-1) and the output is cropped back), so a network trained
 tiles or on smaller patches runs on any tile.
 
 Model file (``.pt``): a plain dict of tensors and strings,
-``{"format", "version", "state_dict", "meta"}`` with ``meta`` a JSON string (preset, tile size,
-config, input processing, output scale, detection settings, training summary). It is read
-with ``torch.load(..., weights_only=True)``: loading never executes code.
+``{"format", "version", "state_dict", "meta"}`` with ``meta`` a JSON string (formulation,
+preset, channels, tile size, config, input processing, detection settings, training summary).
+It is read with ``torch.load(..., weights_only=True)``: loading never executes code. Version
+1 files (before the ``focus`` formulation) load as the ``seed`` formulation they are.
 
 This module imports torch; `napari_lbs._core` imports it lazily.
 """
@@ -39,11 +51,13 @@ from torch import nn
 from napari_lbs._core._config import ExperimentConfig
 from napari_lbs._core._io import InputError, atomic_write_bytes
 
-__all__ = ["PRESETS", "UNet", "build_network", "save_model", "load_model", "LoadedModel", "resolve_device", "check_model_matches", "network_outputs", "MODEL_FORMAT"]
+__all__ = ["PRESETS", "FORMULATIONS", "UNet", "build_network", "save_model", "load_model", "LoadedModel", "resolve_device", "check_model_matches", "network_outputs", "focus_maps", "MODEL_FORMAT"]
 
 MODEL_FORMAT = "napari-lbs-model"
-_MODEL_VERSION = 1
-PRESETS: dict[str, tuple[int, ...]] = {"paper": (64, 128, 256, 512, 512), "small": (8, 16, 32, 64, 64)}
+_MODEL_VERSION = 2
+_READABLE_VERSIONS = (1, 2)
+PRESETS: dict[str, tuple[int, ...]] = {"paper": (64, 128, 256, 512, 512), "medium": (16, 32, 64, 128, 128), "small": (8, 16, 32, 64, 64)}
+FORMULATIONS = ("focus", "seed")
 
 
 def _conv_block(in_channels: int, out_channels: int) -> nn.Sequential:
@@ -54,16 +68,16 @@ def _conv_block(in_channels: int, out_channels: int) -> nn.Sequential:
 
 
 class UNet(nn.Module):
-    """U-Net with ``widths[i]`` channels at level ``i``; one input and one output channel."""
+    """U-Net with ``widths[i]`` channels at level ``i``, ``in_channels`` inputs and ``out_channels`` outputs."""
 
-    def __init__(self, widths: tuple[int, ...]) -> None:
+    def __init__(self, widths: tuple[int, ...], *, in_channels: int = 1, out_channels: int = 1) -> None:
         super().__init__()
         if len(widths) < 2:
             raise InputError(f"widths: expected at least two levels, got {widths}")
         self.widths = tuple(int(w) for w in widths)
-        self.encoder = nn.ModuleList(_conv_block(c_in, c_out) for c_in, c_out in zip((1,) + self.widths[:-1], self.widths, strict=True))
+        self.encoder = nn.ModuleList(_conv_block(c_in, c_out) for c_in, c_out in zip((int(in_channels),) + self.widths[:-1], self.widths, strict=True))
         self.decoder = nn.ModuleList(_conv_block(self.widths[i + 1] + self.widths[i], self.widths[i]) for i in reversed(range(len(self.widths) - 1)))
-        self.head = nn.Conv2d(self.widths[0], 1, 1)
+        self.head = nn.Conv2d(self.widths[0], int(out_channels), 1)
         self.pool = nn.MaxPool2d(2)
         self.up = nn.Upsample(scale_factor=2, mode="nearest")
 
@@ -82,12 +96,12 @@ class UNet(nn.Module):
         return self.head(x)[..., :rows, :cols]
 
 
-def build_network(preset: str) -> UNet:
-    """A fresh network of a preset (``paper`` or ``small``)."""
+def build_network(preset: str, *, in_channels: int = 1, out_channels: int = 1) -> UNet:
+    """A fresh network of a preset (``paper``, ``medium`` or ``small``)."""
     if preset not in PRESETS:
         raise InputError(f"preset: expected one of {', '.join(PRESETS)}, got {preset!r}")
     # channels-last runs the convolutions about twice as fast on CPU (oneDNN)
-    return UNet(PRESETS[preset]).to(memory_format=torch.channels_last)
+    return UNet(PRESETS[preset], in_channels=in_channels, out_channels=out_channels).to(memory_format=torch.channels_last)
 
 
 def resolve_device(device: str) -> torch.device:
@@ -111,6 +125,10 @@ class LoadedModel:
     @property
     def config(self) -> ExperimentConfig:
         return ExperimentConfig.from_dict(self.meta["config"])
+
+    @property
+    def formulation(self) -> str:
+        return self.meta.get("formulation", "seed")
 
 
 def _model_bytes(network: UNet, meta: dict) -> bytes:
@@ -137,10 +155,12 @@ def load_model(path: str | Path, *, device: str = "cpu") -> LoadedModel:
         payload = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     except Exception as error:  # pickles with code, truncated files, other formats: all refused the same way
         raise InputError(f"{path}: not a napari-lbs model file ({type(error).__name__})") from None
-    if not isinstance(payload, dict) or payload.get("format") != MODEL_FORMAT or payload.get("version") != _MODEL_VERSION:
-        raise InputError(f"{path}: expected a {MODEL_FORMAT} version {_MODEL_VERSION} file")
+    if not isinstance(payload, dict) or payload.get("format") != MODEL_FORMAT or payload.get("version") not in _READABLE_VERSIONS:
+        raise InputError(f"{path}: expected a {MODEL_FORMAT} file of version {' or '.join(map(str, _READABLE_VERSIONS))}")
     meta = json.loads(payload["meta"])
-    network = UNet(tuple(meta["widths"])).to(memory_format=torch.channels_last)
+    if meta.setdefault("formulation", "seed") not in FORMULATIONS:
+        raise InputError(f"{path}: unknown formulation {meta['formulation']!r}; expected one of {', '.join(FORMULATIONS)}")
+    network = UNet(tuple(meta["widths"]), in_channels=int(meta.get("in_channels", 1)), out_channels=int(meta.get("out_channels", 1))).to(memory_format=torch.channels_last)
     try:
         network.load_state_dict(payload["state_dict"])
     except RuntimeError as error:
@@ -183,3 +203,40 @@ def network_outputs(network: UNet, planes: np.ndarray, *, output_scale: float, b
             batch = batch.to(device).contiguous(memory_format=torch.channels_last)
             outputs[start : start + batch_size] = network(batch)[:, 0].float().cpu().numpy() * output_scale
     return outputs
+
+
+def focus_maps(network: UNet, stack: np.ndarray, centres, *, context, diameter_scale_um: float, batch_size: int = 8):
+    """Run a ``focus`` network on the centre planes of a normalised stack.
+
+    Parameters
+    ----------
+    network : UNet
+        Three output channels (centre logit, depth offset in planes, diameter / scale).
+    stack : (planes, rows, cols) array
+        Input planes as the network sees them (normalised, [0, 1]); any float dtype.
+    centres : sequence of int
+        Indices of the planes to decode; each needs its whole ``context`` inside the stack.
+    context : sequence of int
+        Plane offsets fed as channels.
+    diameter_scale_um : float
+        Multiplies the diameter channel.
+
+    Yields
+    ------
+    (centre, probability, offset, diameter_um) for each centre in order, float32 ``(rows, cols)``.
+    """
+    from napari_lbs._core._heatmaps import context_indices
+
+    network.eval()
+    device = next(network.parameters()).device
+    centres = list(centres)
+    indices = context_indices(centres, context, len(stack))
+    with torch.inference_mode():
+        for start in range(0, len(centres), batch_size):
+            batch = torch.from_numpy(np.ascontiguousarray(stack[indices[start : start + batch_size]], dtype=np.float32))
+            outputs = network(batch.to(device).contiguous(memory_format=torch.channels_last)).float()
+            probability = torch.sigmoid(outputs[:, 0]).cpu().numpy()
+            offset = outputs[:, 1].cpu().numpy()
+            diameter = (nn.functional.softplus(outputs[:, 2]) * diameter_scale_um).cpu().numpy()
+            for k in range(len(probability)):
+                yield centres[start + k], probability[k], offset[k], diameter[k]

@@ -5,8 +5,9 @@ per-tile back-propagation lost), cut into overlapping tiles of the size the mode
 for, each tile-plane normalised exactly as the training inputs were (`experimental_planes`),
 and the network's outputs stitched back with every pixel taken from the tile whose centre is
 nearest. A particle on a tile edge is thus seen whole by a neighbouring tile. The stitched
-output planes are decoded and merged through depth by `PlaneLinker`, plane chunk by plane
-chunk, so memory stays bounded whatever the depth of the stack.
+output planes are decoded plane chunk by plane chunk — `PeakDecoder` then `suppress` for the
+``focus`` formulation, whose input planes reach ``context`` planes beyond the requested depths;
+`PlaneLinker` for the ``seed`` formulation — so memory stays bounded whatever the depth.
 """
 
 from __future__ import annotations
@@ -21,9 +22,9 @@ import numpy as np
 from napari_lbs import __version__
 from napari_lbs._core._calibration import experimental_planes
 from napari_lbs._core._config import ExperimentConfig
-from napari_lbs._core._detection import PlaneLinker
+from napari_lbs._core._detection import PeakDecoder, PlaneLinker, suppress
 from napari_lbs._core._io import InputError, as_hologram
-from napari_lbs._core._network import LoadedModel, check_model_matches, load_model, network_outputs
+from napari_lbs._core._network import LoadedModel, check_model_matches, focus_maps, load_model, network_outputs
 from napari_lbs._core._optics import backpropagate
 from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
 
@@ -101,28 +102,12 @@ def predict_particles(
     check_model_matches(meta, config, planes_um=planes)
     size = int(meta["tile_size"])
     margin_px = min(int(margin_px), size // 4)
-    rows = tile_layout(hologram.shape[0], size=size, margin=margin_px)
-    cols = tile_layout(hologram.shape[1], size=size, margin=margin_px)
-    invert, mode = bool(meta["processing"]["invert_experiment"]), meta["processing"]["mode"]
+    layout = (tile_layout(hologram.shape[0], size=size, margin=margin_px), tile_layout(hologram.shape[1], size=size, margin=margin_px))
     optics = {"wavelength_um": config.optics.wavelength_um, "pixel_um": config.optics.pixel_um, "medium_index": config.optics.medium_index}
-    linker = PlaneLinker(planes, pixel_um=config.optics.pixel_um, threshold=float(meta["threshold"]), full_value=float(meta["full_value"]), merge_lateral_um=float(meta.get("merge_lateral_um", 0.0)))
     steps = Steps(len(planes), progress=progress, should_stop=should_stop)
-    for first in range(0, len(planes), _PLANES_PER_CHUNK):
-        steps.check()
-        chunk = planes[first : first + _PLANES_PER_CHUNK]
-        magnitudes = backpropagate(hologram, chunk, background=background, **optics)
-        tiles = np.stack([magnitudes[:, r : r + size, c : c + size] for r, _, _ in rows for c, _, _ in cols], axis=1)
-        inputs = experimental_planes(tiles.reshape(-1, size, size), invert=invert, mode=mode)
-        outputs = network_outputs(loaded.network, inputs, output_scale=float(meta["output_scale"])).reshape(tiles.shape)
-        for offset in range(len(chunk)):
-            plane = np.empty(hologram.shape, np.float32)
-            index = 0
-            for r, r_from, r_to in rows:
-                for c, c_from, c_to in cols:
-                    plane[r_from:r_to, c_from:c_to] = outputs[offset, index, r_from - r : r_to - r, c_from - c : c_to - c]
-                    index += 1
-            linker.add(first + offset, plane)
-        steps.advance(len(chunk))
+    decode = _decode_focus if loaded.formulation == "focus" else _decode_seed
+    particles, details = decode(hologram, loaded, planes, layout, background=background, optics=optics, steps=steps)
+    rows, cols = layout
     seconds = time.perf_counter() - start_time
     provenance = {
         "napari_lbs": __version__,
@@ -130,7 +115,9 @@ def predict_particles(
         "model_sha256": loaded.sha256,
         "model_preset": meta["preset"],
         "model_epoch": meta.get("epoch"),
+        "formulation": loaded.formulation,
         "threshold": meta["threshold"],
+        **details,
         "processing": meta["processing"],
         "config": config.to_dict(),
         "planes_um": [planes[0], planes[-1], len(planes)],
@@ -138,4 +125,73 @@ def predict_particles(
         "background": background is not None,
         "seconds": round(seconds, 3),
     }
-    return PredictionResult(linker.particles(), provenance, seconds)
+    return PredictionResult(particles, provenance, seconds)
+
+
+def _stitched(outputs: np.ndarray, layout, shape: tuple[int, int]) -> np.ndarray:
+    """One image from per-tile outputs ``(tiles, ...)``: each pixel from the tile whose centre is nearest."""
+    rows, cols = layout
+    plane = np.empty(outputs.shape[1:-2] + shape, np.float32)
+    index = 0
+    for r, r_from, r_to in rows:
+        for c, c_from, c_to in cols:
+            plane[..., r_from:r_to, c_from:c_to] = outputs[index, ..., r_from - r : r_to - r, c_from - c : c_to - c]
+            index += 1
+    return plane
+
+
+def _tiles(stack: np.ndarray, layout, size: int) -> list[np.ndarray]:
+    rows, cols = layout
+    return [stack[:, r : r + size, c : c + size] for r, _, _ in rows for c, _, _ in cols]
+
+
+def _decode_seed(hologram, loaded: LoadedModel, planes, layout, *, background, optics, steps) -> tuple[dict, dict]:
+    """The seed formulation: each plane's tiles through the network, `PlaneLinker` through depth."""
+    meta = loaded.meta
+    size = int(meta["tile_size"])
+    invert, mode = bool(meta["processing"]["invert_experiment"]), meta["processing"]["mode"]
+    linker = PlaneLinker(planes, pixel_um=optics["pixel_um"], threshold=float(meta["threshold"]), full_value=float(meta["full_value"]), merge_lateral_um=float(meta.get("merge_lateral_um", 0.0)))
+    for first in range(0, len(planes), _PLANES_PER_CHUNK):
+        steps.check()
+        chunk = planes[first : first + _PLANES_PER_CHUNK]
+        magnitudes = backpropagate(hologram, chunk, background=background, **optics)
+        tiles = np.stack(_tiles(magnitudes, layout, size), axis=0)
+        inputs = experimental_planes(tiles.reshape(-1, size, size), invert=invert, mode=mode)
+        outputs = network_outputs(loaded.network, inputs, output_scale=float(meta["output_scale"])).reshape(tiles.shape)
+        stitched = _stitched(outputs, layout, hologram.shape)
+        for offset in range(len(chunk)):
+            linker.add(first + offset, stitched[offset])
+        steps.advance(len(chunk))
+    return linker.particles(), {}
+
+
+def _decode_focus(hologram, loaded: LoadedModel, planes, layout, *, background, optics, steps) -> tuple[dict, dict]:
+    """The focus formulation: context planes in, 3-D peaks of the centre probability, one particle per peak."""
+    meta = loaded.meta
+    size, step = int(meta["tile_size"]), float(meta["step_um"])
+    context = [int(o) for o in meta["context"]]
+    reach = max(abs(o) for o in context)
+    if len(planes) > 1 and not np.allclose(np.diff(planes), step, rtol=1e-6, atol=1e-6):
+        raise InputError(f"volume.z_step_um: the model was trained on planes {step:g} um apart; reconstruct at that step")
+    invert, mode = bool(meta["processing"]["invert_experiment"]), meta["processing"]["mode"]
+    extended = [planes[0] + i * step for i in range(-reach, 0)] + list(planes) + [planes[-1] + i * step for i in range(1, reach + 1)]
+    if extended[0] <= 0:
+        raise InputError(f"volume.z_min_um: the model's context needs planes {reach * step:g} um nearer the sensor than {planes[0]:g} um")
+    stack = backpropagate(hologram, extended, background=background, **optics)
+    decoder = PeakDecoder(planes, pixel_um=optics["pixel_um"], step_um=step)
+    for first in range(0, len(planes), _PLANES_PER_CHUNK):
+        steps.check()
+        centres = list(range(first, min(first + _PLANES_PER_CHUNK, len(planes))))
+        low, high = centres[0], centres[-1] + 2 * reach + 1  # extended-stack planes this chunk needs
+        outputs = []
+        for tile in _tiles(stack[low:high], layout, size):
+            inputs = experimental_planes(tile, invert=invert, mode=mode)
+            maps = focus_maps(loaded.network, inputs, [c - first + reach for c in centres], context=context, diameter_scale_um=float(meta["diameter_scale_um"]))
+            outputs.append(np.stack([np.stack(m[1:]) for m in maps]))  # (centres, 3, size, size)
+        stitched = _stitched(np.stack(outputs), layout, hologram.shape)
+        for k, centre in enumerate(centres):
+            decoder.add(centre, *stitched[k])
+        steps.advance(len(centres))
+    axial_um = meta.get("axial_um")
+    particles = suppress(decoder.candidates(), threshold=float(meta["threshold"]), lateral_um=float(meta["lateral_um"]), axial_um=float(axial_um) if axial_um is not None else np.inf)
+    return particles, {"axial_um": axial_um, "lateral_um": meta["lateral_um"], "context": context, "step_um": step}

@@ -88,12 +88,15 @@ def random_particle_field(
     pixel_um: float,
     seed: int | np.random.Generator | None = None,
     overlap: bool = True,
+    continuous: bool = False,
 ) -> ParticleField:
     """Draw a random particle field.
 
-    Diameters are uniform in ``[diameter_min_um, diameter_max_um]``, depths uniform over
-    ``layers_um``, centres uniform over the window. With ``overlap=False`` no two particles
-    overlap in projection along z (rejection sampling; raises when the window is too full).
+    Diameters are uniform in ``[diameter_min_um, diameter_max_um]``, depths drawn uniformly
+    from ``layers_um`` (the seed's HCS layers) or, with ``continuous=True``, uniformly over
+    ``[min(layers_um), max(layers_um)]`` (every particle its own depth, as in a real volume),
+    centres uniform over the window. With ``overlap=False`` no two particles overlap in
+    projection along z (rejection sampling; raises when the window is too full).
     """
     rng = np.random.default_rng(seed)
     if count < 0:
@@ -103,7 +106,7 @@ def random_particle_field(
         raise InputError("layers_um: expected at least one depth")
     rows, cols = shape
     diameters = rng.uniform(diameter_min_um, diameter_max_um, count)
-    depths = rng.choice(layers, size=count)
+    depths = rng.uniform(layers.min(), layers.max(), count) if continuous else rng.choice(layers, size=count)
     x = np.empty(count)
     y = np.empty(count)
     for i in range(count):
