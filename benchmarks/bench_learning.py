@@ -11,13 +11,14 @@ Sub-commands (each prints ratios against a baseline measured in the same run):
     and the share spent in back-propagation alone (the floor). Target: <= 60 s with ``small``.
     Without ``--model`` a token model is trained first (3 groups, 1 epoch; its accuracy is
     irrelevant here, only the time).
-``sim [--groups G] [--minutes T] [--preset P] [--device D]``
+``sim [--groups G] [--minutes T] [--preset P] [--device D] [--formulation focus|seed] [--workers W] [--out DIR]``
     The seed's simulation experiment (Sec. 3.1): 60 particles of 20–30 µm per 256² group on 63
     layers 30 µm apart (1800–3660 µm), Holo-processing (0, 0, 1). Trains on G groups for at
-    most T minutes (the stop keeps the best epoch by synthetic validation), then tests on a
-    768² field of 3x3 groups (540 particles, ppp 0.136 at 26.82 µm voxels) simulated as one
-    hologram, with one-to-one scoring and, beside it, the seed's scoring. The seed reports
-    ER 97.21 %, JI 0.97 (with its own scoring and a GPU).
+    most T minutes (the stop keeps the best epoch by synthetic validation), printing the
+    learning curve (held-out synthetic validation ER/JI against training minutes), then tests
+    on a 768² field of 3x3 groups (540 particles, ppp 0.136 at 26.82 µm voxels) simulated as
+    one hologram, with one-to-one scoring, the median depth error and, beside them, the seed's
+    scoring. The seed reports ER 97.21 %, JI 0.97 (with its own scoring and a GPU).
 
 Run: python benchmarks/bench_learning.py throughput|predict|sim [options]
 """
@@ -34,10 +35,12 @@ from pathlib import Path
 import numpy as np
 
 from napari_lbs._core import (
+    DatasetLayout,
     ExperimentConfig,
     InputProcessing,
     TrainingSettings,
     count_for_ppp,
+    depth_errors_um,
     generate_dataset,
     load_config,
     load_sample_hologram,
@@ -105,14 +108,23 @@ def predict(model: str | None) -> None:
     print(f"back-propagation alone: {floor:.2f} s ({100 * floor / result.seconds:.0f} % of the prediction); peak RSS {rss_after:.0f} MiB (was {rss_before:.0f} MiB before predict)")
 
 
-def sim(groups: int, minutes: float, preset: str, device: str, patch: int, epochs: int) -> None:
-    folder = Path(tempfile.mkdtemp(prefix="napari-lbs-sim-"))
+def sim(groups: int, minutes: float, preset: str, device: str, patch: int, epochs: int, formulation: str, workers: int, batch: int, out: str | None) -> None:
+    folder = Path(out or tempfile.mkdtemp(prefix="napari-lbs-sim-"))
     start = time.perf_counter()
-    dataset = generate_dataset(folder / "data", SIM_CONFIG, groups=groups, processing=InputProcessing(), seed=0)
+    layout = DatasetLayout(kind="stack", depths="layers") if formulation == "focus" else DatasetLayout(kind="layers")
+    dataset = generate_dataset(folder / "data", SIM_CONFIG, groups=groups, processing=InputProcessing(), layout=layout, seed=0, workers=workers)
     generate_seconds = time.perf_counter() - start
-    deadline = time.perf_counter() + 60 * minutes
-    settings = TrainingSettings(preset=preset, epochs=epochs, batch_size=8, device=device, patch_size=patch, foreground_weight=30.0, validation_groups=max(2, groups // 8))
-    trained = train_model(dataset, folder / "sim.pt", settings=settings, should_stop=lambda: time.perf_counter() > deadline)
+    settings = TrainingSettings(formulation=formulation, preset=preset, epochs=epochs, batch_size=batch, device=device, patch_size=patch, foreground_weight=30.0,
+                                validation_groups=max(2, groups // 8), minutes=minutes)
+    curve = []
+
+    def record(entry: dict) -> None:
+        if "validation" in entry:
+            v = entry["validation"]
+            curve.append({"epoch": entry["epoch"], "minutes": round(entry["seconds"] / 60, 2), "er": round(v["er"], 4), "ji": round(v["ji"], 4)})
+            print(f"epoch {entry['epoch']:3d} at {entry['seconds'] / 60:6.2f} min: validation ER {100 * v['er']:.2f} %, JI {v['ji']:.3f}", flush=True)
+
+    trained = train_model(dataset, folder / "sim.pt", settings=settings, report=record)
     # Test field: 3x3 groups of 60 particles each, one hologram (the seed spliced 9 groups).
     truth = random_particle_field((768, 768), count=9 * 60, diameter_min_um=20, diameter_max_um=30, layers_um=SIM_CONFIG.layer_depths_um(), pixel_um=2.2, seed=12345)
     ppp = 9 * 60 / count_for_ppp(1.0, (768, 768), pixel_um=2.2, voxel_um=26.82)
@@ -120,22 +132,29 @@ def sim(groups: int, minutes: float, preset: str, device: str, patch: int, epoch
     result = predict_particles(hologram, trained.model_path, SIM_CONFIG, device=device)
     one_to_one = score_particles(result.particles, truth.table())
     seed_style = seed_scores(result.particles, truth.table())
+    dz = depth_errors_um(result.particles, truth.table())
     report = {
+        "formulation": formulation,
         "groups": groups,
         "preset": preset,
         "patch_size": patch,
+        "device": trained.log["device"],
         "generate_seconds": round(generate_seconds, 1),
         "train_seconds": trained.log["seconds"],
+        "samples_per_second": trained.log["planes_per_second"],
         "epochs_done": len(trained.log["epochs"]),
         "stopped_by_budget": trained.stopped,
         "best": trained.log["best"],
+        "learning_curve": curve,
         "predict_seconds": round(result.seconds, 1),
         "ppp": round(ppp, 4),
         "one_to_one": one_to_one,
+        "median_abs_dz_um": float(np.median(np.abs(dz))) if dz.size else None,
         "seed_scoring": seed_style,
     }
+    (folder / "report.json").write_text(json.dumps(report, indent=1))
     print(json.dumps(report, indent=1))
-    print(f"sim experiment: ER {100 * one_to_one['er']:.2f} %, JI {one_to_one['ji']:.3f} one-to-one "
+    print(f"sim experiment ({formulation}, {preset}): ER {100 * one_to_one['er']:.2f} %, JI {one_to_one['ji']:.3f} one-to-one "
           f"(seed's scoring: ER {100 * seed_style['er']:.2f} %, JI {seed_style['ji']:.3f}); the seed reports ER 97.21 %, JI 0.97")
 
 
@@ -152,13 +171,17 @@ def main() -> None:
     p.add_argument("--device", default="auto")
     p.add_argument("--patch", type=int, default=128)
     p.add_argument("--epochs", type=int, default=100)
+    p.add_argument("--formulation", default="focus", choices=("focus", "seed"))
+    p.add_argument("--workers", type=int, default=1, help="processes simulating the training groups")
+    p.add_argument("--batch", type=int, default=8)
+    p.add_argument("--out", help="keep the data, model and report.json here (default: a temporary folder)")
     args = parser.parse_args()
     if args.command == "throughput":
         throughput()
     elif args.command == "predict":
         predict(args.model)
     else:
-        sim(args.groups, args.minutes, args.preset, args.device, args.patch, args.epochs)
+        sim(args.groups, args.minutes, args.preset, args.device, args.patch, args.epochs, args.formulation, args.workers, args.batch, args.out)
 
 
 if __name__ == "__main__":

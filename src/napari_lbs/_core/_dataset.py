@@ -271,6 +271,7 @@ def generate_dataset(
     layout: DatasetLayout = DatasetLayout(),
     calibration: dict | None = None,
     seed: int = 0,
+    workers: int = 1,
     progress: ProgressCallback | None = None,
     should_stop: StopCallback | None = None,
 ) -> SyntheticDataset:
@@ -294,6 +295,8 @@ def generate_dataset(
     calibration : dict, optional
         The calibration JSON, recorded as provenance.
     seed : int
+    workers : int
+        Processes simulating groups at once (1: in this process). The set does not depend on it.
     progress, should_stop
         One step per group. A stop ends after the current group; the set is then marked
         incomplete and a rerun finishes it.
@@ -316,31 +319,53 @@ def generate_dataset(
     dataset = SyntheticDataset(out, spec, [], complete=False)
     planes_um = spec["planes_um"]
     steps = Steps(int(groups), progress=progress, should_stop=should_stop)
-    import tifffile
+    missing = [g for g in range(int(groups)) if not _group_is_valid(dataset.group_path(g), len(planes_um), config.tile.size)]
+    present = [g for g in range(int(groups)) if g not in set(missing)]
+    dataset.groups.extend(present)
+    steps.advance(len(present))
+    jobs = [(dataset.group_path(g), config, processing, layout, int(seed), g) for g in missing]
+    if workers > 1 and len(jobs) > 1:
+        from concurrent.futures import ProcessPoolExecutor
 
-    for group in range(int(groups)):
-        if steps.stop_requested():
-            dataset.stopped = True
-            break
-        path = dataset.group_path(group)
-        if not _group_is_valid(path, len(planes_um), config.tile.size):
-            inputs, labels, particles = synthetic_group(config, processing, seed=[int(seed), group], layout=layout)
-            if layout.kind == "stack":  # values in [0, 1]: float16 keeps 11 bits and halves the cache
-                inputs = inputs.astype(np.float16)
-            description = json.dumps({
-                "group": group,
-                "seed": [int(seed), group],
-                "z_um": planes_um,
-                "particles": {key: [float(v) for v in values] for key, values in particles.table().items()},
-            })
-            with atomic_path(path) as temporary, tifffile.TiffWriter(temporary) as writer:
-                writer.write(inputs, description=description, metadata=None, photometric="minisblack")
-                writer.write(labels, compression="zlib", metadata=None, photometric="minisblack")
-        dataset.groups.append(group)
-        steps.advance()
+        with ProcessPoolExecutor(max_workers=int(workers)) as pool:
+            futures = [pool.submit(_write_group, *job) for job in jobs]
+            for future in futures:
+                if steps.stop_requested():
+                    dataset.stopped = True
+                    pool.shutdown(wait=True, cancel_futures=True)  # running groups finish (atomic writes); the rest never start
+                    break
+                dataset.groups.append(future.result())
+                steps.advance()
+    else:
+        for job in jobs:
+            if steps.stop_requested():
+                dataset.stopped = True
+                break
+            dataset.groups.append(_write_group(*job))
+            steps.advance()
+    dataset.groups.sort()
     dataset.complete = len(dataset.groups) == int(groups)
     write_json(manifest, {**spec, "complete": dataset.complete})
     return dataset
+
+
+def _write_group(path: Path, config: ExperimentConfig, processing: InputProcessing, layout: DatasetLayout, seed: int, group: int) -> int:
+    """Simulate group ``group`` and write its file atomically (runs in a worker process too)."""
+    import tifffile
+
+    inputs, labels, particles = synthetic_group(config, processing, seed=[seed, group], layout=layout)
+    if layout.kind == "stack":  # values in [0, 1]: float16 keeps 11 bits and halves the cache
+        inputs = inputs.astype(np.float16)
+    description = json.dumps({
+        "group": group,
+        "seed": [seed, group],
+        "z_um": [float(z) for z in layout.planes_um(config)],
+        "particles": {key: [float(v) for v in values] for key, values in particles.table().items()},
+    })
+    with atomic_path(path) as temporary, tifffile.TiffWriter(temporary) as writer:
+        writer.write(inputs, description=description, metadata=None, photometric="minisblack")
+        writer.write(labels, compression="zlib", metadata=None, photometric="minisblack")
+    return group
 
 
 def open_dataset(path: str | Path) -> SyntheticDataset:
