@@ -1,4 +1,6 @@
-"""Data sets, label decoding, the U-Net, training, model files and prediction (issue 4), on tiny data."""
+"""Data sets, label decoding, the U-Net, training, model files and prediction of the seed formulation (issue 4), on tiny data.
+
+The focus formulation has its own tests (test_focus.py)."""
 
 import hashlib
 import json
@@ -8,6 +10,7 @@ import numpy as np
 import pytest
 
 from napari_lbs._core import (
+    DatasetLayout,
     ExperimentConfig,
     HoloParams,
     InputError,
@@ -35,12 +38,13 @@ def tiny_config(**volume) -> ExperimentConfig:
 
 
 PROCESSING = InputProcessing(HoloParams(-0.5, 0.2, 0.8), invert_experiment=True)
+LAYERS = DatasetLayout(kind="layers")
 
 
 @pytest.fixture(scope="module")
 def tiny_data(tmp_path_factory):
     path = tmp_path_factory.mktemp("data")
-    return generate_dataset(path, tiny_config(), groups=6, processing=PROCESSING, seed=3)
+    return generate_dataset(path, tiny_config(), groups=6, processing=PROCESSING, layout=LAYERS, seed=3)
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +52,7 @@ def tiny_model(tiny_data, tmp_path_factory):
     from napari_lbs._core import TrainingSettings, train_model
 
     out = tmp_path_factory.mktemp("model") / "m.pt"
-    result = train_model(tiny_data, out, settings=TrainingSettings(epochs=3, batch_size=4, device="cpu", validation_groups=1, foreground_weight=20.0))
+    result = train_model(tiny_data, out, settings=TrainingSettings(formulation="seed", epochs=3, batch_size=4, device="cpu", validation_groups=1, foreground_weight=20.0))
     return result
 
 
@@ -73,10 +77,10 @@ def test_dataset_round_trip_holds_inputs_labels_truth_and_provenance(tiny_data):
 
 def test_generation_is_resumable_and_deterministic(tmp_path, tiny_data):
     calls = []
-    stopped = generate_dataset(tmp_path, tiny_config(), groups=6, processing=PROCESSING, seed=3, should_stop=lambda: len(calls) >= 2, progress=lambda d, t: calls.append(d))
+    stopped = generate_dataset(tmp_path, tiny_config(), groups=6, processing=PROCESSING, layout=LAYERS, seed=3, should_stop=lambda: len(calls) >= 2, progress=lambda d, t: calls.append(d))
     assert stopped.stopped and not stopped.complete and stopped.groups == [0, 1]
     assert json.loads((tmp_path / "dataset.json").read_text())["complete"] is False
-    resumed = generate_dataset(tmp_path, tiny_config(), groups=6, processing=PROCESSING, seed=3)
+    resumed = generate_dataset(tmp_path, tiny_config(), groups=6, processing=PROCESSING, layout=LAYERS, seed=3)
     assert resumed.complete
     for group in range(6):  # same bytes of data as the uninterrupted run
         a, b = resumed.read_group(group), tiny_data.read_group(group)
@@ -168,9 +172,11 @@ def test_tiny_training_lowers_the_loss_and_keeps_the_best_model(tiny_model):
 def test_training_is_deterministic_and_resumes_to_the_same_weights(tiny_data, tiny_model, tmp_path):
     from napari_lbs._core import TrainingSettings, train_model
 
-    settings = TrainingSettings(epochs=3, batch_size=4, device="cpu", validation_groups=1, foreground_weight=20.0)
-    first = train_model(tiny_data, tmp_path / "a.pt", settings=TrainingSettings(**{**settings.__dict__, "epochs": 2}))
-    assert len(first.log["epochs"]) == 2
+    settings = TrainingSettings(formulation="seed", epochs=3, batch_size=4, device="cpu", validation_groups=1, foreground_weight=20.0)
+    batches_per_epoch = -(-5 * 3 // 4)  # 5 training groups of 3 planes, batches of 4
+    done = []
+    first = train_model(tiny_data, tmp_path / "a.pt", settings=settings, progress=lambda d, t: done.append(d), should_stop=lambda: len(done) >= 2 * batches_per_epoch)
+    assert first.stopped and len(first.log["epochs"]) == 2  # interrupted at the start of epoch 3
     resumed = train_model(tiny_data, tmp_path / "a.pt", settings=settings, resume=True)
     assert [e["epoch"] for e in resumed.log["epochs"]] == [1, 2, 3]
     assert [e["train_loss"] for e in resumed.log["epochs"]] == [e["train_loss"] for e in tiny_model.log["epochs"]]
@@ -187,7 +193,7 @@ def test_stopping_mid_epoch_keeps_a_usable_model(tiny_data, tmp_path):
     from napari_lbs._core import TrainingSettings, load_model, train_model
 
     done = []
-    result = train_model(tiny_data, tmp_path / "s.pt", settings=TrainingSettings(epochs=5, batch_size=2, device="cpu", validation_groups=1), progress=lambda d, t: done.append(d), should_stop=lambda: len(done) >= 3)
+    result = train_model(tiny_data, tmp_path / "s.pt", settings=TrainingSettings(formulation="seed", epochs=5, batch_size=2, device="cpu", validation_groups=1), progress=lambda d, t: done.append(d), should_stop=lambda: len(done) >= 3)
     assert result.stopped and done[-1] == 3  # stopped after the third batch of the first epoch
     assert json.loads((tmp_path / "s.json").read_text())["stopped"] is True
     model = load_model(tmp_path / "s.pt")

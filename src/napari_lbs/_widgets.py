@@ -19,6 +19,7 @@ from qtpy.QtCore import QObject, QSettings, Signal
 
 from napari_lbs._core import (
     CalibrationSettings,
+    DatasetLayout,
     InputError,
     InputProcessing,
     Stopped,
@@ -384,9 +385,11 @@ class GenerateWidget(_StepWidget):
         self.config = FileEdit(label="config (TOML, empty = default)", name="config", filter="*.toml", value="")
         self.calibration = FileEdit(label="calibration JSON (empty = none)", name="calibration", filter="*.json", value="")
         self.groups = SpinBox(label="groups", name="groups", value=256, min=2, max=100000)
+        self.layout_kind = ComboBox(label="planes", name="layout_kind", choices=["stack", "layers"], value="stack",
+                                    tooltip="stack: the reconstruction planes plus context (focus formulation); layers: one plane per simulated layer (the seed's)")
         self.seed = SpinBox(label="seed", name="seed", value=0, min=0, max=2**31 - 1)
         self.output = FileEdit(label="data set folder", name="output", mode="d", value="lbs-data")
-        super().__init__(napari_viewer, [self.config, self.calibration, self.groups, self.seed, self.output])
+        super().__init__(napari_viewer, [self.config, self.calibration, self.groups, self.layout_kind, self.seed, self.output])
 
     def problem(self):
         return _missing(self.calibration, "calibration") or _config_problem(self.config)
@@ -395,11 +398,12 @@ class GenerateWidget(_StepWidget):
         path = _chosen(self.calibration)
         calibration = json.loads(path.read_text()) if path is not None else None
         processing = InputProcessing.from_calibration(calibration) if calibration else InputProcessing()
-        return _config_from(self.config), processing, calibration, self.groups.value, self.seed.value, Path(self.output.value)
+        layout = DatasetLayout(kind=self.layout_kind.value)
+        return _config_from(self.config), processing, layout, calibration, self.groups.value, self.seed.value, Path(self.output.value)
 
     def work(self, job, *, progress, should_stop, report):
-        config, processing, calibration, groups, seed, output = job
-        return generate_dataset(output, config, groups=groups, processing=processing, calibration=calibration, seed=seed, progress=progress, should_stop=should_stop)
+        config, processing, layout, calibration, groups, seed, output = job
+        return generate_dataset(output, config, groups=groups, processing=processing, layout=layout, calibration=calibration, seed=seed, progress=progress, should_stop=should_stop)
 
     def show(self, dataset):
         if dataset.groups:
@@ -408,7 +412,7 @@ class GenerateWidget(_StepWidget):
             planes = dataset.planes_um
             step = planes[1] - planes[0] if len(planes) > 1 else 1.0
             common = {"scale": (step, pixel, pixel), "translate": (planes[0], 0.0, 0.0), "metadata": {"dataset": str(dataset.path), "spec": dataset.spec}}
-            self._viewer.add_image(inputs, name="training input (group 0)", **common)
+            self._viewer.add_image(inputs.astype(np.float32), name="training input (group 0)", **common)
             self._viewer.add_image(labels, name="training label (group 0)", colormap="magenta", blending="additive", **common)
         state = "complete" if dataset.complete else "stopped; run again to resume"
         self._done(f"{len(dataset.groups)} groups in {dataset.path} ({state})")
@@ -422,23 +426,28 @@ class TrainingWidget(_StepWidget):
     def __init__(self, napari_viewer) -> None:
         self.data = FileEdit(label="data set folder", name="data", mode="d", value="lbs-data")
         self.output = FileEdit(label="model file", name="output", mode="w", filter="*.pt", value="lbs-model.pt")
-        self.preset = ComboBox(label="preset", name="preset", choices=["small", "paper"], value="small")
+        self.formulation = ComboBox(label="formulation", name="formulation", choices=["focus", "seed"], value="focus",
+                                    tooltip="focus: context planes in, centre probability + depth offset + diameter out; seed: the seed paper's single-plane U-Net")
+        self.preset = ComboBox(label="preset", name="preset", choices=["small", "medium", "paper"], value="small")
         self.epochs = SpinBox(label="epochs", name="epochs", value=10, min=1, max=10000)
+        self.minutes = FloatSpinBox(label="time budget (min, 0 = none)", name="minutes", value=0.0, min=0.0, max=10000.0)
         self.learning_rate = FloatSpinBox(label="learning rate (0 = preset's)", name="learning_rate", value=0.0, min=0.0, max=0.1, step=1e-4)
         self.device = ComboBox(label="device", name="device", choices=["auto", "cpu", "cuda"], value="auto")
-        self.foreground_weight = FloatSpinBox(label="foreground weight", name="foreground_weight", value=30.0, min=1.0, max=1000.0)
+        self.foreground_weight = FloatSpinBox(label="foreground weight (seed)", name="foreground_weight", value=30.0, min=1.0, max=1000.0)
         self.patch = SpinBox(label="patch size (0 = tiles)", name="patch", value=0, min=0, max=8192)
         self.seed = SpinBox(label="seed", name="seed", value=0, min=0, max=2**31 - 1)
-        super().__init__(napari_viewer, [self.data, self.output, self.preset, self.epochs, self.learning_rate, self.device, self.foreground_weight, self.patch, self.seed])
+        super().__init__(napari_viewer, [self.data, self.output, self.formulation, self.preset, self.epochs, self.minutes, self.learning_rate, self.device, self.foreground_weight, self.patch, self.seed])
         self._plot = _LossPlot()
         self.native.layout().addWidget(self._plot.canvas)
         self.result = None
 
     def problem(self):
         try:
-            open_dataset(self.data.value)
+            dataset = open_dataset(self.data.value)
         except InputError as error:
             return str(error)
+        if self.formulation.value == "focus" and dataset.layout.kind != "stack":
+            return "data set: made with the layers layout; the focus formulation needs the stack layout (or choose the seed formulation)"
         if not str(self.output.value).endswith(".pt"):
             return "model file: expected a name ending in .pt"
         return None
@@ -448,8 +457,10 @@ class TrainingWidget(_StepWidget):
 
         self._plot.clear()
         settings = TrainingSettings(
+            formulation=self.formulation.value,
             preset=self.preset.value,
             epochs=self.epochs.value,
+            minutes=self.minutes.value,
             learning_rate=self.learning_rate.value or None,
             device=self.device.value,
             foreground_weight=self.foreground_weight.value,

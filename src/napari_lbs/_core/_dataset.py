@@ -325,9 +325,11 @@ def generate_dataset(
     steps.advance(len(present))
     jobs = [(dataset.group_path(g), config, processing, layout, int(seed), g) for g in missing]
     if workers > 1 and len(jobs) > 1:
+        import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
-        with ProcessPoolExecutor(max_workers=int(workers)) as pool:
+        # spawn, not fork: a forked child inherits the FFT and thread pools' locks mid-use and can hang
+        with ProcessPoolExecutor(max_workers=int(workers), mp_context=multiprocessing.get_context("spawn")) as pool:
             futures = [pool.submit(_write_group, *job) for job in jobs]
             for future in futures:
                 if steps.stop_requested():
