@@ -322,7 +322,8 @@ def generate_dataset(
     missing = [g for g in range(int(groups)) if not _group_is_valid(dataset.group_path(g), len(planes_um), config.tile.size)]
     present = [g for g in range(int(groups)) if g not in set(missing)]
     dataset.groups.extend(present)
-    steps.advance(len(present))
+    if present:
+        steps.advance(len(present))
     jobs = [(dataset.group_path(g), config, processing, layout, int(seed), g) for g in missing]
     if workers > 1 and len(jobs) > 1:
         import multiprocessing

@@ -364,11 +364,12 @@ class _FocusFormulation:
         return {"threshold": metrics["threshold"], "axial_um": metrics["axial_um"]}
 
 
-def _save_state(path: Path, network, optimizer, *, epoch: int, log: dict, rng: np.random.Generator) -> None:
+def _save_state(path: Path, network, optimizer, schedule, *, epoch: int, log: dict, rng: np.random.Generator) -> None:
     buffer = io.BytesIO()
     torch.save({
         "state_dict": {k: v.detach().cpu() for k, v in network.state_dict().items()},
         "optimizer": optimizer.state_dict(),
+        "schedule": schedule.state_dict(),
         "epoch": epoch,
         "log": json.dumps(log),
         "numpy_rng": json.dumps(rng.bit_generator.state),
@@ -454,9 +455,8 @@ def train_model(
         optimizer.load_state_dict(state["optimizer"])
         rng.bit_generator.state = json.loads(state["numpy_rng"])
         torch.set_rng_state(state["torch_rng"])
+        schedule.load_state_dict(state["schedule"])
         first_epoch = int(state["epoch"])
-        for _ in range(first_epoch * batches):
-            schedule.step()
         log = previous | {"settings": log["settings"]}
 
     steps = Steps((settings.epochs - first_epoch) * batches, progress=progress, should_stop=should_stop)
@@ -528,7 +528,7 @@ def train_model(
                 finish_epoch(epoch, losses)
             break
         finish_epoch(epoch, losses)
-        _save_state(state_path, network, optimizer, epoch=epoch, log=log, rng=rng)
+        _save_state(state_path, network, optimizer, schedule, epoch=epoch, log=log, rng=rng)
         if out_of_patience():
             log["early_stop"] = f"no better validation JI for {settings.patience} epochs"
             break
