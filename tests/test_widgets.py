@@ -106,7 +106,8 @@ def test_generate_train_predict_widgets_from_data_to_points(make_napari_viewer, 
     generate.output.value = tmp_path / "data"
     run_to_end(qtbot, generate)
     assert json.loads((tmp_path / "data" / "dataset.json").read_text())["complete"]
-    assert viewer.layers["training input (group 0)"].data.shape == (3, 48, 48)
+    # the stack layout: the reconstruction grid plus 8 context planes beyond each end
+    assert viewer.layers["training input (group 0)"].data.shape == (len(config.volume.planes_um()) + 16, 48, 48)
 
     train = dock(viewer, "4 Training")
     train.data.value = tmp_path / "nothing"
