@@ -8,7 +8,7 @@ Sub-commands (each prints ratios against a baseline measured in the same run):
 ``predict [--model M]``
     `predict_particles` on the real 1024² hologram at 61 planes (1800–4800 µm): wall time,
     peak memory (tracemalloc, numpy + torch CPU tensors are not all traced: also ru_maxrss),
-    and the share spent in back-propagation alone (the floor). Target: <= 60 s with ``small``.
+    and the share spent in back-propagation alone (the floor). Target: <= 30 s with ``small``.
     Without ``--model`` a token model is trained first (3 groups, 1 epoch; its accuracy is
     irrelevant here, only the time).
 ``real PARTICLES.csv [--figure PNG]``
@@ -107,7 +107,7 @@ def predict(model: str | None) -> None:
         rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
         result = predict_particles(hologram, model_path, config, device="cpu")
         rss_after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    print(f"predict 1024² x {len(config.volume.planes_um())} planes: {result.seconds:.1f} s (target <= 60 s), {len(result.particles['x_um'])} particles, tiles {result.provenance['tiles']}")
+    print(f"predict 1024² x {len(config.volume.planes_um())} planes: {result.seconds:.1f} s (target <= 30 s), {len(result.particles['x_um'])} particles, tiles {result.provenance['tiles']}")
     print(f"back-propagation alone: {floor:.2f} s ({100 * floor / result.seconds:.0f} % of the prediction); peak RSS {rss_after:.0f} MiB (was {rss_before:.0f} MiB before predict)")
 
 

@@ -319,8 +319,8 @@ def generate_dataset(
     dataset = SyntheticDataset(out, spec, [], complete=False)
     planes_um = spec["planes_um"]
     steps = Steps(int(groups), progress=progress, should_stop=should_stop)
-    missing = [g for g in range(int(groups)) if not _group_is_valid(dataset.group_path(g), len(planes_um), config.tile.size)]
-    present = [g for g in range(int(groups)) if g not in set(missing)]
+    valid = {g: _group_is_valid(dataset.group_path(g), len(planes_um), config.tile.size) for g in range(int(groups))}
+    present, missing = [g for g, ok in valid.items() if ok], [g for g, ok in valid.items() if not ok]
     dataset.groups.extend(present)
     if present:
         steps.advance(len(present))

@@ -49,6 +49,7 @@ import torch
 from torch import nn
 
 from napari_lbs._core._config import ExperimentConfig
+from napari_lbs._core._heatmaps import context_indices
 from napari_lbs._core._io import InputError, atomic_write_bytes
 
 __all__ = ["PRESETS", "FORMULATIONS", "UNet", "build_network", "save_model", "load_model", "LoadedModel", "resolve_device", "check_model_matches", "network_outputs", "focus_maps", "MODEL_FORMAT"]
@@ -225,8 +226,6 @@ def focus_maps(network: UNet, stack: np.ndarray, centres, *, context, diameter_s
     ------
     (centre, probability, offset, diameter_um) for each centre in order, float32 ``(rows, cols)``.
     """
-    from napari_lbs._core._heatmaps import context_indices
-
     network.eval()
     device = next(network.parameters()).device
     centres = list(centres)
