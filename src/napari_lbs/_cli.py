@@ -153,18 +153,25 @@ def _cmd_calibrate(args) -> None:
     )
 
 
-def _read_calibration(path) -> dict:
+def _read_json_file(path, what: str) -> dict:
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: calibration file not found")
+        raise FileNotFoundError(f"{path}: {what} file not found")
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as error:
+        payload = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
         raise ValueError(f"{path}: not valid JSON ({error})") from None
+    if not isinstance(payload, dict):
+        raise ValueError(f"{path}: expected a JSON object ({what}), got {type(payload).__name__}")
+    return payload
+
+
+def _read_calibration(path) -> dict:
+    return _read_json_file(path, "calibration")
 
 
 def _cmd_generate(args) -> None:
-    from napari_lbs._core import DatasetLayout, InputProcessing, generate_dataset, load_config
+    from napari_lbs._core import DatasetLayout, InputProcessing, effects_from_report, generate_dataset, load_config, parse_effect
 
     config = load_config(args.config)
     if args.calibration:
@@ -172,13 +179,26 @@ def _cmd_generate(args) -> None:
         processing = InputProcessing.from_calibration(calibration)
     else:
         calibration, processing = None, InputProcessing()
+    effects, source = {}, None
+    if args.effects_from:
+        report = _read_json_file(args.effects_from, "diagnosis report")
+        effects = effects_from_report(report, name=args.effects_from)
+        source = {"report": str(args.effects_from), "verdict": report["verdict"]["id"]}
+    for text in args.effect:  # explicit effects are added to (or override) the report's
+        effects.update(parse_effect(text))
+    if args.effect:
+        source = {**(source or {}), "explicit": list(args.effect)}
     start = time.perf_counter()
     layout = DatasetLayout(kind=args.layout, depths=args.depths, context_planes=args.context_planes)
-    dataset = generate_dataset(args.out, config, groups=args.groups, processing=processing, layout=layout, calibration=calibration, seed=args.seed, workers=args.workers, progress=_ProgressBar("generate"))
+    dataset = generate_dataset(args.out, config, groups=args.groups, processing=processing, layout=layout, calibration=calibration, effects=effects, effects_source=source,
+                               seed=args.seed, workers=args.workers, progress=_ProgressBar("generate"))
     seconds = time.perf_counter() - start
     planes = len(dataset.groups) * len(dataset.planes_um)
     kind = f"calibrated ({args.calibration})" if calibration else "uncalibrated: Holo-processing (0, 0, 1)"
-    _summary(f"wrote {len(dataset.groups)} groups ({planes} input planes, {kind}) in {seconds:.1f} s -> {args.out}")
+    added = f", effects: {', '.join(effects)}" if effects else ""
+    if args.effects_from and not effects:
+        added = f", no effects: {args.effects_from} names none"
+    _summary(f"wrote {len(dataset.groups)} groups ({planes} input planes, {kind}{added}) in {seconds:.1f} s -> {args.out}")
 
 
 def _cmd_train(args) -> None:
@@ -397,6 +417,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--depths", choices=("uniform", "layers"), default="uniform", help="stack layout: particle depths uniform over the volume (default) or on the seed's layers")
     p.add_argument("--context-planes", type=int, default=8, help="stack layout: planes stored beyond each end of the volume (default 8)")
     p.add_argument("--workers", type=int, default=1, help="processes simulating groups at once (default 1)")
+    p.add_argument("--effects-from", metavar="REPORT.json", help="add the effects a diagnosis report names (its verdict and waterfall, with their fitted parameters)")
+    p.add_argument("--effect", action="append", default=[], metavar="ID[:NAME=VALUE,...]",
+                   help="add an effect of the catalog, e.g. particle_phase:phase_rad=6,transmission=0.3 or quantization:bits=8,saturation=2 (repeatable)")
     p.set_defaults(run=_cmd_generate)
 
     p = sub.add_parser("train", help="train the U-Net on a synthetic training set")

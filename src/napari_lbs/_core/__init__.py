@@ -35,7 +35,18 @@ from napari_lbs._core._dataset import (
 )
 from napari_lbs._core._detection import PeakDecoder, PlaneLinker, detect_particles, suppress
 from napari_lbs._core._heatmaps import FocusSpec, FocusTargets, context_indices, focus_targets
-from napari_lbs._core._effects import BASELINE, EFFECTS, OPTICAL_EFFECTS, Effect, optical_hologram, sensor_image
+from napari_lbs._core._effects import (
+    BASELINE,
+    EFFECTS,
+    OPTICAL_EFFECTS,
+    Effect,
+    check_effects,
+    effect_hologram,
+    effects_from_report,
+    optical_hologram,
+    parse_effect,
+    sensor_image,
+)
 from napari_lbs._core._gap import (
     SUMMARY_GROUPS,
     Diagnosis,
@@ -185,6 +196,10 @@ __all__ = [
     "Effect",
     "optical_hologram",
     "sensor_image",
+    "check_effects",
+    "parse_effect",
+    "effects_from_report",
+    "effect_hologram",
     "SUMMARY_GROUPS",
     "Diagnosis",
     "DiagnosisSettings",

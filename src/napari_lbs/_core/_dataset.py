@@ -1,7 +1,8 @@
 """Better synthetic training data: random groups through HCS and Holo-processing, on disk.
 
 A *group* is one random particle field in a ``tile.size`` window, its simulated hologram
-turned into input planes by Holo-processing with the calibrated parameters, the label planes
+(with any effects of the catalog added, `effect_hologram`) turned into input planes by
+Holo-processing with the calibrated parameters, the label planes
 of the seed's formulation (3x3 squares of value 4 x diameter, `label_planes`) and the ground
 truth. Two layouts (`DatasetLayout`):
 
@@ -15,7 +16,7 @@ truth. Two layouts (`DatasetLayout`):
 
 The data set folder (documented in docs/dataset.md)::
 
-    DATA/dataset.json            what the set is: format, config, processing, layout, seed, planes, groups
+    DATA/dataset.json            what the set is: format, config, processing, layout, effects, seed, planes, groups
     DATA/groups/group_00000.tif  series 0: input planes (z, y, x) float32 or float16
                                  series 1: label planes (z, y, x) float32 (zlib)
                                  ImageDescription JSON of page 0: group, seed, z_um, particles
@@ -36,6 +37,7 @@ import numpy as np
 from napari_lbs import __version__
 from napari_lbs._core._calibration import HoloParams, holo_processing
 from napari_lbs._core._config import ExperimentConfig
+from napari_lbs._core._effects import check_effects, effect_hologram
 from napari_lbs._core._io import InputError, atomic_path, write_json
 from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
 from napari_lbs._core._synthesis import ParticleField, label_planes, random_particle_field, simulate_hologram
@@ -141,6 +143,7 @@ def synthetic_group(
     shape: tuple[int, int] | None = None,
     count: int | None = None,
     layout: DatasetLayout = DatasetLayout(kind="layers"),
+    effects: dict | None = None,
 ) -> tuple[np.ndarray, np.ndarray, ParticleField]:
     """One training group: ``(inputs, labels, field)``.
 
@@ -156,6 +159,9 @@ def synthetic_group(
         Window (default ``tile.size`` square) and particle count (default ``per_tile``).
     layout : DatasetLayout
         Which planes to make and where particles sit (default: the seed's layers).
+    effects : dict, optional
+        Effects of the catalog added to the simulated hologram (`effect_hologram`); none: the
+        seed's opaque discs.
 
     Returns
     -------
@@ -176,7 +182,7 @@ def synthetic_group(
         seed=rng,
     )
     optics = {"wavelength_um": config.optics.wavelength_um, "medium_index": config.optics.medium_index}
-    hologram = simulate_hologram(particles, **optics)
+    hologram = effect_hologram(particles, effects, rng=rng, **optics) if effects else simulate_hologram(particles, **optics)
     inputs = holo_processing(hologram, processing.params, planes_um=planes_um, pixel_um=config.optics.pixel_um, seed=rng, mode=processing.mode, average=False, **optics)
     return inputs, label_planes(particles, planes_um), particles
 
@@ -235,8 +241,8 @@ class SyntheticDataset:
         return inputs, labels, tables
 
 
-def _spec(config: ExperimentConfig, processing: InputProcessing, layout: DatasetLayout, seed: int) -> dict:
-    return {
+def _spec(config: ExperimentConfig, processing: InputProcessing, layout: DatasetLayout, seed: int, effects: dict) -> dict:
+    spec = {
         "format": DATASET_FORMAT,
         "version": _FORMAT_VERSION,
         "config": config.to_dict(),
@@ -247,9 +253,12 @@ def _spec(config: ExperimentConfig, processing: InputProcessing, layout: Dataset
         "tile_size": int(config.tile.size),
         "particles_per_group": int(config.particles.per_tile),
     }
+    if effects:  # absent when none, so sets made before effects existed still extend
+        spec["effects"] = effects
+    return spec
 
 
-_IDENTITY_KEYS = ("format", "version", "config", "processing", "layout", "seed", "planes_um", "tile_size", "particles_per_group")
+_IDENTITY_KEYS = ("format", "version", "config", "processing", "layout", "effects", "seed", "planes_um", "tile_size", "particles_per_group")
 
 
 def _group_is_valid(path: Path, planes: int, size: int) -> bool:
@@ -270,6 +279,8 @@ def generate_dataset(
     processing: InputProcessing = InputProcessing(),
     layout: DatasetLayout = DatasetLayout(),
     calibration: dict | None = None,
+    effects: dict | None = None,
+    effects_source: dict | None = None,
     seed: int = 0,
     workers: int = 1,
     progress: ProgressCallback | None = None,
@@ -294,6 +305,12 @@ def generate_dataset(
         Which planes each group stores (default: the reconstruction stack with context).
     calibration : dict, optional
         The calibration JSON, recorded as provenance.
+    effects : dict, optional
+        ``{effect_id: {param: value}}`` added to every simulated hologram (`effect_hologram`;
+        from a diagnosis: `effects_from_report`). Recorded in ``dataset.json`` and part of the
+        set's identity.
+    effects_source : dict, optional
+        Where the effects came from (e.g. the report's path and verdict), recorded as provenance.
     seed : int
     workers : int
         Processes simulating groups at once (1: in this process). The set does not depend on it.
@@ -306,14 +323,17 @@ def generate_dataset(
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: expected a folder for the data set, got a file")
-    spec = _spec(config, processing, layout, seed)
+    effects = check_effects(effects or {})
+    spec = _spec(config, processing, layout, seed, effects)
     manifest = out / "dataset.json"
     if manifest.is_file():
         existing = json.loads(manifest.read_text(encoding="utf-8"))
-        differing = [key for key in _IDENTITY_KEYS if existing.get(key) != spec[key]]
+        differing = [key for key in _IDENTITY_KEYS if existing.get(key) != spec.get(key)]
         if differing:
             raise InputError(f"{out}: holds a data set made with other settings (differs in {', '.join(differing)}); choose another folder")
     spec.update(groups=int(groups), calibration=calibration, napari_lbs=__version__)
+    if effects:
+        spec["effects_source"] = effects_source
     (out / "groups").mkdir(parents=True, exist_ok=True)
     write_json(manifest, {**spec, "complete": False})
     dataset = SyntheticDataset(out, spec, [], complete=False)
@@ -324,7 +344,7 @@ def generate_dataset(
     dataset.groups.extend(present)
     if present:
         steps.advance(len(present))
-    jobs = [(dataset.group_path(g), config, processing, layout, int(seed), g) for g in missing]
+    jobs = [(dataset.group_path(g), config, processing, layout, effects, int(seed), g) for g in missing]
     if workers > 1 and len(jobs) > 1:
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
@@ -352,11 +372,11 @@ def generate_dataset(
     return dataset
 
 
-def _write_group(path: Path, config: ExperimentConfig, processing: InputProcessing, layout: DatasetLayout, seed: int, group: int) -> int:
+def _write_group(path: Path, config: ExperimentConfig, processing: InputProcessing, layout: DatasetLayout, effects: dict, seed: int, group: int) -> int:
     """Simulate group ``group`` and write its file atomically (runs in a worker process too)."""
     import tifffile
 
-    inputs, labels, particles = synthetic_group(config, processing, seed=[seed, group], layout=layout)
+    inputs, labels, particles = synthetic_group(config, processing, seed=[seed, group], layout=layout, effects=effects)
     if layout.kind == "stack":  # values in [0, 1]: float16 keeps 11 bits and halves the cache
         inputs = inputs.astype(np.float16)
     description = json.dumps({
@@ -390,5 +410,12 @@ def open_dataset(path: str | Path) -> SyntheticDataset:
 
 def dataset_summary(dataset: SyntheticDataset) -> dict:
     """What a training log records about its data."""
-    return {"path": str(dataset.path), "groups": len(dataset.groups), "complete": dataset.complete, "layout": dataset.layout.to_dict(), **{k: dataset.spec[k] for k in ("seed", "planes_um", "tile_size", "processing")}}
+    return {
+        "path": str(dataset.path),
+        "groups": len(dataset.groups),
+        "complete": dataset.complete,
+        "layout": dataset.layout.to_dict(),
+        "effects": dataset.spec.get("effects", {}),
+        **{k: dataset.spec[k] for k in ("seed", "planes_um", "tile_size", "processing")},
+    }
 

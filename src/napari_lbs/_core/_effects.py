@@ -21,11 +21,17 @@ The simulator is split in two stages so that fitting is cheap:
 Every effect has physically sensible bounds, a neutral value (the effect switched off) and
 two injection strengths used by the withheld-effect validation. Parameters are plain dicts
 ``{effect_id: {param: value}}``; an effect absent from the dict is off.
+
+The same catalog makes training data more realistic (`effect_hologram`): the effects a
+diagnosis names (`effects_from_report`) or that a user states (`parse_effect`) are added to
+the synthetic holograms of `generate_dataset`.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+import math
 
 import numpy as np
 from scipy import ndimage
@@ -34,7 +40,18 @@ from napari_lbs._core._io import InputError
 from napari_lbs._core._optics import superpose
 from napari_lbs._core._synthesis import ParticleField, disc_coverage, layer_images, simulate_hologram
 
-__all__ = ["Effect", "EFFECTS", "BASELINE", "optical_hologram", "sensor_image", "OPTICAL_EFFECTS"]
+__all__ = [
+    "Effect",
+    "EFFECTS",
+    "BASELINE",
+    "optical_hologram",
+    "sensor_image",
+    "OPTICAL_EFFECTS",
+    "check_effects",
+    "parse_effect",
+    "effects_from_report",
+    "effect_hologram",
+]
 
 
 @dataclass(frozen=True)
@@ -163,3 +180,104 @@ def sensor_image(intensity: np.ndarray, baseline: dict, effects: dict, *, noise:
         levels = 2.0 ** round(bits) - 1
         image = np.round(np.clip(image / saturation, 0.0, 1.0) * levels) / levels * saturation
     return image.astype(np.float32)
+
+
+def check_effects(effects: dict) -> dict:
+    """A validated copy of ``{effect_id: {param: value}}``: known ids and names, every parameter a finite number.
+
+    A parameter whose bounds are a single value (``multiple_scattering.on``) may be left out.
+    Values are not clipped to the fit bounds (a stated value such as 12 bits is legitimate);
+    they must only be finite. Raises `InputError` naming the culprit.
+    """
+    if not isinstance(effects, dict):
+        raise InputError(f"effects: expected a mapping of effect id to parameters, got {type(effects).__name__}")
+    checked = {}
+    for effect_id, params in effects.items():
+        if effect_id not in EFFECTS:
+            raise InputError(f"effects: unknown effect id {effect_id!r}; expected one of {', '.join(EFFECTS)}")
+        effect = EFFECTS[effect_id]
+        if not isinstance(params, dict):
+            raise InputError(f"effects: {effect_id}: expected a mapping of parameter to value, got {type(params).__name__}")
+        unknown = set(params) - set(effect.bounds)
+        if unknown:
+            raise InputError(f"effects: {effect_id}: unknown parameter {sorted(unknown)[0]!r}; expected {', '.join(effect.bounds)}")
+        values = {}
+        for name, (low, high) in effect.bounds.items():
+            if name not in params:
+                if low != high:
+                    raise InputError(f"effects: {effect_id}: missing parameter {name!r} (fit range {low:g} to {high:g})")
+                values[name] = float(low)
+                continue
+            try:
+                value = float(params[name])
+            except (TypeError, ValueError):
+                raise InputError(f"effects: {effect_id}.{name}: expected a number, got {params[name]!r}") from None
+            if not math.isfinite(value):
+                raise InputError(f"effects: {effect_id}.{name}: expected a finite number, got {value}")
+            values[name] = value
+        checked[effect_id] = values
+    return checked
+
+
+def parse_effect(text: str) -> dict:
+    """One effect from its command-line form ``ID`` or ``ID:NAME=VALUE[,NAME=VALUE...]``.
+
+    Example: ``particle_phase:phase_rad=6,transmission=0.3`` → ``{"particle_phase": {...}}``.
+    """
+    effect_id, _, rest = text.strip().partition(":")
+    params = {}
+    for item in filter(None, (part.strip() for part in rest.split(","))):
+        name, sep, value = item.partition("=")
+        if not sep:
+            raise InputError(f"--effect {text}: expected NAME=VALUE after the effect id, got {item!r}")
+        params[name.strip()] = value.strip()
+    return check_effects({effect_id: params})
+
+
+def effects_from_report(report: dict, *, name: str = "report") -> dict:
+    """The effects a diagnosis report names, with their fitted parameters.
+
+    The verdict's effect and every further effect the report's waterfall adds while the
+    held-out gap still falls. Parameters are the joint fit's where the waterfall step records
+    them, else the effect's own fit (its ``baseline.*`` parameters are the diagnosis's
+    hologram-domain baseline, which the calibrated Holo-processing replaces, so they are
+    left out). A report whose verdict is ``null`` names nothing: the result is empty.
+    """
+    try:
+        verdict = report["verdict"]["id"]
+        fits = {entry["id"]: entry["params"] for entry in report["effects"]}
+        waterfall = list(report.get("waterfall", []))
+    except (KeyError, TypeError) as error:
+        raise InputError(f"{name}: not a diagnosis report (missing {error})") from None
+    if verdict is None:
+        return {}
+    named, params = [verdict], {}
+    for previous, step in zip(waterfall, waterfall[1:]):
+        ids = [part for part in str(step.get("model", "")).split("+")[1:] if part]
+        if not ids or ids[0] != verdict or float(step["gap"]) >= float(previous["gap"]):
+            break
+        named = ids
+        params = step.get("params") or params
+    chosen = {}
+    for effect_id in named:
+        source = params.get(effect_id) if effect_id in params else fits.get(effect_id)
+        if source is None:
+            raise InputError(f"{name}: the report names {effect_id!r} but records no fitted parameters for it")
+        chosen[effect_id] = {k: v for k, v in source.items() if not k.startswith("baseline.")}
+    return check_effects(chosen)
+
+
+def effect_hologram(field: ParticleField, effects: dict, *, wavelength_um: float, medium_index: float = 1.0, rng: np.random.Generator) -> np.ndarray:
+    """A synthetic hologram with ``effects`` added to the seed's opaque-disc model (float32, unobstructed ≈ 1).
+
+    Optical effects change the intensity reaching the sensor (`optical_hologram`); sensor
+    effects are then applied with the baseline neutral (contrast 1, no read noise, gamma 1),
+    because the calibrated Holo-processing adds the seed's noise and gamma afterwards. The
+    shot-noise draw comes from ``rng``, and only when a sensor effect is present.
+    """
+    effects = check_effects(effects)
+    intensity = optical_hologram(field, {k: v for k, v in effects.items() if k in OPTICAL_EFFECTS}, wavelength_um=wavelength_um, medium_index=medium_index)
+    sensor = {k: v for k, v in effects.items() if k not in OPTICAL_EFFECTS}
+    if not sensor:
+        return intensity
+    return sensor_image(intensity, BASELINE.neutral, sensor, noise=rng.standard_normal(intensity.shape).astype(np.float32))

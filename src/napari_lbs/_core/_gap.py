@@ -504,7 +504,11 @@ def diagnose_tiles(
         start_params = {("baseline", k): v for k, v in fitted[pair[0]][0].items()}
         start_params.update({(pair[0], k): v for k, v in fitted[pair[0]][1][pair[0]].items()})
         baseline_params, effect_params, _ = _fit(model, fit_real, pair, start=start_params, measured=measured, evaluations=settings.evaluations, spread=spread)
-        waterfall.append({"model": f"+{pair[0]}+{pair[1]}", "gap": float(gap(held_real, model.summaries(baseline_params, effect_params))[0])})
+        waterfall.append({
+            "model": f"+{pair[0]}+{pair[1]}",
+            "gap": float(gap(held_real, model.summaries(baseline_params, effect_params))[0]),
+            "params": {effect_id: dict(effect_params[effect_id]) for effect_id in pair},  # the joint fit, for `effects_from_report`
+        })
     steps.advance()
 
     report = {

@@ -1,0 +1,118 @@
+"""Effects of the catalog in the training data: parsing, reading a diagnosis report, generate's provenance."""
+
+import json
+
+import numpy as np
+import pytest
+
+from napari_lbs._cli import main
+from napari_lbs._core import (
+    DatasetLayout,
+    ExperimentConfig,
+    InputError,
+    check_effects,
+    effect_hologram,
+    effects_from_report,
+    generate_dataset,
+    open_dataset,
+    parse_effect,
+    random_particle_field,
+    simulate_hologram,
+)
+
+CONFIG = ExperimentConfig.from_dict({"tile": {"size": 64}, "particles": {"per_tile": 3}, "volume": {"z_min_um": 1800.0, "z_max_um": 2000.0, "z_step_um": 50.0}})
+
+
+def _field(seed=0, count=4):
+    return random_particle_field((64, 64), count=count, diameter_min_um=20, diameter_max_um=30, layers_um=(1800.0, 2400.0), pixel_um=2.2, seed=seed)
+
+
+def _report(verdict="quantization", waterfall_gaps=(100.0, 5.0, 4.0), joint=True):
+    effects = [
+        {"id": "quantization", "params": {"bits": 8.0, "saturation": 2.0, "baseline.gamma": 1.3}},
+        {"id": "particle_phase", "params": {"phase_rad": 2.0, "transmission": 0.5, "baseline.sigma": 0.02}},
+    ]
+    waterfall = [{"model": "baseline", "gap": waterfall_gaps[0]}, {"model": "+quantization", "gap": waterfall_gaps[1]}, {"model": "+quantization+particle_phase", "gap": waterfall_gaps[2]}]
+    if joint:
+        waterfall[2]["params"] = {"quantization": {"bits": 7.5, "saturation": 1.9}, "particle_phase": {"phase_rad": 4.0, "transmission": 0.7}}
+    return {"gap": {"baseline": waterfall_gaps[0]}, "effects": effects, "verdict": {"id": verdict, "shrink": 0.9, "residual": waterfall_gaps[1]}, "waterfall": waterfall}
+
+
+def test_parse_effect_reads_the_command_line_form_and_names_the_culprit():
+    assert parse_effect("particle_phase:phase_rad=6,transmission=0.3") == {"particle_phase": {"phase_rad": 6.0, "transmission": 0.3}}
+    assert parse_effect("multiple_scattering") == {"multiple_scattering": {"on": 1.0}}  # a fixed-bound parameter may be left out
+    with pytest.raises(InputError, match="unknown effect id 'dust'"):
+        parse_effect("dust:amount=1")
+    with pytest.raises(InputError, match="missing parameter 'transmission'"):
+        parse_effect("particle_phase:phase_rad=6")
+    with pytest.raises(InputError, match="unknown parameter 'colour'"):
+        parse_effect("sensor_blur:colour=1")
+    with pytest.raises(InputError, match="expected a finite number"):
+        check_effects({"sensor_blur": {"sigma_px": float("nan")}})
+    with pytest.raises(InputError, match="NAME=VALUE"):
+        parse_effect("sensor_blur:1.0")
+
+
+def test_effects_from_report_takes_the_verdict_and_the_waterfall_while_the_gap_falls():
+    # gap falls at both steps: both effects, with the joint fit's parameters, baseline keys dropped
+    assert effects_from_report(_report()) == {"quantization": {"bits": 7.5, "saturation": 1.9}, "particle_phase": {"phase_rad": 4.0, "transmission": 0.7}}
+    # without joint parameters: each effect's own fit
+    assert effects_from_report(_report(joint=False))["particle_phase"] == {"phase_rad": 2.0, "transmission": 0.5}
+    # the second effect does not lower the gap: the verdict alone
+    assert effects_from_report(_report(waterfall_gaps=(100.0, 5.0, 6.0))) == {"quantization": {"bits": 8.0, "saturation": 2.0}}
+    # nothing missing: nothing added
+    assert effects_from_report(_report(verdict=None)) == {}
+    with pytest.raises(InputError, match="not a diagnosis report"):
+        effects_from_report({"params": {"gamma": 1.0}}, name="calib.json")
+
+
+def test_effect_hologram_obeys_the_physics_of_each_effect():
+    field = _field()
+    opaque = simulate_hologram(field, wavelength_um=0.66)
+    rng = np.random.default_rng(0)
+    # a sphere that transmits all light with no phase delay is invisible: the hologram is flat
+    invisible = effect_hologram(field, {"particle_phase": {"phase_rad": 0.0, "transmission": 1.0}}, wavelength_um=0.66, rng=rng)
+    np.testing.assert_allclose(invisible, 1.0, atol=1e-5)
+    # transmission 0 is the seed's opaque disc whatever the phase
+    np.testing.assert_allclose(effect_hologram(field, {"particle_phase": {"phase_rad": 3.0, "transmission": 0.0}}, wavelength_um=0.66, rng=rng), opaque, atol=1e-5)
+    # 4 bits leave at most 16 grey levels; no effects: the seed's hologram exactly
+    quantized = effect_hologram(field, {"quantization": {"bits": 4.0, "saturation": 2.0}}, wavelength_um=0.66, rng=rng)
+    assert np.unique(quantized).size <= 16
+    np.testing.assert_array_equal(effect_hologram(field, {}, wavelength_um=0.66, rng=rng), opaque)
+
+
+def test_generate_records_the_effects_and_the_data_differs_only_through_them(tmp_path):
+    layout = DatasetLayout(context_planes=1)
+    plain = generate_dataset(tmp_path / "plain", CONFIG, groups=1, layout=layout, seed=3)
+    effects = {"particle_phase": {"phase_rad": 3.0, "transmission": 0.8}}
+    source = {"report": "r.json", "verdict": "particle_phase"}
+    phased = generate_dataset(tmp_path / "phased", CONFIG, groups=1, layout=layout, seed=3, effects=effects, effects_source=source)
+    spec = json.loads((tmp_path / "phased" / "dataset.json").read_text())
+    assert spec["effects"] == effects and spec["effects_source"] == source
+    assert "effects" not in json.loads((tmp_path / "plain" / "dataset.json").read_text())
+    plain_inputs, plain_labels, _ = plain.read_group(0)
+    phased_inputs, phased_labels, _ = open_dataset(tmp_path / "phased").read_group(0)
+    np.testing.assert_array_equal(plain_labels, phased_labels)  # same particles
+    assert np.abs(plain_inputs.astype(np.float32) - phased_inputs.astype(np.float32)).max() > 0.05  # other holograms
+    with pytest.raises(InputError, match="differs in effects"):
+        generate_dataset(tmp_path / "phased", CONFIG, groups=1, layout=layout, seed=3)
+
+
+def test_cli_generate_effects_from_a_report_and_refusals(tmp_path, capsys):
+    config = tmp_path / "c.toml"
+    config.write_text('[tile]\nsize = 64\n[particles]\nper_tile = 2\nlayer_step_um = 50.0\n[volume]\nz_min_um = 1800.0\nz_max_um = 1900.0\n')
+    report = tmp_path / "report.json"
+    report.write_text(json.dumps(_report()))
+    out = tmp_path / "data"
+    assert main(["generate", "--config", str(config), "--groups", "1", "--out", str(out), "--context-planes", "1", "--effects-from", str(report), "--effect", "sensor_blur:sigma_px=0.5"]) == 0
+    spec = json.loads((out / "dataset.json").read_text())
+    assert set(spec["effects"]) == {"quantization", "particle_phase", "sensor_blur"}
+    assert spec["effects_source"]["verdict"] == "quantization"
+    capsys.readouterr()
+    not_a_report = tmp_path / "calib.json"
+    not_a_report.write_text(json.dumps({"params": {}}))
+    assert main(["generate", "--config", str(config), "--groups", "1", "--out", str(tmp_path / "x"), "--effects-from", str(not_a_report)]) == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert len(error) == 1 and "calib.json" in error[0] and "not a diagnosis report" in error[0]
+    assert main(["generate", "--config", str(config), "--groups", "1", "--out", str(tmp_path / "y"), "--effect", "particle_phase:phase_rad=inf,transmission=1"]) == 2
+    assert not (tmp_path / "y").exists()
