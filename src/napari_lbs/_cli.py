@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -229,18 +231,39 @@ def _cmd_train(args) -> None:
     )
 
 
+def _predict_outputs(args) -> tuple[Path, Path]:
+    """The particle table and its provenance JSON, refused where they would overwrite something else."""
+    out = Path(args.out)
+    if out.suffix.lower() == ".json":
+        raise ValueError(f"--out {out}: expected a particle table (.csv); its provenance is written beside it as .json")
+    provenance = out.with_suffix(".json")
+    targets = {out.resolve(), provenance.resolve()}
+    for flag, name in (("HOLO", args.holo), ("--model", args.model), ("--background", args.background), ("--config", args.config)):
+        if name and Path(name).resolve() in targets:
+            raise ValueError(f"--out {out}: would overwrite the input {flag} {name}")
+    if provenance.is_file():
+        try:
+            previous = json.loads(provenance.read_text(encoding="utf-8"))
+        except (json.JSONDecodeError, UnicodeDecodeError):
+            previous = None
+        # only a previous run's provenance of this same table may be replaced (never a model's training log)
+        if not (isinstance(previous, dict) and previous.get("particles") == str(out) and "model_sha256" in previous):
+            raise ValueError(f"--out {out}: {provenance} exists and is not this table's provenance; choose another name")
+    return out, provenance
+
+
 def _cmd_predict(args) -> None:
     from napari_lbs._core import load_config, load_model, predict_particles, write_json, write_particles
 
+    out, provenance = _predict_outputs(args)
     model = load_model(args.model, device=args.device)
     config = load_config(args.config) if args.config else None
     hologram, background = _read_inputs(args)
     result = predict_particles(hologram, model, config, background=background, progress=_ProgressBar("predict"))
-    out = Path(args.out)
     write_particles(out, result.particles)
-    write_json(out.with_suffix(".json"), {**result.provenance, "source": str(args.holo), "background_file": args.background, "particles": str(out)})
+    write_json(provenance, {**result.provenance, "source": str(args.holo), "background_file": args.background, "particles": str(out)})
     count = len(result.particles["x_um"])
-    _summary(f"found {count} particles in {args.holo} in {result.seconds:.1f} s -> {out} (provenance: {out.with_suffix('.json')})")
+    _summary(f"found {count} particles in {args.holo} in {result.seconds:.1f} s -> {out} (provenance: {provenance})")
 
 
 def _cmd_diagnose(args) -> None:
@@ -479,9 +502,17 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _terminate(signum, frame) -> None:
+    raise KeyboardInterrupt
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``napari-lbs`` console script."""
     args = _parser().parse_args(argv)
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    if in_main_thread:
+        # SIGTERM unwinds like Ctrl-C, so every temporary file is removed on the way out
+        previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         args.run(args)
     except _EXPECTED_ERRORS as error:
@@ -489,8 +520,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"napari-lbs {args.command}: error: {message}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print(f"napari-lbs {args.command}: interrupted; nothing partial was written", file=sys.stderr)
+        print(f"napari-lbs {args.command}: interrupted; no partial file was left (finished files, such as generated groups, are kept)", file=sys.stderr)
         return 130
+    finally:
+        if in_main_thread:
+            signal.signal(signal.SIGTERM, previous)
     return 0
 
 

@@ -39,10 +39,30 @@ class InputError(ValueError):
     """Input that cannot be used; the message names the culprit in one line."""
 
 
+def _new_file_mode() -> int:
+    """The mode a newly created file gets under the process's umask (0666 & ~umask)."""
+    try:  # Linux reports the umask without changing it (os.umask would, racing other threads)
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return 0o666 & ~int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
 @contextmanager
 def atomic_path(path: Path):
-    """Yield a temporary path beside ``path``; rename it onto ``path`` only if the block succeeds."""
+    """Yield a temporary path beside ``path``; rename it onto ``path`` only if the block succeeds.
+
+    The result has the mode an ordinary write would give it: an existing file's own mode, else
+    0666 less the umask (a temporary file is created 0600, which would hide results from the
+    lab members sharing a folder). A folder at ``path`` is refused.
+    """
     path = Path(path)
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder; expected a file name")
     if path.parent and not path.parent.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
     handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part" + path.suffix, dir=path.parent)
@@ -50,6 +70,8 @@ def atomic_path(path: Path):
     temporary = Path(temporary)
     try:
         yield temporary
+        mode = path.stat().st_mode & 0o7777 if path.is_file() else _new_file_mode()
+        os.chmod(temporary, mode)
         os.replace(temporary, path)
     finally:
         if temporary.exists():
