@@ -148,6 +148,7 @@ def transfer_function(
     medium_index: float = 1.0,
     spread_limit_um: float | None = None,
     dtype: np.dtype | type = np.complex64,
+    cache: bool = True,
 ) -> np.ndarray:
     """Angular-spectrum transfer function for one distance, on the unshifted fftfreq grid.
 
@@ -166,10 +167,13 @@ def transfer_function(
         this (µm). None keeps every propagating frequency.
     dtype : complex dtype
         complex64 (default) or complex128.
+    cache : bool
+        Keep the kernel in the bounded LRU cache (keyed on grid, optics and distance); a
+        cached kernel is returned either way.
 
     Returns
     -------
-    ndarray, read-only, cached in a bounded LRU cache keyed on grid, optics and distance.
+    ndarray, read-only.
     """
     dtype = np.dtype(dtype)
     key = (tuple(shape), float(z_um), float(wavelength_um), float(pixel_um), float(medium_index), spread_limit_um, dtype.str)
@@ -192,7 +196,8 @@ def transfer_function(
         blocked |= (np.abs(fy)[:, None] > limit) | (np.abs(fx)[None, :] > limit)
     kernel[blocked] = 0.0
     kernel.setflags(write=False)
-    _TRANSFER_CACHE.put(key, kernel)
+    if cache:
+        _TRANSFER_CACHE.put(key, kernel)
     return kernel
 
 
@@ -234,13 +239,17 @@ def _propagated_batches(field, distances, *, wavelength_um, pixel_um, medium_ind
     padded[:rows, :cols] = field
     spectrum = scipy.fft.fft2(padded, workers=-1, overwrite_x=True)
     batch = max(1, _WORKING_BYTES // (spectrum.nbytes * 2))
+    # An LRU cache smaller than a scan's kernels never hits on the next scan (each kernel is
+    # evicted before its turn comes again), so such a scan does not fill it: a 1024² hologram
+    # to 77 depths would otherwise hold 1 GiB of kernels for nothing.
+    cache = distances.size * spectrum.nbytes <= _TRANSFER_CACHE.limit_bytes
     block = np.empty((min(batch, distances.size),) + grid, dtype=dtype)
     for start in range(0, distances.size, batch):
         steps.check()
         stop = min(start + batch, distances.size)
         work = block[: stop - start]
         def multiply(j, z):
-            kernel = transfer_function(grid, float(z), wavelength_um=wavelength_um, pixel_um=pixel_um, medium_index=medium_index, spread_limit_um=spread_limit_um, dtype=dtype)
+            kernel = transfer_function(grid, float(z), wavelength_um=wavelength_um, pixel_um=pixel_um, medium_index=medium_index, spread_limit_um=spread_limit_um, dtype=dtype, cache=cache)
             np.multiply(spectrum, kernel, out=work[j])
 
         # numpy releases the GIL: the memory-bound products run on all cores like the FFTs do.
