@@ -46,8 +46,9 @@ def test_bad_input_exits_2_with_one_line_naming_the_culprit(tmp_path, args, culp
     config = tmp_path / "c.toml"
     main(["config", "--write", str(config)])
     (tmp_path / "bad.toml").write_text("[volume]\nz_min_um = 3000.0\nz_max_um = 2000.0\n")
-    tifffile.imwrite(tmp_path / "h.tif", np.ones((32, 32), np.float32))
-    tifffile.imwrite(tmp_path / "small.tif", np.ones((16, 16), np.float32))
+    fringes = 1.0 + 0.1 * np.random.default_rng(0).random((32, 32), np.float32)
+    tifffile.imwrite(tmp_path / "h.tif", fringes)
+    tifffile.imwrite(tmp_path / "small.tif", fringes[:16, :16])
     tifffile.imwrite(tmp_path / "rgbstack.tif", np.ones((5, 32, 32), np.float32))
     result = run(*[a.format(config=config, tmp=tmp_path) for a in args])
     assert result.returncode == 2

@@ -27,6 +27,9 @@ def test_shipped_sample_is_bit_identical_to_the_seed_bmp(real_hologram_bmp):
         (np.zeros((4, 64, 64)), "expected a 2-D image"),
         (np.zeros((8, 8)), "at least 16x16"),
         (np.where(np.eye(32) > 0, np.nan, 1.0), "NaN"),
+        (np.zeros((32, 32), np.uint8), "every pixel is 0"),
+        (np.full((32, 32), 7.5, np.float32), "every pixel is 7.5"),
+        (-np.arange(32 * 32, dtype=np.float32).reshape(32, 32), "negative intensities"),
     ],
 )
 def test_bad_images_are_refused_with_the_culprit(tmp_path, array, message):
@@ -48,7 +51,7 @@ def test_missing_and_undecodable_files(tmp_path):
 
 def test_float64_precision_is_kept(tmp_path):
     path = tmp_path / "h.tif"
-    tifffile.imwrite(path, np.full((32, 32), 1.0 + 1e-12))
+    tifffile.imwrite(path, 1.0 + 1e-12 * np.arange(32 * 32).reshape(32, 32))
     assert read_hologram(path).dtype == np.float64
 
 

@@ -1,25 +1,31 @@
 """The ``napari-lbs`` console script: one sub-command per step, each a thin wrapper over `_core`.
 
-Bad input exits 2 with one line naming the culprit; success prints a one-line summary on
-stderr. See CONTRACT.md.
+Bad input exits 2 with one line naming the culprit (a file or a flag); an unexpected error
+exits 1 with one line asking for a report (``--debug`` prints the traceback); success prints
+a one-line summary on stderr. See CONTRACT.md and docs/reliability.md.
+
+Outputs are checked before any work (`check_output_path`). Everything heavy is imported
+inside the sub-commands, so ``napari-lbs --version`` or ``--help`` starts in a fraction of a
+second.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import signal
 import sys
 import threading
 import time
+import traceback
 from pathlib import Path
 
-import numpy as np
-
 from napari_lbs import __version__
-from napari_lbs._core._metrics import AXIAL_TOL_UM, LATERAL_TOL_UM
+from napari_lbs._core._validation import InputError, check_output_path, read_json_object
 
-_EXPECTED_ERRORS = (ValueError, FileNotFoundError, IsADirectoryError, PermissionError)
+# Failures that are the input's or the machine's, not the program's: exit 2 with one line.
+_EXPECTED_ERRORS = (ValueError, OSError, MemoryError)
 
 
 class _ProgressBar:
@@ -50,6 +56,48 @@ def _provenance(config, **extra) -> dict:
     return {"napari_lbs": __version__, "config": config.to_dict(), **extra}
 
 
+def _settings(settings_class, **values):
+    """``settings_class(**values)``, with a refused value named by its flag (``population:`` → ``--population:``)."""
+    try:
+        return settings_class(**values)
+    except ValueError as error:
+        name, _, rest = str(error).partition(":")
+        if name in values:
+            raise InputError(f"--{name.replace('_', '-')}:{rest}") from None
+        raise
+
+
+def _integer(low: int, high: int | None = None):
+    """An argparse type: an integer in ``[low, high]``."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if value < low or (high is not None and value > high):
+            raise argparse.ArgumentTypeError(f"expected an integer {f'in [{low}, {high}]' if high is not None else f'of at least {low}'}, got {value}")
+        return value
+
+    return parse
+
+
+def _number(low: float, high: float = math.inf, *, above: bool = False):
+    """An argparse type: a finite number in ``[low, high]`` (``(low, high]`` with ``above``)."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not math.isfinite(value) or value < low or (above and value == low) or value > high:
+            bounds = f"{'above' if above else 'at least'} {low:g}" + (f" and at most {high:g}" if math.isfinite(high) else "")
+            raise argparse.ArgumentTypeError(f"expected a finite number {bounds}, got {text}")
+        return value
+
+    return parse
+
+
 def _cmd_config(args) -> None:
     from napari_lbs._core import load_config, write_config
 
@@ -59,23 +107,29 @@ def _cmd_config(args) -> None:
         return
     if not args.write:
         raise ValueError("--write: expected a file to write the default config to")
-    path = write_config(args.write)
+    path = write_config(check_output_path(args.write, flag="--write"))
     _summary(f"wrote the default experiment config to {path}")
 
 
+# Peak memory of a simulation per pixel of its padded FFT grid (bytes): the complex64 field
+# and spectrum with their working copies, measured with tracemalloc on 256² to 2048² windows.
+_SIMULATION_BYTES_PER_PX = 64
+
+
 def _cmd_simulate(args) -> None:
-    from napari_lbs._core import load_config, random_particle_field, simulate_hologram, write_particles
+    from napari_lbs._core import check_memory, load_config, padded_shape, random_particle_field, simulate_hologram, write_particles
     from napari_lbs._core._io import atomic_path
 
     import tifffile
 
     config = load_config(args.config)
+    out = check_output_path(args.out, flag="--out", folder=True, inputs=[args.config])
+    for name in ("hologram.tif", "particles.csv"):
+        check_output_path(out / name, flag="--out")
     size = args.size if args.size is not None else config.tile.size
     count = args.particles if args.particles is not None else config.particles.per_tile
-    if size < 16:
-        raise ValueError(f"--size: expected at least 16 pixels, got {size}")
-    if count < 0:
-        raise ValueError(f"--particles: expected a non-negative count, got {count}")
+    grid = padded_shape((size, size), z_max_um=config.volume.z_max_um, wavelength_um=config.optics.wavelength_um, pixel_um=config.optics.pixel_um, medium_index=config.optics.medium_index)
+    check_memory(_SIMULATION_BYTES_PER_PX * grid[0] * grid[1], what=f"a {size}x{size} simulation ({grid[0]}x{grid[1]} padded)", remedy="use a smaller --size")
     field = random_particle_field(
         (size, size),
         count=count,
@@ -86,7 +140,6 @@ def _cmd_simulate(args) -> None:
         seed=args.seed,
     )
     hologram = simulate_hologram(field, wavelength_um=config.optics.wavelength_um, medium_index=config.optics.medium_index, shadowing=args.shadowing)
-    out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     description = json.dumps(_provenance(config, seed=args.seed, particles=len(field), shadowing=args.shadowing, pixel_um=config.optics.pixel_um))
     with atomic_path(out / "hologram.tif") as temporary:
@@ -107,18 +160,27 @@ def _read_inputs(args):
     return hologram, background
 
 
-def _cmd_backprop(args) -> None:
-    from napari_lbs._core import backpropagate, load_config
-    from napari_lbs._core._io import atomic_path
+def _inputs(args) -> list:
+    """The files a command reads, which its outputs must never replace."""
+    return [getattr(args, name, None) for name in ("holo", "background", "config", "calibration", "model", "effects_from", "data")]
 
+
+def _cmd_backprop(args) -> None:
+    import numpy as np
     import tifffile
 
+    from napari_lbs._core import backpropagate, check_disk, load_config
+    from napari_lbs._core._io import atomic_path
+
     config = load_config(args.config)
+    out = check_output_path(args.out, flag="--out", inputs=_inputs(args))
     hologram, background = _read_inputs(args)
     z_um = config.volume.planes_um()
+    check_disk(len(z_um) * hologram.size * np.dtype(np.float32).itemsize, out, what=f"{len(z_um)} planes of {hologram.shape[0]}x{hologram.shape[1]} pixels",
+               remedy="raise volume.z_step_um or write elsewhere")
     description = json.dumps({"z_um": list(z_um), **_provenance(config, source=str(args.holo), background=args.background)})
     start = time.perf_counter()
-    with atomic_path(Path(args.out)) as temporary:
+    with atomic_path(out) as temporary:
         # Written straight into a memory-mapped TIFF: a deep stack never has to fit in RAM.
         stack = tifffile.memmap(temporary, shape=(len(z_um),) + hologram.shape, dtype=np.float32, description=description, metadata=None)
         backpropagate(
@@ -140,12 +202,13 @@ def _cmd_calibrate(args) -> None:
     from napari_lbs._core import CalibrationSettings, calibrate_hologram, load_config, write_json
 
     config = load_config(args.config)
+    out = check_output_path(args.out, flag="--out", inputs=_inputs(args))
+    settings = _settings(CalibrationSettings, mode=args.mode, generations=args.generations, population=args.population, runs=args.runs, seed=args.seed)
     hologram, background = _read_inputs(args)
-    settings = CalibrationSettings(mode=args.mode, generations=args.generations, population=args.population, runs=args.runs, seed=args.seed)
     result = calibrate_hologram(hologram, config, roi=args.roi, background=background, settings=settings, progress=_ProgressBar("calibrate"))
     payload = result.to_json()
     payload["provenance"] = _provenance(config, source=str(args.holo), background=args.background, seed=args.seed)
-    write_json(args.out, payload)
+    write_json(out, payload)
     p = result.params
     x, y, size = result.roi
     chosen = "" if args.roi else f" (chosen: {result.roi_choice})"
@@ -155,27 +218,19 @@ def _cmd_calibrate(args) -> None:
     )
 
 
-def _read_json_file(path, what: str) -> dict:
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: {what} file not found")
-    try:
-        payload = json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise ValueError(f"{path}: not valid JSON ({error})") from None
-    if not isinstance(payload, dict):
-        raise ValueError(f"{path}: expected a JSON object ({what}), got {type(payload).__name__}")
-    return payload
-
-
 def _read_calibration(path) -> dict:
-    return _read_json_file(path, "calibration")
+    from napari_lbs._core import check_calibration
+
+    calibration = read_json_object(path, what="calibration")
+    check_calibration(calibration, name=str(path))
+    return calibration
 
 
 def _cmd_generate(args) -> None:
     from napari_lbs._core import DatasetLayout, InputProcessing, effects_from_report, generate_dataset, load_config, parse_effect
 
     config = load_config(args.config)
+    check_output_path(args.out, flag="--out", folder=True, inputs=_inputs(args))
     if args.calibration:
         calibration = _read_calibration(args.calibration)
         processing = InputProcessing.from_calibration(calibration)
@@ -183,7 +238,7 @@ def _cmd_generate(args) -> None:
         calibration, processing = None, InputProcessing()
     effects, source = {}, None
     if args.effects_from:
-        report = _read_json_file(args.effects_from, "diagnosis report")
+        report = read_json_object(args.effects_from, what="diagnosis report")
         effects = effects_from_report(report, name=args.effects_from)
         source = {"report": str(args.effects_from), "verdict": report["verdict"]["id"]}
     for text in args.effect:  # explicit effects are added to (or override) the report's
@@ -191,7 +246,7 @@ def _cmd_generate(args) -> None:
     if args.effect:
         source = {**(source or {}), "explicit": list(args.effect)}
     start = time.perf_counter()
-    layout = DatasetLayout(kind=args.layout, depths=args.depths, context_planes=args.context_planes)
+    layout = _settings(DatasetLayout, kind=args.layout, depths=args.depths, context_planes=args.context_planes)
     dataset = generate_dataset(args.out, config, groups=args.groups, processing=processing, layout=layout, calibration=calibration, effects=effects, effects_source=source,
                                seed=args.seed, workers=args.workers, progress=_ProgressBar("generate"))
     seconds = time.perf_counter() - start
@@ -204,9 +259,13 @@ def _cmd_generate(args) -> None:
 
 
 def _cmd_train(args) -> None:
-    from napari_lbs._core import TrainingSettings, train_model
+    from napari_lbs._core import TrainingSettings, open_dataset, train_model
 
-    settings = TrainingSettings(
+    out = check_output_path(args.out, flag="--out", inputs=_inputs(args))
+    for companion in (out.with_suffix(".json"), out.with_suffix(".last.pt")):
+        check_output_path(companion, flag="--out", inputs=_inputs(args))
+    settings = _settings(
+        TrainingSettings,
         formulation=args.formulation,
         preset=args.preset,
         epochs=args.epochs,
@@ -221,7 +280,11 @@ def _cmd_train(args) -> None:
         patch_size=args.patch_size,
         foreground_weight=args.foreground_weight,
     )
-    result = train_model(args.data, args.out, settings=settings, resume=args.resume, progress=_ProgressBar("train"))
+    dataset = open_dataset(args.data)
+    expected = int(dataset.spec["groups"])
+    if len(dataset.groups) < expected:  # a stopped generate, or group files removed since
+        _summary(f"{args.data}: warning: {len(dataset.groups)} of {expected} groups present; training on those (run generate again to finish the set)")
+    result = train_model(dataset, out, settings=settings, resume=args.resume, progress=_ProgressBar("train"))
     best = result.log["best"]
     record = next(e for e in result.log["epochs"] if e["epoch"] == best["epoch"])["validation"]
     stopped = " (stopped)" if result.stopped else ""
@@ -253,12 +316,15 @@ def _predict_outputs(args) -> tuple[Path, Path]:
 
 
 def _cmd_predict(args) -> None:
-    from napari_lbs._core import load_config, load_model, predict_particles, write_json, write_particles
+    from napari_lbs._core import check_prediction_meta, load_config, load_model, predict_particles, write_json, write_particles
 
     out, provenance = _predict_outputs(args)
-    model = load_model(args.model, device=args.device)
+    for path in (out, provenance):
+        check_output_path(path, flag="--out", inputs=_inputs(args))
     config = load_config(args.config) if args.config else None
     hologram, background = _read_inputs(args)
+    model = load_model(args.model, device=args.device)
+    check_prediction_meta(model.meta, name=str(args.model))
     result = predict_particles(hologram, model, config, background=background, progress=_ProgressBar("predict"))
     write_particles(out, result.particles)
     write_json(provenance, {**result.provenance, "source": str(args.holo), "background_file": args.background, "particles": str(out)})
@@ -267,19 +333,26 @@ def _cmd_predict(args) -> None:
 
 
 def _cmd_diagnose(args) -> None:
-    from napari_lbs._core import DiagnosisSettings, diagnose_hologram, load_config, write_report
+    from napari_lbs._core import MIN_TILE_PX, DiagnosisSettings, diagnose_hologram, load_config, write_report
 
     config = load_config(args.config)
-    hologram, background = _read_inputs(args)
+    out = check_output_path(args.out, flag="--out", folder=True, inputs=_inputs(args))
+    for name in ("report.json", "report.md", "gap_where.png", "gap_effects.png"):
+        check_output_path(out / name, flag="--out")
+    settings = _settings(DiagnosisSettings, sim_tiles=args.sim_tiles, evaluations=args.evaluations, seed=args.seed)
+    size = args.tile or config.tile.size
+    if size < MIN_TILE_PX:
+        raise InputError(f"--tile: expected at least {MIN_TILE_PX} pixels (the lowest frequency band needs them), got {size}")
     calibration = _read_calibration(args.calibration) if args.calibration else None
-    settings = DiagnosisSettings(sim_tiles=args.sim_tiles, evaluations=args.evaluations, seed=args.seed)
+    hologram, background = _read_inputs(args)
+    if args.roi and not (args.roi[0] + size <= hologram.shape[1] and args.roi[1] + size <= hologram.shape[0]):
+        raise InputError(f"--roi {args.roi[0]} {args.roi[1]}: a {size}-pixel tile there crosses the edge of the {hologram.shape[1]}x{hologram.shape[0]} (x by y) hologram {args.holo}")
     diagnosis = diagnose_hologram(hologram, config, background=background, tile_px=args.tile, settings=settings, progress=_ProgressBar("diagnose"))
     if args.roi:
         x, y = args.roi
-        size = args.tile or config.tile.size
         diagnosis.report["roi"] = {"x": x, "y": y, "tile_index": (y // size) * (hologram.shape[1] // size) + x // size}
     provenance = _provenance(config, source=str(args.holo), background=args.background, calibration=calibration, seed=args.seed)
-    paths = write_report(diagnosis, args.out, provenance=provenance)
+    paths = write_report(diagnosis, out, provenance=provenance)
     verdict = diagnosis.report["verdict"]
     _summary(
         f"gap {diagnosis.report['gap']['baseline']:.2f} (baseline); verdict: {verdict['id'] or 'nothing missing'} (shrink {100 * verdict['shrink']:.0f} %, "
@@ -288,14 +361,17 @@ def _cmd_diagnose(args) -> None:
 
 
 def _cmd_evaluate(args) -> None:
-    from napari_lbs._core import read_particles, score_particles, seed_scores
+    from napari_lbs._core import AXIAL_TOL_UM, LATERAL_TOL_UM, json_safe, read_particles, score_particles, seed_scores
 
     pred, truth = read_particles(args.pred), read_particles(args.truth)
-    tolerances = {"lateral_tol_um": args.lateral_tol_um, "axial_tol_um": args.axial_tol_um}
+    tolerances = {
+        "lateral_tol_um": LATERAL_TOL_UM if args.lateral_tol_um is None else args.lateral_tol_um,
+        "axial_tol_um": AXIAL_TOL_UM if args.axial_tol_um is None else args.axial_tol_um,
+    }
     metrics = score_particles(pred, truth, **tolerances)
     seed = seed_scores(pred, truth, **tolerances)
-    if args.json:
-        print(json.dumps({**metrics, "seed_scoring": seed, **tolerances}))
+    if args.json:  # strict JSON: an empty reference gives er = null, never NaN
+        print(json.dumps(json_safe({**metrics, "seed_scoring": seed, **tolerances}), allow_nan=False))
     _summary(
         f"one-to-one: TP {metrics['tp']}, FP {metrics['fp']}, FN {metrics['fn']}, ER {100 * metrics['er']:.2f} %, JI {metrics['ji']:.3f} "
         f"(seed's scoring, which counts repeats: ER {100 * seed['er']:.2f} %, JI {seed['ji']:.3f})"
@@ -322,7 +398,7 @@ def _cmd_demo(args) -> None:
         write_stack,
     )
 
-    out = Path(args.out)
+    out = check_output_path(args.out, flag="--out", folder=True)
     out.mkdir(parents=True, exist_ok=True)
     config = load_config(None)
     hologram = load_sample_hologram()
@@ -390,9 +466,20 @@ def _cmd_demo(args) -> None:
     )
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (``napari-lbs simulate: error: argument --size: ...``), exit 2; sub-parsers inherit it."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+_SEED = _integer(0)
+
+
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="napari-lbs", description="Learning from better simulation for in-line particle holography.")
+    parser = _Parser(prog="napari-lbs", description="Learning from better simulation for in-line particle holography.")
     parser.add_argument("--version", action="version", version=f"napari-lbs {__version__}")
+    parser.add_argument("--debug", action="store_true", help="print the full traceback of any error")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("config", help="write (or check) an experiment config")
@@ -403,9 +490,9 @@ def _parser() -> argparse.ArgumentParser:
     p = sub.add_parser("simulate", help="simulate a hologram of a random particle field with its ground truth")
     p.add_argument("--config", required=True)
     p.add_argument("--out", required=True, metavar="DIR")
-    p.add_argument("--size", type=int, help="window edge in pixels (default: tile.size)")
-    p.add_argument("--particles", type=int, help="number of particles (default: particles.per_tile)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--size", type=_integer(16), help="window edge in pixels (default: tile.size)")
+    p.add_argument("--particles", type=_integer(0), help="number of particles (default: particles.per_tile)")
+    p.add_argument("--seed", type=_SEED, default=0)
     p.add_argument("--shadowing", action="store_true", help="propagate layer by layer so particles shadow each other")
     p.set_defaults(run=_cmd_simulate)
 
@@ -420,26 +507,26 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("holo", metavar="HOLO")
     p.add_argument("--config", required=True)
     p.add_argument("--out", required=True, metavar="CALIB.json")
-    p.add_argument("--roi", type=int, nargs=2, metavar=("X", "Y"), help="top-left pixel of the reference tile (default: the tool picks)")
+    p.add_argument("--roi", type=_integer(0), nargs=2, metavar=("X", "Y"), help="top-left pixel of the reference tile (default: the tool picks)")
     p.add_argument("--background", metavar="BG")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=_SEED, default=0)
     p.add_argument("--mode", choices=("robust", "seed"), default="robust", help="robust (default) or the seed code's conventions")
-    p.add_argument("--generations", type=int, default=100)
-    p.add_argument("--population", type=int, default=12)
-    p.add_argument("--runs", type=int, default=1)
+    p.add_argument("--generations", type=_integer(1), default=100)
+    p.add_argument("--population", type=_integer(2), default=12)
+    p.add_argument("--runs", type=_integer(1), default=1)
     p.set_defaults(run=_cmd_calibrate)
 
     p = sub.add_parser("generate", help="write a synthetic training set (HCS + Holo-processing)")
     p.add_argument("--config", required=True)
     p.add_argument("--calibration", metavar="CALIB.json", help="calibrated Holo-processing (default: none, the seed's normal simulation)")
-    p.add_argument("--groups", type=int, default=256)
+    p.add_argument("--groups", type=_integer(1), default=256)
     p.add_argument("--out", required=True, metavar="DATA")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=_SEED, default=0)
     p.add_argument("--layout", choices=("stack", "layers"), default="stack",
                    help="stack (default): the reconstruction planes plus context, for the focus formulation; layers: the seed's one plane per layer")
     p.add_argument("--depths", choices=("uniform", "layers"), default="uniform", help="stack layout: particle depths uniform over the volume (default) or on the seed's layers")
-    p.add_argument("--context-planes", type=int, default=8, help="stack layout: planes stored beyond each end of the volume (default 8)")
-    p.add_argument("--workers", type=int, default=1, help="processes simulating groups at once (default 1)")
+    p.add_argument("--context-planes", type=_integer(0), default=8, help="stack layout: planes stored beyond each end of the volume (default 8)")
+    p.add_argument("--workers", type=_integer(1), default=1, help="processes simulating groups at once (default 1)")
     p.add_argument("--effects-from", metavar="REPORT.json", help="add the effects a diagnosis report names (its verdict and waterfall, with their fitted parameters)")
     p.add_argument("--effect", action="append", default=[], metavar="ID[:NAME=VALUE,...]",
                    help="add an effect of the catalog, e.g. particle_phase:phase_rad=6,transmission=0.3 or quantization:bits=8,saturation=2 (repeatable)")
@@ -450,16 +537,16 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, metavar="MODEL.pt")
     p.add_argument("--formulation", choices=("focus", "seed"), default="focus", help="focus (default): context planes in, centre probability + depth offset + diameter out; seed: the seed paper's")
     p.add_argument("--preset", choices=("small", "medium", "paper"), default="small")
-    p.add_argument("--epochs", type=int, default=10)
-    p.add_argument("--minutes", type=float, default=0.0, help="stop after M minutes of training, keeping the best model so far (default: no limit)")
-    p.add_argument("--patience", type=int, default=0, help="stop after this many epochs without a better validation JI (default: never)")
-    p.add_argument("--batch-size", type=int, default=8)
-    p.add_argument("--learning-rate", type=float, help="AdamW's peak rate (default: 2e-3 small, 1e-3 medium, 3e-4 paper)")
+    p.add_argument("--epochs", type=_integer(1), default=10)
+    p.add_argument("--minutes", type=_number(0.0), default=0.0, help="stop after M minutes of training, keeping the best model so far (default: no limit)")
+    p.add_argument("--patience", type=_integer(0), default=0, help="stop after this many epochs without a better validation JI (default: never)")
+    p.add_argument("--batch-size", type=_integer(1), default=8)
+    p.add_argument("--learning-rate", type=_number(0.0, 1.0, above=True), help="AdamW's peak rate (default: 2e-3 small, 1e-3 medium, 3e-4 paper)")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--validation-groups", type=int, default=0, help="held-out groups (default: one eighth)")
-    p.add_argument("--patch-size", type=int, default=0, help="train on square crops (default: 128 focus, whole tiles seed)")
-    p.add_argument("--foreground-weight", type=float, default=1.0, help="seed formulation: MSE weight of label pixels (default 1: the seed's plain MSE)")
+    p.add_argument("--seed", type=_SEED, default=0)
+    p.add_argument("--validation-groups", type=_integer(0), default=0, help="held-out groups (default: one eighth)")
+    p.add_argument("--patch-size", type=_integer(0), default=0, help="train on square crops (default: 128 focus, whole tiles seed)")
+    p.add_argument("--foreground-weight", type=_number(1.0), default=1.0, help="seed formulation: MSE weight of label pixels (default 1: the seed's plain MSE)")
     p.add_argument("--no-augment", action="store_true", help="focus formulation: no random gamma, contrast, noise or quantisation")
     p.add_argument("--resume", action="store_true", help="continue from MODEL.last.pt")
     p.set_defaults(run=_cmd_train)
@@ -477,33 +564,44 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("holo", metavar="HOLO")
     p.add_argument("--config", required=True)
     p.add_argument("--out", required=True, metavar="REPORT_DIR")
-    p.add_argument("--roi", type=int, nargs=2, metavar=("X", "Y"), help="a reference tile to mark in the report (all tiles are used)")
+    p.add_argument("--roi", type=_integer(0), nargs=2, metavar=("X", "Y"), help="a reference tile to mark in the report (all tiles are used)")
     p.add_argument("--background", metavar="BG")
     p.add_argument("--calibration", metavar="CALIB.json", help="recorded as provenance (the baseline is refitted in the hologram domain)")
-    p.add_argument("--tile", type=int, help="tile edge in pixels (default: tile.size)")
-    p.add_argument("--sim-tiles", type=int, default=8)
-    p.add_argument("--evaluations", type=int, default=40)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--tile", type=_integer(1), help="tile edge in pixels (default: tile.size)")
+    p.add_argument("--sim-tiles", type=_integer(1), default=8)
+    p.add_argument("--evaluations", type=_integer(1), default=40)
+    p.add_argument("--seed", type=_SEED, default=0)
     p.set_defaults(run=_cmd_diagnose)
 
     p = sub.add_parser("evaluate", help="score a particle table against a reference, one-to-one")
     p.add_argument("pred", metavar="PRED.csv")
     p.add_argument("truth", metavar="TRUTH.csv")
-    p.add_argument("--lateral-tol-um", type=float, default=LATERAL_TOL_UM)
-    p.add_argument("--axial-tol-um", type=float, default=AXIAL_TOL_UM)
+    p.add_argument("--lateral-tol-um", type=_number(0.0, above=True), help="lateral match radius (µm; default: CONTRACT.md's, 22)")
+    p.add_argument("--axial-tol-um", type=_number(0.0, above=True), help="axial match distance (µm; default: CONTRACT.md's, 150)")
     p.add_argument("--json", action="store_true", help="print the metrics JSON on stdout")
     p.set_defaults(run=_cmd_evaluate)
 
     p = sub.add_parser("demo", help="run the whole pipeline on the built-in real hologram")
     p.add_argument("--out", default="napari-lbs-demo", metavar="DIR")
     p.add_argument("--quick", action="store_true", help="a token run on one tile (about a minute)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=_SEED, default=0)
     p.set_defaults(run=_cmd_demo)
     return parser
 
 
 def _terminate(signum, frame) -> None:
     raise KeyboardInterrupt
+
+
+def _one_line(error: BaseException) -> str:
+    """The first line of an error's message; a system error as ``FILE: reason``."""
+    if isinstance(error, MemoryError):
+        return "out of memory; use a smaller image, fewer planes or fewer groups at once"
+    if isinstance(error, OSError) and error.strerror:
+        culprit = f"{error.filename}: " if error.filename else ""
+        return f"{culprit}{error.strerror}"
+    text = str(error).strip()
+    return text.splitlines()[0] if text else type(error).__name__
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -515,13 +613,18 @@ def main(argv: list[str] | None = None) -> int:
         previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         args.run(args)
-    except _EXPECTED_ERRORS as error:
-        message = str(error).splitlines()[0] if str(error) else type(error).__name__
-        print(f"napari-lbs {args.command}: error: {message}", file=sys.stderr)
-        return 2
     except KeyboardInterrupt:
         print(f"napari-lbs {args.command}: interrupted; no partial file was left (finished files, such as generated groups, are kept)", file=sys.stderr)
         return 130
+    except Exception as error:  # noqa: BLE001 - every failure becomes one line and an exit status
+        if args.debug:
+            traceback.print_exc()
+        if isinstance(error, _EXPECTED_ERRORS):
+            print(f"napari-lbs {args.command}: error: {_one_line(error)}", file=sys.stderr)
+            return 2
+        print(f"napari-lbs {args.command}: internal error ({type(error).__name__}: {_one_line(error)}); please report it with the command line"
+              f"{'' if args.debug else ' and the output of --debug'}", file=sys.stderr)
+        return 1
     finally:
         if in_main_thread:
             signal.signal(signal.SIGTERM, previous)

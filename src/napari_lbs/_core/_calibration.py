@@ -38,6 +38,7 @@ from napari_lbs._core._io import InputError
 from napari_lbs._core._optics import backpropagate, propagate
 from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
 from napari_lbs._core._synthesis import random_particle_field, simulate_hologram
+from napari_lbs._core._validation import check_holo_params, check_memory
 
 __all__ = [
     "HoloParams",
@@ -67,6 +68,9 @@ class HoloParams:
     N_R: float = 0.0
     N_sigma: float = 0.0
     gamma: float = 1.0
+
+    def __post_init__(self) -> None:
+        check_holo_params(self.as_dict(), name="params")
 
     def as_dict(self) -> dict[str, float]:
         return {"N_R": float(self.N_R), "N_sigma": float(self.N_sigma), "gamma": float(self.gamma)}
@@ -104,8 +108,10 @@ class CalibrationSettings:
         for name in ("generations", "population", "runs", "fields"):
             if int(getattr(self, name)) < 1:
                 raise InputError(f"{name}: expected a positive integer, got {getattr(self, name)!r}")
-        if not 2 <= self.parents <= self.population:
-            raise InputError(f"parents: expected 2..population={self.population}, got {self.parents}")
+        if self.parents < 2:
+            raise InputError(f"parents: expected at least 2, got {self.parents}")
+        if self.population < self.parents:
+            raise InputError(f"population: expected at least {self.parents} (the parents mating each generation), got {self.population}")
 
 
 @dataclass
@@ -465,6 +471,8 @@ def calibrate_hologram(
         if x < 0 or y < 0 or x + size > cols or y + size > rows:
             raise InputError(f"roi: a {size}² tile at x={x}, y={y} crosses the edge of the {cols}x{rows} (x by y) hologram")
     planes_um = config.layer_depths_um()
+    check_memory(len(planes_um) * rows * cols * np.dtype(np.float32).itemsize, what=f"{len(planes_um)} reference planes of {rows}x{cols} pixels",
+                 remedy="raise particles.layer_step_um or crop the hologram")
     optics = {"wavelength_um": config.optics.wavelength_um, "pixel_um": config.optics.pixel_um, "medium_index": config.optics.medium_index}
     stack = backpropagate(hologram, planes_um, background=background, **optics)
     if roi is None:

@@ -12,6 +12,8 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from napari_lbs._core._validation import read_text
+
 __all__ = [
     "ConfigError",
     "ExperimentConfig",
@@ -21,7 +23,12 @@ __all__ = [
     "VolumeConfig",
     "load_config",
     "write_config",
+    "MAX_PLANES",
 ]
+
+# The most reconstruction planes (or particle layers) a config may ask for: 100 times the
+# seed's 61. A 1024² stack of this depth is 24 GiB; commands also check the memory they need.
+MAX_PLANES = 6100
 
 
 class ConfigError(ValueError):
@@ -65,6 +72,11 @@ class OpticsConfig:
         )
 
 
+def _plane_count(range_um: float, step_um: float) -> int:
+    """Planes ``0, step, 2 step, ...`` within ``range_um`` (µm), both ends included."""
+    return int(math.floor(range_um / step_um + 1e-9)) + 1
+
+
 @dataclass(frozen=True)
 class VolumeConfig:
     """Reconstruction depths (µm, distance from the particle to the sensor)."""
@@ -83,12 +95,17 @@ class VolumeConfig:
             f"a step no larger than the range z_max_um - z_min_um = {self.z_max_um - self.z_min_um}",
             self.z_step_um,
         )
+        _require(
+            _plane_count(self.z_max_um - self.z_min_um, self.z_step_um) <= MAX_PLANES,
+            "volume.z_step_um",
+            f"a step of at least {(self.z_max_um - self.z_min_um) / (MAX_PLANES - 1):.3g} um (at most {MAX_PLANES} planes)",
+            self.z_step_um,
+        )
 
     def planes_um(self, step_um: float | None = None) -> tuple[float, ...]:
         """Depths ``z_min_um, z_min_um + step, ...`` up to and including ``z_max_um`` (µm)."""
         step = self.z_step_um if step_um is None else step_um
-        count = int(math.floor((self.z_max_um - self.z_min_um) / step + 1e-9)) + 1
-        return tuple(self.z_min_um + i * step for i in range(count))
+        return tuple(self.z_min_um + i * step for i in range(_plane_count(self.z_max_um - self.z_min_um, step)))
 
 
 @dataclass(frozen=True)
@@ -136,6 +153,12 @@ class ExperimentConfig:
             self.particles.layer_step_um <= self.volume.z_max_um - self.volume.z_min_um,
             "particles.layer_step_um",
             f"a step no larger than the depth range {self.volume.z_max_um - self.volume.z_min_um}",
+            self.particles.layer_step_um,
+        )
+        _require(
+            _plane_count(self.volume.z_max_um - self.volume.z_min_um, self.particles.layer_step_um) <= MAX_PLANES,
+            "particles.layer_step_um",
+            f"at most {MAX_PLANES} layers over the depth range",
             self.particles.layer_step_um,
         )
 
@@ -196,6 +219,8 @@ def load_config(path: str | Path | None = None) -> ExperimentConfig:
         The file does not exist.
     ConfigError
         Malformed TOML, an unknown key or an impossible value; the message names the key.
+    InputError
+        Not UTF-8 text; the message names the file.
     """
     if path is None:
         return ExperimentConfig()
@@ -203,7 +228,7 @@ def load_config(path: str | Path | None = None) -> ExperimentConfig:
     if not path.is_file():
         raise FileNotFoundError(f"{path}: config file not found")
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
+        data = tomllib.loads(read_text(path, what="config"))
     except tomllib.TOMLDecodeError as error:
         raise ConfigError(f"{path}: not valid TOML ({error})") from None
     return ExperimentConfig.from_dict(data)

@@ -45,7 +45,7 @@ from napari_lbs._core._optics import propagate
 from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
 from napari_lbs._core._synthesis import random_particle_field
 
-__all__ = ["tile_summaries", "measured_fringe", "gap_statistic", "real_spread", "write_report", "where_gap", "diagnose_tiles", "diagnose_hologram", "DiagnosisSettings", "Diagnosis", "SUMMARY_GROUPS"]
+__all__ = ["tile_summaries", "measured_fringe", "gap_statistic", "real_spread", "write_report", "where_gap", "diagnose_tiles", "diagnose_hologram", "DiagnosisSettings", "Diagnosis", "SUMMARY_GROUPS", "MIN_TILE_PX"]
 
 SUMMARY_GROUPS = ("band", "depth", "region", "intensity", "noise", "appearance")
 _BANDS = np.geomspace(1 / 64, 0.5, 9)  # cycles per pixel: 8 bands
@@ -56,6 +56,8 @@ _LAGS = (1, 2, 4, 8, 16)
 _VERDICT_MIN_REDUCTION = 0.5
 _VERDICT_MIN_SHRINK = 0.3
 _DESIGN_POINTS = 16  # Sobol points tried by a fit that adds parameters
+_MIN_EVALUATIONS = 8  # each fit stage runs at least this many evaluations (see `_fit`)
+MIN_TILE_PX = 64  # the lowest frequency band (1/64 cycle per pixel) is empty in smaller tiles
 
 
 def _depths(config: ExperimentConfig, count: int = 8) -> np.ndarray:
@@ -204,6 +206,12 @@ class DiagnosisSettings:
     evaluations: int = 40
     confirm: int = len(EFFECTS)
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name, low in (("sim_tiles", 2), ("evaluations", _MIN_EVALUATIONS), ("confirm", 0), ("seed", 0)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise InputError(f"{name}: expected an integer of at least {low}, got {value!r}")
 
 
 @dataclass
@@ -545,6 +553,8 @@ def diagnose_hologram(
         image = image / np.maximum(as_hologram(background, name="background"), 1e-6)
     size = int(tile_px or config.tile.size)
     rows, cols = image.shape
+    if size < MIN_TILE_PX:
+        raise InputError(f"tile: expected at least {MIN_TILE_PX} pixels (the frequency bands need them), got {size}")
     if size > min(rows, cols):
         raise InputError(f"tile: a {size}-pixel tile is larger than the hologram ({rows}x{cols})")
     tiles = [image[r : r + size, c : c + size] for r in range(0, rows - size + 1, size) for c in range(0, cols - size + 1, size)]

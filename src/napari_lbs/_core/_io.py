@@ -7,15 +7,21 @@ interrupted write never leaves a half-written file where a good one was.
 from __future__ import annotations
 
 import csv
+import glob
 import io
 import json
+import math
 import os
+import re
 import tempfile
+import time
 from collections.abc import Callable, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
+
+from napari_lbs._core._validation import InputError, check_intensity_image, read_text
 
 __all__ = [
     "InputError",
@@ -28,15 +34,13 @@ __all__ = [
     "read_particles",
     "write_particles",
     "write_json",
+    "json_safe",
     "PARTICLE_COLUMNS",
 ]
 
 PARTICLE_COLUMNS = ("x_um", "y_um", "z_um", "diameter_um")
 _MIN_HOLOGRAM_PX = 16
-
-
-class InputError(ValueError):
-    """Input that cannot be used; the message names the culprit in one line."""
+_RUN_STARTED = time.time()  # temporaries older than this are a killed run's leftovers
 
 
 def _new_file_mode() -> int:
@@ -52,19 +56,36 @@ def _new_file_mode() -> int:
     return 0o666 & ~mask
 
 
+def _remove_stale_temporaries(path: Path) -> None:
+    """Remove temporary files of ``path`` that a killed run (SIGKILL, power cut) left behind.
+
+    Only names `atomic_path` makes (``.NAME.XXXXXXXX.partSUFFIX``) last modified before this
+    process started using this module, so another process writing ``path`` now keeps its own.
+    """
+    pattern = re.compile(re.escape(f".{path.name}.") + r"[a-z0-9_]{8}" + re.escape(".part" + path.suffix))
+    for candidate in path.parent.glob(f".{glob.escape(path.name)}.*"):
+        try:
+            if pattern.fullmatch(candidate.name) and candidate.is_file() and candidate.stat().st_mtime < _RUN_STARTED:
+                candidate.unlink()
+        except OSError:  # gone already, or not ours to remove: leave it
+            pass
+
+
 @contextmanager
 def atomic_path(path: Path):
     """Yield a temporary path beside ``path``; rename it onto ``path`` only if the block succeeds.
 
     The result has the mode an ordinary write would give it: an existing file's own mode, else
     0666 less the umask (a temporary file is created 0600, which would hide results from the
-    lab members sharing a folder). A folder at ``path`` is refused.
+    lab members sharing a folder). A folder at ``path`` is refused. Temporaries of ``path``
+    that a killed earlier run left are removed first.
     """
     path = Path(path)
     if path.is_dir():
         raise InputError(f"{path}: is a folder; expected a file name")
     if path.parent and not path.parent.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
+    _remove_stale_temporaries(path)
     handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part" + path.suffix, dir=path.parent)
     os.close(handle)
     temporary = Path(temporary)
@@ -85,9 +106,21 @@ def atomic_write_bytes(path: Path, data: bytes) -> Path:
     return Path(path)
 
 
+def json_safe(value: object) -> object:
+    """``value`` with every NaN or infinite float replaced by ``None``: strict JSON (``null``), never ``NaN``."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {key: json_safe(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(item) for item in value]
+    return value
+
+
 def write_json(path: str | Path, payload: dict) -> Path:
-    """Write ``payload`` as indented JSON, atomically."""
-    return atomic_write_bytes(Path(path), (json.dumps(payload, indent=2, sort_keys=False) + "\n").encode("utf-8"))
+    """Write ``payload`` as indented strict JSON, atomically; non-finite numbers become ``null`` (`json_safe`)."""
+    text = json.dumps(json_safe(payload), indent=2, sort_keys=False, allow_nan=False)
+    return atomic_write_bytes(Path(path), (text + "\n").encode("utf-8"))
 
 
 def as_hologram(image: np.ndarray, *, name: str = "hologram", channel: int | None = None, log: Callable[[str], None] | None = None) -> np.ndarray:
@@ -101,7 +134,8 @@ def as_hologram(image: np.ndarray, *, name: str = "hologram", channel: int | Non
     Raises
     ------
     InputError
-        Not 2-D (after the channel reduction), smaller than 16 px, or containing NaN/inf.
+        Not 2-D (after the channel reduction), smaller than 16 px, or not an intensity
+        (NaN/inf, every pixel equal, strongly negative: `check_intensity_image`).
     """
     array = np.asarray(image)
     if array.dtype.kind not in "uif" and array.dtype != bool:
@@ -121,8 +155,7 @@ def as_hologram(image: np.ndarray, *, name: str = "hologram", channel: int | Non
         raise InputError(f"{name}: expected at least {_MIN_HOLOGRAM_PX}x{_MIN_HOLOGRAM_PX} pixels, got {array.shape}")
     # Keep the input's precision: float64 stays float64; integers become float32.
     out = array if array.dtype in (np.float32, np.float64) else array.astype(np.float32)
-    if not np.all(np.isfinite(out)):
-        raise InputError(f"{name}: contains NaN or infinite values ({int(np.count_nonzero(~np.isfinite(out)))} pixels)")
+    check_intensity_image(out, name=name)
     return out
 
 
@@ -199,25 +232,46 @@ def _format(value: object) -> str:
 
 
 def read_particles(path: str | Path) -> dict[str, np.ndarray]:
-    """Read a particle table; numeric columns become float64 arrays."""
+    """Read a particle table; numeric columns become float64 arrays.
+
+    UTF-8 with or without a byte-order mark (Excel's "CSV UTF-8"); blank lines are skipped.
+
+    Raises
+    ------
+    InputError
+        Naming the file (and the line or column): not UTF-8, empty, a required column missing,
+        a column named twice, a row with more or fewer values than the header, a required
+        column not numeric, or a position (``x_um``, ``y_um``, ``z_um``) NaN or infinite.
+    """
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: file not found")
-    with path.open(newline="", encoding="utf-8") as handle:
-        rows = list(csv.reader(handle))
-    if not rows:
+    reader = csv.reader(io.StringIO(read_text(path, what="particle table"), newline=""))
+    header = next(reader, None)
+    if not header:
         raise InputError(f"{path}: empty file, expected a header {','.join(PARTICLE_COLUMNS)}")
-    header = [h.strip() for h in rows[0]]
+    header = [h.strip() for h in header]
+    duplicated = next((name for index, name in enumerate(header) if name in header[:index]), None)
+    if duplicated is not None:
+        raise InputError(f"{path}: column {duplicated} appears twice in the header")
     missing = [c for c in PARTICLE_COLUMNS if c not in header]
     if missing:
         raise InputError(f"{path}: missing column {missing[0]} (header: {','.join(header)})")
+    rows = []
+    for row in reader:
+        if not any(cell.strip() for cell in row):
+            continue
+        if len(row) != len(header):
+            raise InputError(f"{path}: line {reader.line_num}: expected {len(header)} values (as the header), got {len(row)}")
+        rows.append(row)
     table: dict[str, np.ndarray] = {}
     for index, name in enumerate(header):
-        values = [row[index] for row in rows[1:] if row]
+        values = [row[index] for row in rows]
         try:
             table[name] = np.array(values, dtype=np.float64)
         except ValueError:
             if name in PARTICLE_COLUMNS:
                 raise InputError(f"{path}: column {name} is not numeric") from None
             table[name] = np.array(values, dtype=object)
+    for name in PARTICLE_COLUMNS[:3]:
+        if not np.all(np.isfinite(table[name])):
+            raise InputError(f"{path}: column {name} holds NaN or infinite values")
     return table
