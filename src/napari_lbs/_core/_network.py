@@ -51,6 +51,7 @@ from torch import nn
 from napari_lbs._core._config import ExperimentConfig
 from napari_lbs._core._heatmaps import context_indices
 from napari_lbs._core._io import InputError, atomic_write_bytes
+from napari_lbs._core._validation import check_model_payload
 
 __all__ = ["PRESETS", "FORMULATIONS", "UNet", "build_network", "save_model", "load_model", "LoadedModel", "resolve_device", "check_model_matches", "network_outputs", "focus_maps", "MODEL_FORMAT"]
 
@@ -156,12 +157,9 @@ def load_model(path: str | Path, *, device: str = "cpu") -> LoadedModel:
         payload = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     except Exception as error:  # pickles with code, truncated files, other formats: all refused the same way
         raise InputError(f"{path}: not a napari-lbs model file ({type(error).__name__})") from None
-    if not isinstance(payload, dict) or payload.get("format") != MODEL_FORMAT or payload.get("version") not in _READABLE_VERSIONS:
-        raise InputError(f"{path}: expected a {MODEL_FORMAT} file of version {' or '.join(map(str, _READABLE_VERSIONS))}")
-    meta = json.loads(payload["meta"])
-    if meta.setdefault("formulation", "seed") not in FORMULATIONS:
-        raise InputError(f"{path}: unknown formulation {meta['formulation']!r}; expected one of {', '.join(FORMULATIONS)}")
-    network = UNet(tuple(meta["widths"]), in_channels=int(meta.get("in_channels", 1)), out_channels=int(meta.get("out_channels", 1))).to(memory_format=torch.channels_last)
+    # format, widths (a preset's, so nothing huge is allocated), channels and config before any network is built
+    meta = check_model_payload(payload, name=str(path), formats={MODEL_FORMAT: _READABLE_VERSIONS}, presets=PRESETS, formulations=FORMULATIONS)
+    network = UNet(tuple(meta["widths"]), in_channels=meta["in_channels"], out_channels=meta["out_channels"]).to(memory_format=torch.channels_last)
     try:
         network.load_state_dict(payload["state_dict"])
     except RuntimeError as error:
