@@ -41,6 +41,7 @@ from napari_lbs._core._effects import check_effects, effect_hologram
 from napari_lbs._core._io import InputError, atomic_path, write_json
 from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
 from napari_lbs._core._synthesis import ParticleField, label_planes, random_particle_field, simulate_hologram
+from napari_lbs._core._validation import check_dataset_manifest, read_json_object
 
 __all__ = ["DatasetLayout", "InputProcessing", "SyntheticDataset", "synthetic_group", "generate_dataset", "open_dataset", "dataset_summary", "DATASET_FORMAT"]
 
@@ -223,10 +224,13 @@ class SyntheticDataset:
         path = self.group_path(group)
         if not path.is_file():
             raise InputError(f"{path}: group file not found")
-        with tifffile.TiffFile(path) as handle:
-            inputs = handle.series[0].asarray()
-            labels = handle.series[1].asarray()
-            description = json.loads(handle.pages[0].description)
+        try:
+            with tifffile.TiffFile(path) as handle:
+                inputs = handle.series[0].asarray()
+                labels = handle.series[1].asarray()
+                description = json.loads(handle.pages[0].description)
+        except Exception as error:  # truncated, overwritten, not a TIFF: the file is the culprit
+            raise InputError(f"{path}: corrupt group file ({type(error).__name__}); delete it and run generate again to rebuild it") from None
         return inputs, labels, description
 
     def arrays(self, groups: list[int], *, dtype=np.float32) -> tuple[np.ndarray, np.ndarray, list[dict]]:
@@ -327,7 +331,7 @@ def generate_dataset(
     spec = _spec(config, processing, layout, seed, effects)
     manifest = out / "dataset.json"
     if manifest.is_file():
-        existing = json.loads(manifest.read_text(encoding="utf-8"))
+        existing = read_json_object(manifest, what="data set manifest")
         differing = [key for key in _IDENTITY_KEYS if existing.get(key) != spec.get(key)]
         if differing:
             raise InputError(f"{out}: holds a data set made with other settings (differs in {', '.join(differing)}); choose another folder")
@@ -397,12 +401,7 @@ def open_dataset(path: str | Path) -> SyntheticDataset:
     manifest = path / "dataset.json"
     if not manifest.is_file():
         raise InputError(f"{path}: not a napari-lbs data set (no dataset.json)")
-    try:
-        spec = json.loads(manifest.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as error:
-        raise InputError(f"{manifest}: not valid JSON ({error})") from None
-    if spec.get("format") != DATASET_FORMAT or spec.get("version") not in (1, _FORMAT_VERSION):
-        raise InputError(f"{manifest}: expected format {DATASET_FORMAT} version 1 or {_FORMAT_VERSION}, got {spec.get('format')} {spec.get('version')}")
+    spec = check_dataset_manifest(read_json_object(manifest, what="data set manifest"), name=str(manifest), formats={DATASET_FORMAT: (1, _FORMAT_VERSION)})
     dataset = SyntheticDataset(path, spec, [], complete=bool(spec.get("complete")))
     dataset.groups = [g for g in range(int(spec["groups"])) if dataset.group_path(g).is_file()]
     return dataset

@@ -57,6 +57,7 @@ from napari_lbs._core._metrics import depth_errors_um, score_particles
 from napari_lbs._core._network import FORMULATIONS, PRESETS, build_network, focus_maps, network_outputs, resolve_device, save_model
 from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
 from napari_lbs._core._synthesis import LABEL_SCALE
+from napari_lbs._core._validation import load_resume_state
 
 __all__ = ["TrainingSettings", "TrainingResult", "train_model", "THRESHOLD_FRACTIONS", "FOCUS_THRESHOLDS"]
 
@@ -446,7 +447,7 @@ def train_model(
     }
     first_epoch = 0
     if resume and state_path.is_file():
-        state = torch.load(state_path, map_location="cpu", weights_only=True)
+        state = load_resume_state(state_path)  # corrupt, foreign or code-carrying files are refused, naming the file
         previous = json.loads(state["log"])
         ignored = {"epochs": 0, "minutes": 0, "patience": 0}
         if previous["settings"] | ignored != json.loads(json.dumps(log["settings"])) | ignored or previous["dataset"] != json.loads(json.dumps(log["dataset"])):
