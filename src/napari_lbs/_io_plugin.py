@@ -1,12 +1,15 @@
-"""napari reader (particle CSV → Points) and writer (Points → particle CSV), CONTRACT.md tables."""
+"""napari reader (particle CSV → Points) and writer (Points → particle CSV), CONTRACT.md tables.
+
+A table read here lands on the default config's plane grid (`napari_lbs._layers`), so its
+particles line up with a back-propagated stack of the default depths.
+"""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
-from napari_lbs._core import PARTICLE_COLUMNS, read_particles, write_particles
+from napari_lbs._core import PARTICLE_COLUMNS, load_config, read_particles, write_particles
+from napari_lbs._layers import PlaneGrid, particle_points, points_table
 
 
 def _is_particle_table(path: str) -> bool:
@@ -26,30 +29,18 @@ def get_reader(path):
 
 
 def read_particle_csv(path):
-    """A particle CSV as a Points layer in (z, y, x) µm; extra numeric columns become features."""
-    from napari_lbs._widgets import particles_layer_data
-
+    """A particle CSV as a Points layer in (z, y, x) µm on the default plane grid; extra numeric columns become features."""
+    config = load_config(None)
     table = read_particles(path)
-    data, features = particles_layer_data(table)
+    data, keywords = particle_points(table, PlaneGrid.of_planes(config.volume.planes_um(), pixel_um=config.optics.pixel_um))
     for name, values in table.items():
         if name not in PARTICLE_COLUMNS and values.dtype.kind == "f":
-            features[name] = values
-    return [(data, {"name": Path(path).stem, "features": features, "size": features["diameter_um"] if len(data) else 10.0, "face_color": "transparent", "out_of_slice_display": True, "metadata": {"source": str(path)}}, "points")]
+            keywords["features"][name] = values
+    return [(data, {"name": Path(path).stem, **keywords, "metadata": {"source": str(path)}}, "points")]
 
 
 def write_particle_csv(path: str, data, attributes: dict) -> list[str]:
-    """Points (z, y, x in µm) → particle CSV; ``diameter_um`` from the features (else the point size) and other features after."""
-    points = np.asarray(data, dtype=float).reshape(-1, np.shape(data)[-1] if np.ndim(data) == 2 else 3)
-    if points.shape[1] < 3:
-        raise ValueError(f"{path}: expected 3-D points (z, y, x), got {points.shape[1]}-D")
-    features = attributes.get("features")
-    columns = {} if features is None else {name: np.asarray(features[name]) for name in features}
-    size = np.asarray(attributes.get("size", 10.0), dtype=float)
-    diameter = columns.pop("diameter_um", None)
-    if diameter is None:
-        diameter = size if size.ndim == 1 else np.broadcast_to(size.reshape(-1)[:1] if size.size else 10.0, (len(points),))
-    columns.pop("z_um", None)
-    table = {"x_um": points[:, -1], "y_um": points[:, -2], "z_um": points[:, -3], "diameter_um": np.asarray(diameter, float)}
-    table.update({name: values for name, values in columns.items() if values.dtype.kind in "fiu"})
+    """Points → particle CSV in world µm (data × scale + translate); ``diameter_um`` and other features after."""
+    table = points_table(data, scale=attributes.get("scale", (1.0, 1.0, 1.0)), translate=attributes.get("translate", (0.0, 0.0, 0.0)), features=attributes.get("features"), size=attributes.get("size"))
     write_particles(path, table)
     return [path]

@@ -1,8 +1,9 @@
-"""napari sample data: the seed paper's real hologram and a seeded synthetic hologram with its truth."""
+"""napari sample data: the seed paper's real hologram and a seeded synthetic hologram with its truth (all in µm)."""
 
 from __future__ import annotations
 
 from napari_lbs._core import SAMPLE_PROVENANCE, load_config, load_sample_hologram, random_particle_field, simulate_hologram
+from napari_lbs._layers import UNITS, PlaneGrid, particle_points
 
 SYNTHETIC_SEED = 2024
 SYNTHETIC_SHAPE = (512, 512)
@@ -14,13 +15,11 @@ def real_hologram():
     config = load_config(None)
     pixel_um = config.optics.pixel_um
     metadata = {"provenance": SAMPLE_PROVENANCE, "config": config.to_dict()}
-    return [(load_sample_hologram(), {"name": "LBS real hologram", "scale": (pixel_um, pixel_um), "units": "µm", "metadata": metadata}, "image")]
+    return [(load_sample_hologram(), {"name": "LBS real hologram", "scale": (pixel_um, pixel_um), "units": UNITS, "metadata": metadata}, "image")]
 
 
 def synthetic_hologram():
-    """A seeded 512² hologram of 48 opaque particles (default config) and its ground-truth Points."""
-    from napari_lbs._widgets import particles_layer_data
-
+    """A seeded 512² hologram of 48 opaque particles (default config) and its ground-truth Points on the default planes."""
     config = load_config(None)
     field = random_particle_field(
         SYNTHETIC_SHAPE,
@@ -34,8 +33,8 @@ def synthetic_hologram():
     hologram = simulate_hologram(field, wavelength_um=config.optics.wavelength_um, medium_index=config.optics.medium_index)
     pixel_um = config.optics.pixel_um
     provenance = {"seed": SYNTHETIC_SEED, "particles": SYNTHETIC_PARTICLES, "config": config.to_dict(), "model": "opaque discs, superposed layers (HCS)"}
-    data, features = particles_layer_data(field.table())
+    data, keywords = particle_points(field.table(), PlaneGrid.of_planes(config.volume.planes_um(), pixel_um=pixel_um))
     return [
-        (hologram, {"name": "synthetic hologram", "scale": (pixel_um, pixel_um), "units": "µm", "metadata": {"provenance": provenance}}, "image"),
-        (data, {"name": "synthetic truth", "features": features, "size": features["diameter_um"], "face_color": "transparent", "border_color": "yellow", "out_of_slice_display": True, "metadata": {"provenance": provenance}}, "points"),
+        (hologram, {"name": "synthetic hologram", "scale": (pixel_um, pixel_um), "units": UNITS, "metadata": {"provenance": provenance}}, "image"),
+        (data, {"name": "synthetic truth", **keywords, "border_color": "yellow", "metadata": {"provenance": provenance}}, "points"),
     ]

@@ -1,0 +1,108 @@
+"""How napari-lbs results become napari layers: one world in micrometres (no Qt here).
+
+Every layer the plugin makes has ``units = "µm"`` on every axis, so napari never meets a
+unit-less layer beside a µm one. A particle table becomes Points on the plane grid of its
+reconstruction: data are ``(plane index, row, col)`` with ``scale = (z_step_um, pixel_um,
+pixel_um)`` and ``translate = (z_min_um, y0_um, x0_um)``, so world coordinates are the
+table's ``(z_um, y_um, x_um)``, the z slider steps through the planes, and in 2-D each particle
+is drawn on its nearest plane (napari shows Points within half a data unit of the slice).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["UNITS", "PlaneGrid", "particle_points", "points_table"]
+
+UNITS = "µm"
+
+
+@dataclass(frozen=True)
+class PlaneGrid:
+    """Where a stack's planes and pixels lie in the world (µm).
+
+    Attributes
+    ----------
+    z_min_um, z_step_um : float
+        Depth of plane 0 and the spacing of planes.
+    pixel_um : float
+        Lateral pixel pitch.
+    origin_um : (float, float)
+        World ``(y, x)`` of pixel ``(0, 0)`` (the hologram layer's translate).
+    """
+
+    z_min_um: float
+    z_step_um: float
+    pixel_um: float
+    origin_um: tuple[float, float] = (0.0, 0.0)
+
+    @classmethod
+    def of_planes(cls, planes_um, *, pixel_um: float, origin_um: tuple[float, float] = (0.0, 0.0)) -> PlaneGrid:
+        """The grid of evenly spaced depths ``planes_um`` (one plane: a 1-µm step)."""
+        planes = np.asarray(planes_um, float)
+        step = float(planes[1] - planes[0]) if len(planes) > 1 else 1.0
+        return cls(float(planes[0]), step, float(pixel_um), (float(origin_um[0]), float(origin_um[1])))
+
+    @property
+    def scale(self) -> tuple[float, float, float]:
+        return (self.z_step_um, self.pixel_um, self.pixel_um)
+
+    @property
+    def translate(self) -> tuple[float, float, float]:
+        return (self.z_min_um, *self.origin_um)
+
+
+def particle_points(table: dict, grid: PlaneGrid) -> tuple[np.ndarray, dict]:
+    """Points data on ``grid`` and the layer keywords (scale, translate, units, features, size).
+
+    Parameters
+    ----------
+    table : dict of arrays
+        A particle table (``x_um, y_um, z_um, diameter_um``; ``score`` optional).
+    grid : PlaneGrid
+
+    Returns
+    -------
+    data : (n, 3) array
+        ``(plane index, row, col)``, fractional.
+    keywords : dict
+        ``scale``, ``translate``, ``units``, ``features`` (``diameter_um``, ``z_um``,
+        ``score``), ``size`` (the diameter in pixels) and ``face_color``.
+    """
+    count = len(np.asarray(table["x_um"]))
+    world = np.stack([np.asarray(table[c], float) for c in ("z_um", "y_um", "x_um")], axis=1) if count else np.zeros((0, 3))
+    data = (world - np.asarray(grid.translate)) / np.asarray(grid.scale)
+    diameter = np.asarray(table["diameter_um"], float)
+    features = {"diameter_um": diameter, "z_um": world[:, 0], "score": np.asarray(table["score"], float) if "score" in table else np.ones(count)}
+    keywords = {
+        "scale": grid.scale,
+        "translate": grid.translate,
+        "units": UNITS,
+        "features": features,
+        "size": diameter / grid.pixel_um if count else 10.0,
+        "face_color": "transparent",
+    }
+    return data, keywords
+
+
+def points_table(data, *, scale, translate, features=None, size=None) -> dict[str, np.ndarray]:
+    """The particle table of Points ``(z, y, x)`` data: world µm = data × scale + translate.
+
+    ``diameter_um`` comes from the features, else from the point size (pixels × lateral
+    scale); other numeric features follow, except ``z_um`` (the world z is the depth).
+    """
+    points = np.asarray(data, float).reshape(len(data), -1) if len(data) else np.zeros((0, 3))
+    if points.shape[1] < 3:
+        raise ValueError(f"expected 3-D points (z, y, x), got {points.shape[1]}-D")
+    world = points[:, -3:] * np.asarray(scale, float)[-3:] + np.asarray(translate, float)[-3:]
+    columns = {} if features is None else {name: np.asarray(features[name]) for name in features}
+    columns.pop("z_um", None)
+    diameter = columns.pop("diameter_um", None)
+    if diameter is None:  # napari keeps one size per point, in data units (pixels)
+        pixels = np.broadcast_to(np.asarray(10.0 if size is None else size, float).reshape(-1), (len(points),)) if len(points) else np.zeros(0)
+        diameter = pixels * float(np.asarray(scale, float)[-1])
+    table = {"x_um": world[:, 2], "y_um": world[:, 1], "z_um": world[:, 0], "diameter_um": np.asarray(diameter, float)}
+    table.update({name: values for name, values in columns.items() if values.dtype.kind in "fiu"})
+    return table

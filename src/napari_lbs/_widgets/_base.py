@@ -1,0 +1,324 @@
+"""What every step widget shares: Run/Stop, validation, progress, results, remembered settings.
+
+A step widget collects parameters, runs one `_core` function in napari's ``thread_worker``
+(``progress`` relayed to a bar in napari's activity dock and to the widget's own bar with
+elapsed time and ETA; ``should_stop`` wired to Stop) and shows the result as µm layers.
+While its inputs are invalid Run is disabled and the reason shown. A step's last result
+stays on its status line until it runs again. Settings persist between napari sessions as
+typed (an empty path stays empty; a stale value falls back to the default).
+"""
+
+from __future__ import annotations
+
+import inspect
+import re
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+from magicgui.widgets import CheckBox, ComboBox, Container, FileEdit, FloatSpinBox, Label, ProgressBar, PushButton, SpinBox
+from psygnal import Signal
+from qtpy.QtCore import QObject, QSettings
+from qtpy.QtCore import Signal as QtSignal
+from qtpy.QtWidgets import QSizePolicy
+
+from napari_lbs._core import Stopped, as_hologram, load_config
+
+__all__ = ["StepWidget", "chosen", "config_from", "config_problem", "doc_of", "hologram_data", "hologram_problem", "missing", "output_problem", "path_edit", "wrapping_label"]
+
+
+class _Relay(QObject):
+    """Carries worker-thread callbacks to the GUI thread (queued signals)."""
+
+    progress = QtSignal(int, int)
+    report = QtSignal(object)
+
+
+def doc_of(obj, name: str) -> str:
+    """The description of ``name`` in the Parameters/Attributes section of ``obj``'s numpy docstring ("" if absent)."""
+    lines = (inspect.getdoc(obj) or "").splitlines()
+    for index, line in enumerate(lines):
+        match = re.match(r"^([\w, ]+?)\s*(?::\s*(.*))?$", line)
+        if not match or line.startswith(" ") or name not in [n.strip() for n in match.group(1).split(",")]:
+            continue
+        body = []
+        for following in lines[index + 1 :]:
+            if following and not following.startswith(" "):
+                break
+            body.append(following.strip())
+        text = " ".join(part for part in body if part).replace("``", "").replace("`", "")
+        kind = match.group(2)
+        return f"{text} ({kind})" if text and kind else text or (kind or "")
+    return ""
+
+
+def wrapping_label() -> Label:
+    """A status label that wraps and never widens its dock (long paths are cut, the whole text is the tooltip)."""
+    label = Label(value="")
+    label.native.setWordWrap(True)
+    label.native.setSizePolicy(QSizePolicy.Policy.Ignored, QSizePolicy.Policy.Preferred)
+    label.native.setMinimumWidth(40)
+    return label
+
+
+def path_edit(*, label: str, name: str, mode: str = "r", filter: str | None = None, value: str = "", tooltip: str = "") -> FileEdit:
+    """A path field whose empty text means "none" (magicgui would show the current folder)."""
+    edit = FileEdit(label=label, name=name, mode=mode, filter=filter, nullable=True, value=None, tooltip=tooltip)
+    edit.line_edit.value = value
+    return edit
+
+
+def chosen(edit: FileEdit) -> Path | None:
+    """The path a field names, or None when its text is empty."""
+    text = edit.line_edit.value.strip()
+    return Path(text).expanduser() if text else None
+
+
+def missing(edit: FileEdit, label: str) -> str | None:
+    """Why an optional input file is invalid (named but absent), or None."""
+    path = chosen(edit)
+    return f"{label}: {path} not found" if path is not None and not path.is_file() else None
+
+
+def output_problem(edit: FileEdit, label: str, *, folder: bool = False, suffix: str | None = None) -> str | None:
+    """Why an output path cannot be written (empty, a folder where a file is meant, no parent folder), or None."""
+    path = chosen(edit)
+    if path is None:
+        return f"{label}: choose where to save"
+    if folder:
+        return f"{label}: {path} is a file, expected a folder" if path.is_file() else None
+    if path.is_dir():
+        return f"{label}: {path} is a folder, expected a file name"
+    if suffix and path.suffix != suffix:
+        return f"{label}: expected a name ending in {suffix}"
+    if not path.absolute().parent.is_dir():
+        return f"{label}: folder {path.absolute().parent} does not exist"
+    return None
+
+
+def config_from(edit: FileEdit):
+    """The config a field names (empty: the defaults)."""
+    return load_config(chosen(edit))
+
+
+def config_problem(edit: FileEdit) -> str | None:
+    problem = missing(edit, "config")
+    if problem:
+        return problem
+    try:
+        config_from(edit)
+    except ValueError as error:
+        return str(error)
+    return None
+
+
+def hologram_problem(layer) -> str | None:
+    if layer is None:
+        return "choose a hologram Image layer"
+    if layer.rgb:
+        return None  # reduced to one channel by as_hologram, with a notification
+    if layer.ndim != 2:
+        return f"hologram: expected a 2-D image, got {layer.ndim}-D layer {layer.name!r}"
+    return None
+
+
+def hologram_data(layer) -> np.ndarray:
+    """A hologram layer's data as a 2-D array; an RGB reduction is told in a notification."""
+    from napari.utils.notifications import show_info
+
+    return as_hologram(np.asarray(layer.data), name=layer.name, log=show_info)
+
+
+def _clock(seconds: float) -> str:
+    seconds = int(round(seconds))
+    return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}" if seconds >= 3600 else f"{seconds // 60}:{seconds % 60:02d}"
+
+
+class StepWidget(Container):
+    """Shared plumbing of one workflow step (see the module docstring).
+
+    Subclasses define ``title``, the fields, `problem`, `prepare` (GUI thread), `work`
+    (worker thread: the one `_core` call) and `show` (GUI thread); `show` calls `done` with
+    the result line and, when the step wrote a file the next step reads, its path.
+    """
+
+    title = ""
+    produced = Signal(object)  # the path this step just wrote (calibration JSON, data set, model)
+
+    def __init__(self, viewer, fields: list) -> None:
+        super().__init__(labels=True, scrollable=True)
+        self._viewer = viewer
+        self._fields = fields
+        self._run = PushButton(text="Run", tooltip=f"Run {self.title}")
+        self._stop = PushButton(text="Stop", enabled=False, tooltip="Stop at the next step boundary (the partial result is kept where it is meaningful)")
+        self._bar = ProgressBar(value=0, min=0, max=1, label="progress")
+        self._timing = Label(value="")
+        self._status = wrapping_label()
+        self.extend([*fields, Container(widgets=[self._run, self._stop], layout="horizontal", labels=False), self._bar, self._timing, self._status])
+        self._stop_requested = threading.Event()
+        self._worker = None
+        self._progress_bar = None
+        self._started = 0.0
+        self._counts = ""  # the last "done/total" reported
+        self._result_message: str | None = None
+        self._outcome: str | None = None
+        self._relay = _Relay()
+        self._relay.progress.connect(self._on_progress)
+        self._relay.report.connect(self._on_report)
+        self._run.changed.connect(self._start)
+        self._stop.changed.connect(self._request_stop)
+        self._restore_settings()
+        for widget in fields:
+            widget.changed.connect(self._changed)
+        viewer.layers.events.inserted.connect(self._layers_changed)
+        viewer.layers.events.removed.connect(self._layers_changed)
+        self._revalidate()
+
+    # -- settings and validation --------------------------------------------------------------
+    def _settings(self) -> QSettings:
+        return QSettings("napari-lbs", type(self).__name__)
+
+    def _persisted(self) -> list:
+        return [w for w in self._fields if isinstance(w, (SpinBox, FloatSpinBox, FileEdit, CheckBox, ComboBox)) and not (isinstance(w, ComboBox) and w.choices and not isinstance(w.choices[0], str))]
+
+    def _restore_settings(self) -> None:
+        settings = self._settings()
+        for widget in self._persisted():
+            stored = settings.value(widget.name)
+            if stored is None:
+                continue
+            stored = str(stored)
+            try:
+                if isinstance(widget, FileEdit):
+                    # An input that has gone since is stale: keep the default rather than a dead path.
+                    if stored and widget.mode.value in ("r", "d") and not Path(stored).expanduser().exists():
+                        continue
+                    widget.line_edit.value = stored
+                elif isinstance(widget, CheckBox):
+                    widget.value = stored in ("true", "True", "1")
+                else:
+                    widget.value = type(widget.value)(stored)
+            except (TypeError, ValueError):
+                pass  # a stale setting is ignored, the default stays
+
+    def _changed(self, *_) -> None:
+        settings = self._settings()
+        for widget in self._persisted():
+            settings.setValue(widget.name, widget.line_edit.value if isinstance(widget, FileEdit) else str(widget.value))
+        self._revalidate()
+
+    def _layers_changed(self, *_) -> None:
+        self.reset_choices()
+        self._revalidate()
+
+    def problem(self) -> str | None:
+        """Why Run is disabled, or None when the inputs are valid."""
+        return None
+
+    def _revalidate(self) -> None:
+        if self._worker is not None:
+            return
+        problem = self.problem()
+        self._run.enabled = problem is None
+        lines = [problem or ("ready" if self._result_message is None else "")]
+        if self._result_message is not None:
+            lines.append(self._result_message if problem is None else f"last run: {self._result_message}")
+        self._status.value = "\n".join(line for line in lines if line)
+        self._status.tooltip = self._status.value
+
+    # -- running --------------------------------------------------------------------------------
+    def prepare(self):
+        """Read the inputs in the GUI thread (layers are not thread-safe); passed to `work`."""
+        return None
+
+    def work(self, job, *, progress, should_stop, report):
+        """The `_core` call on `prepare`'s ``job``, run in the worker thread; returns what `show` receives."""
+        raise NotImplementedError
+
+    def show(self, result) -> None:
+        """Show a finished result (GUI thread)."""
+
+    def report_received(self, record) -> None:
+        """Handle one record of the running job (GUI thread)."""
+
+    def done(self, message: str, output: Path | None = None) -> None:
+        """Record the result line shown until the next run; announce the file the next step reads."""
+        self._outcome = message
+        if output is not None:
+            self.produced.emit(Path(output))
+
+    def _start(self, *_) -> None:
+        from napari.qt.threading import thread_worker
+        from napari.utils import progress
+
+        if self._worker is not None or self.problem() is not None:
+            return
+        self._stop_requested.clear()
+        self._result_message = self._outcome = None
+        self._run.enabled = False
+        self._stop.enabled = True
+        self._status.value = "running…"
+        self._bar.max, self._bar.value = 1, 0
+        self._timing.value = self._counts = ""
+        self._started = time.perf_counter()
+        try:
+            job = self.prepare()
+        except (ValueError, OSError) as error:
+            self._on_errored(error)
+            self._on_finished()
+            return
+        # Made here, before the worker runs: creating it processes events, which must not
+        # happen inside a progress callback (the job could finish in between).
+        self._progress_bar = progress(total=0, desc=self.title)
+
+        @thread_worker(connect={"returned": self.show, "errored": self._on_errored, "finished": self._on_finished}, start_thread=False)
+        def run():
+            return self.work(job, progress=self._relay.progress.emit, should_stop=self._stop_requested.is_set, report=self._relay.report.emit)
+
+        self._worker = run()
+        self._worker.start()
+
+    def _request_stop(self, *_) -> None:
+        self._stop_requested.set()
+        self._stop.enabled = False
+        if self._worker is not None:
+            self._status.value = "stopping…"
+
+    def _on_progress(self, done: int, total: int) -> None:
+        if self._worker is None or self._progress_bar is None:  # a late signal from a finished job
+            return
+        if self._progress_bar.total != total:
+            self._progress_bar.total = total
+        self._progress_bar.update(done - self._progress_bar.n)  # update() emits the value the activity dock shows
+        self._bar.max, self._bar.value = max(total, 1), min(done, max(total, 1))
+        elapsed = time.perf_counter() - self._started
+        eta = f", about {_clock(elapsed * (total - done) / done)} left" if 0 < done < total else ""
+        self._counts = f"{done}/{total}"
+        self._timing.value = f"{self._counts}, {_clock(elapsed)} elapsed{eta}"
+        if not self._stop_requested.is_set():
+            self._status.value = f"{self.title}: running"
+
+    def _on_report(self, record) -> None:
+        if self._worker is not None:
+            self.report_received(record)
+
+    def _on_errored(self, error: Exception) -> None:
+        from napari.utils.notifications import show_error, show_info
+
+        if isinstance(error, Stopped):
+            show_info(f"{self.title}: stopped")
+            self._outcome = "stopped; nothing was written"
+        else:
+            show_error(f"{self.title}: {error}")
+            self._outcome = f"error: {str(error).splitlines()[0] if str(error) else type(error).__name__}"
+
+    def _on_finished(self) -> None:
+        if self._progress_bar is not None:
+            self._progress_bar.close()
+            self._progress_bar = None
+        self._timing.value = f"{self._counts + ', ' if self._counts else ''}took {_clock(time.perf_counter() - self._started)}"
+        self._worker = None
+        self._stop.enabled = False
+        self._result_message, self._outcome = self._outcome, None
+        self._revalidate()

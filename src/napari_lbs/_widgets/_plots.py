@@ -1,0 +1,106 @@
+"""Small matplotlib plots that sit in a dock on napari's dark theme."""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["FitnessPlot", "LossPlot"]
+
+_BACKGROUND = "#262930"  # napari's dark theme
+_FOREGROUND = "#d6d0ce"
+_LOSS_COLOUR = "#4fc3f7"
+_SCORE_COLOUR = "#ffb74d"
+
+
+def _dark_canvas(*, height_px: int):
+    """A figure canvas and one axes styled for napari's dark theme, at least ``height_px`` tall."""
+    from matplotlib.backends.backend_qtagg import FigureCanvasQTAgg
+    from matplotlib.figure import Figure
+
+    figure = Figure(figsize=(3.5, 2.4), facecolor=_BACKGROUND, layout="constrained")
+    canvas = FigureCanvasQTAgg(figure)
+    canvas.setMinimumHeight(height_px)
+    axes = figure.add_subplot(111)
+    return canvas, axes
+
+
+def _style(axes) -> None:
+    axes.set_facecolor(_BACKGROUND)
+    axes.tick_params(colors=_FOREGROUND, labelsize=8)
+    axes.xaxis.label.set_color(_FOREGROUND)
+    axes.yaxis.label.set_color(_FOREGROUND)
+    for spine in axes.spines.values():
+        spine.set_color(_FOREGROUND)
+
+
+def _legend(axes, handles) -> None:
+    legend = axes.legend(handles=handles, loc="upper right", fontsize=7, facecolor=_BACKGROUND, edgecolor=_FOREGROUND, labelcolor=_FOREGROUND)
+    legend.get_frame().set_alpha(0.8)
+
+
+class LossPlot:
+    """Training loss per batch and synthetic-validation JI per epoch, redrawn as records arrive."""
+
+    def __init__(self) -> None:
+        self.canvas, self.loss_axes = _dark_canvas(height_px=200)
+        self.ji_axes = self.loss_axes.twinx()
+        self.clear()
+
+    def clear(self) -> None:
+        self.batches, self.epochs = [], []
+        self._draw()
+
+    def add(self, record: dict) -> None:
+        """One record of `train_model`'s ``report`` (a batch's ``loss`` or an epoch's ``validation``)."""
+        if "loss" in record:
+            self.batches.append(record["loss"])
+        if "validation" in record:
+            self.epochs.append((len(self.batches), record["validation"]["ji"]))
+        self._draw()
+
+    def _draw(self) -> None:
+        from matplotlib.ticker import MaxNLocator
+
+        self.loss_axes.clear()
+        self.ji_axes.clear()
+        for axes in (self.loss_axes, self.ji_axes):
+            _style(axes)
+        self.loss_axes.set_xlabel("batch", fontsize=8)
+        self.loss_axes.set_ylabel("loss", fontsize=8, color=_LOSS_COLOUR)
+        self.ji_axes.set_ylabel("JI", fontsize=8, color=_SCORE_COLOUR)
+        self.loss_axes.xaxis.set_major_locator(MaxNLocator(integer=True))
+        self.ji_axes.set_ylim(0, 1)
+        handles = []
+        if self.batches:
+            handles += self.loss_axes.semilogy(np.arange(1, len(self.batches) + 1), self.batches, lw=0.8, color=_LOSS_COLOUR, label="training loss (per batch)")
+        if self.epochs:
+            x, y = zip(*self.epochs, strict=True)
+            handles += self.ji_axes.plot(x, y, "o-", color=_SCORE_COLOUR, label="validation JI (per epoch)")
+        if handles:
+            _legend(self.ji_axes, handles)
+        self.canvas.draw_idle()
+
+
+class FitnessPlot:
+    """Calibration progress: generations done, then the best ``1 - SSIM`` per generation of the run."""
+
+    def __init__(self) -> None:
+        self.canvas, self.axes = _dark_canvas(height_px=170)
+        self.show_history([])
+
+    def show_history(self, history: list[dict]) -> None:
+        """Plot a calibration's ``history`` (``generation``, ``best_fitness`` and ``run`` per record)."""
+        from matplotlib.ticker import MaxNLocator
+
+        self.axes.clear()
+        _style(self.axes)
+        self.axes.set_xlabel("generation", fontsize=8)
+        self.axes.set_ylabel("best 1 − SSIM", fontsize=8)
+        self.axes.xaxis.set_major_locator(MaxNLocator(integer=True))
+        handles = []
+        for run in sorted({record.get("run", 0) for record in history}):
+            records = [r for r in history if r.get("run", 0) == run]
+            handles += self.axes.plot([r["generation"] for r in records], [r["best_fitness"] for r in records], "o-", ms=3, lw=1, color=_LOSS_COLOUR if run == 0 else None, label=f"run {run + 1}")
+        if handles:
+            _legend(self.axes, handles)
+        self.canvas.draw_idle()

@@ -1,0 +1,76 @@
+"""Step 5: hologram + model → a Points layer of particles on the reconstruction planes (µm)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from magicgui.widgets import ComboBox, create_widget
+
+from napari_lbs._core import load_config, match_particles, predict_particles, read_particles, score_particles
+from napari_lbs._layers import PlaneGrid, particle_points
+from napari_lbs._widgets._backprop import HOLOGRAM_TOOLTIP
+from napari_lbs._widgets._base import StepWidget, chosen, config_problem, doc_of, hologram_data, hologram_problem, missing, path_edit
+
+__all__ = ["PredictionWidget"]
+
+_FOUND = (0.0, 0.9, 1.0, 1.0)  # cyan, without a reference
+_TRUE_POSITIVE = (0.2, 1.0, 0.2, 1.0)
+_FALSE_POSITIVE = (1.0, 0.2, 0.2, 1.0)
+
+
+class PredictionWidget(StepWidget):
+    """Hologram + model → Points layer (z, y, x in µm) with diameter, depth and score; optional scoring."""
+
+    title = "prediction"
+
+    def __init__(self, napari_viewer) -> None:
+        import napari
+
+        self.hologram = create_widget(annotation=napari.layers.Image, label="hologram", name="hologram", options={"tooltip": HOLOGRAM_TOOLTIP})
+        self.model = path_edit(label="model file", name="model", filter="*.pt", value="lbs-model.pt", tooltip=doc_of(predict_particles, "model"))
+        self.config = path_edit(label="config (empty: model's)", name="config", filter="*.toml", tooltip=doc_of(predict_particles, "config"))
+        self.device = ComboBox(label="device", name="device", choices=["auto", "cpu", "cuda"], value="auto", tooltip="auto: CUDA when available, else the CPU")
+        self.reference = path_edit(label="truth CSV (optional)", name="reference", filter="*.csv",
+                                   tooltip="A true particle table: predictions are then coloured true (green) / false (red) positives, misses shown, ER and JI reported")
+        super().__init__(napari_viewer, [self.hologram, self.model, self.config, self.device, self.reference])
+
+    def problem(self):
+        model = chosen(self.model)
+        if model is None:
+            return "model file: choose a model (.pt) that Training wrote"
+        return hologram_problem(self.hologram.value) or missing(self.model, "model") or missing(self.reference, "reference") or config_problem(self.config)
+
+    def prepare(self):
+        config = load_config(chosen(self.config)) if chosen(self.config) is not None else None
+        reference = read_particles(chosen(self.reference)) if chosen(self.reference) is not None else None
+        layer = self.hologram.value
+        return hologram_data(layer), chosen(self.model), config, self.device.value, reference, layer.name, tuple(layer.translate[-2:])
+
+    def work(self, job, *, progress, should_stop, report):
+        hologram, model, config, device, reference, name, origin = job
+        result = predict_particles(hologram, model, config, device=device, progress=progress, should_stop=should_stop)
+        return result, reference, name, origin
+
+    def show(self, outcome):
+        result, reference, name, origin = outcome
+        first, last, count = result.provenance["planes_um"]
+        grid = PlaneGrid.of_planes(np.linspace(first, last, int(count)), pixel_um=result.provenance["config"]["optics"]["pixel_um"], origin_um=origin)
+        data, keywords = particle_points(result.particles, grid)
+        metadata = {"provenance": result.provenance, "source": name}
+        colours = np.tile(np.array([_FOUND]), (len(data), 1))
+        message = f"{len(data)} particles in {result.seconds:.1f} s"
+        if reference is not None:
+            metrics = score_particles(result.particles, reference)
+            matched = match_particles(result.particles, reference)
+            colours[:] = _FALSE_POSITIVE
+            for p, _ in matched:
+                colours[p] = _TRUE_POSITIVE
+            missed = sorted(set(range(len(reference["x_um"]))) - {t for _, t in matched})
+            if missed:
+                missed_data, missed_keywords = particle_points({k: np.asarray(reference[k])[missed] for k in ("x_um", "y_um", "z_um", "diameter_um")}, grid)
+                self._viewer.add_points(missed_data, **missed_keywords, name="missed (FN)", border_color="yellow", border_width=0.15, metadata={"source": "reference"})
+            metadata["metrics"] = metrics
+            message += f"; ER {100 * metrics['er']:.1f} %, JI {metrics['ji']:.3f} (one-to-one)"
+        self._viewer.add_points(data, **keywords, border_color=colours if len(data) else "cyan", border_width=0.15, name=f"{name} particles", metadata=metadata)
+        self.done(message)
