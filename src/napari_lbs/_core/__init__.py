@@ -55,6 +55,7 @@ _NAMES = {
     "_validation": (
         "HOLO_PARAM_RANGES", "check_intensity_image", "check_holo_params", "check_calibration", "check_memory", "check_disk", "read_text",
         "read_json_object", "check_output_path", "check_dataset_manifest", "check_model_payload", "check_prediction_meta", "load_resume_state",
+        "check_resume_matches",
     ),
 }
 _MODULE_OF = {name: module for module, names in _NAMES.items() for name in names}

@@ -57,7 +57,7 @@ from napari_lbs._core._metrics import depth_errors_um, score_particles
 from napari_lbs._core._network import FORMULATIONS, PRESETS, build_network, focus_maps, network_outputs, resolve_device, save_model
 from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
 from napari_lbs._core._synthesis import LABEL_SCALE
-from napari_lbs._core._validation import load_resume_state
+from napari_lbs._core._validation import check_resume_matches, load_resume_state
 
 __all__ = ["TrainingSettings", "TrainingResult", "train_model", "THRESHOLD_FRACTIONS", "FOCUS_THRESHOLDS"]
 
@@ -448,10 +448,8 @@ def train_model(
     first_epoch = 0
     if resume and state_path.is_file():
         state = load_resume_state(state_path)  # corrupt, foreign or code-carrying files are refused, naming the file
+        check_resume_matches(state, log, name=str(state_path), free=("epochs", "minutes", "patience"))
         previous = json.loads(state["log"])
-        ignored = {"epochs": 0, "minutes": 0, "patience": 0}
-        if previous["settings"] | ignored != json.loads(json.dumps(log["settings"])) | ignored or previous["dataset"] != json.loads(json.dumps(log["dataset"])):
-            raise InputError(f"{state_path}: was made with other settings or data; train afresh or delete it")
         network.load_state_dict(state["state_dict"])
         optimizer.load_state_dict(state["optimizer"])
         rng.bit_generator.state = json.loads(state["numpy_rng"])

@@ -35,6 +35,7 @@ __all__ = [
     "check_model_payload",
     "check_prediction_meta",
     "load_resume_state",
+    "check_resume_matches",
 ]
 
 # Holo-processing parameters (`HoloParams`): the noise mean as a multiple of the hologram's
@@ -401,3 +402,34 @@ def load_resume_state(path: str | Path) -> dict:
     if not isinstance(log, dict) or not isinstance(log.get("settings"), dict) or "dataset" not in log or not isinstance(rng, dict):
         raise InputError(f"{path}: its log has no settings or data set; {remedy}")
     return state
+
+
+def check_resume_matches(state: dict, log: dict, *, name: str, free: Collection[str]) -> None:
+    """Refuse to resume from a training state made otherwise, or one that has nothing left to do.
+
+    Parameters
+    ----------
+    state : dict
+        From `load_resume_state`.
+    log : dict
+        The new run's log so far, with its ``settings`` and ``dataset``.
+    name : str
+        The state file, for messages.
+    free : collection of str
+        Settings that may change between the runs (the budget: epochs, minutes, patience).
+
+    Raises
+    ------
+    InputError
+        Naming the first setting that differs (``device='auto', the state has 'cpu'``), a
+        different data set, or ``epochs`` no larger than the epochs the state has finished.
+    """
+    previous = json.loads(state["log"])
+    current = json.loads(json.dumps(log["settings"]))
+    for key in sorted(set(previous["settings"]) | set(current)):
+        if key not in free and previous["settings"].get(key) != current.get(key):
+            raise InputError(f"{name}: was made with {key}={previous['settings'].get(key)!r}, this run has {current.get(key)!r}; use the same setting or delete it to train afresh")
+    if previous["dataset"] != json.loads(json.dumps(log["dataset"])):
+        raise InputError(f"{name}: was made with another data set (or other groups of it); delete it to train afresh")
+    if state["epoch"] >= current["epochs"]:
+        raise InputError(f"{name}: has finished {state['epoch']} epochs already; ask for more epochs to continue (epochs={current['epochs']})")
