@@ -27,7 +27,7 @@ class DiagnosisWidget(StepWidget):
         self.config = path_edit(label="config (empty: default)", name="config", filter="*.toml", tooltip=CONFIG_TOOLTIP)
         self.tile = SpinBox(label="tile px (0: tile.size)", name="tile", value=0, min=0, max=8192, tooltip="Edge of the non-overlapping tiles the hologram is cut into (pixels); at least 4 tiles")
         self.sim_tiles = SpinBox(label="simulated tiles", name="sim_tiles", value=8, min=2, max=256, tooltip="Simulated tiles per model of the experiment (more: a steadier gap, slower)")
-        self.evaluations = SpinBox(label="evaluations per fit", name="evaluations", value=40, min=5, max=10000, tooltip="Evaluations of each effect's fit (more: better fitted parameters, slower)")
+        self.evaluations = SpinBox(label="evaluations per fit", name="evaluations", value=40, min=8, max=10000, tooltip="Evaluations of each effect's fit (more: better fitted parameters, slower)")
         self.seed = SpinBox(label="seed", name="seed", value=0, min=0, max=2**31 - 1, tooltip="Seeds the simulated tiles and the fits")
         self.output = path_edit(label="report folder", name="output", mode="d", value="lbs-diagnosis", tooltip="report.json (CONTRACT.md), report.md and figures are written here")
         super().__init__(napari_viewer, [self.hologram, self.config, self.tile, self.sim_tiles, self.evaluations, self.seed, self.output])
