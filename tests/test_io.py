@@ -24,7 +24,7 @@ def test_shipped_sample_is_bit_identical_to_the_seed_bmp(real_hologram_bmp):
 @pytest.mark.parametrize(
     ("array", "message"),
     [
-        (np.zeros((4, 64, 64)), "expected a 2-D image"),
+        (np.zeros((4, 64, 64)), "holds 4 pages"),
         (np.zeros((8, 8)), "at least 16x16"),
         (np.where(np.eye(32) > 0, np.nan, 1.0), "NaN"),
         (np.zeros((32, 32), np.uint8), "every pixel is 0"),

@@ -169,14 +169,20 @@ def read_hologram(path: str | Path, *, channel: int | None = None, log: Callable
         if suffix in (".tif", ".tiff"):
             import tifffile
 
-            image = tifffile.imread(path)
+            with tifffile.TiffFile(path) as handle:
+                pages = len(handle.pages)
+                image = handle.asarray()
         else:
             from PIL import Image
 
             with Image.open(path) as handle:
-                image = np.asarray(handle)
+                pages = getattr(handle, "n_frames", 1)
+                # a palette image stores indices into a colour table: its colours are the intensities
+                image = np.asarray(handle.convert("RGB") if handle.mode in ("P", "PA") else handle)
     except Exception as error:  # any decoder failure is the file's fault: say which file
         raise InputError(f"{path}: cannot be read as an image ({type(error).__name__}: {error})") from None
+    if pages > 1:
+        raise InputError(f"{path}: holds {pages} pages; expected one hologram (split the pages into files)")
     return as_hologram(image, name=str(path), channel=channel, log=log)
 
 

@@ -38,8 +38,8 @@ def _positions(table: Mapping[str, np.ndarray], name: str) -> np.ndarray:
 
 
 def _feasible_distances(pred, truth, lateral_tol_um, axial_tol_um):
-    if lateral_tol_um <= 0 or axial_tol_um <= 0:
-        raise InputError(f"tolerances: expected positive values, got lateral {lateral_tol_um}, axial {axial_tol_um}")
+    if not (0 < lateral_tol_um < np.inf and 0 < axial_tol_um < np.inf):  # NaN fails every comparison: refused too
+        raise InputError(f"tolerances: expected positive finite values, got lateral {lateral_tol_um}, axial {axial_tol_um}")
     lateral = np.hypot(pred[:, None, 0] - truth[None, :, 0], pred[:, None, 1] - truth[None, :, 1])
     axial = np.abs(pred[:, None, 2] - truth[None, :, 2])
     # A hair of slack so a distance equal to the tolerance matches despite float round-off.
