@@ -368,3 +368,22 @@ def test_training_warns_of_an_incomplete_data_set_and_refuses_a_corrupt_resume_f
     line = capsys.readouterr().err.strip().splitlines()[-1]  # after the incomplete set's warning
     assert "m.last.pt" in line and "train without --resume" in line
     assert (tmp_path / "m.pt").read_bytes() == model_before
+
+
+@pytest.mark.parametrize("command", ["backprop", "calibrate", "diagnose"])
+def test_sigterm_during_a_long_command_leaves_nothing(tmp_path, command):
+    from napari_lbs._core import sample_hologram_path
+
+    config = tmp_path / "c.toml"
+    assert main(["config", "--write", str(config)]) == 0
+    out = tmp_path / {"backprop": "stack.tif", "calibrate": "calib.json", "diagnose": "report"}[command]
+    process = subprocess.Popen([sys.executable, "-m", "napari_lbs._cli", command, str(sample_hologram_path()), "--config", str(config), "--out", str(out)],
+                               stderr=subprocess.PIPE, text=True)
+    # the RGB sample's channel message comes once the command runs, with the SIGTERM handler in place
+    assert "reduced to its red channel" in process.stderr.readline()
+    time.sleep(1.0)
+    process.send_signal(signal.SIGTERM)
+    _, stderr = process.communicate(timeout=120)
+    assert process.returncode == 130, stderr
+    assert "interrupted" in stderr and "Traceback" not in stderr
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["c.toml"]
