@@ -57,7 +57,8 @@ def run_to_end(qtbot, step):
     step._run.clicked.emit()
     qtbot.waitUntil(lambda: step._worker is None, timeout=TIMEOUT_MS)
     assert step._progress_bar is None and not step._stop.enabled
-    assert not step._status.value.startswith("error"), step._status.value
+    assert not step._status.value.startswith("error") and "running" not in step._status.value, step._status.value
+    assert "took" in step._timing.value, step._timing.value
 
 
 def test_manifest_validates():

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 from magicgui.widgets import CheckBox, ComboBox, Container, FileEdit, FloatSpinBox, Label, ProgressBar, PushButton, SpinBox
 from psygnal import Signal
-from qtpy.QtCore import QObject, QSettings
+from qtpy.QtCore import QObject, QSettings, Qt
 from qtpy.QtCore import Signal as QtSignal
 from qtpy.QtWidgets import QSizePolicy
 
@@ -156,6 +156,7 @@ class StepWidget(Container):
         self._timing = Label(value="")
         self._status = wrapping_label()
         self.extend([*fields, Container(widgets=[self._run, self._stop], layout="horizontal", labels=False), self._bar, self._timing, self._status])
+        self.native.layout().setAlignment(Qt.AlignmentFlag.AlignTop)  # rows keep their height in a tall dock
         self._stop_requested = threading.Event()
         self._worker = None
         self._progress_bar = None
@@ -286,11 +287,9 @@ class StepWidget(Container):
             self._status.value = "stopping…"
 
     def _on_progress(self, done: int, total: int) -> None:
-        if self._worker is None or self._progress_bar is None:  # a late signal from a finished job
+        bar = self._progress_bar
+        if self._worker is None or bar is None:  # a late signal from a finished job
             return
-        if self._progress_bar.total != total:
-            self._progress_bar.total = total
-        self._progress_bar.update(done - self._progress_bar.n)  # update() emits the value the activity dock shows
         self._bar.max, self._bar.value = max(total, 1), min(done, max(total, 1))
         elapsed = time.perf_counter() - self._started
         eta = f", about {_clock(elapsed * (total - done) / done)} left" if 0 < done < total else ""
@@ -298,6 +297,10 @@ class StepWidget(Container):
         self._timing.value = f"{self._counts}, {_clock(elapsed)} elapsed{eta}"
         if not self._stop_requested.is_set():
             self._status.value = f"{self.title}: running"
+        # Last: napari's progress may process events, and with them this job's end.
+        if bar.total != total:
+            bar.total = total
+        bar.update(done - bar.n)  # update() emits the value the activity dock shows
 
     def _on_report(self, record) -> None:
         if self._worker is not None:

@@ -41,7 +41,7 @@ class WorkflowWidget(QWidget):
         self.diagnosis = DiagnosisWidget(napari_viewer)
         self.tabs = QTabWidget()
         self.tabs.setUsesScrollButtons(True)
-        for label, step in (("1 Stack", self.backprop), ("2 Calibrate", self.calibration), ("3 Data", self.generate), ("4 Train", self.training), ("5 Predict", self.prediction), ("6 Diagnose", self.diagnosis)):
+        for label, step in (("1 Stack", self.backprop), ("2 Calib", self.calibration), ("3 Data", self.generate), ("4 Train", self.training), ("5 Predict", self.prediction), ("6 Gap", self.diagnosis)):
             index = self.tabs.addTab(step.root_native_widget, label)
             self.tabs.setTabToolTip(index, type(step).__doc__.splitlines()[0])
         guide = QLabel("Open a hologram (File → Open Sample → LBS holography), then go through the tabs; each step's output fills the next step's input.")
