@@ -215,3 +215,16 @@ def test_settings_are_restored_as_typed(make_napari_viewer, tmp_path):
     assert dock.training.data.line_edit.value == "lbs-data"  # the stale folder fell back to the default
     dock.training.output.line_edit.value = ""
     assert not dock.training._run.enabled
+
+
+def test_an_rgb_hologram_is_reduced_with_a_notification(make_napari_viewer, qtbot, tmp_path, notifications):
+    viewer = make_napari_viewer()
+    rgb = np.zeros((64, 64, 3), np.uint8)
+    rgb[..., 0] = np.random.default_rng(0).integers(0, 255, (64, 64))
+    layer = viewer.add_image(rgb, name="colour", rgb=True, scale=(2.2, 2.2), units="µm")
+    dock = workflow_dock(viewer)
+    dock.backprop.hologram.value = layer
+    dock.backprop.config.value = tiny_config_file(tmp_path / "tiny.toml")
+    run_to_end(qtbot, dock.backprop)
+    assert any("reduced to its red channel" in m for m in notifications), notifications
+    assert viewer.layers["colour z-stack"].data.shape == (17, 64, 64)
