@@ -122,9 +122,10 @@ def main() -> None:
     settle(1.0)
     window.grab().save(str(figures / "napari_window.png"))
     # 3-D: every particle, sized by its diameter, over the stack
-    viewer.layers["I_e (experiment)"].visible = viewer.layers["I_s (synthetic)"].visible = False
-    stack.visible = False
+    for name in ("I_e (experiment)", "I_s (synthetic)", "reference ROI", stack.name):
+        viewer.layers[name].visible = False
     viewer.dims.ndisplay = 3
+    viewer.reset_view()
     viewer.scene.camera.angles = (0.0, -35.0, 60.0)
     settle(1.0)
     window.grab().save(str(figures / "napari_3d.png"))

@@ -207,12 +207,14 @@ def test_settings_are_restored_as_typed(make_napari_viewer, tmp_path):
     dock.calibration.config.line_edit.value = ""
     dock.calibration.generations.value = 7
     dock.training.data.value = tmp_path / "gone"  # a folder that will not exist at the next start
+    dock.generate.output.value = tmp_path / "to-make"  # an output folder that does not exist yet
     viewer.close()
     viewer = make_napari_viewer()
     dock = workflow_dock(viewer)
     assert dock.calibration.config.line_edit.value == "" and dock.calibration.generations.value == 7
     assert "not found" not in dock.calibration._status.value and "not found" not in dock.backprop._status.value
     assert dock.training.data.line_edit.value == "lbs-data"  # the stale folder fell back to the default
+    assert dock.generate.output.value == tmp_path / "to-make"
     dock.training.output.line_edit.value = ""
     assert not dock.training._run.enabled
 

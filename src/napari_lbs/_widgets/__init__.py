@@ -4,7 +4,6 @@
 one module per step; `_workflow` puts the six steps in one dock.
 """
 
-from napari_lbs._layers import particle_points
 from napari_lbs._widgets._backprop import BackpropWidget
 from napari_lbs._widgets._calibration import CalibrationWidget
 from napari_lbs._widgets._diagnosis import DiagnosisWidget
@@ -13,4 +12,4 @@ from napari_lbs._widgets._prediction import PredictionWidget
 from napari_lbs._widgets._training import TrainingWidget
 from napari_lbs._widgets._workflow import WorkflowWidget
 
-__all__ = ["BackpropWidget", "CalibrationWidget", "GenerateWidget", "TrainingWidget", "PredictionWidget", "DiagnosisWidget", "WorkflowWidget", "particle_points"]
+__all__ = ["BackpropWidget", "CalibrationWidget", "GenerateWidget", "TrainingWidget", "PredictionWidget", "DiagnosisWidget", "WorkflowWidget"]

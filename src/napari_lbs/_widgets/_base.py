@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from magicgui.widgets import CheckBox, ComboBox, Container, FileEdit, FloatSpinBox, Label, ProgressBar, PushButton, SpinBox
+from magicgui.widgets import ComboBox, Container, FileEdit, FloatSpinBox, Label, ProgressBar, PushButton, SpinBox
 from psygnal import Signal
 from qtpy.QtCore import QObject, QSettings, Qt
 from qtpy.QtCore import Signal as QtSignal
@@ -181,7 +181,7 @@ class StepWidget(Container):
         return QSettings("napari-lbs", type(self).__name__)
 
     def _persisted(self) -> list:
-        return [w for w in self._fields if isinstance(w, (SpinBox, FloatSpinBox, FileEdit, CheckBox, ComboBox)) and not (isinstance(w, ComboBox) and w.choices and not isinstance(w.choices[0], str))]
+        return [w for w in self._fields if isinstance(w, (SpinBox, FloatSpinBox, FileEdit)) or (isinstance(w, ComboBox) and w.choices and isinstance(w.choices[0], str))]
 
     def _restore_settings(self) -> None:
         settings = self._settings()
@@ -192,12 +192,10 @@ class StepWidget(Container):
             stored = str(stored)
             try:
                 if isinstance(widget, FileEdit):
-                    # An input that has gone since is stale: keep the default rather than a dead path.
-                    if stored and widget.mode.value in ("r", "d") and not Path(stored).expanduser().exists():
+                    # An input (any field but "output") that has gone since is stale: keep the default.
+                    if stored and widget.name != "output" and not Path(stored).expanduser().exists():
                         continue
                     widget.line_edit.value = stored
-                elif isinstance(widget, CheckBox):
-                    widget.value = stored in ("true", "True", "1")
                 else:
                     widget.value = type(widget.value)(stored)
             except (TypeError, ValueError):
