@@ -8,7 +8,11 @@ synthetic groups only) on three kinds of synthetic data:
 
 ``plain``    the seed's simulation: opaque discs, Holo-processing (0, 0, 1), no calibration;
 ``lbs``      LBS: Holo-processing calibrated (GA, SSIM) to the pseudo-real hologram;
-``effects``  LBS plus the effects that `diagnose` names for that hologram (`effects_from_report`).
+``effects``  LBS plus the effects that `diagnose` names for that hologram (`effects_from_report`);
+``transparent`` as ``effects``, plus transparent spheres stated from the physics rather than
+             fitted: ``particle_phase`` with the phase delay through a 25 µm polystyrene sphere in
+             water, 2π/λ · (1.59 − 1.33) · 25 µm = 62 rad, transmission 1 (what a user who knows
+             the sample would add with ``generate --effect``).
 
 Each model predicts the pseudo-real hologram at the real hologram's density (~100 spheres in
 1024²) and at 4× that; one-to-one ER/JI (22 µm, 150 µm) and |Δz| of the matches are printed.
@@ -53,6 +57,7 @@ from napari_lbs._core import (  # noqa: E402
 )
 
 DENSITIES = {"real density": 100, "4x density": 400}
+TRANSPARENT = {"particle_phase": {"phase_rad": round(2 * np.pi / pseudoreal.WAVELENGTH_UM * (pseudoreal.N_PARTICLE - pseudoreal.N_MEDIUM) * 25.0, 1), "transmission": 1.0}}
 
 
 def _hologram(folder: Path, name: str, count: int, seed: int) -> tuple[np.ndarray, dict]:
@@ -88,7 +93,7 @@ def run(out: Path, groups: int, epochs: int) -> dict:
     effects = effects_from_report(report, name=str(report_path))
 
     lbs = InputProcessing.from_calibration(calibration)
-    stages = {"plain": (InputProcessing(), {}), "lbs": (lbs, {}), "effects": (lbs, effects)}
+    stages = {"plain": (InputProcessing(), {}), "lbs": (lbs, {}), "effects": (lbs, effects), "transparent": (lbs, {**effects, **TRANSPARENT})}
     results = {"calibration": calibration["params"], "ssim": calibration["ssim"], "verdict": report["verdict"], "waterfall": report["waterfall"], "effects": effects, "stages": {}}
     for stage, (processing, stage_effects) in stages.items():
         model_path = out / f"{stage}.pt"

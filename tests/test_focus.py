@@ -264,3 +264,25 @@ def test_model_files_load_without_code_and_old_files_keep_their_formulation(focu
     (tmp_path / "bad.pt").write_bytes(buffer.getvalue())
     with pytest.raises(InputError, match="unknown formulation 'magic'"):
         load_model(tmp_path / "bad.pt")
+
+
+def test_tile_normalisation_is_each_tiles_own_at_its_centre_and_stays_in_range():
+    from napari_lbs._core import experimental_planes, tile_layout, tile_normalisation
+
+    rng = np.random.default_rng(4)
+    raw = rng.gamma(4.0, 0.25, (3, 80, 70)).astype(np.float32)
+    raw[:, :, 40:] *= 3.0  # tiles with other statistics on the right
+    size = 33  # odd: each tile's centre is a pixel
+    layout = (tile_layout(80, size=size, margin=4), tile_layout(70, size=size, margin=4))
+    for invert, mode in ((True, "robust"), (False, "seed")):
+        normalised = raw.copy()
+        tile_normalisation(normalised, layout, size, invert=invert, mode=mode)
+        assert normalised.min() >= 0.0 and normalised.max() <= 1.0
+        for r, _, _ in layout[0]:
+            for c, _, _ in layout[1]:
+                own = experimental_planes(raw[:, r : r + size, c : c + size], invert=invert, mode=mode)
+                np.testing.assert_allclose(normalised[:, r + size // 2, c + size // 2], own[:, size // 2, size // 2], atol=1e-5)
+    # one tile: exactly the tile's own normalisation everywhere
+    single = raw[:, :32, :32].copy()
+    tile_normalisation(single, ([(0, 0, 32)], [(0, 0, 32)]), 32, invert=True, mode="robust")
+    np.testing.assert_allclose(single, experimental_planes(raw[:, :32, :32], invert=True, mode="robust"), atol=1e-6)

@@ -316,7 +316,7 @@ def _predict_outputs(args) -> tuple[Path, Path]:
 
 
 def _cmd_predict(args) -> None:
-    from napari_lbs._core import check_prediction_meta, load_config, load_model, predict_particles, write_json, write_particles
+    from napari_lbs._core import load_config, load_model, predict_particles, write_json, write_particles
 
     out, provenance = _predict_outputs(args)
     for path in (out, provenance):
@@ -324,7 +324,6 @@ def _cmd_predict(args) -> None:
     config = load_config(args.config) if args.config else None
     hologram, background = _read_inputs(args)
     model = load_model(args.model, device=args.device)
-    check_prediction_meta(model.meta, name=str(args.model))
     result = predict_particles(hologram, model, config, background=background, progress=_ProgressBar("predict"))
     write_particles(out, result.particles)
     write_json(provenance, {**result.provenance, "source": str(args.holo), "background_file": args.background, "particles": str(out)})

@@ -44,7 +44,7 @@ _NAMES = {
         "network_outputs", "resolve_device", "save_model",
     ),
     "_optics": ("backpropagate", "padded_shape", "propagate", "propagation_grid", "set_transfer_cache_limit", "superpose", "transfer_function"),
-    "_prediction": ("PredictionResult", "predict_particles", "tile_layout"),
+    "_prediction": ("PredictionResult", "predict_particles", "tile_layout", "tile_normalisation"),
     "_progress": ("Stopped",),
     "_samples": ("SAMPLE_PROVENANCE", "load_sample_hologram", "sample_hologram_path"),
     "_synthesis": (

@@ -38,7 +38,7 @@ from scipy import ndimage
 
 from napari_lbs._core._io import InputError
 from napari_lbs._core._optics import superpose
-from napari_lbs._core._synthesis import ParticleField, disc_coverage, layer_images, simulate_hologram
+from napari_lbs._core._synthesis import ParticleField, layer_images, simulate_hologram
 
 __all__ = [
     "Effect",
@@ -102,17 +102,46 @@ def _param(effects: dict, effect: str, name: str) -> float:
     return float(effects.get(effect, EFFECTS[effect].neutral)[name])
 
 
+_SPHERE_SUPERSAMPLE = 4  # fine samples per pixel and axis for a sphere's transmission
+_SPHERE_PATCH_PX = 64  # edge of the patch (pixels) holding one sphere's band-limited field
+
+
 def _sphere_fields(field: ParticleField, depth: float, *, transmission: float, phase_rad: float) -> np.ndarray:
-    """Scattered field ``t - 1`` of the spheres of one layer, ``t = τ exp(iφ0 sqrt(1 - (r/R)²))`` inside."""
+    """Scattered field ``t - 1`` of the spheres of one layer, ``t = τ exp(iφ0 sqrt(1 - (r/R)²))`` inside, band-limited.
+
+    A sphere tens of radians thick bends light far beyond the angles a pixel grid can hold
+    (the ball-lens focus of a polystyrene sphere sends it out at ~20°); sampled at pixel
+    centres, that light aliases into a pattern no camera records. So the transmission is
+    sampled ``_SPHERE_SUPERSAMPLE`` times finer, low-passed to the pixel grid's band
+    (|f| < 1/(2 pixel)) and sampled at the pixel centres: what propagates within the recorded
+    bandwidth, and no more. Measured against Lorenz–Mie theory (polystyrene, n 1.59, in water,
+    d 25 µm at 3 mm, pixel-integrated): φ0 = 62 rad gives the Mie sphere's bright focal spot
+    and hologram correlation 0.97, where point sampling gave 0.75.
+    """
+    fine = _SPHERE_SUPERSAMPLE
+    half = _SPHERE_PATCH_PX // 2
+    rows, cols = field.shape
+    out = np.zeros(field.shape, np.complex64)
+    frequencies = np.fft.fftfreq(_SPHERE_PATCH_PX * fine, d=1.0 / fine)  # cycles per pixel
+    in_band = np.abs(frequencies) <= 0.5
+    offsets = np.arange(-half * fine, half * fine) / fine  # pixels, pixel centres at multiples of 1
     mask = field.z_um == depth
-    coverage = disc_coverage(field.shape, field.x_um[mask], field.y_um[mask], field.diameter_um[mask], pixel_um=field.pixel_um)
-    profile = np.zeros(field.shape, np.float32)  # normalised thickness of the sphere under each pixel
-    rows, cols = np.indices(field.shape, dtype=np.float32)
     for x, y, d in zip(field.x_um[mask], field.y_um[mask], field.diameter_um[mask], strict=True):
-        r2 = ((cols - x / field.pixel_um) ** 2 + (rows - y / field.pixel_um) ** 2) / (d / 2 / field.pixel_um) ** 2
-        np.maximum(profile, np.sqrt(np.clip(1 - r2, 0, 1)), out=profile)
-    transmitted = transmission * np.exp(1j * phase_rad * profile)
-    return (coverage * (transmitted - 1.0)).astype(np.complex64)
+        col, row, radius = x / field.pixel_um, y / field.pixel_um, d / 2 / field.pixel_um
+        col0, row0 = int(round(col)), int(round(row))
+        r2 = ((offsets[None, :] + col0 - col) ** 2 + (offsets[:, None] + row0 - row) ** 2) / radius**2
+        inside = r2 <= 1.0
+        scattered = np.zeros(r2.shape, np.complex128)
+        scattered[inside] = transmission * np.exp(1j * phase_rad * np.sqrt(1.0 - r2[inside])) - 1.0
+        spectrum = np.fft.fft2(scattered)
+        spectrum *= in_band[:, None] & in_band[None, :]
+        patch = np.fft.ifft2(spectrum)[::fine, ::fine]  # the band-limited field at the pixel centres
+        r0, c0 = row0 - half, col0 - half
+        rr0, cc0 = max(r0, 0), max(c0, 0)
+        rr1, cc1 = min(r0 + _SPHERE_PATCH_PX, rows), min(c0 + _SPHERE_PATCH_PX, cols)
+        if rr0 < rr1 and cc0 < cc1:
+            out[rr0:rr1, cc0:cc1] += patch[rr0 - r0 : rr1 - r0, cc0 - c0 : cc1 - c0]
+    return out
 
 
 def optical_hologram(field: ParticleField, effects: dict, *, wavelength_um: float, medium_index: float = 1.0) -> np.ndarray:

@@ -42,6 +42,7 @@ import scipy.fft
 
 from napari_lbs._core._io import InputError
 from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
+from napari_lbs._core._validation import check_memory
 
 __all__ = [
     "padded_shape",
@@ -389,6 +390,8 @@ def backpropagate(
         normalised = hologram.astype(real_dtype) / background
     expected = (distances.size,) + hologram.shape
     if out is None:
+        check_memory(float(np.prod(expected)) * np.dtype(real_dtype).itemsize, what=f"{distances.size} planes of {hologram.shape[0]}x{hologram.shape[1]} pixels",
+                     remedy="raise volume.z_step_um, crop the hologram or pass out= (a memory-mapped array)")
         out = np.empty(expected, dtype=real_dtype)
     elif out.shape != expected:
         raise InputError(f"out: expected shape {expected}, got {out.shape}")

@@ -8,6 +8,13 @@ nearest. A particle on a tile edge is thus seen whole by a neighbouring tile. Th
 output planes are decoded plane chunk by plane chunk — `PeakDecoder` then `suppress` for the
 ``focus`` formulation, whose input planes reach ``context`` planes beyond the requested depths;
 `PlaneLinker` for the ``seed`` formulation — so memory stays bounded whatever the depth.
+
+The ``focus`` formulation runs its fully convolutional network on windows of up to
+``_WINDOW_PX`` (the whole of a 1024² hologram at once) instead of overlapping training-size
+tiles, which on 1024² costs 1.56× the pixels. Its inputs are still normalised as in training:
+the min and max of every training-size tile of a plane, interpolated bilinearly between the
+tile centres (`tile_normalisation`), so each pixel sees the statistics of the tiles around it
+and no seam appears where tiles meet.
 """
 
 from __future__ import annotations
@@ -27,10 +34,13 @@ from napari_lbs._core._io import InputError, as_hologram
 from napari_lbs._core._network import LoadedModel, check_model_matches, focus_maps, load_model, network_outputs
 from napari_lbs._core._optics import backpropagate
 from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
+from napari_lbs._core._validation import check_prediction_meta
 
-__all__ = ["PredictionResult", "predict_particles", "tile_layout"]
+__all__ = ["PredictionResult", "predict_particles", "tile_layout", "tile_normalisation"]
 
 _PLANES_PER_CHUNK = 8
+_WINDOW_PX = 1024  # network window edge at inference (focus formulation)
+_WINDOW_PIXELS_PER_BATCH = 8 * 256 * 256  # input planes per network call, in pixels: bounds activation memory
 
 
 @dataclass
@@ -97,6 +107,7 @@ def predict_particles(
             raise InputError(f"background: expected the hologram's shape {hologram.shape}, got {background.shape}")
     loaded = model if isinstance(model, LoadedModel) else load_model(model, device=device)
     meta = loaded.meta
+    check_prediction_meta(meta, name=str(loaded.path or "model"))
     config = config if config is not None else loaded.config
     planes = [float(z) for z in (planes_um if planes_um is not None else config.volume.planes_um())]
     check_model_matches(meta, config, planes_um=planes)
@@ -105,8 +116,10 @@ def predict_particles(
     layout = (tile_layout(hologram.shape[0], size=size, margin=margin_px), tile_layout(hologram.shape[1], size=size, margin=margin_px))
     optics = {"wavelength_um": config.optics.wavelength_um, "pixel_um": config.optics.pixel_um, "medium_index": config.optics.medium_index}
     steps = Steps(len(planes), progress=progress, should_stop=should_stop)
-    decode = _decode_focus if loaded.formulation == "focus" else _decode_seed
-    particles, details = decode(hologram, loaded, planes, layout, background=background, optics=optics, steps=steps)
+    if loaded.formulation == "focus":
+        particles, details = _decode_focus(hologram, loaded, planes, layout, background=background, optics=optics, steps=steps, margin_px=margin_px)
+    else:
+        particles, details = _decode_seed(hologram, loaded, planes, layout, background=background, optics=optics, steps=steps)
     rows, cols = layout
     seconds = time.perf_counter() - start_time
     provenance = {
@@ -145,6 +158,51 @@ def _tiles(stack: np.ndarray, layout, size: int) -> list[np.ndarray]:
     return [stack[:, r : r + size, c : c + size] for r, _, _ in rows for c, _, _ in cols]
 
 
+def _interpolation_matrix(length: int, layout: list[tuple[int, int, int]], size: int) -> np.ndarray:
+    """``(length, tiles)`` weights interpolating values at the tiles' centres linearly, constant beyond the outer ones."""
+    centres = np.array([start + (size - 1) / 2 for start, _, _ in layout])
+    position = np.interp(np.arange(length), centres, np.arange(len(centres), dtype=np.float64))
+    lower = np.minimum(position.astype(int), len(centres) - 1)
+    upper = np.minimum(lower + 1, len(centres) - 1)
+    weights = np.zeros((length, len(centres)), np.float32)
+    np.add.at(weights, (np.arange(length), lower), 1.0 - (position - lower))
+    np.add.at(weights, (np.arange(length), upper), position - lower)
+    return weights
+
+
+def tile_normalisation(stack: np.ndarray, layout, size: int, *, invert: bool, mode: str) -> None:
+    """Normalise raw planes in place as `experimental_planes` normalises a tile, with per-tile statistics interpolated.
+
+    Each plane's min and max over every ``size`` tile of ``layout`` (`tile_layout` along rows
+    and columns) are interpolated bilinearly between the tile centres; the plane is stretched
+    to [0, 1] with them (clipped), floored to 8-bit steps in ``seed`` mode and inverted with
+    ``invert``. At a tile's centre this is exactly that tile's own normalisation.
+
+    Parameters
+    ----------
+    stack : (planes, rows, cols) float32 array
+        Raw reconstruction magnitudes; overwritten.
+    layout : (rows layout, cols layout)
+        `tile_layout` of each axis for tiles of ``size``.
+    """
+    rows, cols = layout
+    along_rows, along_cols = _interpolation_matrix(stack.shape[1], rows, size), _interpolation_matrix(stack.shape[2], cols, size)
+    for plane in stack:
+        tiles = np.stack([plane[r : r + size, c : c + size] for r, _, _ in rows for c, _, _ in cols])
+        low = tiles.min(axis=(1, 2)).reshape(len(rows), len(cols))
+        high = tiles.max(axis=(1, 2)).reshape(len(rows), len(cols))
+        low_map = along_rows @ low @ along_cols.T
+        span_map = along_rows @ (high - low) @ along_cols.T
+        plane -= low_map
+        plane /= np.where(span_map > 0, span_map, 1.0)
+        np.clip(plane, 0.0, 1.0, out=plane)
+        if mode == "seed":
+            np.floor(plane * 255.0, out=plane)
+            plane /= 255.0
+        if invert:
+            np.subtract(1.0, plane, out=plane)
+
+
 def _decode_seed(hologram, loaded: LoadedModel, planes, layout, *, background, optics, steps) -> tuple[dict, dict]:
     """The seed formulation: each plane's tiles through the network, `PlaneLinker` through depth."""
     meta = loaded.meta
@@ -165,7 +223,7 @@ def _decode_seed(hologram, loaded: LoadedModel, planes, layout, *, background, o
     return linker.particles(), {}
 
 
-def _decode_focus(hologram, loaded: LoadedModel, planes, layout, *, background, optics, steps) -> tuple[dict, dict]:
+def _decode_focus(hologram, loaded: LoadedModel, planes, layout, *, background, optics, steps, margin_px: int) -> tuple[dict, dict]:
     """The focus formulation: context planes in, 3-D peaks of the centre probability, one particle per peak."""
     meta = loaded.meta
     size, step = int(meta["tile_size"]), float(meta["step_um"])
@@ -177,21 +235,29 @@ def _decode_focus(hologram, loaded: LoadedModel, planes, layout, *, background, 
     extended = [planes[0] + i * step for i in range(-reach, 0)] + list(planes) + [planes[-1] + i * step for i in range(1, reach + 1)]
     if extended[0] <= 0:
         raise InputError(f"volume.z_min_um: the model's context needs planes {reach * step:g} um nearer the sensor than {planes[0]:g} um")
-    stack = backpropagate(hologram, extended, background=background, **optics)
+    stack = backpropagate(hologram, extended, background=background, **optics).astype(np.float32, copy=False)
+    tile_normalisation(stack, layout, size, invert=invert, mode=mode)
+    window_size = (min(_WINDOW_PX, hologram.shape[0]), min(_WINDOW_PX, hologram.shape[1]))
+    window_rows = tile_layout(hologram.shape[0], size=window_size[0], margin=margin_px)
+    window_cols = tile_layout(hologram.shape[1], size=window_size[1], margin=margin_px)
+    windows = (window_rows, window_cols)
+    batch_size = max(1, _WINDOW_PIXELS_PER_BATCH // (window_size[0] * window_size[1]))
     decoder = PeakDecoder(planes, pixel_um=optics["pixel_um"], step_um=step)
     for first in range(0, len(planes), _PLANES_PER_CHUNK):
         steps.check()
         centres = list(range(first, min(first + _PLANES_PER_CHUNK, len(planes))))
         low, high = centres[0], centres[-1] + 2 * reach + 1  # extended-stack planes this chunk needs
         outputs = []
-        for tile in _tiles(stack[low:high], layout, size):
-            inputs = experimental_planes(tile, invert=invert, mode=mode)
-            maps = focus_maps(loaded.network, inputs, [c - first + reach for c in centres], context=context, diameter_scale_um=float(meta["diameter_scale_um"]))
-            outputs.append(np.stack([np.stack(m[1:]) for m in maps]))  # (centres, 3, size, size)
-        stitched = _stitched(np.stack(outputs), layout, hologram.shape)
+        for r, _, _ in window_rows:
+            for c, _, _ in window_cols:
+                steps.check()
+                window = stack[low:high, r : r + window_size[0], c : c + window_size[1]]
+                maps = focus_maps(loaded.network, window, [k - first + reach for k in centres], context=context, diameter_scale_um=float(meta["diameter_scale_um"]), batch_size=batch_size)
+                outputs.append(np.stack([np.stack(m[1:]) for m in maps]))  # (centres, 3, window rows, window cols)
+        stitched = outputs[0] if len(outputs) == 1 else _stitched(np.stack(outputs), windows, hologram.shape)
         for k, centre in enumerate(centres):
             decoder.add(centre, *stitched[k])
         steps.advance(len(centres))
     axial_um = meta.get("axial_um")
     particles = suppress(decoder.candidates(), threshold=float(meta["threshold"]), lateral_um=float(meta["lateral_um"]), axial_um=float(axial_um) if axial_um is not None else np.inf)
-    return particles, {"axial_um": axial_um, "lateral_um": meta["lateral_um"], "context": context, "step_um": step}
+    return particles, {"axial_um": axial_um, "lateral_um": meta["lateral_um"], "context": context, "step_um": step, "windows": [len(window_rows), len(window_cols), *window_size]}
