@@ -124,12 +124,18 @@ def _cmd_simulate(args) -> None:
 
     config = load_config(args.config)
     out = check_output_path(args.out, flag="--out", folder=True, inputs=[args.config])
-    for name in ("hologram.tif", "particles.csv"):
+    for name in ("hologram.tif", "particles.csv") if args.frames is None else ("frames.tif", "particles.csv"):
         check_output_path(out / name, flag="--out")
     size = args.size if args.size is not None else config.tile.size
     count = args.particles if args.particles is not None else config.particles.per_tile
     grid = padded_shape((size, size), z_max_um=config.volume.z_max_um, wavelength_um=config.optics.wavelength_um, pixel_um=config.optics.pixel_um, medium_index=config.optics.medium_index)
     check_memory(_SIMULATION_BYTES_PER_PX * grid[0] * grid[1], what=f"a {size}x{size} simulation ({grid[0]}x{grid[1]} padded)", remedy="use a smaller --size")
+    if args.frames is not None:
+        _simulate_sequence(args, config, out, size=size, count=count)
+        return
+    for flag, value in (("--flow", args.flow), ("--speed-um", args.speed_um)):
+        if value is not None:
+            raise InputError(f"{flag}: describes a recording; add --frames N")
     field = random_particle_field(
         (size, size),
         count=count,
@@ -148,6 +154,29 @@ def _cmd_simulate(args) -> None:
     _summary(f"simulated a {size}x{size} hologram of {len(field)} particles -> {out / 'hologram.tif'}, {out / 'particles.csv'}")
 
 
+def _simulate_sequence(args, config, out: Path, *, size: int, count: int) -> None:
+    """``simulate --frames N``: DIR/frames.tif (one page per frame, written as it is simulated) and the truth with frame and track."""
+    import numpy as np
+    import tifffile
+
+    from napari_lbs._core import check_disk, simulate_sequence, write_particles
+    from napari_lbs._core._io import atomic_path
+
+    check_disk(args.frames * size * size * np.dtype(np.float32).itemsize, out, what=f"{args.frames} frames of {size}x{size} pixels", remedy="use fewer --frames or a smaller --size")
+    out.mkdir(parents=True, exist_ok=True)
+    flow, speed_um = args.flow or "uniform", 8.0 if args.speed_um is None else args.speed_um
+    description = json.dumps(_provenance(config, seed=args.seed, particles=count, shadowing=args.shadowing, pixel_um=config.optics.pixel_um, flow=flow, speed_um=speed_um, frames=args.frames))
+    with atomic_path(out / "frames.tif") as temporary:
+        frames = tifffile.memmap(temporary, shape=(args.frames, size, size), dtype=np.float32, description=description, metadata=None, photometric="minisblack")
+        truth = simulate_sequence(config, frames=args.frames, flow=flow, size=size, count=count, speed_um=speed_um, seed=args.seed, shadowing=args.shadowing,
+                                  out=frames, progress=_ProgressBar("simulate")).truth
+        frames.flush()
+        del frames
+    write_particles(out / "particles.csv", truth)
+    tracks = len(np.unique(truth["track"]))
+    _summary(f"simulated {args.frames} frames of {size}x{size} pixels, {count} particles in a {flow} flow ({tracks} tracks) -> {out / 'frames.tif'}, {out / 'particles.csv'}")
+
+
 def _read_inputs(args):
     from napari_lbs._core import read_hologram
 
@@ -162,7 +191,8 @@ def _read_inputs(args):
 
 def _inputs(args) -> list:
     """The files a command reads, which its outputs must never replace."""
-    return [getattr(args, name, None) for name in ("holo", "background", "config", "calibration", "model", "effects_from", "data")]
+    names = [getattr(args, name, None) for name in ("holo", "background", "config", "calibration", "model", "effects_from", "data")]
+    return [name for entry in names for name in (entry if isinstance(entry, list) else [entry])]  # predict takes several HOLO
 
 
 def _cmd_backprop(args) -> None:
@@ -301,7 +331,7 @@ def _predict_outputs(args) -> tuple[Path, Path]:
         raise ValueError(f"--out {out}: expected a particle table (.csv); its provenance is written beside it as .json")
     provenance = out.with_suffix(".json")
     targets = {out.resolve(), provenance.resolve()}
-    for flag, name in (("HOLO", args.holo), ("--model", args.model), ("--background", args.background), ("--config", args.config)):
+    for flag, name in [("HOLO", holo) for holo in args.holo] + [("--model", args.model), ("--background", args.background), ("--config", args.config)]:
         if name and Path(name).resolve() in targets:
             raise ValueError(f"--out {out}: would overwrite the input {flag} {name}")
     if provenance.is_file():
@@ -316,12 +346,17 @@ def _predict_outputs(args) -> tuple[Path, Path]:
 
 
 def _cmd_predict(args) -> None:
-    from napari_lbs._core import load_config, load_model, predict_particles, write_json, write_particles
+    from napari_lbs._core import load_config, load_model, open_frames, predict_particles, write_json, write_particles
 
     out, provenance = _predict_outputs(args)
     for path in (out, provenance):
         check_output_path(path, flag="--out", inputs=_inputs(args))
     config = load_config(args.config) if args.config else None
+    with open_frames(args.holo) as frames:
+        if len(frames) > 1:
+            _predict_sequence(args, frames, config, out, provenance)
+            return
+        args.holo = frames.name(0)  # one image: the single-hologram path
     hologram, background = _read_inputs(args)
     model = load_model(args.model, device=args.device)
     result = predict_particles(hologram, model, config, background=background, progress=_ProgressBar("predict"))
@@ -329,6 +364,43 @@ def _cmd_predict(args) -> None:
     write_json(provenance, {**result.provenance, "source": str(args.holo), "background_file": args.background, "particles": str(out)})
     count = len(result.particles["x_um"])
     _summary(f"found {count} particles in {args.holo} in {result.seconds:.1f} s -> {out} (provenance: {provenance})")
+
+
+def _predict_sequence(args, frames, config, out: Path, provenance: Path) -> None:
+    """``predict`` of a recording: one table with a ``frame`` column; finished frames kept in OUT.parts/ until the table is written."""
+    import shutil
+
+    from napari_lbs._core import load_model, predict_sequence, read_hologram, write_json, write_particles
+
+    work_dir = check_output_path(out.with_name(out.name + ".parts"), flag="--out", folder=True)
+    background = read_hologram(args.background, log=_summary) if args.background else args.sequence_background
+    model = load_model(args.model, device="cpu")  # each worker moves it to --device
+    result = predict_sequence(frames, model, config, background=background, background_window=args.background_window, workers=args.workers, scheduler=args.scheduler,
+                              work_dir=work_dir, device=args.device, progress=_ProgressBar("predict"))
+    write_particles(out, result.particles)
+    write_json(provenance, {**result.provenance, "background_file": args.background, "particles": str(out)})
+    shutil.rmtree(work_dir)
+    count, done = len(result.particles["x_um"]), result.provenance["frames"]
+    resumed = f"; {result.resumed} frames resumed from {work_dir}" if result.resumed else ""
+    _summary(f"found {count} particles in {done} frames in {result.seconds:.1f} s ({result.provenance['scheduler']}{resumed}) -> {out} (provenance: {provenance})")
+
+
+def _cmd_track(args) -> None:
+    import numpy as np
+
+    from napari_lbs._core import DISPLACEMENT_COLUMNS, link_tracks, read_particles, write_particles
+
+    out = check_output_path(args.out, flag="--out", inputs=[args.particles])
+    table = read_particles(args.particles)
+    if "frame" not in table:
+        raise InputError(f"{args.particles}: no frame column; tracks need the table of a recording (predict with several frames)")
+    tracks = link_tracks(table, search_range_um=args.search_range_um, memory=args.memory)
+    for name in DISPLACEMENT_COLUMNS:  # a track's last detection has no displacement: an empty cell
+        tracks[name] = np.array(["" if np.isnan(value) else f"{value:.9g}" for value in tracks[name]], dtype=object)
+    write_particles(out, tracks)
+    lengths = np.bincount(tracks["track"]) if tracks["track"].size else np.zeros(0, int)
+    frames = len(np.unique(tracks["frame"]))
+    _summary(f"linked {tracks['track'].size} particles of {frames} frames into {lengths.size} tracks (median length {np.median(lengths) if lengths.size else 0:g} frames) -> {out}")
 
 
 def _cmd_diagnose(args) -> None:
@@ -493,6 +565,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--particles", type=_integer(0), help="number of particles (default: particles.per_tile)")
     p.add_argument("--seed", type=_SEED, default=0)
     p.add_argument("--shadowing", action="store_true", help="propagate layer by layer so particles shadow each other")
+    p.add_argument("--frames", type=_integer(1), help="simulate a recording of N frames (DIR/frames.tif) with the truth of every frame and its tracks")
+    p.add_argument("--flow", choices=("uniform", "vortex", "shear"), help="with --frames: how the particles move (default uniform)")
+    p.add_argument("--speed-um", type=_number(0.0), help="with --frames: largest displacement of a particle between frames (µm, default 8)")
     p.set_defaults(run=_cmd_simulate)
 
     p = sub.add_parser("backprop", help="back-propagate a hologram into a float32 z-stack TIFF")
@@ -550,14 +625,27 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true", help="continue from MODEL.last.pt")
     p.set_defaults(run=_cmd_train)
 
-    p = sub.add_parser("predict", help="reconstruct the particles of a hologram with a trained model")
-    p.add_argument("holo", metavar="HOLO")
+    p = sub.add_parser("predict", help="reconstruct the particles of a hologram or a recording with a trained model")
+    p.add_argument("holo", metavar="HOLO", nargs="+", help="image files, folders of images, glob patterns, multi-page TIFFs or videos; frames numbered in this order")
     p.add_argument("--model", required=True, metavar="MODEL.pt")
     p.add_argument("--out", required=True, metavar="PARTICLES.csv")
     p.add_argument("--config", help="optics and depths (default: the model's)")
-    p.add_argument("--background", metavar="BG")
+    p.add_argument("--background", metavar="BG", help="a hologram taken without particles, divided out of every frame")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
+    p.add_argument("--sequence-background", choices=("global", "running", "none"), default="global",
+                   help="recordings without --background: divide every frame by the median of the frames (global, default), of the frames around it (running), or nothing")
+    p.add_argument("--background-window", type=_integer(1), default=21, help="frames of a running background (default 21)")
+    engine = p.add_mutually_exclusive_group()
+    engine.add_argument("--workers", type=_integer(1), help="recordings: run on a local dask cluster of N worker processes (default: the local threaded scheduler)")
+    engine.add_argument("--scheduler", metavar="ADDRESS", help="recordings: run on an existing dask.distributed scheduler (tcp://host:8786)")
     p.set_defaults(run=_cmd_predict)
+
+    p = sub.add_parser("track", help="link the particles of a recording into 3-D tracks (trackpy)")
+    p.add_argument("particles", metavar="PARTICLES.csv", help="a particle table with a frame column")
+    p.add_argument("--out", required=True, metavar="TRACKS.csv")
+    p.add_argument("--search-range-um", type=_number(0.0, above=True), default=50.0, help="largest 3-D displacement between two frames a particle is seen in (µm, default 50)")
+    p.add_argument("--memory", type=_integer(0), default=0, help="frames a particle may be missed and keep its track (default 0)")
+    p.set_defaults(run=_cmd_track)
 
     p = sub.add_parser("diagnose", help="diagnose the sim-to-real gap of a hologram: where, which effect, how much")
     p.add_argument("holo", metavar="HOLO")

@@ -25,6 +25,7 @@ _NAMES = {
         "synthetic_group",
     ),
     "_detection": ("PeakDecoder", "PlaneLinker", "detect_particles", "suppress"),
+    "_flow": ("FLOWS", "SimulatedSequence", "flow_positions", "simulate_sequence"),
     "_effects": (
         "BASELINE", "EFFECTS", "OPTICAL_EFFECTS", "Effect", "check_effects", "effect_hologram", "effects_from_report", "optical_hologram",
         "parse_effect", "sensor_image",
@@ -46,11 +47,13 @@ _NAMES = {
     "_optics": ("backpropagate", "padded_shape", "propagate", "propagation_grid", "set_transfer_cache_limit", "superpose", "transfer_function"),
     "_prediction": ("PredictionResult", "predict_particles", "tile_layout", "tile_normalisation"),
     "_progress": ("Stopped",),
+    "_sequence": ("BACKGROUND_MODES", "HologramFrames", "SequenceResult", "open_frames", "predict_sequence", "sequence_background"),
     "_samples": ("SAMPLE_PROVENANCE", "load_sample_hologram", "sample_hologram_path"),
     "_synthesis": (
         "LABEL_SCALE", "ParticleField", "count_for_ppp", "disc_coverage", "label_planes", "layer_images", "random_particle_field",
         "simulate_hologram",
     ),
+    "_tracking": ("DISPLACEMENT_COLUMNS", "link_tracks"),
     "_training": ("THRESHOLD_FRACTIONS", "FOCUS_THRESHOLDS", "TrainingResult", "TrainingSettings", "train_model"),
     "_validation": (
         "HOLO_PARAM_RANGES", "check_intensity_image", "check_holo_params", "check_calibration", "check_memory", "check_disk", "read_text",

@@ -1,0 +1,602 @@
+"""Recordings: frames read one at a time, a background from the frames, prediction frame by frame on dask.
+
+A recording is any list of inputs — image files, folders of images (sorted naturally,
+``frame2`` before ``frame10``), glob patterns, multi-page TIFFs (read page by page) and
+videos (read frame by frame through OpenCV) — numbered 0, 1, ... in input order
+(`open_frames`). Nothing reads a whole file: a frame is decoded when it is needed.
+
+`predict_sequence` runs `predict_particles` on every frame through dask: the local threaded
+scheduler by default (one frame at a time, torch and the FFTs use every core), a
+``LocalCluster`` of ``workers`` processes, or an existing ``dask.distributed`` scheduler.
+The process that calls it reads the frames (so workers need not see its files) and keeps at
+most ``2 x workers`` frames in flight, so memory stays bounded whatever the frame count. The
+model is sent once to each worker and kept there. Every frame's particles are written
+atomically to a work folder as they arrive; a run stopped or killed and started again with
+the same work folder skips the frames found there. Frames are independent and the table is
+assembled in frame order, so it is the same whatever the scheduler and worker count.
+
+The background of a recording (the illumination, dust, fringes of the windows: everything
+that does not move) is estimated from the frames themselves (`sequence_background`): the
+per-pixel median of frames spread over the whole recording (``global``) or of the frames
+around each frame (``running``, for drifting illumination). Particles move, so the median
+of each pixel is the light without them. Each frame is divided by it before
+back-propagation.
+"""
+
+from __future__ import annotations
+
+import glob
+import hashlib
+import json
+import re
+import shutil
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from napari_lbs import __version__
+from napari_lbs._core._config import ExperimentConfig
+from napari_lbs._core._io import atomic_path, as_hologram, write_json
+from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback, Stopped
+from napari_lbs._core._validation import InputError, read_json_object
+
+__all__ = [
+    "BACKGROUND_MODES",
+    "HologramFrames",
+    "SequenceResult",
+    "open_frames",
+    "predict_sequence",
+    "sequence_background",
+]
+
+BACKGROUND_MODES = ("global", "running", "none")
+IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".bmp", ".jpg", ".jpeg")
+VIDEO_SUFFIXES = (".avi", ".mp4", ".mov", ".mkv", ".m4v")
+_WORK_FORMAT = "napari-lbs-sequence-work"
+_IN_FLIGHT_PER_WORKER = 2
+
+
+class _TiffPages:
+    """The pages of one (multi-page) TIFF, decoded one at a time from an open file."""
+
+    def __init__(self, path: Path) -> None:
+        import tifffile
+
+        self.path = path
+        self._handle = tifffile.TiffFile(path)
+        self._handle.pages.cache = False  # keep only page offsets, never the pages read
+        self.count = len(self._handle.pages)
+
+    def read(self, index: int) -> np.ndarray:
+        return self._handle.pages[index].asarray()
+
+    def close(self) -> None:
+        self._handle.close()
+
+
+class _ImageFile:
+    """One single-frame image (TIFF, PNG, BMP, JPEG)."""
+
+    count = 1
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    def read(self, index: int) -> np.ndarray:
+        from PIL import Image
+
+        with Image.open(self.path) as handle:
+            return np.asarray(handle.convert("RGB") if handle.mode in ("P", "PA") else handle)
+
+    def close(self) -> None:
+        pass
+
+
+class _VideoFile:
+    """A video decoded frame by frame (OpenCV); reading forward never seeks back."""
+
+    def __init__(self, path: Path) -> None:
+        try:
+            import cv2
+        except ImportError:
+            raise InputError(f"{path}: reading videos needs OpenCV (pip install 'napari-lbs[sequences]')") from None
+        self.path = path
+        self._cv2 = cv2
+        self._capture = None
+        self._next = 0
+        probe = cv2.VideoCapture(str(path))
+        self.count = int(probe.get(cv2.CAP_PROP_FRAME_COUNT)) if probe.isOpened() else 0
+        probe.release()
+        if self.count <= 0:
+            raise InputError(f"{path}: cannot be read as a video (no frames decoded)")
+
+    def read(self, index: int) -> np.ndarray:
+        if self._capture is None or index < self._next:
+            self.close()
+            self._capture, self._next = self._cv2.VideoCapture(str(self.path)), 0
+        while self._next < index:  # skip without decoding
+            self._capture.grab()
+            self._next += 1
+        ok, image = self._capture.read()
+        self._next += 1
+        if not ok:
+            raise InputError(f"{self.path}: frame {index} cannot be decoded")
+        return image[..., ::-1] if image.ndim == 3 else image  # OpenCV's BGR → RGB
+
+    def close(self) -> None:
+        if self._capture is not None:
+            self._capture.release()
+            self._capture = None
+
+
+class _ArrayFrames:
+    """Frames already in memory: a ``(frames, rows, cols)`` array."""
+
+    def __init__(self, array: np.ndarray) -> None:
+        self.path = Path("array")
+        self._array = array
+        self.count = int(array.shape[0])
+
+    def read(self, index: int) -> np.ndarray:
+        return self._array[index]
+
+    def close(self) -> None:
+        pass
+
+
+class HologramFrames:
+    """The frames of a recording, numbered in input order and read one at a time.
+
+    Use `open_frames` to make one. ``frames.read(k)`` returns frame ``k`` as a validated 2-D
+    float array (`as_hologram`); every frame must have frame 0's shape.
+    """
+
+    def __init__(self, sources: Sequence) -> None:
+        self._sources = list(sources)
+        self._starts = np.cumsum([0] + [source.count for source in self._sources])
+        self.shape: tuple[int, int] | None = None
+
+    def __len__(self) -> int:
+        return int(self._starts[-1])
+
+    def __enter__(self) -> HologramFrames:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def describe(self) -> list[str]:
+        """The sources with their frame counts, for provenance (``file`` or ``file[frames 0-99]``)."""
+        return [str(s.path) if s.count == 1 else f"{s.path}[frames 0-{s.count - 1}]" for s in self._sources]
+
+    def name(self, index: int) -> str:
+        """Frame ``index`` as the user knows it: ``file`` or ``file[frame k]``."""
+        source, local = self._locate(index)
+        return str(source.path) if source.count == 1 else f"{source.path}[frame {local}]"
+
+    def read(self, index: int) -> np.ndarray:
+        """Frame ``index`` (0-based) as a 2-D float array."""
+        source, local = self._locate(index)
+        try:
+            image = source.read(local)
+        except InputError:
+            raise
+        except Exception as error:  # any decoder failure is the file's fault: say which frame
+            raise InputError(f"{self.name(index)}: cannot be read as an image ({type(error).__name__}: {error})") from None
+        hologram = as_hologram(image, name=self.name(index))
+        if self.shape is None:
+            self.shape = hologram.shape
+        elif hologram.shape != self.shape:
+            raise InputError(f"{self.name(index)}: expected the first frame's shape {self.shape}, got {hologram.shape}")
+        return hologram
+
+    def close(self) -> None:
+        for source in self._sources:
+            source.close()
+
+    def _locate(self, index: int):
+        if not 0 <= index < len(self):
+            raise IndexError(f"frame {index} of {len(self)}")
+        position = int(np.searchsorted(self._starts, index, side="right")) - 1
+        return self._sources[position], index - int(self._starts[position])
+
+
+def _natural_key(path: Path) -> list:
+    return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", path.name)]
+
+
+def _source(path: Path):
+    suffix = path.suffix.lower()
+    if suffix in VIDEO_SUFFIXES:
+        return _VideoFile(path)
+    if suffix in (".tif", ".tiff"):
+        try:
+            return _TiffPages(path)
+        except Exception as error:  # not a TIFF after all, truncated: the file's fault
+            raise InputError(f"{path}: cannot be read as a TIFF ({type(error).__name__}: {error})") from None
+    if suffix in IMAGE_SUFFIXES:
+        return _ImageFile(path)
+    raise InputError(f"{path}: expected an image ({', '.join(IMAGE_SUFFIXES)}) or a video ({', '.join(VIDEO_SUFFIXES)})")
+
+
+def open_frames(inputs: Sequence[str | Path] | np.ndarray) -> HologramFrames:
+    """The frames of a recording, in input order.
+
+    Parameters
+    ----------
+    inputs : sequence of paths, or (frames, rows, cols) array
+        Each an image file (one frame), a multi-page TIFF (one frame per page), a video, a
+        folder (its images, sorted naturally) or a glob pattern (``run/*.tif``, sorted
+        naturally). An array is used as it is.
+
+    Raises
+    ------
+    InputError
+        A file that does not exist, a folder or pattern without images, a file of another kind.
+    """
+    if isinstance(inputs, np.ndarray):
+        if inputs.ndim != 3 or inputs.shape[0] == 0:
+            raise InputError(f"frames: expected a (frames, rows, cols) array, got shape {inputs.shape}")
+        return HologramFrames([_ArrayFrames(inputs)])
+    if isinstance(inputs, (str, Path)):
+        inputs = [inputs]
+    sources = []
+    for entry in inputs:
+        path = Path(entry)
+        if path.is_dir():
+            files = sorted((p for p in path.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES), key=_natural_key)
+            if not files:
+                raise InputError(f"{path}: folder holds no images ({', '.join(IMAGE_SUFFIXES)})")
+        elif path.is_file():
+            files = [path]
+        elif glob.has_magic(str(entry)):
+            files = sorted((Path(p) for p in glob.glob(str(entry)) if Path(p).is_file()), key=_natural_key)
+            if not files:
+                raise InputError(f"{entry}: no file matches")
+        else:
+            raise InputError(f"{path}: file not found")
+        sources.extend(_source(file) for file in files)
+    if not sources:
+        raise InputError("frames: expected at least one input")
+    return HologramFrames(sources)
+
+
+def _window(index: int, *, count: int, window: int) -> tuple[int, int]:
+    """The ``window`` frames around ``index`` (clamped inside ``[0, count)``): ``(first, stop)``."""
+    size = min(window, count)
+    first = min(max(index - size // 2, 0), count - size)
+    return first, first + size
+
+
+def sequence_background(frames: HologramFrames, *, samples: int = 32, index: int | None = None, window: int = 21) -> np.ndarray:
+    """The background of a recording: the per-pixel median of its frames.
+
+    Parameters
+    ----------
+    frames : HologramFrames
+        The recording (`open_frames`).
+    samples : int
+        Global background (``index`` None): the median of this many frames spread evenly over
+        the whole recording (all of them when it has fewer). Memory: ``samples`` frames.
+    index : int, optional
+        Running background: the median of the ``window`` frames centred on frame ``index``
+        (shifted inside the recording at its ends).
+    window : int
+        Frames of a running background.
+
+    Returns
+    -------
+    (rows, cols) float32 array, positive (a pixel dark in every frame gets the smallest
+    positive value of the estimate, so dividing by it is always defined).
+    """
+    count = len(frames)
+    if index is None:
+        if samples < 1:
+            raise InputError(f"samples: expected at least 1 frame, got {samples}")
+        chosen = np.unique(np.linspace(0, count - 1, min(samples, count)).round().astype(int))
+    else:
+        if window < 1:
+            raise InputError(f"window: expected at least 1 frame, got {window}")
+        chosen = range(*_window(index, count=count, window=window))
+    return _median(np.stack([frames.read(int(k)) for k in chosen]))
+
+
+def _median(stack: np.ndarray) -> np.ndarray:
+    median = np.median(stack, axis=0).astype(np.float32)
+    positive = median[median > 0]
+    floor = positive.min() if positive.size else np.float32(1.0)
+    return np.maximum(median, floor)
+
+
+@dataclass
+class SequenceResult:
+    """One particle table for a whole recording and how it was made.
+
+    Attributes
+    ----------
+    particles : dict of arrays
+        `predict_particles` columns plus ``frame`` (int64, 0-based, ascending).
+    provenance : dict
+        The first frame's provenance (model, decoding, config) plus the recording's sources,
+        background, scheduler and timings.
+    seconds : float
+        Wall time of this call.
+    resumed : int
+        Frames found finished in the work folder (not predicted again).
+    """
+
+    particles: dict[str, np.ndarray]
+    provenance: dict
+    seconds: float
+    resumed: int
+
+
+def _frame_particles(hologram: np.ndarray, model, config: ExperimentConfig, background: np.ndarray | None, device: str) -> tuple[dict, dict]:
+    """One frame's `predict_particles` (the dask task). ``model`` is the worker's copy, moved to ``device`` on first use."""
+    from napari_lbs._core._network import resolve_device
+    from napari_lbs._core._prediction import predict_particles
+
+    target = resolve_device(device)
+    if next(model.network.parameters()).device != target:
+        model.network.to(target)
+    result = predict_particles(hologram, model, config, background=background)
+    return result.particles, result.provenance
+
+
+class _Work:
+    """The work folder of a run: one ``.npz`` per finished frame, the background, the run's identity."""
+
+    def __init__(self, folder: Path | None, identity: dict) -> None:
+        self.folder = folder
+        self.results: dict[int, dict] = {}  # without a folder
+        self.first_provenance: dict | None = None
+        if folder is None:
+            return
+        manifest = folder / "work.json"
+        if manifest.is_file():
+            previous = read_json_object(manifest, what="work folder manifest")
+            if previous.get("format") != _WORK_FORMAT or previous.get("identity") != json.loads(json.dumps(identity)):
+                raise InputError(f"{folder}: holds the frames of another run (other inputs, model or settings); delete it or choose another output")
+        else:
+            folder.mkdir(parents=True, exist_ok=True)
+            write_json(manifest, {"format": _WORK_FORMAT, "napari_lbs": __version__, "identity": identity})
+
+    def finished(self) -> set[int]:
+        if self.folder is None:
+            return set(self.results)
+        return {int(p.stem.split("_")[1]) for p in self.folder.glob("frame_*.npz")}
+
+    def provenance(self, provenance: dict | None = None) -> dict:
+        """The provenance of the run's first finished frame (kept in the folder, so a resumed run still has it)."""
+        path = None if self.folder is None else self.folder / "provenance.json"
+        if self.first_provenance is None and path is not None and path.is_file():
+            self.first_provenance = read_json_object(path, what="frame provenance")
+        if self.first_provenance is None and provenance is not None:
+            self.first_provenance = provenance
+            if path is not None:
+                write_json(path, provenance)
+        return self.first_provenance or {}
+
+    def save(self, index: int, particles: dict) -> None:
+        if self.folder is None:
+            self.results[index] = particles
+            return
+        with atomic_path(self.folder / f"frame_{index:07d}.npz") as temporary:
+            with open(temporary, "wb") as handle:
+                np.savez(handle, **particles)
+
+    def load(self, index: int) -> dict[str, np.ndarray]:
+        if self.folder is None:
+            return self.results[index]
+        with np.load(self.folder / f"frame_{index:07d}.npz") as data:
+            return {name: data[name] for name in data.files}
+
+    def background(self, compute) -> np.ndarray:
+        """The global background, computed once and kept in the work folder for a resumed run."""
+        if self.folder is None:
+            return compute()
+        path = self.folder / "background.npy"
+        if path.is_file():
+            return np.load(path)
+        background = compute()
+        with atomic_path(path) as temporary:
+            with open(temporary, "wb") as handle:
+                np.save(handle, background)
+        return background
+
+    def remove(self) -> None:
+        if self.folder is not None:
+            shutil.rmtree(self.folder, ignore_errors=True)
+
+
+class _Scheduler:
+    """Frames through dask: the local threaded scheduler, a LocalCluster, or an existing scheduler."""
+
+    def __init__(self, model, *, workers: int | None, scheduler: str | None, local_processes: bool) -> None:
+        self.client = self.cluster = None
+        self.model = model
+        if scheduler is not None or workers is not None:
+            from dask.distributed import Client, LocalCluster
+
+            if scheduler is not None:
+                try:
+                    self.client = Client(scheduler, timeout="10s")
+                except OSError as error:
+                    raise InputError(f"scheduler: cannot reach the dask scheduler at {scheduler} ({error})") from None
+            else:
+                self.cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=local_processes, dashboard_address=None)
+                self.client = Client(self.cluster)
+            self.model = self.client.scatter(model, broadcast=True, hash=False)  # sent once, kept by every worker
+        # the local scheduler runs one frame at a time (its torch and FFTs use every core)
+        self.slots = _IN_FLIGHT_PER_WORKER * max(1, len(self.client.scheduler_info()["workers"])) if self.client else 1
+        self.description = f"dask.distributed at {scheduler}" if scheduler else (f"dask LocalCluster of {workers} workers" if workers else "dask local threaded scheduler")
+
+    def submit(self, index: int, *arguments):
+        if self.client is not None:
+            return self.client.submit(_frame_particles, arguments[0], self.model, *arguments[1:], key=f"napari-lbs-frame-{index}-{id(self)}", pure=False)
+        import dask
+
+        return dask.delayed(_frame_particles, pure=False)(arguments[0], self.model, *arguments[1:])
+
+    def completed(self, pending: dict):
+        """``(index, particles, provenance)`` of the next finished frame(s) among ``pending`` (futures or delayed)."""
+        if self.client is None:
+            import dask
+
+            indices = list(pending)
+            results = dask.compute(*[pending[i] for i in indices], scheduler="threads", num_workers=1)
+            return [(i, *r) for i, r in zip(indices, results, strict=True)]
+        from dask.distributed import wait
+
+        done, _ = wait(list(pending.values()), return_when="FIRST_COMPLETED")
+        index_of = {future.key: index for index, future in pending.items()}
+        return [(index_of[future.key], *future.result()) for future in done]
+
+    def close(self, pending: dict) -> None:
+        if self.client is not None:
+            self.client.cancel(list(pending.values()))
+            self.client.close()
+        if self.cluster is not None:
+            self.cluster.close()
+
+
+def predict_sequence(
+    frames: HologramFrames | Sequence[str | Path] | np.ndarray,
+    model,
+    config: ExperimentConfig | None = None,
+    *,
+    background: str | np.ndarray = "global",
+    background_window: int = 21,
+    background_samples: int = 32,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    local_processes: bool = True,
+    work_dir: str | Path | None = None,
+    device: str = "auto",
+    progress: ProgressCallback | None = None,
+    should_stop: StopCallback | None = None,
+) -> SequenceResult:
+    """Reconstruct the particles of every frame of a recording: one table with a ``frame`` column.
+
+    Parameters
+    ----------
+    frames : HologramFrames, paths or (frames, rows, cols) array
+        The recording (`open_frames` is applied to paths and arrays).
+    model : LoadedModel or path
+        A model file from `train_model`.
+    config : ExperimentConfig, optional
+        Optics and depths; default the model's own.
+    background : {"global", "running", "none"} or (rows, cols) array
+        What each frame is divided by before back-propagation: the median of
+        ``background_samples`` frames spread over the recording, the running median of the
+        ``background_window`` frames around each frame, nothing (each frame's own mean, as a
+        single hologram), or a background image taken without particles.
+    workers : int, optional
+        Run on a ``dask.distributed`` ``LocalCluster`` of this many single-threaded workers
+        (default: the local threaded scheduler, one frame at a time using every core).
+    scheduler : str, optional
+        Address of an existing ``dask.distributed`` scheduler (``tcp://host:8786``) to run on.
+    local_processes : bool
+        ``LocalCluster`` workers as processes (default) or as threads of this process.
+    work_dir : path, optional
+        Folder for the per-frame results; a run started again with the same folder, inputs,
+        model and settings skips the frames found there. None: results kept in memory only.
+        The folder is left in place (remove it once the table is written).
+    device : {"auto", "cpu", "cuda"}
+        Where each worker runs the network (``auto``: a worker's GPU when it has one).
+    progress, should_stop
+        One step per frame (resumed frames count as done at once); a stop raises `Stopped`
+        after the frames in flight, whose results are kept in ``work_dir``.
+
+    Returns
+    -------
+    SequenceResult
+    """
+    from napari_lbs._core._network import LoadedModel, load_model
+
+    start_time = time.perf_counter()
+    if workers is not None and scheduler is not None:
+        raise InputError("workers: give either a number of local workers or a scheduler address, not both")
+    if workers is not None and workers < 1:
+        raise InputError(f"workers: expected at least 1, got {workers}")
+    static = None
+    if isinstance(background, np.ndarray):
+        static, mode = as_hologram(background, name="background"), "file"
+    elif background in BACKGROUND_MODES:
+        mode = background
+    else:
+        raise InputError(f"background: expected one of {', '.join(BACKGROUND_MODES)} or an image, got {background!r}")
+    frames = frames if isinstance(frames, HologramFrames) else open_frames(frames)
+    loaded = model if isinstance(model, LoadedModel) else load_model(model, device="cpu")
+    config = config if config is not None else loaded.config
+    count = len(frames)
+    identity = {
+        "sources": frames.describe(),
+        "frames": count,
+        "model_sha256": loaded.sha256,
+        "config": config.to_dict(),
+        "background": mode,
+        "background_window": background_window if mode == "running" else None,
+        "background_samples": background_samples if mode == "global" else None,
+        "background_sha256": hashlib.sha256(static.tobytes()).hexdigest() if static is not None else None,
+    }
+    work = _Work(Path(work_dir) if work_dir is not None else None, identity)
+    finished = work.finished() & set(range(count))
+    steps = Steps(count, progress=progress, should_stop=should_stop)
+    steps.advance(len(finished))
+    todo = [index for index in range(count) if index not in finished]
+    first = frames.read(todo[0] if todo else 0)  # checks the first frame (and fixes the shape) before any set-up
+    if static is not None and static.shape != first.shape:
+        raise InputError(f"background: expected the frames' shape {first.shape}, got {static.shape}")
+    if mode == "global" and todo:
+        static = work.background(lambda: sequence_background(frames, samples=background_samples))
+    runner = _Scheduler(loaded, workers=workers, scheduler=scheduler, local_processes=local_processes)
+    pending: dict = {}
+    buffer: dict[int, np.ndarray] = {}  # frames of the running window
+    try:
+        queue = iter(todo)
+        while True:
+            for index in queue:
+                if mode == "running":
+                    low, high = _window(index, count=count, window=background_window)
+                    buffer = {k: buffer[k] if k in buffer else frames.read(k) for k in range(low, high)}
+                    hologram, frame_background = buffer[index], _median(np.stack(list(buffer.values())))
+                else:
+                    hologram, frame_background = frames.read(index), static
+                pending[index] = runner.submit(index, hologram, config, frame_background, device)
+                if len(pending) >= runner.slots:
+                    break
+            if not pending:
+                break
+            for index, particles, frame_provenance in runner.completed(pending):
+                del pending[index]
+                work.save(index, particles)
+                work.provenance(frame_provenance)
+                steps.advance()
+            if steps.stop_requested():
+                raise Stopped(f"stopped after {steps.done} of {count} frames; the finished ones are kept in {work.folder}" if work.folder else f"stopped after {steps.done} of {count} frames")
+    finally:
+        runner.close(pending)
+        frames.close()
+    tables = [work.load(index) for index in range(count)]
+    columns = list(tables[0])
+    particles = {name: np.concatenate([np.asarray(t[name]) for t in tables]) for name in columns}
+    particles["frame"] = np.concatenate([np.full(len(np.asarray(t[columns[0]])), index, np.int64) for index, t in enumerate(tables)])
+    seconds = time.perf_counter() - start_time
+    provenance = {key: value for key, value in work.provenance().items() if key not in ("seconds", "background")}
+    provenance.update({
+        "napari_lbs": __version__,
+        "frames": count,
+        "sources": frames.describe(),
+        "background": mode,
+        "background_window": identity["background_window"],
+        "background_samples": identity["background_samples"],
+        "scheduler": runner.description,
+        "resumed_frames": len(finished),
+        "seconds": round(seconds, 3),
+        "frames_per_second": round((count - len(finished)) / seconds, 4) if seconds > 0 else None,
+    })
+    return SequenceResult(particles, provenance, seconds, len(finished))

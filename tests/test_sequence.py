@@ -1,0 +1,223 @@
+"""Recordings (issue 16): frames read one at a time, the background from the frames, prediction on dask
+(same table whatever the workers, resumed after a stop), ground-truth flows, tracks, and the CLI."""
+
+import csv
+import tracemalloc
+
+import numpy as np
+import pytest
+import tifffile
+
+from napari_lbs._core import (
+    ExperimentConfig,
+    InputError,
+    ParticleField,
+    Stopped,
+    flow_positions,
+    link_tracks,
+    open_frames,
+    predict_sequence,
+    sequence_background,
+    simulate_hologram,
+    simulate_sequence,
+)
+
+
+def tiny_config() -> ExperimentConfig:
+    return ExperimentConfig.from_dict({
+        "volume": {"z_min_um": 1800.0, "z_max_um": 2200.0, "z_step_um": 100.0},
+        "particles": {"per_tile": 3, "layer_step_um": 200.0},
+        "tile": {"size": 48},
+    })
+
+
+@pytest.fixture(scope="module")
+def detector(tmp_path_factory):
+    """A tiny focus model made eager: its centre logit raised so every frame gives a few dozen detections to compare."""
+    import torch
+
+    from napari_lbs._core import DatasetLayout, TrainingSettings, generate_dataset, load_model, save_model
+
+    folder = tmp_path_factory.mktemp("model")
+    data = generate_dataset(folder / "data", tiny_config(), groups=3, layout=DatasetLayout(kind="stack", context_planes=2), seed=5)
+    trained = train = None
+    settings = TrainingSettings(epochs=1, batch_size=4, device="cpu", validation_groups=1, patch_size=32, context=(-2, -1, 0, 1, 2))
+    from napari_lbs._core import train_model
+
+    trained = train_model(data, folder / "base.pt", settings=settings)
+    model = load_model(trained.model_path)
+    with torch.no_grad():
+        model.network.head.bias[0] += 3.0
+    model.meta["threshold"] = 0.1
+    save_model(folder / "eager.pt", model.network, model.meta)
+    del train
+    return load_model(folder / "eager.pt")
+
+
+@pytest.fixture(scope="module")
+def vortex():
+    return simulate_sequence(tiny_config(), frames=5, flow="vortex", size=96, count=6, speed_um=6.0, seed=1)
+
+
+# --- reading -----------------------------------------------------------------------------------
+
+
+def test_a_multipage_tiff_is_read_page_by_page_without_loading_the_file(tmp_path):
+    frames = np.random.default_rng(0).uniform(0.5, 1.5, (40, 256, 256)).astype(np.float32)
+    tifffile.imwrite(tmp_path / "run.tif", frames, photometric="minisblack")
+    frame_bytes = frames[0].nbytes
+    tracemalloc.start()
+    with open_frames([tmp_path / "run.tif"]) as recording:
+        assert len(recording) == 40
+        for k in range(len(recording)):
+            assert recording.read(k)[5, 7] == frames[k, 5, 7]
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        assert peak < 3 * frame_bytes  # the file is 40 frames
+        for k in (0, 39, 17):  # any order
+            np.testing.assert_array_equal(recording.read(k), frames[k])
+    assert recording.name(17) == f"{tmp_path / 'run.tif'}[frame 17]"
+
+
+def test_folders_and_globs_sort_naturally_and_files_keep_input_order(tmp_path):
+    for k in (10, 2, 1):
+        tifffile.imwrite(tmp_path / f"f{k}.tif", np.full((32, 32), float(k), np.float32) + np.eye(32, dtype=np.float32))
+    values = lambda r: [float(r.read(k)[0, 1]) for k in range(len(r))]  # noqa: E731
+    assert values(open_frames([tmp_path])) == [1.0, 2.0, 10.0]
+    assert values(open_frames([str(tmp_path / "f*.tif"), tmp_path / "f1.tif"])) == [1.0, 2.0, 10.0, 1.0]
+    with pytest.raises(InputError, match="no file matches"):
+        open_frames([str(tmp_path / "g*.tif")])
+    tifffile.imwrite(tmp_path / "other.tif", np.ones((16, 40), np.float32) + np.eye(16, 40, dtype=np.float32))
+    with pytest.raises(InputError, match=r"other.tif: expected the first frame's shape \(32, 32\)"):
+        values(open_frames([tmp_path]))
+
+
+# --- background --------------------------------------------------------------------------------
+
+
+def test_the_median_background_removes_a_static_pattern(vortex):
+    rows, cols = np.indices((96, 96))
+    pattern = (0.6 + 0.3 * np.sin(rows / 5.0) * np.cos(cols / 7.0) + 0.1 * (cols / 96)).astype(np.float32)  # fringes + vignetting
+    clean = simulate_sequence(tiny_config(), frames=9, flow="uniform", size=96, count=4, speed_um=30.0, seed=3).frames
+    frames = clean * pattern
+    recording = open_frames(frames)
+    assert np.corrcoef(frames[4].ravel(), pattern.ravel())[0, 1] > 0.5  # the pattern dominates the raw frame
+    for background in (sequence_background(recording), sequence_background(recording, index=4, window=7)):
+        assert np.median(np.abs(background / pattern - 1)) < 0.05  # the particles' fringes average out
+        corrected = frames[4] / background
+        assert abs(np.corrcoef(corrected.ravel(), pattern.ravel())[0, 1]) < 0.1
+        assert np.median(np.abs(corrected - clean[4])) < 0.05  # the particles' own hologram is left
+
+
+# --- prediction on dask ------------------------------------------------------------------------
+
+
+def _assert_same_table(a, b):
+    assert list(a) == list(b)
+    for name in a:
+        np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+
+
+def test_the_same_table_from_one_worker_and_two(vortex, detector):
+    local = predict_sequence(vortex.frames, detector, background="global")
+    assert len(local.particles["x_um"]) > 20 and set(np.unique(local.particles["frame"])) == set(range(5))
+    assert np.all(np.diff(local.particles["frame"]) >= 0)
+    two = predict_sequence(vortex.frames, detector, background="global", workers=2, local_processes=False)
+    _assert_same_table(local.particles, two.particles)
+    assert two.provenance["scheduler"] == "dask LocalCluster of 2 workers" and two.provenance["model_sha256"] == detector.sha256
+    # each frame is what predict_particles makes of it, divided by the median of the frames
+    from napari_lbs._core import predict_particles
+
+    background = np.median(vortex.frames, axis=0)
+    alone = predict_particles(vortex.frames[3], detector, background=background)
+    np.testing.assert_array_equal(local.particles["x_um"][local.particles["frame"] == 3], alone.particles["x_um"])
+
+
+def test_a_stopped_run_resumes_without_redoing_finished_frames(vortex, detector, tmp_path, monkeypatch):
+    import napari_lbs._core._sequence as sequence
+
+    work = tmp_path / "p.csv.parts"
+    seen = []
+    with pytest.raises(Stopped, match="stopped after 2 of 5 frames"):
+        predict_sequence(vortex.frames, detector, background="running", background_window=3, work_dir=work, progress=lambda d, t: seen.append(d), should_stop=lambda: seen[-1] >= 2)
+    assert sorted(p.name for p in work.glob("frame_*.npz")) == ["frame_0000000.npz", "frame_0000001.npz"]
+    predicted = []
+    original = sequence._frame_particles
+    monkeypatch.setattr(sequence, "_frame_particles", lambda hologram, *rest: predicted.append(hologram) or original(hologram, *rest))
+    resumed = predict_sequence(vortex.frames, detector, background="running", background_window=3, work_dir=work)
+    assert len(predicted) == 3 and resumed.resumed == 2
+    np.testing.assert_array_equal(predicted[0], vortex.frames[2])
+    fresh = predict_sequence(vortex.frames, detector, background="running", background_window=3)
+    _assert_same_table(resumed.particles, fresh.particles)
+    with pytest.raises(InputError, match="holds the frames of another run"):
+        predict_sequence(vortex.frames, detector, background="global", work_dir=work)
+
+
+# --- ground truth and tracks -------------------------------------------------------------------
+
+
+def test_a_simulated_vortex_turns_rigidly_and_each_frame_is_its_hologram(vortex):
+    truth = vortex.truth
+    assert vortex.frames.shape == (5, 96, 96) and vortex.frames.dtype == np.float32
+    assert np.array_equal(np.unique(truth["track"]), np.arange(6))  # nobody leaves a vortex
+    centre = 95 * 2.2 / 2
+    radius = np.hypot(truth["x_um"] - centre, truth["y_um"] - centre).reshape(5, 6)
+    np.testing.assert_allclose(radius, radius[:1].repeat(5, axis=0), atol=1e-9)
+    step = np.hypot(np.diff(truth["x_um"].reshape(5, 6), axis=0), np.diff(truth["y_um"].reshape(5, 6), axis=0))
+    assert step.max() <= 6.0 + 1e-9 and step.min() > 0
+    here = truth["frame"] == 2
+    field = ParticleField(truth["x_um"][here], truth["y_um"][here], truth["z_um"][here], truth["diameter_um"][here], (96, 96), 2.2)
+    np.testing.assert_array_equal(vortex.frames[2], simulate_hologram(field, wavelength_um=0.66))
+
+
+def test_tracks_are_recovered_exactly_on_a_clean_sequence():
+    rng = np.random.default_rng(2)
+    start = ParticleField(rng.uniform(0, 200, 30), rng.uniform(0, 200, 30), rng.uniform(1800, 2200, 30), np.full(30, 25.0), (100, 100), 2.2)
+    truth = flow_positions(start, flow="uniform", frames=12, speed_um=10.0, z_range_um=(1800.0, 2200.0))
+    assert truth["track"].max() >= 30  # some particles left the window and came back as new tracks
+    shuffled = rng.permutation(truth["x_um"].size)
+    table = {name: values[shuffled] for name, values in truth.items() if name != "track"}
+    linked = link_tracks(table, search_range_um=12.0)
+    true_track = truth["track"][shuffled][np.argsort(table["frame"], kind="stable")]
+    pairs = set(zip(linked["track"].tolist(), true_track.tolist(), strict=True))
+    assert len(pairs) == len(set(linked["track"].tolist())) == len(set(true_track.tolist()))  # a one-to-one map of tracks
+    moving = ~np.isnan(linked["dx_um"])
+    np.testing.assert_allclose(np.stack([linked[k][moving] for k in ("dx_um", "dy_um", "dz_um")], axis=1), np.tile([6.0, 4.8, 6.4], (int(moving.sum()), 1)), atol=1e-9)
+    assert (~moving).sum() == len(set(true_track.tolist()))  # one end per track
+    # a search range below the step breaks every track: the test can fail
+    assert len(set(link_tracks(table, search_range_um=5.0)["track"].tolist())) == truth["x_um"].size
+
+
+# --- CLI ---------------------------------------------------------------------------------------
+
+
+def _rows(path):
+    with open(path, newline="", encoding="utf-8") as handle:
+        return list(csv.DictReader(handle))
+
+
+def test_cli_simulate_frames_predict_and_track(tmp_path, detector):
+    from napari_lbs._cli import main
+    from napari_lbs._core import write_config
+
+    config = write_config(tmp_path / "c.toml")
+    config.write_text(config.read_text().replace("z_min_um = 1800.0", "z_min_um = 1800.0").replace("z_max_um = 4800.0", "z_max_um = 2200.0").replace("z_step_um = 50.0", "z_step_um = 100.0").replace("size = 256", "size = 48"))
+    assert main(["simulate", "--config", str(config), "--out", str(tmp_path / "sim"), "--frames", "3", "--flow", "shear", "--size", "64", "--particles", "4", "--seed", "2"]) == 0
+    with tifffile.TiffFile(tmp_path / "sim" / "frames.tif") as handle:
+        assert len(handle.pages) == 3 and handle.pages[0].shape == (64, 64) and handle.pages[0].dtype == np.float32
+    truth = _rows(tmp_path / "sim" / "particles.csv")
+    assert list(truth[0])[:4] == ["x_um", "y_um", "z_um", "diameter_um"] and {"frame", "track"} <= set(truth[0])
+    assert [row["frame"] for row in truth] == ["0"] * 4 + ["1"] * 4 + ["2"] * 4
+    assert main(["simulate", "--config", str(config), "--out", str(tmp_path / "x"), "--flow", "vortex"]) == 2  # a flow needs --frames
+
+    assert main(["predict", str(tmp_path / "sim" / "frames.tif"), "--model", str(detector.path), "--out", str(tmp_path / "p.csv")]) == 0
+    particles = _rows(tmp_path / "p.csv")
+    assert {row["frame"] for row in particles} == {"0", "1", "2"} and not (tmp_path / "p.csv.parts").exists()
+    assert main(["track", str(tmp_path / "p.csv"), "--out", str(tmp_path / "t.csv"), "--search-range-um", "20"]) == 0
+    tracks = _rows(tmp_path / "t.csv")
+    assert len(tracks) == len(particles) and {"track", "dx_um", "dy_um", "dz_um"} <= set(tracks[0])
+    last = {}
+    for row in tracks:
+        last[row["track"]] = row
+    assert all(row["dx_um"] == "" for row in last.values())
+    assert main(["track", str(tmp_path / "sim" / "particles.csv"), "--out", str(tmp_path / "sim" / "particles.csv")]) == 2
