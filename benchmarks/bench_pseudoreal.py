@@ -17,7 +17,8 @@ synthetic groups only) on three kinds of synthetic data:
 Each model predicts the pseudo-real hologram at the real hologram's density (~100 spheres in
 1024²) and at 4× that; one-to-one ER/JI (22 µm, 150 µm) and |Δz| of the matches are printed.
 Calibration and diagnosis see only the real-density hologram, never its truth. Every stage
-is cached in ``--out``, so an interrupted run continues. Seeds are fixed: same result each run.
+is cached in ``--out`` and training resumes from its last epoch, so an interrupted run
+continues where it stopped. Seeds are fixed: same result each run.
 
 Run: python benchmarks/bench_pseudoreal.py [--out DIR] [--groups G] [--epochs E] [--check]
 """
@@ -93,17 +94,18 @@ def run(out: Path, groups: int, epochs: int) -> dict:
     effects = effects_from_report(report, name=str(report_path))
 
     lbs = InputProcessing.from_calibration(calibration)
-    stages = {"plain": (InputProcessing(), {}), "lbs": (lbs, {}), "effects": (lbs, effects), "transparent": (lbs, {**effects, **TRANSPARENT})}
+    stages = {"plain": (InputProcessing(), {}), "lbs": (lbs, {}), "transparent": (lbs, {**effects, **TRANSPARENT}), "effects": (lbs, effects)}
     results = {"calibration": calibration["params"], "ssim": calibration["ssim"], "verdict": report["verdict"], "waterfall": report["waterfall"], "effects": effects, "stages": {}}
     for stage, (processing, stage_effects) in stages.items():
-        model_path = out / f"{stage}.pt"
-        if not model_path.is_file():
+        model_path, log_path = out / f"{stage}.pt", out / f"{stage}.json"
+        done = len(json.loads(log_path.read_text())["epochs"]) if log_path.is_file() else 0
+        if done < epochs:  # not trained, or interrupted: generation and training both resume
             start = time.perf_counter()
             dataset = generate_dataset(out / f"data_{stage}", config, groups=groups, processing=processing, effects=stage_effects, seed=0)
             generated = time.perf_counter() - start
-            trained = train_model(dataset, model_path, settings=TrainingSettings(epochs=epochs, seed=0))
-            print(f"{stage}: generated {groups} groups in {generated:.0f} s, trained {epochs} epochs in {trained.log['seconds']:.0f} s", flush=True)
-        log = json.loads(model_path.with_suffix(".json").read_text())
+            trained = train_model(dataset, model_path, settings=TrainingSettings(epochs=epochs, seed=0), resume=model_path.with_suffix(".last.pt").is_file())
+            print(f"{stage}: generated {groups} groups in {generated:.0f} s, trained {epochs} epochs (from epoch {done}) in {trained.log['seconds']:.0f} s", flush=True)
+        log = json.loads(log_path.read_text())
         best = log["best"]
         validation = next(e for e in log["epochs"] if e["epoch"] == best["epoch"])["validation"]
         row = {"synthetic_validation": {"er": validation["er"], "ji": validation["ji"]}}

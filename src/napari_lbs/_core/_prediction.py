@@ -10,7 +10,7 @@ output planes are decoded plane chunk by plane chunk — `PeakDecoder` then `sup
 `PlaneLinker` for the ``seed`` formulation — so memory stays bounded whatever the depth.
 
 The ``focus`` formulation runs its fully convolutional network on windows of up to
-``_WINDOW_PX`` (the whole of a 1024² hologram at once) instead of overlapping training-size
+``window_px`` (default: the whole of a 1024² hologram at once) instead of overlapping training-size
 tiles, which on 1024² costs 1.56× the pixels. Its inputs are still normalised as in training:
 the min and max of every training-size tile of a plane, interpolated bilinearly between the
 tile centres (`tile_normalisation`), so each pixel sees the statistics of the tiles around it
@@ -39,7 +39,6 @@ from napari_lbs._core._validation import check_prediction_meta
 __all__ = ["PredictionResult", "predict_particles", "tile_layout", "tile_normalisation"]
 
 _PLANES_PER_CHUNK = 8
-_WINDOW_PX = 1024  # network window edge at inference (focus formulation)
 _WINDOW_PIXELS_PER_BATCH = 8 * 256 * 256  # input planes per network call, in pixels: bounds activation memory
 
 
@@ -74,6 +73,7 @@ def predict_particles(
     background: np.ndarray | None = None,
     planes_um: Sequence[float] | None = None,
     margin_px: int = 32,
+    window_px: int = 1024,
     device: str = "auto",
     progress: ProgressCallback | None = None,
     should_stop: StopCallback | None = None,
@@ -95,6 +95,10 @@ def predict_particles(
         Reconstruction depths (µm); default ``config.volume.planes_um()``.
     margin_px : int
         Half the minimum overlap of neighbouring tiles (pixels), at most a quarter tile.
+    window_px : int
+        ``focus`` models: edge of the windows the network runs on (pixels; at least the tile
+        size). Larger windows overlap less (1024² in one window costs 1/1.56 of 256² tiles with
+        32-pixel margins); smaller ones bound the network's working memory on big holograms.
     device : {"auto", "cpu", "cuda"}
     progress, should_stop
         One step per reconstruction plane; a stop raises `Stopped`.
@@ -117,7 +121,9 @@ def predict_particles(
     optics = {"wavelength_um": config.optics.wavelength_um, "pixel_um": config.optics.pixel_um, "medium_index": config.optics.medium_index}
     steps = Steps(len(planes), progress=progress, should_stop=should_stop)
     if loaded.formulation == "focus":
-        particles, details = _decode_focus(hologram, loaded, planes, layout, background=background, optics=optics, steps=steps, margin_px=margin_px)
+        if int(window_px) < size:
+            raise InputError(f"window_px: expected at least the model's tile size {size}, got {window_px}")
+        particles, details = _decode_focus(hologram, loaded, planes, layout, background=background, optics=optics, steps=steps, margin_px=margin_px, window_px=int(window_px))
     else:
         particles, details = _decode_seed(hologram, loaded, planes, layout, background=background, optics=optics, steps=steps)
     rows, cols = layout
@@ -223,7 +229,7 @@ def _decode_seed(hologram, loaded: LoadedModel, planes, layout, *, background, o
     return linker.particles(), {}
 
 
-def _decode_focus(hologram, loaded: LoadedModel, planes, layout, *, background, optics, steps, margin_px: int) -> tuple[dict, dict]:
+def _decode_focus(hologram, loaded: LoadedModel, planes, layout, *, background, optics, steps, margin_px: int, window_px: int) -> tuple[dict, dict]:
     """The focus formulation: context planes in, 3-D peaks of the centre probability, one particle per peak."""
     meta = loaded.meta
     size, step = int(meta["tile_size"]), float(meta["step_um"])
@@ -237,7 +243,7 @@ def _decode_focus(hologram, loaded: LoadedModel, planes, layout, *, background, 
         raise InputError(f"volume.z_min_um: the model's context needs planes {reach * step:g} um nearer the sensor than {planes[0]:g} um")
     stack = backpropagate(hologram, extended, background=background, **optics).astype(np.float32, copy=False)
     tile_normalisation(stack, layout, size, invert=invert, mode=mode)
-    window_size = (min(_WINDOW_PX, hologram.shape[0]), min(_WINDOW_PX, hologram.shape[1]))
+    window_size = (min(window_px, hologram.shape[0]), min(window_px, hologram.shape[1]))
     window_rows = tile_layout(hologram.shape[0], size=window_size[0], margin=margin_px)
     window_cols = tile_layout(hologram.shape[1], size=window_size[1], margin=margin_px)
     windows = (window_rows, window_cols)
