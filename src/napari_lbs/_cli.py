@@ -418,7 +418,7 @@ def _cmd_diagnose(args) -> None:
     hologram, background = _read_inputs(args)
     if args.roi and not (args.roi[0] + size <= hologram.shape[1] and args.roi[1] + size <= hologram.shape[0]):
         raise InputError(f"--roi {args.roi[0]} {args.roi[1]}: a {size}-pixel tile there crosses the edge of the {hologram.shape[1]}x{hologram.shape[0]} (x by y) hologram {args.holo}")
-    diagnosis = diagnose_hologram(hologram, config, background=background, tile_px=args.tile, settings=settings, progress=_ProgressBar("diagnose"))
+    diagnosis = diagnose_hologram(hologram, config, background=background, tile_px=args.tile, known=not args.no_known, settings=settings, progress=_ProgressBar("diagnose"))
     if args.roi:
         x, y = args.roi
         diagnosis.report["roi"] = {"x": x, "y": y, "tile_index": (y // size) * (hologram.shape[1] // size) + x // size}
@@ -655,6 +655,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--background", metavar="BG")
     p.add_argument("--calibration", metavar="CALIB.json", help="recorded as provenance (the baseline is refitted in the hologram domain)")
     p.add_argument("--tile", type=_integer(1), help="tile edge in pixels (default: tile.size)")
+    p.add_argument("--no-known", action="store_true", help="diagnose the bit depth and saturation too, instead of taking them from the file's integer counts")
     p.add_argument("--sim-tiles", type=_integer(1), default=8)
     p.add_argument("--evaluations", type=_integer(1), default=40)
     p.add_argument("--seed", type=_SEED, default=0)

@@ -39,13 +39,13 @@ import numpy as np
 from scipy import ndimage, optimize, stats
 
 from napari_lbs._core._config import ExperimentConfig
-from napari_lbs._core._effects import BASELINE, EFFECTS, OPTICAL_EFFECTS, optical_hologram, sensor_image
+from napari_lbs._core._effects import BASELINE, EFFECTS, OPTICAL_EFFECTS, check_effects, optical_hologram, sensor_image
 from napari_lbs._core._io import InputError, as_hologram, atomic_path, atomic_write_bytes, write_json
-from napari_lbs._core._optics import propagate
+from napari_lbs._core._optics import transfer_function
 from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
 from napari_lbs._core._synthesis import random_particle_field
 
-__all__ = ["tile_summaries", "measured_fringe", "gap_statistic", "real_spread", "write_report", "where_gap", "diagnose_tiles", "diagnose_hologram", "DiagnosisSettings", "Diagnosis", "SUMMARY_GROUPS", "MIN_TILE_PX"]
+__all__ = ["tile_summaries", "measured_fringe", "gap_statistic", "real_spread", "write_report", "where_gap", "diagnose_tiles", "diagnose_hologram", "DiagnosisSettings", "Diagnosis", "TileLayout", "known_sensor", "adapted_tile_px", "resampled_gaps", "SUMMARY_GROUPS", "MIN_TILE_PX"]
 
 SUMMARY_GROUPS = ("band", "depth", "region", "intensity", "noise", "appearance")
 _BANDS = np.geomspace(1 / 64, 0.5, 9)  # cycles per pixel: 8 bands
@@ -65,15 +65,28 @@ def _depths(config: ExperimentConfig, count: int = 8) -> np.ndarray:
     return np.linspace(config.volume.z_min_um, config.volume.z_max_um, count + 2)[1:-1]
 
 
-def tile_summaries(tile: np.ndarray, *, config: ExperimentConfig, fringe_frequency: tuple[float, float] | None = None) -> tuple[np.ndarray, list[tuple[str, str]]]:
+def tile_summaries(
+    tile: np.ndarray,
+    *,
+    config: ExperimentConfig,
+    fringe_frequency: tuple[float, float] | None = None,
+    field_mean: float | None = None,
+    field_position: tuple[float, float] = (0.0, 0.0),
+) -> tuple[np.ndarray, list[tuple[str, str]]]:
     """Summary vector of one hologram tile and the (name, group) of each entry.
 
     ``fringe_frequency`` (cycles/px, (fy, fx)): where to measure the power of a static fringe,
     normally the experiment's strongest spectral peak (`measured_fringe`); real and simulated
     tiles must be summarised with the same one. Default: this tile's own strongest peak.
+
+    ``field_mean`` (the mean of the whole image the tile was cut from; default the tile's own)
+    and ``field_position`` (the tile centre's (y, x) from the image centre, in units of the
+    image's height and width) give the field-wide envelope: how the tile's brightness departs
+    from the field's, overall, along x, along y and with the distance from the centre.
     """
     image = np.asarray(tile, np.float64)
-    image = image / image.mean()
+    tile_mean = image.mean()
+    image = image / tile_mean
     rows, cols = image.shape
     values: list[float] = []
     names: list[tuple[str, str]] = []
@@ -99,7 +112,7 @@ def tile_summaries(tile: np.ndarray, *, config: ExperimentConfig, fringe_frequen
     # depth: planes of the back-propagated tile, per plane (never only the depth average)
     optics = {"wavelength_um": config.optics.wavelength_um, "pixel_um": config.optics.pixel_um, "medium_index": config.optics.medium_index}
     depths = _depths(config)
-    planes = np.abs(propagate(image.astype(np.float32), -depths, **optics))
+    planes = np.abs(_periodic_planes(image, -depths, **optics))
     planes = planes / np.median(planes.reshape(len(depths), -1), axis=1)[:, None, None]  # background ≈ 1 in every plane
     sharpness = []
     for z, plane in zip(depths, planes, strict=True):
@@ -124,6 +137,14 @@ def tile_summaries(tile: np.ndarray, *, config: ExperimentConfig, fringe_frequen
     coefficients = np.linalg.lstsq(design, smooth.ravel(), rcond=None)[0]
     add("illumination tilt |grad|", "region", np.hypot(coefficients[1], coefficients[2]))
     add("illumination curvature", "region", coefficients[3])
+    # field-wide envelope: the tile's brightness against the whole image's, and how it varies
+    # across the field (a vignetting spans tiles; within one tile it is only a slight tilt)
+    brightness = np.log(tile_mean / (field_mean if field_mean is not None else tile_mean))
+    position_y, position_x = field_position
+    add("field envelope: |log tile mean / field mean|", "region", abs(brightness))
+    add("field envelope: brightness x position across the field", "region", brightness * position_x)
+    add("field envelope: brightness y position across the field", "region", brightness * position_y)
+    add("field envelope: brightness x distance from the field centre", "region", brightness * (position_x**2 + position_y**2 - 1 / 6))
     # intensity statistics
     quantiles = (0.005, 0.05, 0.25, 0.5, 0.75, 0.95, 0.995)
     for q, value in zip(quantiles, np.quantile(image, quantiles), strict=True):
@@ -150,6 +171,20 @@ def tile_summaries(tile: np.ndarray, *, config: ExperimentConfig, fringe_frequen
     for lag in _LAGS:
         add(f"autocorrelation at {lag} px", "appearance", 0.5 * ((centred[lag:] * centred[:-lag]).mean() + (centred[:, lag:] * centred[:, :-lag]).mean()) / norm)
     return np.asarray(values), names
+
+
+def _periodic_planes(image: np.ndarray, distances_um: np.ndarray, *, wavelength_um: float, pixel_um: float, medium_index: float) -> np.ndarray:
+    """The tile propagated to each distance on its own (periodic) grid, complex128 (planes, rows, cols).
+
+    Summaries need the same planes for real and simulated tiles, not light that left the tile:
+    without `propagate`'s padding (a 128² tile is padded to 512² for 4.5 mm) the planes cost
+    16 × less. Each kernel is band-limited to a spread of half the tile, so it is sampled
+    finely enough and nothing wraps more than half way round.
+    """
+    rows, cols = image.shape
+    spread_limit_um = 0.5 * min(rows, cols) * pixel_um
+    kernels = np.stack([transfer_function((rows, cols), float(z), wavelength_um=wavelength_um, pixel_um=pixel_um, medium_index=medium_index, spread_limit_um=spread_limit_um, dtype=np.complex128) for z in distances_um])
+    return np.fft.ifft2(np.fft.fft2(image)[None] * kernels)
 
 
 def _power_spectrum(image: np.ndarray) -> np.ndarray:
@@ -199,16 +234,18 @@ class DiagnosisSettings:
     ``sim_tiles`` simulated tiles per model; ``evaluations`` per fit; ``confirm`` how many
     effects, in order of screening significance, are refitted (default all: the linear
     screening misses effects the baseline over-compensates, e.g. shot noise absorbed by read
-    noise); the others get the best of a coarse off/weak/strong scan.
+    noise); the others get the best of a coarse off/weak/strong scan; ``resamples`` bootstrap
+    draws for the intervals and the verdict's confidence.
     """
 
     sim_tiles: int = 8
     evaluations: int = 40
     confirm: int = len(EFFECTS)
+    resamples: int = 2000
     seed: int = 0
 
     def __post_init__(self) -> None:
-        for name, low in (("sim_tiles", 2), ("evaluations", _MIN_EVALUATIONS), ("confirm", 0), ("seed", 0)):
+        for name, low in (("sim_tiles", 2), ("evaluations", _MIN_EVALUATIONS), ("confirm", 0), ("resamples", 100), ("seed", 0)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise InputError(f"{name}: expected an integer of at least {low}, got {value!r}")
@@ -225,18 +262,65 @@ class Diagnosis:
     seconds: float = 0.0
 
 
-class _Model:
-    """Simulated tiles of one effect set, with fixed fields and noise (common random numbers)."""
+@dataclass(frozen=True)
+class TileLayout:
+    """Where the real tiles were cut from one hologram.
 
-    def __init__(self, config: ExperimentConfig, *, shape, count: int, settings: DiagnosisSettings, fringe_frequency: tuple[float, float]) -> None:
+    Attributes
+    ----------
+    field_shape : (int, int)
+        The hologram's (rows, cols) in pixels.
+    origins : tuple of (int, int)
+        Each tile's top-left (row, col) in pixels, in the order of the tiles.
+    field_mean : float
+        The hologram's mean intensity (the unit of the field-wide envelope summaries).
+    """
+
+    field_shape: tuple[int, int]
+    origins: tuple[tuple[int, int], ...]
+    field_mean: float
+
+    def positions(self, tile_shape: tuple[int, int]) -> list[tuple[float, float]]:
+        """Each tile centre's (y, x) from the field centre, in units of the field's height and width."""
+        rows, cols = self.field_shape
+        return [((r + tile_shape[0] / 2) / rows - 0.5, (c + tile_shape[1] / 2) / cols - 0.5) for r, c in self.origins]
+
+    def fitting(self, tile_shape: tuple[int, int]) -> np.ndarray:
+        """Which tiles are fitted (True) and which held out: a checkerboard, so both halves span the field."""
+        return np.array([(r // tile_shape[0] + c // tile_shape[1]) % 2 == 0 for r, c in self.origins])
+
+
+class _Model:
+    """Simulated tiles of one effect set, with fixed fields and noise (common random numbers).
+
+    With a `TileLayout` the simulation makes whole fields of the hologram's shape (so a
+    field-wide envelope spans them as it spans the experiment) and cuts ``sim_tiles`` tiles at
+    the real tiles' positions, spread over the field; without one, each simulated tile is a
+    field of its own and the "field" is the set of simulated tiles. ``known`` effects (with
+    fixed parameters: what the file states) are part of every model.
+    """
+
+    def __init__(self, config: ExperimentConfig, *, shape, count: int, settings: DiagnosisSettings, fringe_frequency: tuple[float, float], layout: TileLayout | None, known: dict) -> None:
         self.config = config
         self.fringe_frequency = fringe_frequency
+        self.known = known
+        self.shape = tuple(shape)
+        field_shape = tuple(layout.field_shape) if layout is not None else self.shape
+        if layout is not None:
+            picked = np.round(np.linspace(0, len(layout.origins) - 1, min(settings.sim_tiles, len(layout.origins)))).astype(int)
+            places = [(layout.origins[i], layout.positions(self.shape)[i]) for i in picked]
+        else:
+            places = [((0, 0), (0.0, 0.0))]
+        fields = -(-settings.sim_tiles // len(places))
+        self.cuts = [(index // len(places), *places[index % len(places)]) for index in range(settings.sim_tiles)]
+        self.whole_fields = layout is not None
+        field_count = max(1, round(count * field_shape[0] * field_shape[1] / (self.shape[0] * self.shape[1])))
         rng = np.random.default_rng([settings.seed, 11])
         self.fields = [
-            random_particle_field(shape, count=count, diameter_min_um=config.particles.diameter_min_um, diameter_max_um=config.particles.diameter_max_um, layers_um=config.layer_depths_um(), pixel_um=config.optics.pixel_um, seed=rng)
-            for _ in range(settings.sim_tiles)
+            random_particle_field(field_shape, count=field_count, diameter_min_um=config.particles.diameter_min_um, diameter_max_um=config.particles.diameter_max_um, layers_um=config.layer_depths_um(), pixel_um=config.optics.pixel_um, seed=rng)
+            for _ in range(fields)
         ]
-        self.noise = [rng.standard_normal(shape).astype(np.float32) for _ in range(settings.sim_tiles)]
+        self.noise = [rng.standard_normal(field_shape).astype(np.float32) for _ in range(fields)]
         self._optical: dict[tuple, list[np.ndarray]] = {}
 
     def optical(self, effects: dict) -> list[np.ndarray]:
@@ -246,12 +330,18 @@ class _Model:
             self._optical[key] = [optical_hologram(f, optical, wavelength_um=self.config.optics.wavelength_um, medium_index=self.config.optics.medium_index) for f in self.fields]
         return self._optical[key]
 
-    def tiles(self, baseline: dict, effects: dict) -> list[np.ndarray]:
-        sensor = {k: v for k, v in effects.items() if k not in OPTICAL_EFFECTS}
-        return [sensor_image(intensity, baseline, sensor, noise=noise) for intensity, noise in zip(self.optical(effects), self.noise, strict=True)]
-
     def summaries(self, baseline: dict, effects: dict) -> np.ndarray:
-        return np.stack([tile_summaries(t, config=self.config, fringe_frequency=self.fringe_frequency)[0] for t in self.tiles(baseline, effects)])
+        effects = {**self.known, **effects}
+        sensor = {k: v for k, v in effects.items() if k not in OPTICAL_EFFECTS}
+        images = [sensor_image(intensity, baseline, sensor, noise=noise) for intensity, noise in zip(self.optical(effects), self.noise, strict=True)]
+        rows, cols = self.shape
+        tiles = [images[f][r : r + rows, c : c + cols] for f, (r, c), _ in self.cuts]
+        # the field a tile's brightness is measured against: its own image, or the whole set
+        field_means = [float(image.mean()) for image in images] if self.whole_fields else [float(np.mean([t.mean() for t in tiles]))] * len(images)
+        return np.stack([
+            tile_summaries(t, config=self.config, fringe_frequency=self.fringe_frequency, field_mean=field_means[f], field_position=position)[0]
+            for t, (f, _, position) in zip(tiles, self.cuts, strict=True)
+        ])
 
 
 def _fit(model: _Model, real: np.ndarray, effect_ids: Sequence[str], *, start: dict, measured: dict, evaluations: int, spread: np.ndarray) -> tuple[dict, dict, float]:
@@ -331,6 +421,14 @@ def _fit(model: _Model, real: np.ndarray, effect_ids: Sequence[str], *, start: d
             if result.fun < best[0]:
                 best = (float(result.fun), result.x, best[2])
     baseline, effects = unpack(best[1], best[2])
+    # Never end worse than the start on the fitting tiles: the start (the previous optimum, the
+    # new effects switched off) is itself a model of this family.
+    if all(("baseline", name) in start for name in BASELINE.bounds):
+        start_baseline = {name: start[("baseline", name)] for name in BASELINE.bounds}
+        start_effects = {e: {**EFFECTS[e].neutral, **{k: v for (owner, k), v in start.items() if owner == e}} for e in effect_ids}
+        start_gap = gap_statistic(real, model.summaries(start_baseline, start_effects), spread=spread)[0]
+        if start_gap <= best[0]:
+            return start_baseline, start_effects, start_gap
     return baseline, effects, best[0]
 
 
@@ -395,10 +493,84 @@ def _fringe_parameters(frequency: tuple[float, float]) -> dict:
     return {("parasitic_fringes", "period_px"): float(1.0 / np.hypot(fy, fx)), ("parasitic_fringes", "angle_rad"): float(np.arctan2(fy, fx) % np.pi)}
 
 
+def resampled_gaps(real: np.ndarray, sims: dict, *, spread: np.ndarray, resamples: int, seed: int = 0) -> dict:
+    """Each model's gap on bootstrap resamples of what the gap depends on.
+
+    Parameters
+    ----------
+    real : (n_real, K) array
+        Summaries of the real tiles the gap is measured on.
+    sims : dict of (n_sim, K) arrays
+        Each model's simulated summaries; row i of every model comes from the same simulated
+        field and noise (common random numbers), so one draw of simulation seeds serves all.
+    spread : (K,) array
+        The per-summary unit (`real_spread`), held fixed.
+    resamples : int
+        Bootstrap draws: real tiles and simulation seeds, each drawn with replacement, paired
+        across models (differences between models keep their correlation).
+
+    Returns
+    -------
+    dict of (resamples,) arrays, one per model.
+    """
+    rng = np.random.default_rng([seed, 17])
+    n_real, n_sim = len(real), len(next(iter(sims.values())))
+    real_means = real[rng.integers(0, n_real, (resamples, n_real))].mean(axis=1)
+    sim_draw = rng.integers(0, n_sim, (resamples, n_sim))
+    scale = spread * np.sqrt(1.0 / n_real + 1.0 / n_sim)
+    return {name: np.maximum(0.0, np.mean(np.minimum(((real_means - sim[sim_draw].mean(axis=1)) / scale) ** 2, 1e4), axis=1) - 1.0) for name, sim in sims.items()}
+
+
+def _decision(entries: list, draws: dict, *, baseline_gap: float, held_out: int) -> dict:
+    """The verdict from the confirmed effects' held-out gaps and their bootstrap draws (see `diagnose_tiles`).
+
+    An effect is named only when (a) its reduction of the gap, against the baseline and against
+    its own fit with the effect switched off, is at least ``_VERDICT_MIN_REDUCTION`` and
+    ``_VERDICT_MIN_SHRINK`` of the baseline, and its lower confidence bound is above 0; and
+    (b) its lead over the runner-up has a lower confidence bound above 0. Bounds are one-sided
+    at 95 %, Bonferroni-corrected for the number of effects compared (the best of several is
+    picked). ``tiles_to_decide``: held-out tiles at which the weaker of the two margins would
+    reach its bound, if margin / bootstrap error grows as sqrt(tiles).
+    """
+    ranked = sorted(entries, key=lambda e: e["gap_after"])
+    alpha = 0.05 / max(len(ranked), 1)
+    z_needed = float(stats.norm.ppf(1.0 - alpha))
+    verdict = {"id": None, "shrink": 0.0, "residual": float(baseline_gap), "interval": [0.0, 0.0], "runner_up": None, "confidence": 1.0 - alpha}
+    if not ranked:
+        return {**verdict, "reason": "no effect was refitted", "tiles_to_decide": None}
+    best = ranked[0]
+    against = np.minimum(draws["baseline"], draws[f"{best['id']} off"])
+    reduction = against - draws[best["id"]]
+    point_reduction = min(baseline_gap, best["gap_ablated"]) - best["gap_after"]
+    margins = [(point_reduction, reduction)]
+    runner = ranked[1] if len(ranked) > 1 else None
+    if runner is not None:
+        margins.append((runner["gap_after"] - best["gap_after"], draws[runner["id"]] - draws[best["id"]]))
+    ratios = [point / max(float(np.std(samples)), 1e-12) for point, samples in margins]
+    tiles = [int(np.ceil(held_out * (z_needed / ratio) ** 2)) if ratio > 0 else None for ratio in ratios]
+    tiles_to_decide = None if None in tiles else max(tiles)
+    verdict.update({"runner_up": runner["id"] if runner else None, "tiles_to_decide": tiles_to_decide})
+    low_reduction = float(np.quantile(reduction, alpha))
+    if point_reduction < _VERDICT_MIN_REDUCTION or best["shrink"] < _VERDICT_MIN_SHRINK or low_reduction <= 0:
+        verdict["reason"] = (
+            f"gap within what {held_out} held-out tiles can resolve: the best effect, {best['id']}, removes {point_reduction:.2f} of "
+            f"{baseline_gap:.2f} (lower bound {low_reduction:.2f})"
+        )
+        return verdict
+    if runner is not None and float(np.quantile(margins[1][1], alpha)) <= 0:
+        verdict["reason"] = f"two effects indistinguishable: {best['id']} ({best['gap_after']:.2f}) and {runner['id']} ({runner['gap_after']:.2f}) on {held_out} held-out tiles"
+        return verdict
+    verdict.update({"id": best["id"], "shrink": best["shrink"], "residual": best["gap_after"], "interval": best["shrink_interval"]})
+    verdict["reason"] = f"{best['id']} removes {point_reduction:.2f} of {baseline_gap:.2f} (lower bound {low_reduction:.2f}) and leads {runner['id'] if runner else 'nothing'}"
+    return verdict
+
+
 def diagnose_tiles(
     real_tiles: Sequence[np.ndarray],
     config: ExperimentConfig,
     *,
+    layout: TileLayout | None = None,
+    known: dict | None = None,
     settings: DiagnosisSettings = DiagnosisSettings(),
     particles_per_tile: int | None = None,
     progress: ProgressCallback | None = None,
@@ -409,10 +581,16 @@ def diagnose_tiles(
     Parameters
     ----------
     real_tiles : sequence of (rows, cols) arrays
-        At least 4 tiles of the experiment (same shape); alternate tiles are used for fitting
-        and for scoring.
+        At least 4 tiles of the experiment (same shape, positive mean intensity).
     config : ExperimentConfig
         Optics, depths and particle sizes of the simulator.
+    layout : TileLayout, optional
+        Where the tiles were cut from one hologram: the simulation then makes whole fields and
+        the tiles are split into fitting and held-out halves as a checkerboard. Without it,
+        alternate tiles are fitted and held out, and each simulated tile is a field of its own.
+    known : dict, optional
+        ``{effect_id: params}``: effects the experiment states (e.g. the file's bit depth),
+        put into every model with fixed parameters and not diagnosed.
     settings : DiagnosisSettings
     particles_per_tile : int, optional
         Particles per simulated tile; default ``per_tile`` scaled to the tile area.
@@ -427,32 +605,41 @@ def diagnose_tiles(
     shape = tiles[0].shape
     if any(t.shape != shape for t in tiles):
         raise InputError("real tiles: expected tiles of one shape")
+    means = np.array([t.mean() for t in tiles])
+    if not np.all(np.isfinite(means)) or np.any(means <= 0):
+        raise InputError("real tiles: expected finite intensities with a positive mean in every tile")
+    known = check_effects(known or {})
+    candidates = [e for e in EFFECTS if e not in known]
     count = particles_per_tile if particles_per_tile is not None else max(1, round(config.particles.per_tile * shape[0] * shape[1] / config.tile.size**2))
-    fringe_frequency = measured_fringe(tiles[0::2])  # from the fitting half only
+    fitting = layout.fitting(shape) if layout is not None else np.arange(len(tiles)) % 2 == 0
+    fringe_frequency = measured_fringe([t for t, fit in zip(tiles, fitting, strict=True) if fit])  # from the fitting half only
     measured = _fringe_parameters(fringe_frequency)
-    summaries = [tile_summaries(t, config=config, fringe_frequency=fringe_frequency) for t in tiles]
+    positions = layout.positions(shape) if layout is not None else [(0.0, 0.0)] * len(tiles)
+    field_mean = layout.field_mean if layout is not None else float(means.mean())
+    summaries = [tile_summaries(t, config=config, fringe_frequency=fringe_frequency, field_mean=field_mean, field_position=p) for t, p in zip(tiles, positions, strict=True)]
     names = summaries[0][1]
     real = np.stack([s[0] for s in summaries])
-    fit_real, held_real = real[0::2], real[1::2]
+    fit_real, held_real = real[fitting], real[~fitting]
     spread = real_spread(real)  # the experiment's own tile-to-tile spread: the unit of every gap
     gap = lambda a, b: gap_statistic(a, b, spread=spread)  # noqa: E731
-    model = _Model(config, shape=shape, count=count, settings=settings, fringe_frequency=fringe_frequency)
-    steps = Steps(2 + settings.confirm + 1, progress=progress, should_stop=should_stop)
+    model = _Model(config, shape=shape, count=count, settings=settings, fringe_frequency=fringe_frequency, layout=layout, known=known)
+    confirmed = min(settings.confirm, len(candidates))
+    steps = Steps(2 + confirmed + 1, progress=progress, should_stop=should_stop)
 
     steps.check()
-    base_params, _, _ = _fit(model, fit_real, [], start={}, measured=measured, evaluations=settings.evaluations, spread=spread)
+    base_params, _, base_fit_gap = _fit(model, fit_real, [], start={}, measured=measured, evaluations=settings.evaluations, spread=spread)
     base_sim = model.summaries(base_params, {})
     baseline_gap = gap(held_real, base_sim)[0]
+    held_sims = {"baseline": base_sim}  # every model's held-out simulation, for the resampling
     steps.advance()
 
     # screen: regress the standardised residual on each effect's signature (finite difference)
     steps.check()
     _, z_residual = gap(fit_real, base_sim)
     screening = {}
-    for effect_id, effect in EFFECTS.items():
-        signature_sim = model.summaries(base_params, {effect_id: _with_measured(effect_id, effect.injections[1], measured)})
-        _, z_signature = gap(signature_sim, base_sim)
-        signature = z_signature  # how far the effect moves the simulation, in z units
+    for effect_id in candidates:
+        signature_sim = model.summaries(base_params, {effect_id: _with_measured(effect_id, EFFECTS[effect_id].injections[1], measured)})
+        _, signature = gap(signature_sim, base_sim)  # how far the effect moves the simulation, in z units
         norm = float(signature @ signature)
         coefficient = float(z_residual @ signature) / norm if norm > 0 else 0.0
         residual = z_residual - coefficient * signature
@@ -463,20 +650,23 @@ def diagnose_tiles(
 
     # Confirm the effects whose fingerprint is most significant, whichever its sign: the
     # baseline's own parameters may already have over-compensated for the missing effect.
-    confirmed = sorted(EFFECTS, key=lambda e: -abs(screening[e]["t"]))[: settings.confirm]
+    refitted = sorted(candidates, key=lambda e: -abs(screening[e]["t"]))[:confirmed]
     effects_report = []
     fitted = {}
-    for effect_id in EFFECTS:
-        entry = {"id": effect_id, "screening": screening[effect_id], "confirmed": effect_id in confirmed}
-        if effect_id in confirmed:
+    for effect_id in candidates:
+        entry = {"id": effect_id, "screening": screening[effect_id], "confirmed": effect_id in refitted}
+        if effect_id in refitted:
             steps.check()
             start_params = {("baseline", k): v for k, v in base_params.items()}
-            baseline_params, effect_params, _ = _fit(model, fit_real, [effect_id], start=start_params, measured=measured, evaluations=settings.evaluations, spread=spread)
-            gap_after = gap(held_real, model.summaries(baseline_params, effect_params))[0]
+            baseline_params, effect_params, fit_gap = _fit(model, fit_real, [effect_id], start=start_params, measured=measured, evaluations=settings.evaluations, spread=spread)
+            entry["gap_fit"] = float(fit_gap)  # on the fitting tiles: never above the baseline's (`_fit` keeps its start)
+            held_sims[effect_id] = model.summaries(baseline_params, effect_params)
+            gap_after = gap(held_real, held_sims[effect_id])[0]
             # ablation at the optimum: the same fit with the effect switched off. A refit can
             # lower the gap by moving the baseline alone (out of an over-fitted optimum of
             # the fitting tiles); only what switching the effect on adds is the effect's.
-            entry["gap_ablated"] = float(gap(held_real, model.summaries(baseline_params, {}))[0])
+            held_sims[f"{effect_id} off"] = model.summaries(baseline_params, {})
+            entry["gap_ablated"] = float(gap(held_real, held_sims[f"{effect_id} off"])[0])
             fitted[effect_id] = (baseline_params, effect_params)
             entry["params"] = {**effect_params[effect_id], **{f"baseline.{k}": v for k, v in baseline_params.items()}}
             steps.advance()
@@ -489,17 +679,17 @@ def diagnose_tiles(
         entry["gap_after"] = float(gap_after)
         entry["shrink"] = float(1.0 - gap_after / baseline_gap) if baseline_gap > 0 else 0.0
         effects_report.append(entry)
-    effects_report.sort(key=lambda e: (not e["confirmed"], e["gap_after"]))
 
-    best = effects_report[0]
-    if (
-        not best["confirmed"]
-        or min(baseline_gap, best["gap_ablated"]) - best["gap_after"] < _VERDICT_MIN_REDUCTION
-        or best["shrink"] < _VERDICT_MIN_SHRINK
-    ):
-        verdict = {"id": None, "shrink": 0.0, "residual": float(baseline_gap)}  # nothing missing that these data can show
-    else:
-        verdict = {"id": best["id"], "shrink": best["shrink"], "residual": best["gap_after"]}
+    # evidence with its uncertainty: resample the held-out real tiles and the simulation seeds
+    draws = resampled_gaps(held_real, held_sims, spread=spread, resamples=settings.resamples, seed=settings.seed)
+    for entry in effects_report:
+        if entry["confirmed"]:
+            reduction = draws["baseline"] - draws[entry["id"]]
+            # shrink's interval: the reduction's 90 % interval over the measured baseline gap
+            low, high = np.quantile(reduction, (0.05, 0.95)) / baseline_gap if baseline_gap > 0 else (0.0, 0.0)
+            entry["shrink_interval"] = [float(low), float(high)]
+    effects_report.sort(key=lambda e: (not e["confirmed"], e["gap_after"]))
+    verdict = _decision([e for e in effects_report if e["confirmed"]], draws, baseline_gap=baseline_gap, held_out=len(held_real))
 
     # waterfall: baseline, + best, + best and the runner-up (greedy)
     waterfall = [{"model": "baseline", "gap": float(baseline_gap)}]
@@ -523,18 +713,72 @@ def diagnose_tiles(
         "gap": {
             "metric": f"excess standardised chi-square over {len(names)} summaries, held-out real tiles vs simulation (0 = indistinguishable)",
             "baseline": float(baseline_gap),
+            "baseline_fit": float(base_fit_gap),
+            "baseline_interval": [float(v) for v in np.quantile(draws["baseline"], (0.05, 0.95))],
             "baseline_params": base_params,
             **where_gap(real, base_sim, names),
         },
+        "known": known,
         "effects": effects_report,
         "verdict": verdict,
         "waterfall": waterfall,
-        "tiles": {"real": len(tiles), "fit": len(fit_real), "held_out": len(held_real), "simulated": settings.sim_tiles, "shape": list(shape), "particles_per_tile": count},
-        "settings": {"sim_tiles": settings.sim_tiles, "evaluations": settings.evaluations, "confirm": settings.confirm, "seed": settings.seed},
+        "tiles": {
+            "real": len(tiles), "fit": len(fit_real), "held_out": len(held_real), "simulated": settings.sim_tiles, "shape": list(shape), "particles_per_tile": count,
+            "split": "checkerboard over the hologram" if layout is not None else "alternate tiles",
+        },
+        "settings": {"sim_tiles": settings.sim_tiles, "evaluations": settings.evaluations, "confirm": settings.confirm, "resamples": settings.resamples, "seed": settings.seed},
     }
     seconds = time.perf_counter() - start
     report["seconds"] = round(seconds, 2)
     return Diagnosis(report, names, real, base_sim, seconds)
+
+
+# A camera that clips piles its brightest pixels up at one value; a natural image reaches its
+# maximum in a handful of pixels. This share of the pixels at the maximum marks saturation.
+_PILE_UP = 1e-3
+
+
+def known_sensor(image: np.ndarray) -> dict | None:
+    """What an image of integer counts states about its camera: bit depth and saturation level.
+
+    Parameters
+    ----------
+    image : 2-D array
+        The hologram as recorded: an integer dtype, or floats holding integer counts (what
+        `read_hologram` makes of an integer file: float32 holds integers exactly up to 2^24).
+
+    Returns
+    -------
+    dict or None
+        ``bits`` (uint8: 8; otherwise the fewest bits, at least 8, that hold the largest
+        count), ``full_scale`` and ``saturation`` (counts: the largest value where at least
+        0.1 % of the pixels pile up there, else the full scale), ``saturated_fraction`` and
+        ``source``. None for an image that is not integer counts (a float simulation).
+    """
+    array = np.asarray(image)
+    if array.ndim != 2 or array.dtype == bool or array.dtype.kind not in "uif" or array.size == 0:
+        return None
+    if array.dtype.kind in "ui":
+        source = f"{array.dtype} image"
+    elif np.all(np.isfinite(array)) and np.all(array == np.round(array)):
+        source = "integer counts in a float image"
+    else:
+        return None
+    low, high = float(array.min()), float(array.max())
+    if low < 0 or high <= 0 or high > 2**16 - 1:
+        return None
+    bits = 8 if array.dtype == np.uint8 else int(max(8, np.ceil(np.log2(high + 1))))
+    full_scale = float(2**bits - 1)
+    saturated = float(np.mean(array == high))
+    return {"bits": bits, "full_scale": full_scale, "saturation": high if saturated >= _PILE_UP else full_scale, "saturated_fraction": saturated, "source": source}
+
+
+def adapted_tile_px(shape: tuple[int, int], largest: int, *, tiles: int = 16) -> int:
+    """The largest tile edge (px; ``largest`` halved until it fits, not below `MIN_TILE_PX`) that cuts at least ``tiles`` tiles of ``shape``."""
+    size = int(largest)
+    while size // 2 >= MIN_TILE_PX and (shape[0] // size) * (shape[1] // size) < tiles:
+        size //= 2
+    return size
 
 
 def diagnose_hologram(
@@ -543,24 +787,46 @@ def diagnose_hologram(
     *,
     background: np.ndarray | None = None,
     tile_px: int | None = None,
+    known: bool = True,
     settings: DiagnosisSettings = DiagnosisSettings(),
     progress: ProgressCallback | None = None,
     should_stop: StopCallback | None = None,
 ) -> Diagnosis:
-    """Diagnose one hologram: cut it into non-overlapping tiles (default ``tile.size``) and run `diagnose_tiles`."""
+    """Diagnose one hologram: cut it into tiles and run `diagnose_tiles` with the field's layout.
+
+    Parameters
+    ----------
+    hologram : 2-D array
+        As recorded (integer counts keep what the file states about the camera).
+    tile_px : int, optional
+        Tile edge (px). Default: the largest edge up to ``tile.size`` that cuts at least 16
+        tiles (512²: 128 px), so the held-out half has 8 tiles to resolve a gap with.
+    known : bool
+        Put what the file states into every model as known, not diagnosed: for integer
+        counts (`known_sensor`), the bit depth and saturation as ``quantization``. Off, or
+        with a ``background`` (the division makes the levels uneven), they are diagnosed.
+    """
+    facts = known_sensor(hologram) if known else None
     image = as_hologram(hologram)
     if background is not None:
         image = image / np.maximum(as_hologram(background, name="background"), 1e-6)
-    size = int(tile_px or config.tile.size)
+        facts = None
     rows, cols = image.shape
+    size = int(tile_px or adapted_tile_px((rows, cols), config.tile.size))
     if size < MIN_TILE_PX:
         raise InputError(f"tile: expected at least {MIN_TILE_PX} pixels (the frequency bands need them), got {size}")
     if size > min(rows, cols):
         raise InputError(f"tile: a {size}-pixel tile is larger than the hologram ({rows}x{cols})")
-    tiles = [image[r : r + size, c : c + size] for r in range(0, rows - size + 1, size) for c in range(0, cols - size + 1, size)]
-    if len(tiles) < 4:
-        raise InputError(f"tile: {size}-pixel tiles give {len(tiles)} tiles of the {rows}x{cols} hologram; expected at least 4 (use a smaller tile)")
-    return diagnose_tiles(tiles, config, settings=settings, progress=progress, should_stop=should_stop)
+    origins = tuple((r, c) for r in range(0, rows - size + 1, size) for c in range(0, cols - size + 1, size))
+    if len(origins) < 4:
+        raise InputError(f"tile: {size}-pixel tiles give {len(origins)} tiles of the {rows}x{cols} hologram; expected at least 4 (use a smaller tile)")
+    tiles = [image[r : r + size, c : c + size] for r, c in origins]
+    field_mean = float(np.mean([t.mean() for t in tiles]))
+    # the sensor's levels in the simulation's unit (the tiles' mean intensity is 1 there)
+    known_effects = {"quantization": {"bits": float(facts["bits"]), "saturation": facts["saturation"] / field_mean}} if facts else {}
+    diagnosis = diagnose_tiles(tiles, config, layout=TileLayout((rows, cols), origins, field_mean), known=known_effects, settings=settings, progress=progress, should_stop=should_stop)
+    diagnosis.report["known_sensor"] = facts if facts else {"source": "none: not integer counts, a background was divided out, or switched off"}
+    return diagnosis
 
 
 def write_report(diagnosis: Diagnosis, out_dir, *, provenance: dict | None = None) -> list:
@@ -622,7 +888,10 @@ def write_report(diagnosis: Diagnosis, out_dir, *, provenance: dict | None = Non
         "# Sim-to-real gap diagnosis",
         "",
         f"- Gap between the experiment and the seed's simulator (baseline): **{gap['baseline']:.2f}** ({gap['metric']}).",
-        f"- Verdict: **{verdict['id'] or 'nothing missing (null)'}**; shrink {100 * verdict['shrink']:.0f} %, residual gap {verdict['residual']:.2f}.",
+        f"- Verdict: **{verdict['id'] or 'none named (null)'}**; shrink {100 * verdict['shrink']:.0f} % "
+        f"(90 % interval {100 * verdict['interval'][0]:.0f} to {100 * verdict['interval'][1]:.0f} %), residual gap {verdict['residual']:.2f}. Why: {verdict['reason']}.",
+        f"- Data that would decide: {_tiles_to_decide_text(verdict, report['tiles'])}",
+        f"- Known, not diagnosed (what the file states): {_known_text(report)}",
         f"- Time: {report['seconds']:.0f} s; tiles: {report['tiles']}.",
         "",
         "## Where the gap lies (1 = as different as two tiles of the experiment)",
@@ -639,9 +908,14 @@ def write_report(diagnosis: Diagnosis, out_dir, *, provenance: dict | None = Non
         "",
         "## Effects",
         "",
-        "| effect | confirmed (refitted) | gap after | shrink | gap with it switched off in its own fit | screening t |",
+        "| effect | confirmed (refitted) | gap after | shrink (90 % interval) | gap with it switched off in its own fit | screening t |",
         "|---|---|---|---|---|---|",
-        *[f"| {e['id']} | {'yes' if e['confirmed'] else 'no'} | {e['gap_after']:.2f} | {100 * e['shrink']:.0f} % | {format(e['gap_ablated'], '.2f') if 'gap_ablated' in e else '—'} | {e['screening']['t']:.1f} |" for e in effects],
+        *[
+            f"| {e['id']} | {'yes' if e['confirmed'] else 'no'} | {e['gap_after']:.2f} | {100 * e['shrink']:.0f} %"
+            f"{' ({:.0f} to {:.0f} %)'.format(*(100 * v for v in e['shrink_interval'])) if 'shrink_interval' in e else ''} | "
+            f"{format(e['gap_ablated'], '.2f') if 'gap_ablated' in e else '—'} | {e['screening']['t']:.1f} |"
+            for e in effects
+        ],
         "",
         "![effects](gap_effects.png)",
         "",
@@ -649,3 +923,21 @@ def write_report(diagnosis: Diagnosis, out_dir, *, provenance: dict | None = Non
     paths.append(out / "report.md")
     atomic_write_bytes(out / "report.md", "\n".join(lines).encode("utf-8"))
     return paths
+
+
+def _tiles_to_decide_text(verdict: dict, tiles: dict) -> str:
+    needed = verdict.get("tiles_to_decide")
+    if needed is None:
+        return "no amount of data: the best effect does not improve on the baseline or on the runner-up."
+    if needed <= tiles["held_out"]:
+        return f"these {tiles['held_out']} held-out tiles suffice."
+    return f"about {needed} held-out tiles of {tiles['shape'][0]}x{tiles['shape'][1]} px (now {tiles['held_out']}), i.e. about {2 * needed} tiles in all, if the margins stay as measured."
+
+
+def _known_text(report: dict) -> str:
+    known = report.get("known") or {}
+    if not known:
+        return "nothing."
+    sensor = report.get("known_sensor", {})
+    return "; ".join(f"{effect_id} {params}" for effect_id, params in known.items()) + (f" (from the {sensor['source']})" if "source" in sensor else "") + "."
+

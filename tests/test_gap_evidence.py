@@ -1,0 +1,152 @@
+"""Gap diagnosis on data it was not built on (issue 13): evidence with its uncertainty, refits that
+never end worse than their start, known facts from the file, tiles adapted to the hologram, and
+refusals. Fast checks; the suites are benchmarks/bench_diagnosis.py."""
+
+import json
+
+import numpy as np
+import pytest
+import tifffile
+
+from napari_lbs._core import EFFECTS, DiagnosisSettings, ExperimentConfig, InputError, random_particle_field, read_hologram, write_report
+from napari_lbs._core._effects import optical_hologram, sensor_image
+from napari_lbs._core._gap import _fit, _Model, TileLayout, adapted_tile_px, diagnose_hologram, diagnose_tiles, gap_statistic, known_sensor, real_spread, resampled_gaps, tile_summaries
+
+CONFIG = ExperimentConfig()
+TRUTH = {"contrast": 0.8, "sigma": 0.04, "gamma": 1.2}
+
+
+def test_resampled_shrink_intervals_cover_a_known_shrink():
+    # Summaries with a known answer: real tiles ~ N(0, 1) in each of K summaries; the baseline
+    # simulation is off by delta, the effect's by sqrt(1 - s) * delta. The expected excess χ²
+    # is proportional to |delta|², so the effect's true shrink is s.
+    rng = np.random.default_rng(0)
+    summaries, tiles, shrink = 40, 8, 0.6
+    delta = rng.choice([-1.0, 1.0], summaries) * 1.2
+    covered, excluded_zero = [], []
+    for trial in range(60):
+        real = rng.standard_normal((tiles, summaries))
+        sims = {"baseline": rng.standard_normal((tiles, summaries)) + delta}
+        sims["effect"] = rng.standard_normal((tiles, summaries)) + np.sqrt(1 - shrink) * delta
+        spread = real_spread(real)
+        draws = resampled_gaps(real, sims, spread=spread, resamples=1000, seed=trial)
+        baseline = gap_statistic(real, sims["baseline"], spread=spread)[0]
+        low, high = np.quantile(draws["baseline"] - draws["effect"], (0.05, 0.95)) / baseline
+        covered.append(low <= shrink <= high)
+        excluded_zero.append(low > 0)
+    # a 90 % interval: at least 80 % of 60 trials (binomial: 90 % ± 2 sd of 3.9 %)
+    assert np.mean(covered) >= 0.8, np.mean(covered)
+    assert np.mean(excluded_zero) >= 0.8  # and it is narrow enough to say the effect helps
+
+
+def test_resampled_gaps_pair_the_models_and_vanish_for_identical_ones():
+    rng = np.random.default_rng(1)
+    real, sim = rng.standard_normal((8, 30)), rng.standard_normal((8, 30)) + 0.5
+    draws = resampled_gaps(real, {"a": sim, "b": sim.copy()}, spread=real_spread(real), resamples=200)
+    np.testing.assert_array_equal(draws["a"], draws["b"])  # same draw of tiles and seeds for every model
+    assert draws["a"].std() > 0
+
+
+def small_model(count=4):
+    rng = np.random.default_rng(3)
+    tiles = []
+    for _ in range(count):
+        field = random_particle_field((64, 64), count=2, diameter_min_um=20, diameter_max_um=30, layers_um=CONFIG.layer_depths_um(), pixel_um=2.2, seed=rng)
+        tiles.append(sensor_image(optical_hologram(field, {}, wavelength_um=0.66), TRUTH, {"sensor_blur": {"sigma_px": 1.0}}, noise=rng.standard_normal((64, 64)).astype(np.float32)))
+    real = np.stack([tile_summaries(t, config=CONFIG, fringe_frequency=(0.1, 0.0))[0] for t in tiles])
+    model = _Model(CONFIG, shape=(64, 64), count=2, settings=DiagnosisSettings(sim_tiles=3), fringe_frequency=(0.1, 0.0), layout=None, known={})
+    return model, real
+
+
+def test_a_refit_never_returns_a_worse_gap_than_its_start_on_the_fitting_tiles(monkeypatch):
+    from scipy import optimize
+
+    model, real = small_model()
+    spread = real_spread(real)
+    start = {("baseline", k): v for k, v in TRUTH.items()}
+    start_gap = gap_statistic(real, model.summaries(TRUTH, {}), spread=spread)[0]
+
+    # a search that ends somewhere terrible: every parameter at its upper bound
+    class Ended:
+        def __init__(self, x):
+            self.x, self.fun = np.ones_like(x), 1e9
+
+    monkeypatch.setattr(optimize, "minimize", lambda fun, x0, **kw: Ended(np.asarray(x0)))
+    monkeypatch.setattr(optimize, "direct", lambda fun, bounds, **kw: Ended(np.zeros(len(bounds))))
+    for effect_id in ("quantization", "sensor_blur", "shot_noise", "coherence"):
+        baseline, effects, fit_gap = _fit(model, real, [effect_id], start=start, measured={}, evaluations=8, spread=spread)
+        assert fit_gap <= start_gap + 1e-12, effect_id
+        assert gap_statistic(real, model.summaries(baseline, effects), spread=spread)[0] == pytest.approx(fit_gap)
+
+
+def test_the_refits_of_a_diagnosis_end_no_worse_than_the_baseline_on_the_fitting_tiles():
+    rng = np.random.default_rng(5)
+    tiles = []
+    for _ in range(8):
+        field = random_particle_field((64, 64), count=2, diameter_min_um=20, diameter_max_um=30, layers_um=CONFIG.layer_depths_um(), pixel_um=2.2, seed=rng)
+        tiles.append(sensor_image(optical_hologram(field, {}, wavelength_um=0.66), TRUTH, {}, noise=rng.standard_normal((64, 64)).astype(np.float32)))
+    report = diagnose_tiles(tiles, CONFIG, settings=DiagnosisSettings(sim_tiles=3, evaluations=8, resamples=200), particles_per_tile=2).report
+    refitted = [e for e in report["effects"] if e["confirmed"]]
+    assert refitted and all(e["gap_fit"] <= report["gap"]["baseline_fit"] + 1e-9 for e in refitted)
+    # evidence with its uncertainty, and a reason whichever way the verdict goes
+    assert report["verdict"].keys() >= {"id", "shrink", "residual", "reason", "interval", "tiles_to_decide"}
+    assert all(len(e["shrink_interval"]) == 2 and e["shrink_interval"][0] <= e["shrink_interval"][1] for e in refitted)
+
+
+@pytest.mark.parametrize(("dtype", "top", "bits"), [(np.uint8, 200, 8), (np.uint8, 255, 8), (np.uint16, 4095, 12), (np.uint16, 60000, 16)])
+def test_known_bit_depth_is_read_from_integer_files(tmp_path, dtype, top, bits):
+    rng = np.random.default_rng(0)
+    counts = rng.integers(1, top + 1, (64, 64)).astype(dtype)
+    counts[0, 0] = top
+    path = tmp_path / "holo.tif"
+    tifffile.imwrite(path, counts)
+    for image in (counts, read_hologram(path)):  # the integer array, and the float32 the CLI reads
+        facts = known_sensor(image)
+        assert facts["bits"] == bits and facts["full_scale"] == 2**bits - 1
+    # a clipped camera piles its brightest pixels up at one value: that is the saturation level
+    clipped = np.minimum(counts, dtype(top // 2))
+    assert known_sensor(clipped)["saturation"] == top // 2
+    assert known_sensor(rng.random((64, 64)).astype(np.float32)) is None  # a float simulation states nothing
+
+
+def test_known_bit_depth_goes_into_every_model_and_can_be_switched_off():
+    rng = np.random.default_rng(2)
+    field = random_particle_field((256, 256), count=12, diameter_min_um=20, diameter_max_um=30, layers_um=CONFIG.layer_depths_um(), pixel_um=2.2, seed=rng)
+    image = sensor_image(optical_hologram(field, {}, wavelength_um=0.66), TRUTH, {}, noise=rng.standard_normal((256, 256)).astype(np.float32))
+    counts = np.clip(np.round(image * 140), 0, 255).astype(np.uint8)
+    fast = DiagnosisSettings(sim_tiles=2, evaluations=8, confirm=0, resamples=100)
+    known = diagnose_hologram(counts, CONFIG, settings=fast).report
+    assert known["known"]["quantization"]["bits"] == 8 and known["known_sensor"]["source"] == "uint8 image"
+    assert "quantization" not in {e["id"] for e in known["effects"]}  # known, not a candidate
+    diagnosed = diagnose_hologram(counts, CONFIG, known=False, settings=fast).report
+    assert diagnosed["known"] == {} and "quantization" in {e["id"] for e in diagnosed["effects"]}
+
+
+def test_tiles_adapt_to_the_hologram_and_split_as_a_checkerboard():
+    for shape, largest in (((512, 512), 256), ((1024, 1024), 256), ((512, 768), 256)):
+        size = adapted_tile_px(shape, largest)
+        assert (shape[0] // size) * (shape[1] // size) >= 16 and size >= 64
+    assert adapted_tile_px((512, 512), 256) == 128
+    origins = tuple((r, c) for r in range(0, 512, 128) for c in range(0, 512, 128))
+    fitting = TileLayout((512, 512), origins, 1.0).fitting((128, 128))
+    assert fitting.sum() == 8 and all(fitting[i] != fitting[i + 1] for i in range(3))  # neighbours differ
+    assert all(fitting[i] != fitting[i + 4] for i in range(12))
+
+
+@pytest.mark.parametrize("image", [np.zeros((128, 128), np.float32), np.full((128, 128), 7.0, np.float32), -np.random.default_rng(0).random((128, 128)).astype(np.float32)])
+def test_diagnose_refuses_images_that_are_no_intensity_in_one_line(image):
+    with pytest.raises(InputError) as refused:
+        diagnose_hologram(image, CONFIG)
+    assert "\n" not in str(refused.value)
+
+
+def test_report_json_never_holds_nan(tmp_path):
+    rng = np.random.default_rng(4)
+    # identical tiles: every spread is at its floor and the baseline gap can be 0 (shrinks 0/0)
+    tile = sensor_image(np.ones((64, 64), np.float32), TRUTH, {}, noise=rng.standard_normal((64, 64)).astype(np.float32))
+    diagnosis = diagnose_tiles([tile] * 4, CONFIG, settings=DiagnosisSettings(sim_tiles=2, evaluations=8, confirm=1, resamples=100), particles_per_tile=1)
+    diagnosis.report["effects"][0]["shrink"] = float("nan")  # whatever a computation leaves, the file stays strict JSON
+    write_report(diagnosis, tmp_path / "r")
+    text = (tmp_path / "r" / "report.json").read_text()
+    json.loads(text, parse_constant=lambda name: pytest.fail(f"report.json holds {name}"))
+    assert set(EFFECTS) >= {e["id"] for e in json.loads(text)["effects"]}
