@@ -79,6 +79,27 @@ def test_a_multipage_tiff_is_read_page_by_page_without_loading_the_file(tmp_path
     assert recording.name(17) == f"{tmp_path / 'run.tif'}[frame 17]"
 
 
+def test_a_video_is_decoded_frame_by_frame(tmp_path):
+    import cv2
+
+    rng = np.random.default_rng(1)
+    frames = np.clip(128 + 60 * np.sin(np.arange(128)[None, :, None] / 4.0 + np.arange(16)[:, None, None]) + rng.normal(0, 1, (16, 128, 128)), 0, 255).astype(np.uint8)
+    writer = cv2.VideoWriter(str(tmp_path / "run.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 10, (128, 128), isColor=False)
+    for frame in frames:
+        writer.write(frame)
+    writer.release()
+    with open_frames([tmp_path / "run.avi"]) as recording:
+        assert len(recording) == 16 and recording.name(3) == f"{tmp_path / 'run.avi'}[frame 3]"
+        tracemalloc.start()
+        decoded = [recording.read(k).mean() for k in range(16)]
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        assert peak < 4 * 128 * 128 * 3 * 4  # a frame at a time (RGB float32), never the whole video (16 frames)
+        np.testing.assert_allclose(decoded, frames.mean(axis=(1, 2)), atol=2.0)  # MJPG is lossy
+        back = recording.read(2)  # going back reopens the video
+        assert np.mean(np.abs(back - frames[2])) < 3.0 and np.mean(np.abs(back - frames[3])) > 20.0
+
+
 def test_folders_and_globs_sort_naturally_and_files_keep_input_order(tmp_path):
     for k in (10, 2, 1):
         tifffile.imwrite(tmp_path / f"f{k}.tif", np.full((32, 32), float(k), np.float32) + np.eye(32, dtype=np.float32))
