@@ -32,6 +32,7 @@ import re
 import shutil
 import time
 from collections.abc import Sequence
+from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -434,6 +435,10 @@ class _Scheduler:
         self.slots = _IN_FLIGHT_PER_WORKER * max(1, len(self.client.scheduler_info()["workers"])) if self.client else 1
         self.description = f"dask.distributed at {scheduler}" if scheduler else (f"dask LocalCluster of {workers} workers" if workers else "dask local threaded scheduler")
 
+    def share(self, value):
+        """``value`` as every task will receive it: sent once to each worker (distributed), else as it is."""
+        return value if self.client is None or value is None else self.client.scatter(value, broadcast=True, hash=False)
+
     def submit(self, index: int, *arguments):
         if self.client is not None:
             return self.client.submit(_frame_particles, arguments[0], self.model, *arguments[1:], key=f"napari-lbs-frame-{index}-{id(self)}", pure=False)
@@ -508,8 +513,9 @@ def predict_sequence(
     device : {"auto", "cpu", "cuda"}
         Where each worker runs the network (``auto``: a worker's GPU when it has one).
     progress, should_stop
-        One step per frame (resumed frames count as done at once); a stop raises `Stopped`
-        after the frames in flight, whose results are kept in ``work_dir``.
+        One step per frame (resumed frames count as done at once). A stop raises `Stopped`
+        when the next frame finishes (frames still in flight are cancelled); the finished
+        frames stay in ``work_dir``.
 
     Returns
     -------
@@ -529,35 +535,41 @@ def predict_sequence(
         mode = background
     else:
         raise InputError(f"background: expected one of {', '.join(BACKGROUND_MODES)} or an image, got {background!r}")
-    frames = frames if isinstance(frames, HologramFrames) else open_frames(frames)
-    loaded = model if isinstance(model, LoadedModel) else load_model(model, device="cpu")
-    config = config if config is not None else loaded.config
-    count = len(frames)
-    identity = {
-        "sources": frames.describe(),
-        "frames": count,
-        "model_sha256": loaded.sha256,
-        "config": config.to_dict(),
-        "background": mode,
-        "background_window": background_window if mode == "running" else None,
-        "background_samples": background_samples if mode == "global" else None,
-        "background_sha256": hashlib.sha256(static.tobytes()).hexdigest() if static is not None else None,
-    }
-    work = _Work(Path(work_dir) if work_dir is not None else None, identity)
-    finished = work.finished() & set(range(count))
-    steps = Steps(count, progress=progress, should_stop=should_stop)
-    steps.advance(len(finished))
-    todo = [index for index in range(count) if index not in finished]
-    first = frames.read(todo[0] if todo else 0)  # checks the first frame (and fixes the shape) before any set-up
-    if static is not None and static.shape != first.shape:
-        raise InputError(f"background: expected the frames' shape {first.shape}, got {static.shape}")
-    if mode == "global" and todo:
-        static = work.background(lambda: sequence_background(frames, samples=background_samples))
-    runner = _Scheduler(loaded, workers=workers, scheduler=scheduler, local_processes=local_processes)
-    pending: dict = {}
-    buffer: dict[int, np.ndarray] = {}  # frames of the running window
-    try:
+    opened = not isinstance(frames, HologramFrames)  # ours to close
+    frames = open_frames(frames) if opened else frames
+    with ExitStack() as cleanup:
+        if opened:
+            cleanup.callback(frames.close)
+        loaded = model if isinstance(model, LoadedModel) else load_model(model, device="cpu")
+        config = config if config is not None else loaded.config
+        count = len(frames)
+        identity = {
+            "sources": frames.describe(),
+            "frames": count,
+            "model_sha256": loaded.sha256,
+            "config": config.to_dict(),
+            "background": mode,
+            "background_window": background_window if mode == "running" else None,
+            "background_samples": background_samples if mode == "global" else None,
+            "background_sha256": hashlib.sha256(static.tobytes()).hexdigest() if static is not None else None,
+        }
+        work = _Work(Path(work_dir) if work_dir is not None else None, identity)
+        finished = work.finished() & set(range(count))
+        steps = Steps(count, progress=progress, should_stop=should_stop)
+        steps.advance(len(finished))
+        todo = [index for index in range(count) if index not in finished]
+        first = frames.read(todo[0] if todo else 0)  # checks the first frame (and fixes the shape) before any set-up
+        if static is not None and static.shape != first.shape:
+            raise InputError(f"background: expected the frames' shape {first.shape}, got {static.shape}")
+        if mode == "global" and todo:
+            static = work.background(lambda: sequence_background(frames, samples=background_samples))
+        runner = _Scheduler(loaded, workers=workers, scheduler=scheduler, local_processes=local_processes)
+        pending: dict = {}
+        cleanup.callback(runner.close, pending)
+        shared_background = runner.share(static)
+        buffer: dict[int, np.ndarray] = {}  # frames of the running window
         queue = iter(todo)
+        loop_start = time.perf_counter()
         while True:
             for index in queue:
                 if mode == "running":
@@ -565,7 +577,7 @@ def predict_sequence(
                     buffer = {k: buffer[k] if k in buffer else frames.read(k) for k in range(low, high)}
                     hologram, frame_background = buffer[index], _median(np.stack(list(buffer.values())))
                 else:
-                    hologram, frame_background = frames.read(index), static
+                    hologram, frame_background = frames.read(index), shared_background
                 pending[index] = runner.submit(index, hologram, config, frame_background, device)
                 if len(pending) >= runner.slots:
                     break
@@ -577,10 +589,9 @@ def predict_sequence(
                 work.provenance(frame_provenance)
                 steps.advance()
             if steps.stop_requested():
-                raise Stopped(f"stopped after {steps.done} of {count} frames; the finished ones are kept in {work.folder}" if work.folder else f"stopped after {steps.done} of {count} frames")
-    finally:
-        runner.close(pending)
-        frames.close()
+                kept = f"; the finished ones are kept in {work.folder}" if work.folder else ""
+                raise Stopped(f"stopped after {steps.done} of {count} frames{kept}")
+        loop_seconds = time.perf_counter() - loop_start
     tables = [work.load(index) for index in range(count)]
     columns = list(tables[0])
     particles = {name: np.concatenate([np.asarray(t[name]) for t in tables]) for name in columns}
@@ -590,13 +601,14 @@ def predict_sequence(
     provenance.update({
         "napari_lbs": __version__,
         "frames": count,
-        "sources": frames.describe(),
+        "sources": identity["sources"],
         "background": mode,
         "background_window": identity["background_window"],
         "background_samples": identity["background_samples"],
         "scheduler": runner.description,
         "resumed_frames": len(finished),
         "seconds": round(seconds, 3),
-        "frames_per_second": round((count - len(finished)) / seconds, 4) if seconds > 0 else None,
+        # frames predicted per second once the workers run (set-up, background estimate and assembly excluded)
+        "frames_per_second": round(len(todo) / loop_seconds, 4) if todo and loop_seconds > 0 else None,
     })
     return SequenceResult(particles, provenance, seconds, len(finished))
