@@ -116,17 +116,21 @@ def main() -> None:
     viewer.layers["gap by region"].visible = False
     plane = int(np.bincount(np.round(points.data[:, 0]).astype(int)).argmax()) if len(points.data) else 0
     viewer.layers.selection.active = points
-    viewer.dims.set_current_step(0, stack.translate[0] + plane * stack.scale[0])
+    viewer.dims.set_point(0, stack.translate[0] + plane * stack.scale[0])
     dock.tabs.setCurrentIndex(4)
     viewer.reset_view()
     settle(1.0)
     window.grab().save(str(figures / "napari_window.png"))
-    # 3-D: every particle, sized by its diameter, over the stack
+    # 3-D: the sensor (the hologram at z = 0) and every particle in its box 1.8-4.8 mm away
     for name in ("I_e (experiment)", "I_s (synthetic)", "reference ROI", stack.name):
         viewer.layers[name].visible = False
+    points.bounding_box.visible = True
+    viewer.axes.visible = viewer.scale_bar.visible = True
+    viewer.dims.axis_labels = ("z", "y", "x")
     viewer.dims.ndisplay = 3
     viewer.reset_view()
-    viewer.scene.camera.angles = (0.0, -35.0, 60.0)
+    viewer.scene.camera.angles = (-60.0, 30.0, 110.0)
+    viewer.scene.camera.zoom *= 0.6
     settle(1.0)
     window.grab().save(str(figures / "napari_3d.png"))
     viewer.close()

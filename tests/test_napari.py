@@ -171,6 +171,10 @@ def test_workflow_dock_drives_the_whole_workflow_on_the_synthetic_sample(make_na
     # the z slider steps through planes and every layer is in µm (no napari units warning)
     qtbot.wait(300)
     assert viewer.dims.range[0].step >= 50.0
+    plane = int(round(truth.data[0, 0]))
+    viewer.dims.set_point(0, truth.translate[0] + plane * truth.scale[0])
+    shown = set(np.asarray(truth._view_indices).tolist())
+    assert 0 in shown and shown == set(np.flatnonzero(np.round(truth.data[:, 0]) == plane).tolist())
     assert all(str(unit) == "micrometer" for layer in viewer.layers for unit in layer.units), {layer.name: layer.units for layer in viewer.layers}
     assert not [m for m in notifications if "Inconsistent units" in m], notifications
 

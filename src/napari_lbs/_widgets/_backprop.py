@@ -25,7 +25,7 @@ class BackpropWidget(StepWidget):
         import napari
 
         self.hologram = create_widget(annotation=napari.layers.Image, label="hologram", name="hologram", options={"tooltip": HOLOGRAM_TOOLTIP})
-        self.config = path_edit(label="config (empty: default)", name="config", filter="*.toml", tooltip=CONFIG_TOOLTIP)
+        self.config = path_edit(label="config", name="config", placeholder="empty: the defaults", filter="*.toml", tooltip=CONFIG_TOOLTIP)
         super().__init__(napari_viewer, [self.hologram, self.config])
 
     def problem(self):

@@ -62,10 +62,11 @@ def wrapping_label() -> Label:
     return label
 
 
-def path_edit(*, label: str, name: str, mode: str = "r", filter: str | None = None, value: str = "", tooltip: str = "") -> FileEdit:
-    """A path field whose empty text means "none" (magicgui would show the current folder)."""
+def path_edit(*, label: str, name: str, mode: str = "r", filter: str | None = None, value: str = "", placeholder: str = "", tooltip: str = "") -> FileEdit:
+    """A path field whose empty text means "none" (magicgui would show the current folder); ``placeholder`` says what empty means."""
     edit = FileEdit(label=label, name=name, mode=mode, filter=filter, nullable=True, value=None, tooltip=tooltip)
     edit.line_edit.value = value
+    edit.line_edit.native.setPlaceholderText(placeholder)
     return edit
 
 

@@ -30,7 +30,7 @@ class CalibrationWidget(StepWidget):
         self.hologram = create_widget(annotation=napari.layers.Image, label="hologram", name="hologram", options={"tooltip": HOLOGRAM_TOOLTIP})
         self.roi = create_widget(annotation=napari.layers.Shapes | None, label="reference ROI", name="roi",
                                  options={"tooltip": "The reference tile: the first rectangle's top-left pixel (tile.size square). None: the medoid tile is chosen"})
-        self.config = path_edit(label="config (empty: default)", name="config", filter="*.toml", tooltip=CONFIG_TOOLTIP)
+        self.config = path_edit(label="config", name="config", placeholder="empty: the defaults", filter="*.toml", tooltip=CONFIG_TOOLTIP)
         self.generations = SpinBox(label="generations", name="generations", value=100, min=1, max=10000, tooltip=doc_of(CalibrationSettings, "generations"))
         self.population = SpinBox(label="population", name="population", value=12, min=4, max=1000, tooltip=doc_of(CalibrationSettings, "population"))
         self.mode = ComboBox(label="mode", name="mode", choices=["robust", "seed"], value="robust",

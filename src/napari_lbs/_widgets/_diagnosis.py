@@ -24,7 +24,7 @@ class DiagnosisWidget(StepWidget):
         import napari
 
         self.hologram = create_widget(annotation=napari.layers.Image, label="hologram", name="hologram", options={"tooltip": HOLOGRAM_TOOLTIP})
-        self.config = path_edit(label="config (empty: default)", name="config", filter="*.toml", tooltip=CONFIG_TOOLTIP)
+        self.config = path_edit(label="config", name="config", placeholder="empty: the defaults", filter="*.toml", tooltip=CONFIG_TOOLTIP)
         self.tile = SpinBox(label="tile px (0: tile.size)", name="tile", value=0, min=0, max=8192, tooltip="Edge of the non-overlapping tiles the hologram is cut into (pixels); at least 4 tiles")
         self.sim_tiles = SpinBox(label="simulated tiles", name="sim_tiles", value=8, min=2, max=256, tooltip="Simulated tiles per model of the experiment (more: a steadier gap, slower)")
         self.evaluations = SpinBox(label="evaluations per fit", name="evaluations", value=40, min=8, max=10000, tooltip="Evaluations of each effect's fit (more: better fitted parameters, slower)")

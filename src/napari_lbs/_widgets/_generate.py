@@ -22,8 +22,8 @@ class GenerateWidget(StepWidget):
     title = "synthetic data"
 
     def __init__(self, napari_viewer) -> None:
-        self.config = path_edit(label="config (empty: default)", name="config", filter="*.toml", tooltip=CONFIG_TOOLTIP)
-        self.calibration = path_edit(label="calibration (empty: none)", name="calibration", filter="*.json",
+        self.config = path_edit(label="config", name="config", placeholder="empty: the defaults", filter="*.toml", tooltip=CONFIG_TOOLTIP)
+        self.calibration = path_edit(label="calibration", name="calibration", placeholder="empty: none", filter="*.json",
                                      tooltip=f"{doc_of(generate_dataset, 'processing')} From Calibration's JSON; empty: the seed's normal simulation")
         self.groups = SpinBox(label="groups", name="groups", value=256, min=2, max=100000, tooltip=doc_of(generate_dataset, "groups"))
         self.layout_kind = ComboBox(label="planes", name="layout_kind", choices=["stack", "layers"], value="stack",

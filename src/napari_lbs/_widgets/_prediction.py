@@ -29,9 +29,9 @@ class PredictionWidget(StepWidget):
 
         self.hologram = create_widget(annotation=napari.layers.Image, label="hologram", name="hologram", options={"tooltip": HOLOGRAM_TOOLTIP})
         self.model = path_edit(label="model file", name="model", filter="*.pt", value="lbs-model.pt", tooltip=doc_of(predict_particles, "model"))
-        self.config = path_edit(label="config (empty: model's)", name="config", filter="*.toml", tooltip=doc_of(predict_particles, "config"))
+        self.config = path_edit(label="config", name="config", placeholder="empty: the model's", filter="*.toml", tooltip=doc_of(predict_particles, "config"))
         self.device = ComboBox(label="device", name="device", choices=["auto", "cpu", "cuda"], value="auto", tooltip="auto: CUDA when available, else the CPU")
-        self.reference = path_edit(label="truth CSV (optional)", name="reference", filter="*.csv",
+        self.reference = path_edit(label="truth CSV", name="reference", placeholder="optional", filter="*.csv",
                                    tooltip="A true particle table: predictions are then coloured true (green) / false (red) positives, misses shown, ER and JI reported")
         super().__init__(napari_viewer, [self.hologram, self.model, self.config, self.device, self.reference])
 
