@@ -6,14 +6,19 @@ videos (read frame by frame through OpenCV) — numbered 0, 1, ... in input orde
 (`open_frames`). Nothing reads a whole file: a frame is decoded when it is needed.
 
 `predict_sequence` runs `predict_particles` on every frame through dask: the local threaded
-scheduler by default (one frame at a time, torch and the FFTs use every core), a
-``LocalCluster`` of ``workers`` processes, or an existing ``dask.distributed`` scheduler.
-The process that calls it reads the frames (so workers need not see its files) and keeps at
-most ``2 x workers`` frames in flight, so memory stays bounded whatever the frame count. The
-model is sent once to each worker and kept there. Every frame's particles are written
-atomically to a work folder as they arrive; a run stopped or killed and started again with
-the same work folder skips the frames found there. Frames are independent and the table is
-assembled in frame order, so it is the same whatever the scheduler and worker count.
+scheduler by default (one frame per core at a time), a ``LocalCluster`` of ``workers``
+processes, or an existing ``dask.distributed`` scheduler. The process that calls it reads the
+frames (so workers need not see its files) and keeps at most ``2 x workers`` frames in
+flight, so memory stays bounded whatever the frame count. The model is sent once to each
+worker and kept there. Every frame's particles are written atomically to a work folder as
+they arrive; a run stopped or killed and started again with the same work folder skips the
+frames found there.
+
+The table is the same, to the last bit, whatever the scheduler and worker count: frames are
+independent, the table is assembled in frame order, and every frame's network runs on one
+torch thread — torch's CPU convolutions round differently with their thread count (by
+≈ 3e-5 µm in x), so a frame's result must not depend on how many threads its worker has.
+Parallelism comes from frames instead (the FFTs still use every core of a worker).
 
 The background of a recording (the illumination, dust, fringes of the windows: everything
 that does not move) is estimated from the frames themselves (`sequence_background`): the
@@ -28,6 +33,7 @@ from __future__ import annotations
 import glob
 import hashlib
 import json
+import os
 import re
 import shutil
 import time
@@ -337,9 +343,12 @@ class SequenceResult:
 
 def _frame_particles(hologram: np.ndarray, model, config: ExperimentConfig, background: np.ndarray | None, device: str) -> tuple[dict, dict]:
     """One frame's `predict_particles` (the dask task). ``model`` is the worker's copy, moved to ``device`` on first use."""
+    import torch
+
     from napari_lbs._core._network import resolve_device
     from napari_lbs._core._prediction import predict_particles
 
+    torch.set_num_threads(1)  # the same rounding on every worker (module docstring)
     target = resolve_device(device)
     if next(model.network.parameters()).device != target:
         model.network.to(target)
@@ -431,9 +440,11 @@ class _Scheduler:
                 self.cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=local_processes, dashboard_address=None)
                 self.client = Client(self.cluster)
             self.model = self.client.scatter(model, broadcast=True, hash=False)  # sent once, kept by every worker
-        # the local scheduler runs one frame at a time (its torch and FFTs use every core)
-        self.slots = _IN_FLIGHT_PER_WORKER * max(1, len(self.client.scheduler_info()["workers"])) if self.client else 1
-        self.description = f"dask.distributed at {scheduler}" if scheduler else (f"dask LocalCluster of {workers} workers" if workers else "dask local threaded scheduler")
+        self.local_threads = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+        # the local scheduler runs a batch of one frame per core; a cluster keeps two frames per worker in flight
+        self.slots = _IN_FLIGHT_PER_WORKER * max(1, len(self.client.scheduler_info()["workers"])) if self.client else self.local_threads
+        self.description = (f"dask.distributed at {scheduler}" if scheduler else f"dask LocalCluster of {workers} workers" if workers
+                            else f"dask local threaded scheduler ({self.local_threads} threads)")
 
     def share(self, value):
         """``value`` as every task will receive it: sent once to each worker (distributed), else as it is."""
@@ -452,7 +463,7 @@ class _Scheduler:
             import dask
 
             indices = list(pending)
-            results = dask.compute(*[pending[i] for i in indices], scheduler="threads", num_workers=1)
+            results = dask.compute(*[pending[i] for i in indices], scheduler="threads", num_workers=self.local_threads)
             return [(i, *r) for i, r in zip(indices, results, strict=True)]
         from dask.distributed import wait
 
@@ -501,7 +512,7 @@ def predict_sequence(
         single hologram), or a background image taken without particles.
     workers : int, optional
         Run on a ``dask.distributed`` ``LocalCluster`` of this many single-threaded workers
-        (default: the local threaded scheduler, one frame at a time using every core).
+        (default: the local threaded scheduler, one frame per core at a time).
     scheduler : str, optional
         Address of an existing ``dask.distributed`` scheduler (``tcp://host:8786``) to run on.
     local_processes : bool
@@ -563,6 +574,9 @@ def predict_sequence(
             raise InputError(f"background: expected the frames' shape {first.shape}, got {static.shape}")
         if mode == "global" and todo:
             static = work.background(lambda: sequence_background(frames, samples=background_samples))
+        import torch
+
+        cleanup.callback(torch.set_num_threads, torch.get_num_threads())  # the frames ran on one thread each in this process
         runner = _Scheduler(loaded, workers=workers, scheduler=scheduler, local_processes=local_processes)
         pending: dict = {}
         cleanup.callback(runner.close, pending)
