@@ -47,10 +47,12 @@ class PlaneGrid:
 
     @property
     def scale(self) -> tuple[float, float, float]:
+        """napari ``scale`` of a ``(plane, row, col)`` layer: ``(z_step_um, pixel_um, pixel_um)``."""
         return (self.z_step_um, self.pixel_um, self.pixel_um)
 
     @property
     def translate(self) -> tuple[float, float, float]:
+        """napari ``translate``: the world ``(z, y, x)`` of plane 0, pixel (0, 0), in µm."""
         return (self.z_min_um, *self.origin_um)
 
 
