@@ -1,4 +1,4 @@
-"""Gap-diagnosis benchmarks (issue 6): withheld-effect suite, independent forward model, real hologram.
+"""Gap-diagnosis benchmarks (issues 6 and 13): withheld-effect suites, independent forward model, real hologram.
 
 Sub-commands:
 
@@ -16,17 +16,25 @@ Sub-commands:
     the intensity averaged over S × S points per pixel (a pixel integrates over its area).
     The verdict should be ``particle_phase`` wherever the sphere's refracted light stays within
     the sensor's bandwidth.
+``mie [--cases I ...]``
+    A second withheld-effect suite the diagnosis was not built on (issue 13): 512² holograms of
+    Lorenz–Mie polystyrene spheres (`pseudoreal.mie_intensity`), an 8-bit camera and each
+    withheld effect written here, independently of `_effects`, with other parameterisations
+    (the design comment above `MIE_EFFECTS`, fixed before the first run); diagnosed as the CLI does (`diagnose_hologram`
+    on the uint8 image, default settings). Prints one JSON line per case, then top-1, the
+    false-alarm rate and their 95 % Wilson intervals.
 ``real``
-    The seed's real 1024² hologram, 256² tiles: the full diagnosis, timed (target <= 10 min),
-    report written to docs/figures/diagnosis-real/.
+    The seed's real 1024² hologram: the full diagnosis with default settings, timed (target
+    <= 3 min on 2 idle cores), report written to docs/figures/diagnosis-real/.
 
-Run: python benchmarks/bench_diagnosis.py suite|independent|real
+Run: python benchmarks/bench_diagnosis.py suite|independent|mie|real
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -50,6 +58,35 @@ from napari_lbs._core import (
 
 CONFIG = ExperimentConfig()
 TRUE_BASELINE = {"contrast": 0.8, "sigma": 0.04, "gamma": 1.2}
+
+# The second suite's design, fixed on 2026-11-22 before its first run. Every case: a 512²
+# hologram of MIE_SPHERES polystyrene spheres (20–30 µm, 1900–4700 µm air-equivalent depth,
+# seeded by the case index), the camera `mie_camera` (mean MIE_LEVEL counts, Gaussian read
+# noise MIE_READ_NOISE counts, rounding, 8 bits) and at most one withheld effect, each
+# parameterised differently from `_effects`:
+#   illumination       cos⁴ vignetting about an off-centre point, 40 % lost at the far corner
+#                      (`_effects`: a Gaussian beam envelope)
+#   shot_noise         Poisson photon counts, MIE_PHOTONS photons at the mean level
+#   sensor_blur        binomial [1 4 6 4 1]/16 kernel on the intensity, each axis (σ = 1 px;
+#                      `_effects`: a Gaussian on the recorded image)
+#   coherence          a disc source of angular radius 2 mrad: 7 illumination angles (centre
+#                      and a ring at 2/3 of the radius), each shifting a sphere's hologram by
+#                      z·θ, intensities averaged (`_effects`: a Gaussian blur of the scattered field)
+#   parasitic_fringes  a tilted-window fringe, 6 % amplitude, 11 px period at 0.4 rad, with a
+#                      quadratic chirp (curvature radius 2 m; `_effects`: a straight fringe)
+#   spherical_wave     a point source 20 mm before the sensor: each sphere magnified by
+#                      M = L / (L − z) in position, size and depth (`_effects`: per layer)
+#   control ×5         nothing withheld (expected verdict: null)
+# Left out, with the reason: particle_phase (every scene here is transparent Mie spheres
+# already), multiple_scattering (Mie fields are superposed, single scattering), quantization
+# (the 8-bit depth is known from the file).
+MIE_EFFECTS = ("illumination", "shot_noise", "sensor_blur", "coherence", "parasitic_fringes", "spherical_wave")
+MIE_CONTROLS = 5
+MIE_SIZE = 512
+MIE_SPHERES = 25  # the real hologram's density: about 100 spheres in 1024²
+MIE_LEVEL = 150.0  # counts at unobstructed light
+MIE_READ_NOISE = 1.5  # counts
+MIE_PHOTONS = 200.0
 
 
 def pseudo_tiles(effects: dict, *, tile: int, count: int, particles: int, seed: int) -> list[np.ndarray]:
@@ -139,16 +176,103 @@ def independent(tile: int, tiles: int, particles: int, evaluations: int, sphere_
           f"expected verdict particle_phase where the refracted light stays within the sensor's bandwidth; got {report['verdict']['id']}")
 
 
+def _mie_scene(effect_id: str | None, rng: np.random.Generator) -> np.ndarray:
+    """Pixel-integrated Lorenz–Mie intensity of one case's spheres, with the optical withheld effect (unobstructed = 1)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import pseudoreal
+
+    extent = (MIE_SIZE - 1) * pseudoreal.PIXEL_UM
+    x, y = rng.uniform(0, extent, MIE_SPHERES), rng.uniform(0, extent, MIE_SPHERES)
+    z, d = rng.uniform(1900.0, 4700.0, MIE_SPHERES), rng.uniform(20.0, 30.0, MIE_SPHERES)
+    shape = (MIE_SIZE, MIE_SIZE)
+    if effect_id == "spherical_wave":
+        source_um, centre = 20000.0, extent / 2
+        magnification = source_um / (source_um - z)
+        return pseudoreal.mie_intensity(shape, centre + magnification * (x - centre), centre + magnification * (y - centre), magnification * z, magnification * d)
+    if effect_id == "coherence":
+        radius_rad = 2e-3
+        angles = [(0.0, 0.0)] + [(2 / 3 * radius_rad * np.cos(a), 2 / 3 * radius_rad * np.sin(a)) for a in np.arange(6) * np.pi / 3]
+        return np.mean([pseudoreal.mie_intensity(shape, x + z * tx, y + z * ty, z, d) for tx, ty in angles], axis=0)
+    return pseudoreal.mie_intensity(shape, x, y, z, d)
+
+
+def mie_camera(intensity: np.ndarray, effect_id: str | None, rng: np.random.Generator) -> np.ndarray:
+    """The suite's 8-bit camera, with the sensor-side withheld effect (the design comment above `MIE_EFFECTS`)."""
+    rows, cols = intensity.shape
+    image = intensity.astype(np.float64)
+    yy, xx = np.mgrid[0:rows, 0:cols] / max(rows, cols)
+    if effect_id == "illumination":
+        distance = np.hypot(xx - 0.6, yy - 0.4)
+        focal = distance.max() / np.sqrt(1 / np.sqrt(0.6) - 1)  # cos⁴θ = 0.6 at the far corner
+        image = image / (1 + (distance / focal) ** 2) ** 2
+    if effect_id == "parasitic_fringes":
+        phase = 2 * np.pi * (xx * np.cos(0.4) + yy * np.sin(0.4)) * max(rows, cols) / 11.0
+        radius_um = np.hypot(xx - 0.5, yy - 0.5) * max(rows, cols) * 2.2
+        image = image * (1 + 0.06 * np.cos(phase + np.pi * radius_um**2 / (0.66 * 2e6)))
+    if effect_id == "sensor_blur":
+        kernel = np.array([1, 4, 6, 4, 1]) / 16
+        image = np.apply_along_axis(np.convolve, 0, np.pad(image, ((2, 2), (0, 0)), mode="reflect"), kernel, mode="valid")
+        image = np.apply_along_axis(np.convolve, 1, np.pad(image, ((0, 0), (2, 2)), mode="reflect"), kernel, mode="valid")
+    if effect_id == "shot_noise":
+        image = rng.poisson(image * MIE_PHOTONS) / MIE_PHOTONS
+    counts = image * MIE_LEVEL + rng.normal(0.0, MIE_READ_NOISE, image.shape)
+    return np.clip(np.round(counts), 0, 255).astype(np.uint8)
+
+
+def _wilson(successes: int, trials: int) -> tuple[float, float]:
+    """95 % Wilson score interval of a proportion."""
+    if trials == 0:
+        return (0.0, 1.0)
+    z = 1.96
+    p = successes / trials
+    centre = (p + z**2 / (2 * trials)) / (1 + z**2 / trials)
+    half = z * np.sqrt(p * (1 - p) / trials + z**2 / (4 * trials**2)) / (1 + z**2 / trials)
+    return (max(0.0, centre - half), min(1.0, centre + half))
+
+
+def mie(cases: list[int] | None) -> None:
+    design = [*MIE_EFFECTS, *[None] * MIE_CONTROLS]
+    rows = []
+    for index in cases if cases is not None else range(len(design)):
+        effect_id = design[index]
+        rng = np.random.default_rng([index, 2026])
+        made = time.perf_counter()
+        counts = mie_camera(_mie_scene(effect_id, rng), effect_id, rng)
+        made = time.perf_counter() - made
+        start, cpu = time.perf_counter(), time.process_time()
+        report = diagnose_hologram(counts, CONFIG).report
+        verdict = report["verdict"]
+        own = next((e for e in report["effects"] if e["id"] == effect_id), None)
+        row = {
+            "case": index, "withheld": effect_id, "verdict": verdict["id"], "correct": verdict["id"] == effect_id, "reason": verdict["reason"],
+            "baseline_gap": round(report["gap"]["baseline"], 2), "baseline_interval": [round(v, 2) for v in report["gap"]["baseline_interval"]],
+            "best": [(e["id"], round(e["shrink"], 2), [round(v, 2) for v in e.get("shrink_interval", [])]) for e in report["effects"][:3]],
+            "shrink_of_withheld": round(own["shrink"], 2) if own else None, "tiles_to_decide": verdict["tiles_to_decide"],
+            "seconds": round(time.perf_counter() - start, 1), "cpu_seconds": round(time.process_time() - cpu, 1), "hologram_seconds": round(made, 1),
+        }
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    injected = [r for r in rows if r["withheld"]]
+    controls = [r for r in rows if not r["withheld"]]
+    hits, alarms = sum(r["correct"] for r in injected), sum(not r["correct"] for r in controls)
+    print(f"top-1 {hits}/{len(injected)} (95 % interval {_wilson(hits, len(injected))[0]:.2f}-{_wilson(hits, len(injected))[1]:.2f}); "
+          f"false alarms {alarms}/{len(controls)} (95 % interval {_wilson(alarms, len(controls))[0]:.2f}-{_wilson(alarms, len(controls))[1]:.2f}); "
+          f"mean {np.mean([r['seconds'] for r in rows]):.0f} s per diagnosis")
+
+
 def real() -> None:
     config = load_config(None)
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     diagnosis = diagnose_hologram(load_sample_hologram(), config, settings=DiagnosisSettings())
+    cpu = time.process_time() - cpu
     out = Path(__file__).resolve().parents[1] / "docs" / "figures" / "diagnosis-real"
     write_report(diagnosis, out, provenance={"source": "seed's real hologram (sample data)", "config": config.to_dict()})
     report = diagnosis.report
-    print(f"real hologram: {time.perf_counter() - start:.0f} s (target <= 600 s); baseline gap {report['gap']['baseline']:.2f}; verdict {report['verdict']}")
+    print(f"real hologram: {time.perf_counter() - start:.0f} s wall, {cpu:.0f} s CPU (target <= 180 s on 2 idle cores); "
+          f"baseline gap {report['gap']['baseline']:.2f} (90 % interval {report['gap']['baseline_interval']}); known {report['known']}; verdict {report['verdict']}")
     print("where:", json.dumps(report["gap"]["by_group"]))
-    print("effects:", [(e["id"], round(e["gap_after"], 2), round(e["shrink"], 2), e["confirmed"]) for e in report["effects"]])
+    print("effects:", [(e["id"], round(e["gap_after"], 2), round(e["shrink"], 2), [round(v, 2) for v in e.get("shrink_interval", [])], e["confirmed"]) for e in report["effects"]])
+    print("waterfall:", [(step["model"], round(step["gap"], 2)) for step in report["waterfall"]])
 
 
 def main() -> None:
@@ -166,12 +290,16 @@ def main() -> None:
         else:
             p.add_argument("--index", type=float, default=1.59, help="refractive index of the spheres (water: 1.33)")
             p.add_argument("--supersample", type=int, default=3, help="intensity samples per pixel edge, averaged (pixel area integration)")
+    p = sub.add_parser("mie")
+    p.add_argument("--cases", type=int, nargs="+", help="case indices to run (default all: the effects, then the controls)")
     sub.add_parser("real")
     args = parser.parse_args()
     if args.command == "suite":
         suite(args.tile, args.tiles, args.particles, args.evaluations, args.controls, args.jobs)
     elif args.command == "independent":
         independent(args.tile, args.tiles, args.particles, args.evaluations, args.index, args.supersample)
+    elif args.command == "mie":
+        mie(args.cases)
     else:
         real()
 
