@@ -216,6 +216,11 @@ def test_tracks_are_recovered_exactly_on_a_clean_sequence():
     assert (~moving).sum() == len(set(true_track.tolist()))  # one end per track
     # a search range below the step breaks every track: the test can fail
     assert len(set(link_tracks(table, search_range_um=5.0)["track"].tolist())) == truth["x_um"].size
+    # depths that jump by a plane (as predicted ones do) need a longer search along z only
+    jumpy = dict(table, z_um=table["z_um"] + 50.0 * (table["frame"] % 2))
+    assert len(set(link_tracks(jumpy, search_range_um=12.0)["track"].tolist())) > 2 * len(set(true_track.tolist()))
+    along_z = link_tracks(jumpy, search_range_um=12.0, axial_search_range_um=80.0)
+    assert len(set(zip(along_z["track"].tolist(), true_track.tolist(), strict=True))) == len(set(along_z["track"].tolist())) == len(set(true_track.tolist()))
 
 
 # --- CLI ---------------------------------------------------------------------------------------

@@ -394,7 +394,7 @@ def _cmd_track(args) -> None:
     table = read_particles(args.particles)
     if "frame" not in table:
         raise InputError(f"{args.particles}: no frame column; tracks need the table of a recording (predict with several frames)")
-    tracks = link_tracks(table, search_range_um=args.search_range_um, memory=args.memory)
+    tracks = link_tracks(table, search_range_um=args.search_range_um, axial_search_range_um=args.axial_search_range_um, memory=args.memory)
     for name in DISPLACEMENT_COLUMNS:  # a track's last detection has no displacement: an empty cell
         tracks[name] = np.array(["" if np.isnan(value) else f"{value:.9g}" for value in tracks[name]], dtype=object)
     write_particles(out, tracks)
@@ -643,7 +643,9 @@ def _parser() -> argparse.ArgumentParser:
     p = sub.add_parser("track", help="link the particles of a recording into 3-D tracks (trackpy)")
     p.add_argument("particles", metavar="PARTICLES.csv", help="a particle table with a frame column")
     p.add_argument("--out", required=True, metavar="TRACKS.csv")
-    p.add_argument("--search-range-um", type=_number(0.0, above=True), default=50.0, help="largest 3-D displacement between two frames a particle is seen in (µm, default 50)")
+    p.add_argument("--search-range-um", type=_number(0.0, above=True), default=60.0,
+                   help="largest displacement between two frames a particle is seen in (µm, default 60: a predicted depth may jump by a 50 µm plane)")
+    p.add_argument("--axial-search-range-um", type=_number(0.0, above=True), help="a separate search range along z (µm; default: --search-range-um)")
     p.add_argument("--memory", type=_integer(0), default=0, help="frames a particle may be missed and keep its track (default 0)")
     p.set_defaults(run=_cmd_track)
 

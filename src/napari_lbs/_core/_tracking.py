@@ -1,8 +1,10 @@
 """Tracks: particles linked through the frames of a recording into 3-D trajectories (trackpy).
 
-`link_tracks` links with trackpy's nearest-neighbour linking over ``x_um, y_um, z_um`` — one
-search range in µm for every axis, ``memory`` frames a particle may be missed and keep its
-track — and adds to the table ``track`` (integer ids numbered in order of first appearance)
+`link_tracks` links with trackpy's nearest-neighbour linking over ``x_um, y_um, z_um`` — a
+search range in µm, optionally a larger one along z (holographic depths are several times
+less precise than lateral positions: a focus model's depth may jump by a plane, 50 µm, from
+one frame to the next), ``memory`` frames a particle may be missed and keep its track — and
+adds to the table ``track`` (integer ids numbered in order of first appearance)
 and ``dx_um, dy_um, dz_um``: the displacement to the same track's next detection (NaN at a
 track's end; written as an empty cell, CONTRACT.md).
 """
@@ -18,7 +20,7 @@ __all__ = ["DISPLACEMENT_COLUMNS", "link_tracks"]
 DISPLACEMENT_COLUMNS = ("dx_um", "dy_um", "dz_um")
 
 
-def link_tracks(particles: dict[str, np.ndarray], *, search_range_um: float, memory: int = 0) -> dict[str, np.ndarray]:
+def link_tracks(particles: dict[str, np.ndarray], *, search_range_um: float, axial_search_range_um: float | None = None, memory: int = 0) -> dict[str, np.ndarray]:
     """Link the particles of a recording into tracks.
 
     Parameters
@@ -26,7 +28,10 @@ def link_tracks(particles: dict[str, np.ndarray], *, search_range_um: float, mem
     particles : dict of arrays
         A particle table with a ``frame`` column (0-based integers), e.g. `predict_sequence`'s.
     search_range_um : float
-        Largest distance (µm, in 3-D) a particle may move between two frames it is seen in.
+        Largest distance (µm) a particle may move between two frames it is seen in: in 3-D, or
+        laterally when ``axial_search_range_um`` is given.
+    axial_search_range_um : float, optional
+        The search range along z (µm); the search region is then an ellipsoid.
     memory : int
         Frames a particle may go undetected and still continue its track.
 
@@ -47,8 +52,9 @@ def link_tracks(particles: dict[str, np.ndarray], *, search_range_um: float, mem
 
     if "frame" not in particles:
         raise InputError("particle table: no frame column; tracks need the table of a recording (predict with several frames)")
-    if not (np.isfinite(search_range_um) and search_range_um > 0):
-        raise InputError(f"search_range_um: expected a positive distance, got {search_range_um}")
+    for name, value in (("search_range_um", search_range_um), ("axial_search_range_um", axial_search_range_um)):
+        if value is not None and not (np.isfinite(value) and value > 0):
+            raise InputError(f"{name}: expected a positive distance, got {value}")
     if memory < 0:
         raise InputError(f"memory: expected a non-negative number of frames, got {memory}")
     frame = np.asarray(particles["frame"], dtype=np.float64)
@@ -61,7 +67,8 @@ def link_tracks(particles: dict[str, np.ndarray], *, search_range_um: float, mem
     positions["frame"] = table["frame"]
     trackpy.quiet()
     try:
-        linked = trackpy.link_df(positions, search_range_um, memory=memory, pos_columns=list(PARTICLE_COLUMNS[:3]), t_column="frame")
+        search_range = search_range_um if axial_search_range_um is None else (search_range_um, search_range_um, axial_search_range_um)  # per pos_columns
+        linked = trackpy.link_df(positions, search_range, memory=memory, pos_columns=list(PARTICLE_COLUMNS[:3]), t_column="frame")
     except trackpy.SubnetOversizeException as error:
         raise InputError(f"search_range_um: {search_range_um:g} um links too many candidates at once ({error}); use a smaller search range") from None
     labels = linked.loc[positions.index, "particle"].to_numpy()
