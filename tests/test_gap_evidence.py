@@ -150,3 +150,11 @@ def test_report_json_never_holds_nan(tmp_path):
     text = (tmp_path / "r" / "report.json").read_text()
     json.loads(text, parse_constant=lambda name: pytest.fail(f"report.json holds {name}"))
     assert set(EFFECTS) >= {e["id"] for e in json.loads(text)["effects"]}
+
+
+def test_the_cli_can_switch_the_known_facts_off():
+    from napari_lbs._cli import _parser
+
+    base = ["diagnose", "h.tif", "--config", "c.toml", "--out", "report"]
+    assert _parser().parse_args(base).no_known is False
+    assert _parser().parse_args([*base, "--no-known"]).no_known is True
