@@ -158,3 +158,21 @@ def test_the_cli_can_switch_the_known_facts_off():
     base = ["diagnose", "h.tif", "--config", "c.toml", "--out", "report"]
     assert _parser().parse_args(base).no_known is False
     assert _parser().parse_args([*base, "--no-known"]).no_known is True
+
+
+def test_a_field_wide_envelope_has_the_same_curvature_at_every_tile():
+    from napari_lbs._core._gap import field_surroundings
+
+    rng = np.random.default_rng(6)
+    size, kappa = 128, 0.05  # log brightness -kappa * (distance from the centre in tile edges)²
+    y, x = (np.mgrid[0:512, 0:512] - 255.5) / size
+    flat = 1.0 + 0.02 * rng.standard_normal((512, 512))
+    vignetted = flat * np.exp(-kappa * (x**2 + y**2))
+    names = tile_summaries(flat[:size, :size], config=CONFIG)[1]
+    curvature = [n for n, _ in names].index("field envelope: log-brightness curvature around the tile (per tile edge²)")
+    for image, expected in ((vignetted, -2 * kappa), (flat, 0.0)):
+        values = [
+            tile_summaries(image[r : r + size, c : c + size], config=CONFIG, field_mean=float(image.mean()), surroundings=field_surroundings(image, (r, c), (size, size)))[0][curvature]
+            for r in range(0, 512, size) for c in range(0, 512, size)
+        ]
+        assert np.allclose(values, expected, atol=0.01), values

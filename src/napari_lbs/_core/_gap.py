@@ -47,7 +47,7 @@ from napari_lbs._core._optics import transfer_function
 from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
 from napari_lbs._core._synthesis import random_particle_field
 
-__all__ = ["tile_summaries", "measured_fringe", "gap_statistic", "real_spread", "write_report", "where_gap", "diagnose_tiles", "diagnose_hologram", "DiagnosisSettings", "Diagnosis", "TileLayout", "known_sensor", "adapted_tile_px", "resampled_gaps", "SUMMARY_GROUPS", "MIN_TILE_PX"]
+__all__ = ["tile_summaries", "measured_fringe", "gap_statistic", "real_spread", "write_report", "where_gap", "diagnose_tiles", "diagnose_hologram", "DiagnosisSettings", "Diagnosis", "TileLayout", "field_surroundings", "known_sensor", "adapted_tile_px", "resampled_gaps", "SUMMARY_GROUPS", "MIN_TILE_PX"]
 
 SUMMARY_GROUPS = ("band", "depth", "region", "intensity", "noise", "appearance")
 _BANDS = np.geomspace(1 / 64, 0.5, 9)  # cycles per pixel: 8 bands
@@ -73,7 +73,7 @@ def tile_summaries(
     config: ExperimentConfig,
     fringe_frequency: tuple[float, float] | None = None,
     field_mean: float | None = None,
-    field_position: tuple[float, float] = (0.0, 0.0),
+    surroundings: np.ndarray | None = None,
 ) -> tuple[np.ndarray, list[tuple[str, str]]]:
     """Summary vector of one hologram tile and the (name, group) of each entry.
 
@@ -82,9 +82,11 @@ def tile_summaries(
     tiles must be summarised with the same one. Default: this tile's own strongest peak.
 
     ``field_mean`` (the mean of the whole image the tile was cut from; default the tile's own)
-    and ``field_position`` (the tile centre's (y, x) from the image centre, in units of the
-    image's height and width) give the field-wide envelope: how the tile's brightness departs
-    from the field's, overall, along x, along y and with the distance from the centre.
+    and ``surroundings`` (`field_surroundings`: the field around the tile, twice its size,
+    NaN outside the field; default the tile alone) give the field-wide envelope: the tile's
+    brightness against the field's, and the tilt and curvature of the log brightness fitted
+    over the surroundings. A smooth vignetting has nearly the same curvature at every tile,
+    so it stands out of the particles' tile-to-tile fluctuation where a tile's mean does not.
     """
     image = np.asarray(tile, np.float64)
     tile_mean = image.mean()
@@ -138,12 +140,11 @@ def tile_summaries(
     add("illumination curvature", "region", coefficients[3])
     # field-wide envelope: the tile's brightness against the whole image's, and how it varies
     # across the field (a vignetting spans tiles; within one tile it is only a slight tilt)
-    brightness = np.log(tile_mean / (field_mean if field_mean is not None else tile_mean))
-    position_y, position_x = field_position
-    add("field envelope: |log tile mean / field mean|", "region", abs(brightness))
-    add("field envelope: brightness x position across the field", "region", brightness * position_x)
-    add("field envelope: brightness y position across the field", "region", brightness * position_y)
-    add("field envelope: brightness x distance from the field centre", "region", brightness * (position_x**2 + position_y**2 - 1 / 6))
+    field_mean = field_mean if field_mean is not None else tile_mean
+    add("field envelope: |log tile mean / field mean|", "region", abs(np.log(tile_mean / field_mean)))
+    tilt, curvature = _envelope(surroundings if surroundings is not None else np.pad(np.asarray(tile, np.float64), [(n // 2, n - n // 2) for n in (rows, cols)], constant_values=np.nan), field_mean)
+    add("field envelope: log-brightness tilt around the tile (per tile edge)", "region", tilt)
+    add("field envelope: log-brightness curvature around the tile (per tile edge²)", "region", curvature)
     # intensity statistics
     quantiles = (0.005, 0.05, 0.25, 0.5, 0.75, 0.95, 0.995)
     for q, value in zip(quantiles, np.quantile(image, quantiles), strict=True):
@@ -170,6 +171,37 @@ def tile_summaries(
     for lag in _LAGS:
         add(f"autocorrelation at {lag} px", "appearance", 0.5 * ((centred[lag:] * centred[:-lag]).mean() + (centred[:, lag:] * centred[:, :-lag]).mean()) / norm)
     return np.asarray(values), names
+
+
+_ENVELOPE_BLOCKS = 16  # blocks per axis of a tile's surroundings (8 per tile edge)
+
+
+def field_surroundings(field: np.ndarray, origin: tuple[int, int], tile_shape: tuple[int, int]) -> np.ndarray:
+    """The field around a tile: twice the tile's size, centred on it, NaN outside the field (float64)."""
+    rows, cols = tile_shape
+    top, left = origin[0] - rows // 2, origin[1] - cols // 2
+    region = np.full((2 * rows, 2 * cols), np.nan)
+    r0, c0 = max(top, 0), max(left, 0)
+    r1, c1 = min(top + 2 * rows, field.shape[0]), min(left + 2 * cols, field.shape[1])
+    region[r0 - top : r1 - top, c0 - left : c1 - left] = field[r0:r1, c0:c1]
+    return region
+
+
+def _envelope(surroundings: np.ndarray, field_mean: float) -> tuple[float, float]:
+    """Tilt |∇| and curvature (∂²/∂x² + ∂²/∂y²)/2 of log brightness over a tile's surroundings, in tile edges.
+
+    The surroundings are averaged in 16 × 16 blocks (blocks holding NaN, outside the field,
+    are left out) and ``log(block mean / field_mean)`` is fitted with 1, x, y, x², y² about the
+    tile's centre.
+    """
+    rows, cols = surroundings.shape
+    blocks = surroundings[: rows - rows % _ENVELOPE_BLOCKS, : cols - cols % _ENVELOPE_BLOCKS].reshape(_ENVELOPE_BLOCKS, rows // _ENVELOPE_BLOCKS, _ENVELOPE_BLOCKS, cols // _ENVELOPE_BLOCKS).mean(axis=(1, 3))
+    centres = (np.arange(_ENVELOPE_BLOCKS) + 0.5) / _ENVELOPE_BLOCKS * 2.0 - 1.0  # tile edges from the tile's centre
+    y, x = np.meshgrid(centres, centres, indexing="ij")
+    valid = np.isfinite(blocks) & (blocks > 0)
+    design = np.stack([np.ones(valid.sum()), x[valid], y[valid], x[valid] ** 2, y[valid] ** 2], axis=1)
+    coefficients = np.linalg.lstsq(design, np.log(blocks[valid] / field_mean), rcond=None)[0]
+    return float(np.hypot(coefficients[1], coefficients[2])), float(coefficients[3] + coefficients[4])
 
 
 @functools.lru_cache(maxsize=8)
@@ -291,11 +323,6 @@ class TileLayout:
     origins: tuple[tuple[int, int], ...]
     field_mean: float
 
-    def positions(self, tile_shape: tuple[int, int]) -> list[tuple[float, float]]:
-        """Each tile centre's (y, x) from the field centre, in units of the field's height and width."""
-        rows, cols = self.field_shape
-        return [((r + tile_shape[0] / 2) / rows - 0.5, (c + tile_shape[1] / 2) / cols - 0.5) for r, c in self.origins]
-
     def fitting(self, tile_shape: tuple[int, int]) -> np.ndarray:
         """Which tiles are fitted (True) and which held out: a checkerboard, so both halves span the field."""
         return np.array([(r // tile_shape[0] + c // tile_shape[1]) % 2 == 0 for r, c in self.origins])
@@ -319,11 +346,11 @@ class _Model:
         field_shape = tuple(layout.field_shape) if layout is not None else self.shape
         if layout is not None:
             picked = np.round(np.linspace(0, len(layout.origins) - 1, min(settings.sim_tiles, len(layout.origins)))).astype(int)
-            places = [(layout.origins[i], layout.positions(self.shape)[i]) for i in picked]
+            places = [layout.origins[i] for i in picked]
         else:
-            places = [((0, 0), (0.0, 0.0))]
+            places = [(0, 0)]
         fields = -(-settings.sim_tiles // len(places))
-        self.cuts = [(index // len(places), *places[index % len(places)]) for index in range(settings.sim_tiles)]
+        self.cuts = [(index // len(places), places[index % len(places)]) for index in range(settings.sim_tiles)]
         self.whole_fields = layout is not None
         field_count = max(1, round(count * field_shape[0] * field_shape[1] / (self.shape[0] * self.shape[1])))
         rng = np.random.default_rng([settings.seed, 11])
@@ -346,12 +373,17 @@ class _Model:
         sensor = {k: v for k, v in effects.items() if k not in OPTICAL_EFFECTS}
         images = [sensor_image(intensity, baseline, sensor, noise=noise) for intensity, noise in zip(self.optical(effects), self.noise, strict=True)]
         rows, cols = self.shape
-        tiles = [images[f][r : r + rows, c : c + cols] for f, (r, c), _ in self.cuts]
-        # the field a tile's brightness is measured against: its own image, or the whole set
-        field_means = [float(image.mean()) for image in images] if self.whole_fields else [float(np.mean([t.mean() for t in tiles]))] * len(images)
+        tiles = [images[f][r : r + rows, c : c + cols] for f, (r, c) in self.cuts]
+        # the field a tile is measured against: its own image, or (no layout) the whole set
+        if self.whole_fields:
+            field_means = [float(image.mean()) for image in images]
+            around = [field_surroundings(images[f], origin, self.shape) for f, origin in self.cuts]
+        else:
+            field_means = [float(np.mean([t.mean() for t in tiles]))] * len(images)
+            around = [None] * len(tiles)
         return np.stack([
-            tile_summaries(t, config=self.config, fringe_frequency=self.fringe_frequency, field_mean=field_means[f], field_position=position)[0]
-            for t, (f, _, position) in zip(tiles, self.cuts, strict=True)
+            tile_summaries(t, config=self.config, fringe_frequency=self.fringe_frequency, field_mean=field_means[f], surroundings=region)[0]
+            for t, (f, _), region in zip(tiles, self.cuts, around, strict=True)
         ])
 
 
@@ -625,9 +657,16 @@ def diagnose_tiles(
     fitting = layout.fitting(shape) if layout is not None else np.arange(len(tiles)) % 2 == 0
     fringe_frequency = measured_fringe([t for t, fit in zip(tiles, fitting, strict=True) if fit])  # from the fitting half only
     measured = _fringe_parameters(fringe_frequency)
-    positions = layout.positions(shape) if layout is not None else [(0.0, 0.0)] * len(tiles)
-    field_mean = layout.field_mean if layout is not None else float(means.mean())
-    summaries = [tile_summaries(t, config=config, fringe_frequency=fringe_frequency, field_mean=field_mean, field_position=p) for t, p in zip(tiles, positions, strict=True)]
+    if layout is not None:
+        # the field the tiles cover, reassembled: each tile's surroundings come from it
+        field = np.full(layout.field_shape, np.nan)
+        for t, (r, c) in zip(tiles, layout.origins, strict=True):
+            field[r : r + shape[0], c : c + shape[1]] = t
+        around = [field_surroundings(field, origin, shape) for origin in layout.origins]
+        field_mean = layout.field_mean
+    else:
+        around, field_mean = [None] * len(tiles), float(means.mean())
+    summaries = [tile_summaries(t, config=config, fringe_frequency=fringe_frequency, field_mean=field_mean, surroundings=region) for t, region in zip(tiles, around, strict=True)]
     names = summaries[0][1]
     real = np.stack([s[0] for s in summaries])
     fit_real, held_real = real[fitting], real[~fitting]
@@ -817,8 +856,9 @@ def diagnose_hologram(
         counts (`known_sensor`), the bit depth and saturation as ``quantization``. Off, or
         with a ``background`` (the division makes the levels uneven), they are diagnosed.
     """
-    facts = known_sensor(hologram) if known else None
     image = as_hologram(hologram)
+    # the array as given keeps its dtype; an RGB one is read from its channel of integer counts
+    facts = (known_sensor(hologram) or known_sensor(image)) if known else None
     if background is not None:
         image = image / np.maximum(as_hologram(background, name="background"), 1e-6)
         facts = None
@@ -835,7 +875,8 @@ def diagnose_hologram(
     field_mean = float(np.mean([t.mean() for t in tiles]))
     # the sensor's levels in the simulation's unit (the tiles' mean intensity is 1 there)
     known_effects = {"quantization": {"bits": float(facts["bits"]), "saturation": facts["saturation"] / field_mean}} if facts else {}
-    diagnosis = diagnose_tiles(tiles, config, layout=TileLayout((rows, cols), origins, field_mean), known=known_effects, settings=settings, progress=progress, should_stop=should_stop)
+    covered = ((rows // size) * size, (cols // size) * size)  # the field the tiles cover
+    diagnosis = diagnose_tiles(tiles, config, layout=TileLayout(covered, origins, field_mean), known=known_effects, settings=settings, progress=progress, should_stop=should_stop)
     diagnosis.report["known_sensor"] = facts if facts else {"source": "none: not integer counts, a background was divided out, or switched off"}
     return diagnosis
 
