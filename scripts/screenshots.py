@@ -125,7 +125,7 @@ def main() -> None:
     for name in ("I_e (experiment)", "I_s (synthetic)", "reference ROI", stack.name):
         viewer.layers[name].visible = False
     points.bounding_box.visible = True
-    viewer.axes.visible = viewer.scale_bar.visible = True
+    viewer.axes.visible = viewer.canvas.overlays.scale_bar.visible = True
     viewer.dims.axis_labels = ("z", "y", "x")
     viewer.dims.ndisplay = 3
     viewer.reset_view()
