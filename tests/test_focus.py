@@ -213,7 +213,7 @@ def test_diameters_are_positive_and_scores_are_probabilities(focus_model):
         model.network.head.bias[2] = -8.0  # raw diameters far below zero before the softplus
     model.meta["threshold"] = 0.5
     result = predict_particles(hologram, model, config, progress=lambda d, t: seen.append((d, t)))
-    assert seen[-1] == (5, 5)
+    assert seen[-1] == (14, 14)  # 9 planes back-propagated (5 and the context reach of 2 on each side), then 5 through the network
     table = result.particles
     assert len(table["x_um"]) > 0
     assert np.all(table["diameter_um"] >= 0) and np.all((table["score"] > 0) & (table["score"] <= 1))

@@ -181,7 +181,7 @@ def test_diagnosis_widget_maps_the_gap_over_the_hologram_and_writes_the_report(m
     widget.tile.value = 128
     assert not widget._run.enabled and "fewer than 4 tiles" in widget._status.value
     widget.tile.value = 64
-    widget.sim_tiles.value, widget.evaluations.value = 3, 6
+    widget.sim_tiles.value, widget.evaluations.value = 3, 8
     widget.output.value = tmp_path / "report"
     run_to_end(qtbot, widget)
     assert json.loads((tmp_path / "report" / "report.json").read_text())["verdict"].keys() >= {"id", "shrink", "residual"}

@@ -101,7 +101,8 @@ def predict_particles(
         32-pixel margins); smaller ones bound the network's working memory on big holograms.
     device : {"auto", "cpu", "cuda"}
     progress, should_stop
-        One step per reconstruction plane; a stop raises `Stopped`.
+        One step per reconstruction plane (``focus``: also one per back-propagated plane,
+        context included, first); a stop raises `Stopped`.
     """
     start_time = time.perf_counter()
     hologram = as_hologram(hologram)
@@ -241,7 +242,16 @@ def _decode_focus(hologram, loaded: LoadedModel, planes, layout, *, background, 
     extended = [planes[0] + i * step for i in range(-reach, 0)] + list(planes) + [planes[-1] + i * step for i in range(1, reach + 1)]
     if extended[0] <= 0:
         raise InputError(f"volume.z_min_um: the model's context needs planes {reach * step:g} um nearer the sensor than {planes[0]:g} um")
-    stack = backpropagate(hologram, extended, background=background, **optics).astype(np.float32, copy=False)
+    # the back-propagation reports and stops too: on a 1024² hologram it is the first few seconds
+    steps.total += len(extended)
+    reported = 0
+
+    def backpropagated(done: int, total: int) -> None:
+        nonlocal reported
+        steps.advance(done - reported)
+        reported = done
+
+    stack = backpropagate(hologram, extended, background=background, progress=backpropagated, should_stop=steps.stop_requested, **optics).astype(np.float32, copy=False)
     tile_normalisation(stack, layout, size, invert=invert, mode=mode)
     window_size = (min(window_px, hologram.shape[0]), min(window_px, hologram.shape[1]))
     window_rows = tile_layout(hologram.shape[0], size=window_size[0], margin=margin_px)
