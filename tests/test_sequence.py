@@ -36,21 +36,16 @@ def detector(tmp_path_factory):
     """A tiny focus model made eager: its centre logit raised so every frame gives a few dozen detections to compare."""
     import torch
 
-    from napari_lbs._core import DatasetLayout, TrainingSettings, generate_dataset, load_model, save_model
+    from napari_lbs._core import DatasetLayout, TrainingSettings, generate_dataset, load_model, save_model, train_model
 
     folder = tmp_path_factory.mktemp("model")
     data = generate_dataset(folder / "data", tiny_config(), groups=3, layout=DatasetLayout(kind="stack", context_planes=2), seed=5)
-    trained = train = None
     settings = TrainingSettings(epochs=1, batch_size=4, device="cpu", validation_groups=1, patch_size=32, context=(-2, -1, 0, 1, 2))
-    from napari_lbs._core import train_model
-
-    trained = train_model(data, folder / "base.pt", settings=settings)
-    model = load_model(trained.model_path)
+    model = load_model(train_model(data, folder / "base.pt", settings=settings).model_path)
     with torch.no_grad():
         model.network.head.bias[0] += 3.0
     model.meta["threshold"] = 0.1
     save_model(folder / "eager.pt", model.network, model.meta)
-    del train
     return load_model(folder / "eager.pt")
 
 

@@ -35,7 +35,6 @@ import hashlib
 import json
 import os
 import re
-import shutil
 import time
 from collections.abc import Sequence
 from contextlib import ExitStack
@@ -417,10 +416,6 @@ class _Work:
                 np.save(handle, background)
         return background
 
-    def remove(self) -> None:
-        if self.folder is not None:
-            shutil.rmtree(self.folder, ignore_errors=True)
-
 
 class _Scheduler:
     """Frames through dask: the local threaded scheduler, a LocalCluster, or an existing scheduler."""
@@ -450,12 +445,14 @@ class _Scheduler:
         """``value`` as every task will receive it: sent once to each worker (distributed), else as it is."""
         return value if self.client is None or value is None else self.client.scatter(value, broadcast=True, hash=False)
 
-    def submit(self, index: int, *arguments):
+    def submit(self, index: int, hologram: np.ndarray, config: ExperimentConfig, background, device: str):
+        """Frame ``index``'s task: a future (distributed) or a delayed call (local)."""
+        arguments = (hologram, self.model, config, background, device)
         if self.client is not None:
-            return self.client.submit(_frame_particles, arguments[0], self.model, *arguments[1:], key=f"napari-lbs-frame-{index}-{id(self)}", pure=False)
+            return self.client.submit(_frame_particles, *arguments, key=f"napari-lbs-frame-{index}-{id(self)}", pure=False)
         import dask
 
-        return dask.delayed(_frame_particles, pure=False)(arguments[0], self.model, *arguments[1:])
+        return dask.delayed(_frame_particles, pure=False)(*arguments)
 
     def completed(self, pending: dict):
         """``(index, particles, provenance)`` of the next finished frame(s) among ``pending`` (futures or delayed)."""
