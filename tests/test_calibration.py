@@ -47,13 +47,14 @@ def test_fit_reaches_at_least_the_truths_ssim(pseudo_experiment):
     """The joint fit finds parameters scoring at least as well as the truth; they need not be the
     truth (parameters trade off, see the profile test and docs/calibration.md)."""
     reference, holograms = pseudo_experiment
-    steps = []
-    result = calibrate(reference, holograms, settings=CalibrationSettings(generations=25, population=10), progress=lambda d, t: steps.append((d, t)), **OPTICS)
+    steps, live = [], []
+    result = calibrate(reference, holograms, settings=CalibrationSettings(generations=25, population=10), progress=lambda d, t: steps.append((d, t)), report=live.append, **OPTICS)
     truth_ssim, plain_ssim = score_params(reference, holograms, [TRUTH, HoloParams(0.0, 0.2, 1.0)], **OPTICS)
     assert result.ssim >= truth_ssim - 0.005
     assert result.ssim > plain_ssim + 0.02
     assert steps == [(i, 25) for i in range(1, 26)]  # exactly one progress step per generation
     assert [h["generation"] for h in result.history] == list(range(1, 26))
+    assert live == result.history  # each generation's record reported as it was made (a live curve)
     assert not result.stopped
 
 

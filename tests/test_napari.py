@@ -130,6 +130,7 @@ def test_workflow_dock_drives_the_whole_workflow_on_the_synthetic_sample(make_na
     assert tuple(i_e.translate) == pytest.approx((100 * 2.2, 201 * 2.2)) and tuple(i_e.scale) == pytest.approx((2.2, 2.2))
     assert i_s.translate[1] > i_e.translate[1] + TILE * 2.2
     assert "SSIM" in step._status.value and len(step._plot.axes.lines) == 1
+    assert [r["generation"] for r in step._live_history] == [1, 2]  # the curve grew generation by generation
 
     # 3: synthetic data, fed the calibration just written
     step = dock.generate

@@ -36,7 +36,7 @@ import numpy as np
 from napari_lbs._core._config import ExperimentConfig
 from napari_lbs._core._io import InputError
 from napari_lbs._core._optics import backpropagate, propagate
-from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
+from napari_lbs._core._progress import ProgressCallback, ReportCallback, Steps, StopCallback
 from napari_lbs._core._synthesis import random_particle_field, simulate_hologram
 from napari_lbs._core._validation import check_holo_params, check_memory
 
@@ -318,6 +318,7 @@ def calibrate(
     settings: CalibrationSettings = CalibrationSettings(),
     progress: ProgressCallback | None = None,
     should_stop: StopCallback | None = None,
+    report: ReportCallback | None = None,
 ) -> CalibrationResult:
     """Fit (N_R, N_σ, γ) so that Holo-processing of ``holograms`` matches ``reference`` by SSIM.
 
@@ -334,6 +335,9 @@ def calibrate(
         One step per GA generation (``runs * generations`` in all). On a stop request the GA
         ends after the current generation and the best parameters so far are returned with
         ``stopped=True``.
+    report : callable, optional
+        Called with each generation's history record (``run``, ``generation``,
+        ``best_fitness``) as it is made, for a live fitness curve.
     """
     import pygad
 
@@ -368,6 +372,8 @@ def calibrate(
         def on_generation(ga, run=run):
             best = -float(np.max(ga.last_generation_fitness))
             history.append({"run": run, "generation": ga.generations_completed, "best_fitness": best})
+            if report is not None:
+                report(history[-1])
             steps.advance()
             return "stop" if steps.stop_requested() else None
 
@@ -454,6 +460,7 @@ def calibrate_hologram(
     settings: CalibrationSettings = CalibrationSettings(),
     progress: ProgressCallback | None = None,
     should_stop: StopCallback | None = None,
+    report: ReportCallback | None = None,
 ) -> CalibrationResult:
     """Calibrate Holo-processing to a real hologram: the `napari-lbs calibrate` step.
 
@@ -493,7 +500,7 @@ def calibrate_hologram(
             seed=rng,
         )
         holograms.append(simulate_hologram(particles, wavelength_um=config.optics.wavelength_um, medium_index=config.optics.medium_index))
-    result = calibrate(reference, holograms, planes_um=planes_um, settings=settings, progress=progress, should_stop=should_stop, **optics)
+    result = calibrate(reference, holograms, planes_um=planes_um, settings=settings, progress=progress, should_stop=should_stop, report=report, **optics)
     result.roi = (x, y, size)
     result.roi_choice = reason
     return result

@@ -8,18 +8,19 @@ Every long-running `_core` function takes two keyword-only callables, both optio
   generation, training) return it marked as stopped; the others (back-propagation,
   prediction, diagnosis) raise `Stopped` and leave nothing half-written.
 
-Training also takes ``report(record)``, called with a dict after each batch and epoch, for
-live plots.
+Training and calibration also take ``report(record)``, called with a dict after each batch
+and epoch (training) or GA generation (calibration), for live plots.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 
-__all__ = ["ProgressCallback", "StopCallback", "Stopped", "Steps"]
+__all__ = ["ProgressCallback", "StopCallback", "ReportCallback", "Stopped", "Steps"]
 
 ProgressCallback = Callable[[int, int], None]
 StopCallback = Callable[[], bool]
+ReportCallback = Callable[[dict], None]
 
 
 class Stopped(RuntimeError):

@@ -41,7 +41,6 @@ import io
 import json
 import math
 import time
-from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -55,7 +54,7 @@ from napari_lbs._core._heatmaps import FocusSpec, context_indices, focus_targets
 from napari_lbs._core._io import InputError, atomic_write_bytes, write_json
 from napari_lbs._core._metrics import depth_errors_um, score_particles
 from napari_lbs._core._network import FORMULATIONS, PRESETS, build_network, focus_maps, network_outputs, resolve_device, save_model
-from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
+from napari_lbs._core._progress import ProgressCallback, ReportCallback, Steps, StopCallback
 from napari_lbs._core._synthesis import LABEL_SCALE
 from napari_lbs._core._validation import check_resume_matches, load_resume_state
 
@@ -68,7 +67,6 @@ FOCUS_THRESHOLDS = (0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8)
 _AXIAL_PLANES = (2.0, 5.0, 1e6)  # axial suppression radii tried on validation, in planes (1e6: any depth)
 _DEFAULT_RATE = {"paper": 3e-4, "medium": 1e-3, "small": 2e-3}
 _FOCAL_ALPHA, _FOCAL_BETA = 2.0, 4.0
-ReportCallback = Callable[[dict], None]
 
 
 @dataclass(frozen=True)

@@ -45,6 +45,7 @@ class CalibrationWidget(StepWidget):
         self.native.layout().addWidget(self._plot.canvas)
         self.add_roi.changed.connect(self._add_roi)
         self.result = None
+        self._live_history: list[dict] = []
 
     def problem(self):
         problem = hologram_problem(self.hologram.value) or config_problem(self.config)
@@ -95,6 +96,7 @@ class CalibrationWidget(StepWidget):
         return int(col), int(row)
 
     def prepare(self):
+        self._live_history = []
         self._plot.show_history([])
         settings = CalibrationSettings(mode=self.mode.value, generations=self.generations.value, population=self.population.value, seed=self.seed.value)
         layer = self.hologram.value
@@ -102,11 +104,16 @@ class CalibrationWidget(StepWidget):
 
     def work(self, job, *, progress, should_stop, report):
         hologram, config, roi, settings, output, layer = job
-        result = calibrate_hologram(hologram, config, roi=roi, settings=settings, progress=progress, should_stop=should_stop)
+        result = calibrate_hologram(hologram, config, roi=roi, settings=settings, progress=progress, should_stop=should_stop, report=report)
         payload = result.to_json()
         payload["provenance"] = {"config": config.to_dict(), "seed": settings.seed}
         write_json(output, payload)
         return result, output, layer
+
+    def report_received(self, record) -> None:
+        """A generation's best fitness, as it is made: the curve grows during the run."""
+        self._live_history.append(record)
+        self._plot.show_history(self._live_history)
 
     def show(self, outcome):
         result, output, layer = outcome
