@@ -4,7 +4,7 @@ Measurements (`tile_summaries`): one code path for real and simulated tiles, non
 two scenes to be aligned — per spatial-frequency band (radial power spectrum, and the power at
 the experiment's static-fringe frequency), per depth (contrast and relative sharpness of 8
 back-propagated planes, sharpness-weighted depth), per image region (illumination tilt and
-curvature within a tile; which real tiles differ most), intensity statistics (quantiles,
+curvature within a tile, the field-wide envelope around it; which real tiles differ most), intensity statistics (quantiles,
 moments, clipped fraction), noise character (wavelet σ, variance against mean, distinct
 levels) and particle appearance through focus (brightest focal spots and darkest cores over
 all planes, dark-core area, autocorrelation of the fringes).
@@ -24,8 +24,12 @@ of the real tiles, screen every effect by regressing the standardised residual o
 signature, confirm the most significant ones (largest |t|) by adding each and refitting all
 parameters, score every model on the other half (tiles never used for a fit), ablate each
 confirmed fit (the same parameters with the effect switched off), rank, and name a verdict —
-or ``null`` when no effect removes enough of the gap on the held-out tiles, against the
-baseline and against its own ablated fit.
+or ``null`` with the reason when no effect removes enough of the gap on the held-out tiles,
+against the baseline and against its own ablated fit, with a confidence bound above 0 and a
+lead over the runner-up (`resampled_gaps`: bootstrap over the held-out tiles and the
+simulation seeds). No refit ends worse than its start on the fitting tiles. What the file
+states (`known_sensor`: bit depth and saturation of integer counts) is put into every model
+as known (`diagnose_hologram(known=True)`), not diagnosed.
 """
 
 from __future__ import annotations
@@ -595,9 +599,10 @@ def _decision(entries: list, draws: dict, *, baseline_gap: float, held_out: int)
     verdict.update({"runner_up": runner["id"] if runner else None, "tiles_to_decide": tiles_to_decide})
     low_reduction = float(np.quantile(reduction, alpha))
     if point_reduction < _VERDICT_MIN_REDUCTION or best["shrink"] < _VERDICT_MIN_SHRINK or low_reduction <= 0:
-        verdict["reason"] = (
-            f"gap within what {held_out} held-out tiles can resolve: the best effect, {best['id']}, removes {point_reduction:.2f} of "
-            f"{baseline_gap:.2f} (lower bound {low_reduction:.2f})"
+        verdict["reason"] = f"gap within what {held_out} held-out tiles can resolve: " + (
+            f"the best effect, {best['id']}, removes {point_reduction:.2f} of {baseline_gap:.2f} (lower bound {low_reduction:.2f})"
+            if point_reduction > 0
+            else f"no refitted effect lowers the gap of {baseline_gap:.2f}"
         )
         return verdict
     if runner is not None and float(np.quantile(margins[1][1], alpha)) <= 0:
