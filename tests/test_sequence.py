@@ -211,6 +211,8 @@ def test_tracks_are_recovered_exactly_on_a_clean_sequence():
     assert (~moving).sum() == len(set(true_track.tolist()))  # one end per track
     # a search range below the step breaks every track: the test can fail
     assert len(set(link_tracks(table, search_range_um=5.0)["track"].tolist())) == truth["x_um"].size
+    empty = link_tracks({name: values[:0] for name, values in table.items()}, search_range_um=12.0)
+    assert empty["track"].size == 0 and empty["dx_um"].size == 0  # a recording where nothing was found
     # depths that jump by a plane (as predicted ones do) need a longer search along z only
     jumpy = dict(table, z_um=table["z_um"] + 50.0 * (table["frame"] % 2))
     assert len(set(link_tracks(jumpy, search_range_um=12.0)["track"].tolist())) > 2 * len(set(true_track.tolist()))

@@ -561,22 +561,22 @@ def predict_sequence(
             "background_samples": background_samples if mode == "global" else None,
             "background_sha256": hashlib.sha256(static.tobytes()).hexdigest() if static is not None else None,
         }
+        first = frames.read(0)  # checks the first frame (and fixes the shape) before any set-up
+        if static is not None and static.shape != first.shape:
+            raise InputError(f"background: expected the frames' shape {first.shape}, got {static.shape}")
+        import torch
+
+        cleanup.callback(torch.set_num_threads, torch.get_num_threads())  # the frames ran on one thread each in this process
+        runner = _Scheduler(loaded, workers=workers, scheduler=scheduler, local_processes=local_processes)  # before the work folder: nothing left if unreachable
+        pending: dict = {}
+        cleanup.callback(runner.close, pending)
         work = _Work(Path(work_dir) if work_dir is not None else None, identity)
         finished = work.finished() & set(range(count))
         steps = Steps(count, progress=progress, should_stop=should_stop)
         steps.advance(len(finished))
         todo = [index for index in range(count) if index not in finished]
-        first = frames.read(todo[0] if todo else 0)  # checks the first frame (and fixes the shape) before any set-up
-        if static is not None and static.shape != first.shape:
-            raise InputError(f"background: expected the frames' shape {first.shape}, got {static.shape}")
         if mode == "global" and todo:
             static = work.background(lambda: sequence_background(frames, samples=background_samples))
-        import torch
-
-        cleanup.callback(torch.set_num_threads, torch.get_num_threads())  # the frames ran on one thread each in this process
-        runner = _Scheduler(loaded, workers=workers, scheduler=scheduler, local_processes=local_processes)
-        pending: dict = {}
-        cleanup.callback(runner.close, pending)
         shared_background = runner.share(static)
         buffer: dict[int, np.ndarray] = {}  # frames of the running window
         queue = iter(todo)

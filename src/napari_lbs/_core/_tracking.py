@@ -63,6 +63,8 @@ def link_tracks(particles: dict[str, np.ndarray], *, search_range_um: float, axi
     order = np.argsort(frame, kind="stable")
     table = {name: np.asarray(values)[order] for name, values in particles.items()}
     table["frame"] = frame[order].astype(np.int64)
+    if not frame.size:  # nothing to link
+        return {**table, "track": np.zeros(0, np.int64), **{name: np.zeros(0) for name in DISPLACEMENT_COLUMNS}}
     positions = pd.DataFrame({name: np.asarray(table[name], dtype=np.float64) for name in PARTICLE_COLUMNS[:3]})
     positions["frame"] = table["frame"]
     trackpy.quiet()
