@@ -87,7 +87,7 @@ def tile_summaries(
 
     ``field_mean`` (the mean of the whole image the tile was cut from; default the tile's own)
     and ``surroundings`` (`field_surroundings`: the field around the tile, twice its size,
-    NaN outside the field; default the tile alone) give the field-wide envelope: the tile's
+    NaN outside the field; default none: tilt and curvature 0) give the field-wide envelope: the tile's
     brightness against the field's, and the tilt and curvature of the log brightness fitted
     over the surroundings. A smooth vignetting has nearly the same curvature at every tile,
     so it stands out of the particles' tile-to-tile fluctuation where a tile's mean does not.
@@ -146,7 +146,9 @@ def tile_summaries(
     # across the field (a vignetting spans tiles; within one tile it is only a slight tilt)
     field_mean = field_mean if field_mean is not None else tile_mean
     add("field envelope: |log tile mean / field mean|", "region", abs(np.log(tile_mean / field_mean)))
-    tilt, curvature = _envelope(surroundings if surroundings is not None else np.pad(np.asarray(tile, np.float64), [(n // 2, n - n // 2) for n in (rows, cols)], constant_values=np.nan), field_mean)
+    # without surroundings (tiles not cut from one field) there is no field-wide envelope to fit:
+    # within the tile, the illumination tilt and curvature above already see it
+    tilt, curvature = _envelope(surroundings, field_mean) if surroundings is not None else (0.0, 0.0)
     add("field envelope: log-brightness tilt around the tile (per tile edge)", "region", tilt)
     add("field envelope: log-brightness curvature around the tile (per tile edge²)", "region", curvature)
     # intensity statistics
