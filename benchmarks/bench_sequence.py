@@ -35,7 +35,6 @@ from pathlib import Path
 
 import numpy as np
 import psutil
-from dask.distributed import LocalCluster
 
 from napari_lbs._core import (
     DatasetLayout,
@@ -43,6 +42,7 @@ from napari_lbs._core import (
     generate_dataset,
     link_tracks,
     load_config,
+    local_cluster,
     load_model,
     match_particles,
     predict_particles,
@@ -185,7 +185,7 @@ def main() -> None:
     rate_frames = recording.frames[: args.rate_frames]
     for workers in args.workers:
         # a long-lived cluster, as a campaign would use: warmed on two frames (imports, model, kernels), then timed
-        with LocalCluster(n_workers=workers, threads_per_worker=1, dashboard_address=None) as cluster, PeakMemory() as memory:
+        with local_cluster(workers) as cluster, PeakMemory() as memory:
             predict_sequence(recording.frames[:2], model, background=background, scheduler=cluster.scheduler_address)
             cpu_start = cpu_seconds()
             result = predict_sequence(rate_frames, model, background=background, scheduler=cluster.scheduler_address)

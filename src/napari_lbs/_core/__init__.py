@@ -47,7 +47,7 @@ _NAMES = {
     "_optics": ("backpropagate", "padded_shape", "propagate", "propagation_grid", "set_transfer_cache_limit", "superpose", "transfer_function"),
     "_prediction": ("PredictionResult", "predict_particles", "tile_layout", "tile_normalisation"),
     "_progress": ("Stopped",),
-    "_sequence": ("BACKGROUND_MODES", "HologramFrames", "SequenceResult", "open_frames", "predict_sequence", "sequence_background"),
+    "_sequence": ("BACKGROUND_MODES", "HologramFrames", "SequenceResult", "local_cluster", "open_frames", "predict_sequence", "sequence_background"),
     "_samples": ("SAMPLE_PROVENANCE", "load_sample_hologram", "sample_hologram_path"),
     "_synthesis": (
         "LABEL_SCALE", "ParticleField", "count_for_ppp", "disc_coverage", "label_planes", "layer_images", "random_particle_field",
