@@ -12,7 +12,8 @@ synthetic groups only) on three kinds of synthetic data:
 ``transparent`` as ``effects``, plus transparent spheres stated from the physics rather than
              fitted: ``particle_phase`` with the phase delay through a 25 µm polystyrene sphere in
              water, 2π/λ · (1.59 − 1.33) · 25 µm = 62 rad, transmission 1 (what a user who knows
-             the sample would add with ``generate --effect``).
+             the sample would add with ``generate --effect``);
+``plain_transparent`` the seed's simulation (no calibration) with those transparent spheres.
 
 Each model predicts the pseudo-real hologram at the real hologram's density (~100 spheres in
 1024²) and at 4× that; one-to-one ER/JI (22 µm, 150 µm) and |Δz| of the matches are printed.
@@ -94,7 +95,13 @@ def run(out: Path, groups: int, epochs: int) -> dict:
     effects = effects_from_report(report, name=str(report_path))
 
     lbs = InputProcessing.from_calibration(calibration)
-    stages = {"plain": (InputProcessing(), {}), "lbs": (lbs, {}), "transparent": (lbs, {**effects, **TRANSPARENT}), "effects": (lbs, effects)}
+    stages = {
+        "plain": (InputProcessing(), {}),
+        "lbs": (lbs, {}),
+        "plain_transparent": (InputProcessing(), TRANSPARENT),
+        "transparent": (lbs, {**effects, **TRANSPARENT}),
+        "effects": (lbs, effects),
+    }
     results = {"calibration": calibration["params"], "ssim": calibration["ssim"], "verdict": report["verdict"], "waterfall": report["waterfall"], "effects": effects, "stages": {}}
     for stage, (processing, stage_effects) in stages.items():
         model_path, log_path = out / f"{stage}.pt", out / f"{stage}.json"
@@ -105,6 +112,10 @@ def run(out: Path, groups: int, epochs: int) -> dict:
             generated = time.perf_counter() - start
             trained = train_model(dataset, model_path, settings=TrainingSettings(epochs=epochs, seed=0), resume=model_path.with_suffix(".last.pt").is_file())
             print(f"{stage}: generated {groups} groups in {generated:.0f} s, trained {epochs} epochs (from epoch {done}) in {trained.log['seconds']:.0f} s", flush=True)
+        scores_path = out / f"{stage}_scores.json"
+        if scores_path.is_file():  # scored before with this very model
+            results["stages"][stage] = json.loads(scores_path.read_text())
+            continue
         log = json.loads(log_path.read_text())
         best = log["best"]
         validation = next(e for e in log["epochs"] if e["epoch"] == best["epoch"])["validation"]
@@ -117,6 +128,7 @@ def run(out: Path, groups: int, epochs: int) -> dict:
             print(f"{stage:8s} {label:12s}: ER {100 * metrics['er']:6.2f} %  JI {metrics['ji']:.3f}  TP {metrics['tp']} FP {metrics['fp']} FN {metrics['fn']}  "
                   f"median |dz| {row[label]['median_abs_dz_um'] or float('nan'):.0f} um  (synthetic validation JI {validation['ji']:.3f})", flush=True)
         results["stages"][stage] = row
+        write_json(scores_path, row)
     write_json(out / "results.json", results)
     return results
 
