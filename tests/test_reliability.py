@@ -387,3 +387,35 @@ def test_sigterm_during_a_long_command_leaves_nothing(tmp_path, command):
     assert process.returncode == 130, stderr
     assert "interrupted" in stderr and "Traceback" not in stderr
     assert sorted(p.name for p in tmp_path.rglob("*")) == ["c.toml"]
+
+
+def _terminated(command: list[str], *, ready, timeout_s: float = 120.0) -> str:
+    """Run a CLI command, send SIGTERM once ``ready()`` holds (polled), return its stderr; it must exit 130 cleanly."""
+    process = subprocess.Popen([sys.executable, "-m", "napari_lbs._cli", *command], stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + timeout_s
+    while not ready():
+        assert process.poll() is None and time.monotonic() < deadline, "the command ended before it could be interrupted"
+        time.sleep(0.05)
+    process.send_signal(signal.SIGTERM)
+    _, stderr = process.communicate(timeout=timeout_s)
+    assert process.returncode == 130, stderr
+    assert "interrupted" in stderr and "Traceback" not in stderr
+    return stderr
+
+
+def test_sigterm_during_simulate_train_and_predict_leaves_no_partial_file(tmp_path):
+    config = tmp_path / "c.toml"
+    config.write_text("[tile]\nsize = 64\n[particles]\nper_tile = 3\nlayer_step_um = 100.0\n[volume]\nz_min_um = 1800.0\nz_max_um = 2000.0\nz_step_um = 100.0\n")
+    started = lambda: time.sleep(1.5) or True  # noqa: E731 (past start-up: the handler is installed before any work)
+    _terminated(["simulate", "--config", str(config), "--out", str(tmp_path / "sim"), "--size", "1536", "--particles", "400"], ready=started)
+    assert not (tmp_path / "sim").exists() or not any((tmp_path / "sim").iterdir())
+    assert main(["generate", "--config", str(config), "--groups", "3", "--out", str(tmp_path / "data")]) == 0
+    # training: stopped during its second epoch, after the first wrote the model; what exists is whole
+    log = tmp_path / "m.json"
+    _terminated(["train", str(tmp_path / "data"), "--out", str(tmp_path / "m.pt"), "--epochs", "200", "--patch-size", "32", "--validation-groups", "1"], ready=log.is_file)
+    assert json.loads(log.read_text())["epochs"] and (tmp_path / "m.pt").stat().st_size > 0
+    hologram = tmp_path / "h.tif"
+    assert main(["simulate", "--config", str(config), "--out", str(tmp_path / "h"), "--size", "1024", "--particles", "10"]) == 0
+    _terminated(["predict", str(tmp_path / "h" / "hologram.tif"), "--model", str(tmp_path / "m.pt"), "--out", str(tmp_path / "p.csv")], ready=started)
+    assert not (tmp_path / "p.csv").exists() and not (tmp_path / "p.json").exists()
+    assert not [p.name for p in tmp_path.rglob(".*")]  # no temporary file anywhere
