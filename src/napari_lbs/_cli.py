@@ -421,7 +421,8 @@ def _cmd_diagnose(args) -> None:
     diagnosis = diagnose_hologram(hologram, config, background=background, tile_px=args.tile, known=not args.no_known, settings=settings, progress=_ProgressBar("diagnose"))
     if args.roi:
         x, y = args.roi
-        diagnosis.report["roi"] = {"x": x, "y": y, "tile_index": (y // size) * (hologram.shape[1] // size) + x // size}
+        cut = int(diagnosis.report["tiles"]["shape"][0])  # the tiles the diagnosis cut (adapted to the hologram)
+        diagnosis.report["roi"] = {"x": x, "y": y, "tile_index": (y // cut) * (hologram.shape[1] // cut) + x // cut}
     provenance = _provenance(config, source=str(args.holo), background=args.background, calibration=calibration, seed=args.seed)
     paths = write_report(diagnosis, out, provenance=provenance)
     verdict = diagnosis.report["verdict"]

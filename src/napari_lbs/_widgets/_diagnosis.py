@@ -54,12 +54,13 @@ class DiagnosisWidget(StepWidget):
         hologram, config, tile, settings, output, layer = job
         diagnosis = diagnose_hologram(hologram, config, tile_px=tile, settings=settings, progress=progress, should_stop=should_stop)
         write_report(diagnosis, output, provenance={"source": layer.name, "config": config.to_dict(), "seed": settings.seed})
-        return diagnosis, output, layer, tile or config.tile.size
+        return diagnosis, output, layer
 
     def show(self, outcome):
-        diagnosis, output, layer, size = outcome
+        diagnosis, output, layer = outcome
         self.diagnosis = diagnosis
         report = diagnosis.report
+        size = int(report["tiles"]["shape"][0])  # the tiles the diagnosis cut (adapted to the hologram), not the config's
         rows, cols = layer.data.shape[0] // size, layer.data.shape[1] // size
         where = np.asarray(report["gap"]["by_region"], np.float32).reshape(rows, cols)
         pixel = np.asarray(layer.scale[-2:], float)
