@@ -404,7 +404,7 @@ def _cmd_track(args) -> None:
 
 
 def _cmd_diagnose(args) -> None:
-    from napari_lbs._core import MIN_TILE_PX, DiagnosisSettings, diagnose_hologram, load_config, write_report
+    from napari_lbs._core import MIN_TILE_PX, DiagnosisSettings, adapted_tile_px, diagnose_hologram, load_config, write_report
 
     config = load_config(args.config)
     out = check_output_path(args.out, flag="--out", folder=True, inputs=_inputs(args))
@@ -416,6 +416,8 @@ def _cmd_diagnose(args) -> None:
         raise InputError(f"--tile: expected at least {MIN_TILE_PX} pixels (the lowest frequency band needs them), got {size}")
     calibration = _read_calibration(args.calibration) if args.calibration else None
     hologram, background = _read_inputs(args)
+    if not args.tile:
+        size = adapted_tile_px(hologram.shape, size)  # what diagnose_hologram will cut
     if args.roi and not (args.roi[0] + size <= hologram.shape[1] and args.roi[1] + size <= hologram.shape[0]):
         raise InputError(f"--roi {args.roi[0]} {args.roi[1]}: a {size}-pixel tile there crosses the edge of the {hologram.shape[1]}x{hologram.shape[0]} (x by y) hologram {args.holo}")
     diagnosis = diagnose_hologram(hologram, config, background=background, tile_px=args.tile, known=not args.no_known, settings=settings, progress=_ProgressBar("diagnose"))

@@ -32,7 +32,7 @@ _NAMES = {
     ),
     "_gap": (
         "SUMMARY_GROUPS", "Diagnosis", "DiagnosisSettings", "diagnose_hologram", "diagnose_tiles", "gap_statistic", "measured_fringe", "real_spread",
-        "tile_summaries", "where_gap", "write_report", "MIN_TILE_PX",
+        "tile_summaries", "where_gap", "write_report", "MIN_TILE_PX", "TileLayout", "field_surroundings", "known_sensor", "adapted_tile_px", "resampled_gaps",
     ),
     "_heatmaps": ("FocusSpec", "FocusTargets", "context_indices", "focus_targets"),
     "_io": (

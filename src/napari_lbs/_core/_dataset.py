@@ -409,12 +409,14 @@ def open_dataset(path: str | Path) -> SyntheticDataset:
 
 def dataset_summary(dataset: SyntheticDataset) -> dict:
     """What a training log records about its data."""
-    return {
+    summary = {
         "path": str(dataset.path),
         "groups": len(dataset.groups),
         "complete": dataset.complete,
         "layout": dataset.layout.to_dict(),
-        "effects": dataset.spec.get("effects", {}),
         **{k: dataset.spec[k] for k in ("seed", "planes_um", "tile_size", "processing")},
     }
+    if dataset.spec.get("effects"):  # absent when none, so training states saved before effects existed still resume
+        summary["effects"] = dataset.spec["effects"]
+    return summary
 

@@ -103,7 +103,7 @@ def _param(effects: dict, effect: str, name: str) -> float:
 
 
 _SPHERE_SUPERSAMPLE = 4  # fine samples per pixel and axis for a sphere's transmission
-_SPHERE_PATCH_PX = 64  # edge of the patch (pixels) holding one sphere's band-limited field
+_SPHERE_PATCH_PX = 64  # smallest edge of the patch (pixels) holding one sphere's band-limited field
 
 
 def _sphere_fields(field: ParticleField, depth: float, *, transmission: float, phase_rad: float) -> np.ndarray:
@@ -119,15 +119,16 @@ def _sphere_fields(field: ParticleField, depth: float, *, transmission: float, p
     and hologram correlation 0.97, where point sampling gave 0.75.
     """
     fine = _SPHERE_SUPERSAMPLE
-    half = _SPHERE_PATCH_PX // 2
     rows, cols = field.shape
     out = np.zeros(field.shape, np.complex64)
-    frequencies = np.fft.fftfreq(_SPHERE_PATCH_PX * fine, d=1.0 / fine)  # cycles per pixel
-    in_band = np.abs(frequencies) <= 0.5
-    offsets = np.arange(-half * fine, half * fine) / fine  # pixels, pixel centres at multiples of 1
     mask = field.z_um == depth
     for x, y, d in zip(field.x_um[mask], field.y_um[mask], field.diameter_um[mask], strict=True):
         col, row, radius = x / field.pixel_um, y / field.pixel_um, d / 2 / field.pixel_um
+        # the patch holds the sphere and its band-limited ringing (32 px beyond it), a power of two
+        patch_px = max(_SPHERE_PATCH_PX, 2 ** int(np.ceil(np.log2(2 * radius + 32))))
+        half = patch_px // 2
+        in_band = np.abs(np.fft.fftfreq(patch_px * fine, d=1.0 / fine)) <= 0.5  # cycles per pixel
+        offsets = np.arange(-half * fine, half * fine) / fine  # pixels, pixel centres at multiples of 1
         col0, row0 = int(round(col)), int(round(row))
         r2 = ((offsets[None, :] + col0 - col) ** 2 + (offsets[:, None] + row0 - row) ** 2) / radius**2
         inside = r2 <= 1.0
@@ -138,7 +139,7 @@ def _sphere_fields(field: ParticleField, depth: float, *, transmission: float, p
         patch = np.fft.ifft2(spectrum)[::fine, ::fine]  # the band-limited field at the pixel centres
         r0, c0 = row0 - half, col0 - half
         rr0, cc0 = max(r0, 0), max(c0, 0)
-        rr1, cc1 = min(r0 + _SPHERE_PATCH_PX, rows), min(c0 + _SPHERE_PATCH_PX, cols)
+        rr1, cc1 = min(r0 + patch_px, rows), min(c0 + patch_px, cols)
         if rr0 < rr1 and cc0 < cc1:
             out[rr0:rr1, cc0:cc1] += patch[rr0 - r0 : rr1 - r0, cc0 - c0 : cc1 - c0]
     return out

@@ -881,7 +881,9 @@ def diagnose_hologram(
     tiles = [image[r : r + size, c : c + size] for r, c in origins]
     field_mean = float(np.mean([t.mean() for t in tiles]))
     # the sensor's levels in the simulation's unit (the tiles' mean intensity is 1 there)
-    known_effects = {"quantization": {"bits": float(facts["bits"]), "saturation": facts["saturation"] / field_mean}} if facts else {}
+    # sensor_image spreads 2^bits - 1 levels over [0, saturation]: one count a step only when that is the full scale
+    # (a pile-up below full scale, e.g. clipping at 200 of 255, is in `facts` but not simulated)
+    known_effects = {"quantization": {"bits": float(facts["bits"]), "saturation": facts["full_scale"] / field_mean}} if facts else {}
     covered = ((rows // size) * size, (cols // size) * size)  # the field the tiles cover
     diagnosis = diagnose_tiles(tiles, config, layout=TileLayout(covered, origins, field_mean), known=known_effects, settings=settings, progress=progress, should_stop=should_stop)
     diagnosis.report["known_sensor"] = facts if facts else {"source": "none: not integer counts, a background was divided out, or switched off"}

@@ -2,19 +2,18 @@
 
 The whole hologram is back-propagated (so a tile keeps its true surroundings, which the seed's
 per-tile back-propagation lost), cut into overlapping tiles of the size the model was trained
-for, each tile-plane normalised exactly as the training inputs were (`experimental_planes`),
+for, each tile-plane normalised as the training inputs were (``seed``: `experimental_planes`),
 and the network's outputs stitched back with every pixel taken from the tile whose centre is
 nearest. A particle on a tile edge is thus seen whole by a neighbouring tile. The stitched
 output planes are decoded plane chunk by plane chunk — `PeakDecoder` then `suppress` for the
 ``focus`` formulation, whose input planes reach ``context`` planes beyond the requested depths;
 `PlaneLinker` for the ``seed`` formulation — so memory stays bounded whatever the depth.
 
-The ``focus`` formulation runs its fully convolutional network on windows of up to
-``window_px`` (default: the whole of a 1024² hologram at once) instead of overlapping training-size
-tiles, which on 1024² costs 1.56× the pixels. Its inputs are still normalised as in training:
-the min and max of every training-size tile of a plane, interpolated bilinearly between the
-tile centres (`tile_normalisation`), so each pixel sees the statistics of the tiles around it
-and no seam appears where tiles meet.
+The ``focus`` formulation normalises each plane once, with the min and max of every
+training-size tile interpolated bilinearly between the tile centres (`tile_normalisation`:
+each pixel sees the statistics of the tiles around it, and no seam appears where tiles meet),
+then runs its fully convolutional network on windows of ``window_px`` (default the tile size)
+stitched nearest-centre like the tiles.
 """
 
 from __future__ import annotations
@@ -73,7 +72,7 @@ def predict_particles(
     background: np.ndarray | None = None,
     planes_um: Sequence[float] | None = None,
     margin_px: int = 32,
-    window_px: int = 1024,
+    window_px: int | None = None,
     device: str = "auto",
     progress: ProgressCallback | None = None,
     should_stop: StopCallback | None = None,
@@ -95,10 +94,12 @@ def predict_particles(
         Reconstruction depths (µm); default ``config.volume.planes_um()``.
     margin_px : int
         Half the minimum overlap of neighbouring tiles (pixels), at most a quarter tile.
-    window_px : int
+    window_px : int, optional
         ``focus`` models: edge of the windows the network runs on (pixels; at least the tile
-        size). Larger windows overlap less (1024² in one window costs 1/1.56 of 256² tiles with
-        32-pixel margins); smaller ones bound the network's working memory on big holograms.
+        size; default the tile size). Larger windows cost fewer pixels (one 1024² window is
+        1/1.56 of 256² tiles with 32-pixel margins) but on 2 CPU cores ran slower (33.4 s vs
+        30.4 s for the real 1024² hologram: a small window's activations stay in cache); they
+        may pay off on a GPU (not measured).
     device : {"auto", "cpu", "cuda"}
     progress, should_stop
         One step per reconstruction plane (``focus``: also one per back-propagated plane,
@@ -122,9 +123,10 @@ def predict_particles(
     optics = {"wavelength_um": config.optics.wavelength_um, "pixel_um": config.optics.pixel_um, "medium_index": config.optics.medium_index}
     steps = Steps(len(planes), progress=progress, should_stop=should_stop)
     if loaded.formulation == "focus":
-        if int(window_px) < size:
+        window_px = size if window_px is None else int(window_px)
+        if window_px < size:
             raise InputError(f"window_px: expected at least the model's tile size {size}, got {window_px}")
-        particles, details = _decode_focus(hologram, loaded, planes, layout, background=background, optics=optics, steps=steps, margin_px=margin_px, window_px=int(window_px))
+        particles, details = _decode_focus(hologram, loaded, planes, layout, background=background, optics=optics, steps=steps, margin_px=margin_px, window_px=window_px)
     else:
         particles, details = _decode_seed(hologram, loaded, planes, layout, background=background, optics=optics, steps=steps)
     rows, cols = layout
@@ -183,7 +185,8 @@ def tile_normalisation(stack: np.ndarray, layout, size: int, *, invert: bool, mo
     Each plane's min and max over every ``size`` tile of ``layout`` (`tile_layout` along rows
     and columns) are interpolated bilinearly between the tile centres; the plane is stretched
     to [0, 1] with them (clipped), floored to 8-bit steps in ``seed`` mode and inverted with
-    ``invert``. At a tile's centre this is exactly that tile's own normalisation.
+    ``invert``. At a tile's centre this is that tile's own normalisation (exactly where the
+    centre falls on a pixel, for odd tile sizes; between pixels otherwise).
 
     Parameters
     ----------

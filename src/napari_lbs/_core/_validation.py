@@ -330,7 +330,7 @@ def check_model_payload(
         raise InputError(f"{name}: unknown formulation {meta['formulation']!r}; expected one of {', '.join(formulations)}")
     widths = meta.get("widths")
     allowed = {tuple(w): preset for preset, w in presets.items()}
-    if not isinstance(widths, list) or tuple(widths) not in allowed:
+    if not isinstance(widths, list) or not all(isinstance(w, int) and not isinstance(w, bool) for w in widths) or tuple(widths) not in allowed:
         raise InputError(f"{name}: meta.widths {str(widths)[:60]} is not a preset's ({', '.join(f'{p} {list(w)}' for p, w in presets.items())})")
     _integer(meta.setdefault("in_channels", 1), key=f"{name}: meta.in_channels", low=1, high=256)
     _integer(meta.setdefault("out_channels", 1), key=f"{name}: meta.out_channels", low=1, high=8)
