@@ -406,8 +406,9 @@ def _terminated(command: list[str], *, ready, timeout_s: float = 120.0) -> str:
 def test_sigterm_during_simulate_train_and_predict_leaves_no_partial_file(tmp_path):
     config = tmp_path / "c.toml"
     config.write_text("[tile]\nsize = 64\n[particles]\nper_tile = 3\nlayer_step_um = 100.0\n[volume]\nz_min_um = 1800.0\nz_max_um = 2000.0\nz_step_um = 100.0\n")
-    started = lambda: time.sleep(1.5) or True  # noqa: E731 (past start-up: the handler is installed before any work)
-    _terminated(["simulate", "--config", str(config), "--out", str(tmp_path / "sim"), "--size", "1536", "--particles", "400"], ready=started)
+    started = lambda: time.sleep(0.8) or True  # noqa: E731 (past start-up, ~0.1 s: the handler is installed before any work)
+    # a 4096² simulation takes ~6 s on 2 idle cores: still running at 0.8 s
+    _terminated(["simulate", "--config", str(config), "--out", str(tmp_path / "sim"), "--size", "4096", "--particles", "6000"], ready=started)
     assert not (tmp_path / "sim").exists() or not any((tmp_path / "sim").iterdir())
     assert main(["generate", "--config", str(config), "--groups", "3", "--out", str(tmp_path / "data")]) == 0
     # training: stopped during its second epoch, after the first wrote the model; what exists is whole
