@@ -75,7 +75,7 @@ def _hologram(folder: Path, name: str, count: int, seed: int) -> tuple[np.ndarra
     return read_hologram(image_path), read_particles(truth_path)
 
 
-def run(out: Path, groups: int, epochs: int) -> dict:
+def run(out: Path, groups: int, epochs: int, only: list[str] | None = None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     config = load_config(None)
     holograms = {label: _hologram(out, label.replace(" ", "_"), count, seed=7 + i) for i, (label, count) in enumerate(DENSITIES.items())}
@@ -104,6 +104,8 @@ def run(out: Path, groups: int, epochs: int) -> dict:
     }
     results = {"calibration": calibration["params"], "ssim": calibration["ssim"], "verdict": report["verdict"], "waterfall": report["waterfall"], "effects": effects, "stages": {}}
     for stage, (processing, stage_effects) in stages.items():
+        if only and stage not in only:
+            continue
         model_path, log_path = out / f"{stage}.pt", out / f"{stage}.json"
         done = len(json.loads(log_path.read_text())["epochs"]) if log_path.is_file() else 0
         if done < epochs:  # not trained, or interrupted: generation and training both resume
@@ -138,11 +140,12 @@ def main() -> None:
     parser.add_argument("--out", default="pseudoreal-bench", help="cache and results folder")
     parser.add_argument("--groups", type=int, default=64)
     parser.add_argument("--epochs", type=int, default=5)
+    parser.add_argument("--stages", nargs="+", help="run only these stages (default: all)")
     parser.add_argument("--check", action="store_true", help="only check the fast Lorenz-Mie field against pylorenzmie on a full plane")
     args = parser.parse_args()
     print(f"azimuthal decomposition vs pylorenzmie on a full plane: max relative error {pseudoreal.check_azimuthal():.1e}", flush=True)
     if not args.check:
-        results = run(Path(args.out), args.groups, args.epochs)
+        results = run(Path(args.out), args.groups, args.epochs, args.stages)
         print(json.dumps(results, indent=1))
 
 
