@@ -48,7 +48,7 @@ def test_predict_never_overwrites_a_model_log_an_input_or_writes_a_table_as_json
     cases = [
         (["--out", str(tmp_path / "m.csv")], "is not this table's provenance"),
         (["--out", str(tmp_path / "p.json")], "expected a particle table"),
-        (["--out", str(hologram)], "would overwrite the input HOLO"),
+        (["--out", str(hologram)], f"would overwrite the input {hologram}"),
     ]
     for extra, message in cases:
         capsys.readouterr()

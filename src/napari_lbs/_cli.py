@@ -325,15 +325,11 @@ def _cmd_train(args) -> None:
 
 
 def _predict_outputs(args) -> tuple[Path, Path]:
-    """The particle table and its provenance JSON, refused where they would overwrite something else."""
+    """The particle table and its provenance JSON, refused where they would overwrite something else (inputs: `check_output_path`)."""
     out = Path(args.out)
     if out.suffix.lower() == ".json":
         raise ValueError(f"--out {out}: expected a particle table (.csv); its provenance is written beside it as .json")
     provenance = out.with_suffix(".json")
-    targets = {out.resolve(), provenance.resolve()}
-    for flag, name in [("HOLO", holo) for holo in args.holo] + [("--model", args.model), ("--background", args.background), ("--config", args.config)]:
-        if name and Path(name).resolve() in targets:
-            raise ValueError(f"--out {out}: would overwrite the input {flag} {name}")
     if provenance.is_file():
         try:
             previous = json.loads(provenance.read_text(encoding="utf-8"))
