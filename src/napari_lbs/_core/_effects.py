@@ -29,9 +29,8 @@ the synthetic holograms of `generate_dataset`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
