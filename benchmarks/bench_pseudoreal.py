@@ -59,7 +59,7 @@ from napari_lbs._core import (  # noqa: E402
 )
 
 DENSITIES = {"real density": 100, "4x density": 400}
-TRANSPARENT = {"particle_phase": {"phase_rad": round(2 * np.pi / pseudoreal.WAVELENGTH_UM * (pseudoreal.N_PARTICLE - pseudoreal.N_MEDIUM) * 25.0, 1), "transmission": 1.0}}
+TRANSPARENT = {"particle_phase": {"index_contrast": round(pseudoreal.N_PARTICLE - pseudoreal.N_MEDIUM, 3), "transmission": 1.0}}
 
 
 def _hologram(folder: Path, name: str, count: int, seed: int) -> tuple[np.ndarray, dict]:

@@ -80,7 +80,7 @@ def test_transparent_spheres_conserve_light_where_opaque_discs_remove_it():
     one = ParticleField(np.array([140.8]), np.array([140.8]), np.array([2000.0]), np.array([30.0]), (128, 128), 2.2)
     area = disc_coverage((128, 128), one.x_um, one.y_um, one.diameter_um, pixel_um=2.2).mean()
     opaque = optical_hologram(one, {}, wavelength_um=0.66)
-    glass = optical_hologram(one, {"particle_phase": {"phase_rad": 3.0, "transmission": 1.0}}, wavelength_um=0.66)
+    glass = optical_hologram(one, {"particle_phase": {"index_contrast": 0.0126, "transmission": 1.0}}, wavelength_um=0.66)
     # <|1 + s|²> = 1 - a for an opaque disc of area fraction a (extinction), 1 for a lossless sphere
     assert opaque.mean() == pytest.approx(1.0 - area, abs=0.1 * area)
     assert glass.mean() == pytest.approx(1.0, abs=0.1 * area)

@@ -32,21 +32,21 @@ def _field(seed=0, count=4):
 def _report(verdict="quantization", waterfall_gaps=(100.0, 5.0, 4.0), joint=True):
     effects = [
         {"id": "quantization", "params": {"bits": 8.0, "saturation": 2.0, "baseline.gamma": 1.3}},
-        {"id": "particle_phase", "params": {"phase_rad": 2.0, "transmission": 0.5, "baseline.sigma": 0.02}},
+        {"id": "particle_phase", "params": {"index_contrast": 0.008, "transmission": 0.5, "baseline.sigma": 0.02}},
     ]
     waterfall = [{"model": "baseline", "gap": waterfall_gaps[0]}, {"model": "+quantization", "gap": waterfall_gaps[1]}, {"model": "+quantization+particle_phase", "gap": waterfall_gaps[2]}]
     if joint:
-        waterfall[2]["params"] = {"quantization": {"bits": 7.5, "saturation": 1.9}, "particle_phase": {"phase_rad": 4.0, "transmission": 0.7}}
+        waterfall[2]["params"] = {"quantization": {"bits": 7.5, "saturation": 1.9}, "particle_phase": {"index_contrast": 0.016, "transmission": 0.7}}
     return {"gap": {"baseline": waterfall_gaps[0]}, "effects": effects, "verdict": {"id": verdict, "shrink": 0.9, "residual": waterfall_gaps[1]}, "waterfall": waterfall}
 
 
 def test_parse_effect_reads_the_command_line_form_and_names_the_culprit():
-    assert parse_effect("particle_phase:phase_rad=6,transmission=0.3") == {"particle_phase": {"phase_rad": 6.0, "transmission": 0.3}}
+    assert parse_effect("particle_phase:index_contrast=0.26,transmission=0.3") == {"particle_phase": {"index_contrast": 0.26, "transmission": 0.3}}
     assert parse_effect("multiple_scattering") == {"multiple_scattering": {"on": 1.0}}  # a fixed-bound parameter may be left out
     with pytest.raises(InputError, match="unknown effect id 'dust'"):
         parse_effect("dust:amount=1")
     with pytest.raises(InputError, match="missing parameter 'transmission'"):
-        parse_effect("particle_phase:phase_rad=6")
+        parse_effect("particle_phase:index_contrast=0.26")
     with pytest.raises(InputError, match="unknown parameter 'colour'"):
         parse_effect("sensor_blur:colour=1")
     with pytest.raises(InputError, match="expected a finite number"):
@@ -57,9 +57,9 @@ def test_parse_effect_reads_the_command_line_form_and_names_the_culprit():
 
 def test_effects_from_report_takes_the_verdict_and_the_waterfall_while_the_gap_falls():
     # gap falls at both steps: both effects, with the joint fit's parameters, baseline keys dropped
-    assert effects_from_report(_report()) == {"quantization": {"bits": 7.5, "saturation": 1.9}, "particle_phase": {"phase_rad": 4.0, "transmission": 0.7}}
+    assert effects_from_report(_report()) == {"quantization": {"bits": 7.5, "saturation": 1.9}, "particle_phase": {"index_contrast": 0.016, "transmission": 0.7}}
     # without joint parameters: each effect's own fit
-    assert effects_from_report(_report(joint=False))["particle_phase"] == {"phase_rad": 2.0, "transmission": 0.5}
+    assert effects_from_report(_report(joint=False))["particle_phase"] == {"index_contrast": 0.008, "transmission": 0.5}
     # the second effect does not lower the gap: the verdict alone
     assert effects_from_report(_report(waterfall_gaps=(100.0, 5.0, 6.0))) == {"quantization": {"bits": 8.0, "saturation": 2.0}}
     # nothing missing: nothing added
@@ -73,15 +73,15 @@ def test_effect_hologram_obeys_the_physics_of_each_effect():
     opaque = simulate_hologram(field, wavelength_um=0.66)
     rng = np.random.default_rng(0)
     # a sphere that transmits all light with no phase delay is invisible: the hologram is flat
-    invisible = effect_hologram(field, {"particle_phase": {"phase_rad": 0.0, "transmission": 1.0}}, wavelength_um=0.66, rng=rng)
+    invisible = effect_hologram(field, {"particle_phase": {"index_contrast": 0.0, "transmission": 1.0}}, wavelength_um=0.66, rng=rng)
     np.testing.assert_allclose(invisible, 1.0, atol=1e-5)
     # transmission 0 is an opaque disc whatever the phase (band-limited to the pixel grid, so not bit for bit the seed's)
-    black = effect_hologram(field, {"particle_phase": {"phase_rad": 3.0, "transmission": 0.0}}, wavelength_um=0.66, rng=rng)
+    black = effect_hologram(field, {"particle_phase": {"index_contrast": 0.0126, "transmission": 0.0}}, wavelength_um=0.66, rng=rng)
     assert np.corrcoef(black.ravel(), opaque.ravel())[0, 1] > 0.95
     # a thick glass sphere (62 rad, polystyrene in water) focuses light: a bright spot where the opaque disc is dark
     # (the window must hold the fringes out to where they pass the pixel's band: 192² at 2 mm)
     one = ParticleField(np.array([96 * 2.2]), np.array([96 * 2.2]), np.array([2000.0]), np.array([25.0]), (192, 192), 2.2)
-    glass = effect_hologram(one, {"particle_phase": {"phase_rad": 62.0, "transmission": 1.0}}, wavelength_um=0.66, rng=rng)
+    glass = effect_hologram(one, {"particle_phase": {"index_contrast": 0.26, "transmission": 1.0}}, wavelength_um=0.66, rng=rng)
     disc = simulate_hologram(one, wavelength_um=0.66)
     at_focus = [backpropagate(h, [2000.0], wavelength_um=0.66, pixel_um=2.2)[0, 96, 96] for h in (glass, disc)]
     assert at_focus[0] > 1.2 and at_focus[1] < 0.3
@@ -91,10 +91,22 @@ def test_effect_hologram_obeys_the_physics_of_each_effect():
     np.testing.assert_array_equal(effect_hologram(field, {}, wavelength_um=0.66, rng=rng), opaque)
 
 
+def test_a_spheres_phase_delay_is_proportional_to_its_diameter():
+    from napari_lbs._core._effects import _sphere_fields
+
+    # φ0 = 2π Δn d / λ through the centre: 0.95 rad for 20 µm, 1.43 rad for 30 µm at Δn 0.005
+    # (slow phases, so the band limit leaves the centre's value intact)
+    for diameter_um in (20.0, 30.0):
+        one = ParticleField(np.array([64 * 2.2]), np.array([64 * 2.2]), np.array([2000.0]), np.array([diameter_um]), (128, 128), 2.2)
+        centre = 1.0 + _sphere_fields(one, 2000.0, transmission=1.0, index_contrast=0.005, wavelength_um=0.66)[64, 64]
+        assert np.angle(centre) == pytest.approx(2 * np.pi * 0.005 * diameter_um / 0.66, abs=0.03)
+        assert abs(centre) == pytest.approx(1.0, abs=0.03)
+
+
 def test_generate_records_the_effects_and_the_data_differs_only_through_them(tmp_path):
     layout = DatasetLayout(context_planes=1)
     plain = generate_dataset(tmp_path / "plain", CONFIG, groups=1, layout=layout, seed=3)
-    effects = {"particle_phase": {"phase_rad": 3.0, "transmission": 0.8}}
+    effects = {"particle_phase": {"index_contrast": 0.0126, "transmission": 0.8}}
     source = {"report": "r.json", "verdict": "particle_phase"}
     phased = generate_dataset(tmp_path / "phased", CONFIG, groups=1, layout=layout, seed=3, effects=effects, effects_source=source)
     spec = json.loads((tmp_path / "phased" / "dataset.json").read_text())
@@ -124,5 +136,5 @@ def test_cli_generate_effects_from_a_report_and_refusals(tmp_path, capsys):
     assert main(["generate", "--config", str(config), "--groups", "1", "--out", str(tmp_path / "x"), "--effects-from", str(not_a_report)]) == 2
     error = capsys.readouterr().err.strip().splitlines()
     assert len(error) == 1 and "calib.json" in error[0] and "not a diagnosis report" in error[0]
-    assert main(["generate", "--config", str(config), "--groups", "1", "--out", str(tmp_path / "y"), "--effect", "particle_phase:phase_rad=inf,transmission=1"]) == 2
+    assert main(["generate", "--config", str(config), "--groups", "1", "--out", str(tmp_path / "y"), "--effect", "particle_phase:index_contrast=inf,transmission=1"]) == 2
     assert not (tmp_path / "y").exists()

@@ -503,7 +503,7 @@ def _cmd_demo(args) -> None:
         # Lorenz-Mie pseudo-real benchmark, calibrated data scored JI 0.21 where the seed's plain
         # simulation with these transparent spheres scored 0.86 (0.83 against 0.45 at 4x the density).
         processing, effects = InputProcessing(), dict(DEMO_SAMPLE_EFFECTS)
-        data = f"{groups} synthetic groups of {config.tile.size}² of transparent spheres (particle_phase {effects['particle_phase']['phase_rad']:g} rad), uncalibrated"
+        data = f"{groups} synthetic groups of {config.tile.size}² of transparent spheres (particle_phase: index contrast {effects['particle_phase']['index_contrast']:g}), uncalibrated"
     generate_dataset(out / "data", config, groups=groups, processing=processing, calibration=calibration, effects=effects,
                      effects_source={"explicit": ["the built-in sample: polystyrene (n 1.59) spheres in water (n 1.33), 25 um, 660 nm"]} if effects else None,
                      seed=args.seed, progress=_ProgressBar("generate"))
@@ -547,9 +547,9 @@ def _cmd_demo(args) -> None:
     )
 
 
-# The built-in sample's spheres: phase delay through a 25 µm polystyrene sphere in water at 660 nm,
-# 2π/0.66 · (1.59 − 1.33) · 25 = 62 rad, all light transmitted.
-DEMO_SAMPLE_EFFECTS = {"particle_phase": {"phase_rad": 62.0, "transmission": 1.0}}
+# The built-in sample's spheres: polystyrene (n 1.59) in water (n 1.33), all light transmitted;
+# the phase delay through a sphere's centre is 2π · 0.26 · d / 0.66 µm (62 rad at 25 µm).
+DEMO_SAMPLE_EFFECTS = {"particle_phase": {"index_contrast": 0.26, "transmission": 1.0}}
 
 
 class _Parser(argparse.ArgumentParser):
@@ -618,7 +618,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=_integer(1), default=1, help="processes simulating groups at once (default 1)")
     p.add_argument("--effects-from", metavar="REPORT.json", help="add the effects a diagnosis report names (its verdict and waterfall, with their fitted parameters)")
     p.add_argument("--effect", action="append", default=[], metavar="ID[:NAME=VALUE,...]",
-                   help="add an effect of the catalog, e.g. particle_phase:phase_rad=6,transmission=0.3 or quantization:bits=8,saturation=2 (repeatable)")
+                   help="add an effect of the catalog, e.g. particle_phase:index_contrast=0.26,transmission=1 or quantization:bits=8,saturation=2 (repeatable)")
     p.set_defaults(run=_cmd_generate)
 
     p = sub.add_parser("train", help="train the U-Net on a synthetic training set")
