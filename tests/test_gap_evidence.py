@@ -10,7 +10,8 @@ import tifffile
 
 from napari_lbs._core import EFFECTS, DiagnosisSettings, ExperimentConfig, InputError, random_particle_field, read_hologram, write_report
 from napari_lbs._core._effects import optical_hologram, sensor_image
-from napari_lbs._core._gap import _fit, _Model, TileLayout, adapted_tile_px, diagnose_hologram, diagnose_tiles, gap_statistic, known_sensor, real_spread, resampled_gaps, tile_summaries
+from napari_lbs._core._gap import TileLayout, adapted_tile_px, diagnose_hologram, diagnose_tiles, gap_statistic, known_sensor, real_spread, resampled_gaps, tile_summaries
+from napari_lbs._core._gap._fitting import _fit, _Model
 
 CONFIG = ExperimentConfig()
 TRUTH = {"contrast": 0.8, "sigma": 0.04, "gamma": 1.2}

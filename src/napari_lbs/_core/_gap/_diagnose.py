@@ -1,0 +1,269 @@
+"""Attribution: which unmodelled effect causes the gap, and how far it shrinks (`diagnose_tiles`, `diagnose_hologram`).
+
+Fit the baseline (seed's simulator, `EFFECTS` module) to half of the real tiles, screen every
+effect by regressing the standardised residual on its signature, confirm the most significant
+ones (largest |t|) by adding each and refitting all parameters, score every model on the other
+half (tiles never used for a fit), ablate each confirmed fit (the same parameters with the
+effect switched off), rank, and name a verdict — or ``null`` with the reason (`_verdict`).
+No refit ends worse than its start on the fitting tiles. What the file states (`known_sensor`)
+is put into every model as known (`diagnose_hologram(known=True)`), not diagnosed.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from napari_lbs._core._config import ExperimentConfig
+from napari_lbs._core._effects import EFFECTS, check_effects
+from napari_lbs._core._gap._fitting import DiagnosisSettings, _fit, _Model, _with_measured
+from napari_lbs._core._gap._known import known_sensor
+from napari_lbs._core._gap._statistic import gap_statistic, real_spread, where_gap
+from napari_lbs._core._gap._summaries import MIN_TILE_PX, _fringe_parameters, measured_fringe, tile_summaries
+from napari_lbs._core._gap._tiling import TileLayout, adapted_tile_px, field_surroundings
+from napari_lbs._core._gap._verdict import _decision, resampled_gaps
+from napari_lbs._core._io import InputError, as_hologram
+from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
+
+__all__ = ["Diagnosis", "diagnose_tiles", "diagnose_hologram"]
+
+
+@dataclass
+class Diagnosis:
+    """The report (CONTRACT.md ``report.json``) plus what the figures need."""
+
+    report: dict
+    names: list
+    real: np.ndarray = field(repr=False)
+    baseline_sim: np.ndarray = field(repr=False)
+    seconds: float = 0.0
+
+
+def diagnose_tiles(
+    real_tiles: Sequence[np.ndarray],
+    config: ExperimentConfig,
+    *,
+    layout: TileLayout | None = None,
+    known: dict | None = None,
+    settings: DiagnosisSettings = DiagnosisSettings(),
+    particles_per_tile: int | None = None,
+    progress: ProgressCallback | None = None,
+    should_stop: StopCallback | None = None,
+) -> Diagnosis:
+    """Diagnose the gap between real hologram tiles and the seed's simulator.
+
+    Parameters
+    ----------
+    real_tiles : sequence of (rows, cols) arrays
+        At least 4 tiles of the experiment (same shape, positive mean intensity).
+    config : ExperimentConfig
+        Optics, depths and particle sizes of the simulator.
+    layout : TileLayout, optional
+        Where the tiles were cut from one hologram: the simulation then makes whole fields and
+        the tiles are split into fitting and held-out halves as a checkerboard. Without it,
+        alternate tiles are fitted and held out, and each simulated tile is a field of its own.
+    known : dict, optional
+        ``{effect_id: params}``: effects the experiment states (e.g. the file's bit depth),
+        put into every model with fixed parameters and not diagnosed.
+    settings : DiagnosisSettings
+    particles_per_tile : int, optional
+        Particles per simulated tile; default ``per_tile`` scaled to the tile area.
+    progress, should_stop
+        One step per fit (baseline, screening, each confirmation, the waterfall); a stop
+        raises `Stopped`.
+    """
+    start = time.perf_counter()
+    tiles = [np.asarray(t, np.float32) for t in real_tiles]
+    if len(tiles) < 4:
+        raise InputError(f"real tiles: expected at least 4 tiles (half to fit, half to score), got {len(tiles)}")
+    shape = tiles[0].shape
+    if any(t.shape != shape for t in tiles):
+        raise InputError("real tiles: expected tiles of one shape")
+    means = np.array([t.mean() for t in tiles])
+    if not np.all(np.isfinite(means)) or np.any(means <= 0):
+        raise InputError("real tiles: expected finite intensities with a positive mean in every tile")
+    known = check_effects(known or {})
+    candidates = [e for e in EFFECTS if e not in known]
+    count = particles_per_tile if particles_per_tile is not None else max(1, round(config.particles.per_tile * shape[0] * shape[1] / config.tile.size**2))
+    fitting = layout.fitting(shape) if layout is not None else np.arange(len(tiles)) % 2 == 0
+    fringe_frequency = measured_fringe([t for t, fit in zip(tiles, fitting, strict=True) if fit])  # from the fitting half only
+    measured = _fringe_parameters(fringe_frequency)
+    if layout is not None:
+        # the field the tiles cover, reassembled: each tile's surroundings come from it
+        field = np.full(layout.field_shape, np.nan)
+        for t, (r, c) in zip(tiles, layout.origins, strict=True):
+            field[r : r + shape[0], c : c + shape[1]] = t
+        around = [field_surroundings(field, origin, shape) for origin in layout.origins]
+        field_mean = layout.field_mean
+    else:
+        around, field_mean = [None] * len(tiles), float(means.mean())
+    summaries = [tile_summaries(t, config=config, fringe_frequency=fringe_frequency, field_mean=field_mean, surroundings=region) for t, region in zip(tiles, around, strict=True)]
+    names = summaries[0][1]
+    real = np.stack([s[0] for s in summaries])
+    fit_real, held_real = real[fitting], real[~fitting]
+    spread = real_spread(real)  # the experiment's own tile-to-tile spread: the unit of every gap
+    gap = lambda a, b: gap_statistic(a, b, spread=spread)  # noqa: E731
+    model = _Model(config, shape=shape, count=count, settings=settings, fringe_frequency=fringe_frequency, layout=layout, known=known)
+    confirmed = min(settings.confirm, len(candidates))
+    steps = Steps(2 + confirmed + 1, progress=progress, should_stop=should_stop)
+
+    steps.check()
+    base_params, _, base_fit_gap = _fit(model, fit_real, [], start={}, measured=measured, evaluations=settings.evaluations, spread=spread)
+    base_sim = model.summaries(base_params, {})
+    baseline_gap = gap(held_real, base_sim)[0]
+    held_sims = {"baseline": base_sim}  # every model's held-out simulation, for the resampling
+    steps.advance()
+
+    # screen: regress the standardised residual on each effect's signature (finite difference)
+    steps.check()
+    _, z_residual = gap(fit_real, base_sim)
+    screening = {}
+    for effect_id in candidates:
+        signature_sim = model.summaries(base_params, {effect_id: _with_measured(effect_id, EFFECTS[effect_id].injections[1], measured)})
+        _, signature = gap(signature_sim, base_sim)  # how far the effect moves the simulation, in z units
+        norm = float(signature @ signature)
+        coefficient = float(z_residual @ signature) / norm if norm > 0 else 0.0
+        residual = z_residual - coefficient * signature
+        dof = max(len(signature) - 1, 1)
+        error = np.sqrt(float(residual @ residual) / dof / norm) if norm > 0 else np.inf
+        screening[effect_id] = {"coefficient": coefficient, "t": coefficient / error if error > 0 else 0.0, "explained": 1.0 - float(residual @ residual) / max(float(z_residual @ z_residual), 1e-12)}
+    steps.advance()
+
+    # Confirm the effects whose fingerprint is most significant, whichever its sign: the
+    # baseline's own parameters may already have over-compensated for the missing effect.
+    refitted = sorted(candidates, key=lambda e: -abs(screening[e]["t"]))[:confirmed]
+    effects_report = []
+    fitted = {}
+    for effect_id in candidates:
+        entry = {"id": effect_id, "screening": screening[effect_id], "confirmed": effect_id in refitted}
+        if effect_id in refitted:
+            steps.check()
+            start_params = {("baseline", k): v for k, v in base_params.items()}
+            baseline_params, effect_params, fit_gap = _fit(model, fit_real, [effect_id], start=start_params, measured=measured, evaluations=settings.evaluations, spread=spread)
+            entry["gap_fit"] = float(fit_gap)  # on the fitting tiles: never above the baseline's (`_fit` keeps its start)
+            held_sims[effect_id] = model.summaries(baseline_params, effect_params)
+            gap_after = gap(held_real, held_sims[effect_id])[0]
+            # ablation at the optimum: the same fit with the effect switched off. A refit can
+            # lower the gap by moving the baseline alone (out of an over-fitted optimum of
+            # the fitting tiles); only what switching the effect on adds is the effect's.
+            held_sims[f"{effect_id} off"] = model.summaries(baseline_params, {})
+            entry["gap_ablated"] = float(gap(held_real, held_sims[f"{effect_id} off"])[0])
+            fitted[effect_id] = (baseline_params, effect_params)
+            entry["params"] = {**effect_params[effect_id], **{f"baseline.{k}": v for k, v in baseline_params.items()}}
+            steps.advance()
+        else:
+            # not refitted: the best of a coarse scan (off, weak, strong) with the baseline's parameters
+            scan = [(baseline_gap, dict(EFFECTS[effect_id].neutral))]
+            settings_scanned = [_with_measured(effect_id, setting, measured) for setting in EFFECTS[effect_id].injections]
+            scan += [(gap(held_real, model.summaries(base_params, {effect_id: setting}))[0], setting) for setting in settings_scanned]
+            gap_after, entry["params"] = min(scan, key=lambda pair: pair[0])
+        entry["gap_after"] = float(gap_after)
+        entry["shrink"] = float(1.0 - gap_after / baseline_gap) if baseline_gap > 0 else 0.0
+        effects_report.append(entry)
+
+    # evidence with its uncertainty: resample the held-out real tiles and the simulation seeds
+    draws = resampled_gaps(held_real, held_sims, spread=spread, resamples=settings.resamples, seed=settings.seed)
+    for entry in effects_report:
+        if entry["confirmed"]:
+            reduction = draws["baseline"] - draws[entry["id"]]
+            # shrink's interval: the reduction's 90 % interval over the measured baseline gap
+            low, high = np.quantile(reduction, (0.05, 0.95)) / baseline_gap if baseline_gap > 0 else (0.0, 0.0)
+            entry["shrink_interval"] = [float(low), float(high)]
+    effects_report.sort(key=lambda e: (not e["confirmed"], e["gap_after"]))
+    verdict = _decision([e for e in effects_report if e["confirmed"]], draws, baseline_gap=baseline_gap, held_out=len(held_real))
+
+    # waterfall: baseline, + best, + best and the runner-up (greedy)
+    waterfall = [{"model": "baseline", "gap": float(baseline_gap)}]
+    confirmed_sorted = [e for e in effects_report if e["confirmed"]]
+    if confirmed_sorted:
+        waterfall.append({"model": f"+{confirmed_sorted[0]['id']}", "gap": confirmed_sorted[0]["gap_after"]})
+    steps.check()
+    if len(confirmed_sorted) > 1:
+        pair = [confirmed_sorted[0]["id"], confirmed_sorted[1]["id"]]
+        start_params = {("baseline", k): v for k, v in fitted[pair[0]][0].items()}
+        start_params.update({(pair[0], k): v for k, v in fitted[pair[0]][1][pair[0]].items()})
+        baseline_params, effect_params, _ = _fit(model, fit_real, pair, start=start_params, measured=measured, evaluations=settings.evaluations, spread=spread)
+        waterfall.append({
+            "model": f"+{pair[0]}+{pair[1]}",
+            "gap": float(gap(held_real, model.summaries(baseline_params, effect_params))[0]),
+            "params": {effect_id: dict(effect_params[effect_id]) for effect_id in pair},  # the joint fit, for `effects_from_report`
+        })
+    steps.advance()
+
+    report = {
+        "gap": {
+            "metric": f"excess standardised chi-square over {len(names)} summaries, held-out real tiles vs simulation (0 = indistinguishable)",
+            "baseline": float(baseline_gap),
+            "baseline_fit": float(base_fit_gap),
+            "baseline_interval": [float(v) for v in np.quantile(draws["baseline"], (0.05, 0.95))],
+            "baseline_params": base_params,
+            **where_gap(real, base_sim, names),
+        },
+        "known": known,
+        "effects": effects_report,
+        "verdict": verdict,
+        "waterfall": waterfall,
+        "tiles": {
+            "real": len(tiles), "fit": len(fit_real), "held_out": len(held_real), "simulated": settings.sim_tiles, "shape": list(shape), "particles_per_tile": count,
+            "split": "checkerboard over the hologram" if layout is not None else "alternate tiles",
+        },
+        "settings": {"sim_tiles": settings.sim_tiles, "evaluations": settings.evaluations, "confirm": settings.confirm, "resamples": settings.resamples, "seed": settings.seed},
+    }
+    seconds = time.perf_counter() - start
+    report["seconds"] = round(seconds, 2)
+    return Diagnosis(report, names, real, base_sim, seconds)
+
+
+def diagnose_hologram(
+    hologram: np.ndarray,
+    config: ExperimentConfig,
+    *,
+    background: np.ndarray | None = None,
+    tile_px: int | None = None,
+    known: bool = True,
+    settings: DiagnosisSettings = DiagnosisSettings(),
+    progress: ProgressCallback | None = None,
+    should_stop: StopCallback | None = None,
+) -> Diagnosis:
+    """Diagnose one hologram: cut it into tiles and run `diagnose_tiles` with the field's layout.
+
+    Parameters
+    ----------
+    hologram : 2-D array
+        As recorded (integer counts keep what the file states about the camera).
+    tile_px : int, optional
+        Tile edge (px). Default: the largest edge up to ``tile.size`` that cuts at least 16
+        tiles (512²: 128 px), so the held-out half has 8 tiles to resolve a gap with.
+    known : bool
+        Put what the file states into every model as known, not diagnosed: for integer
+        counts (`known_sensor`), the bit depth and saturation as ``quantization``. Off, or
+        with a ``background`` (the division makes the levels uneven), they are diagnosed.
+    """
+    image = as_hologram(hologram)
+    # the array as given keeps its dtype; an RGB one is read from its channel of integer counts
+    facts = (known_sensor(hologram) or known_sensor(image)) if known else None
+    if background is not None:
+        image = image / np.maximum(as_hologram(background, name="background"), 1e-6)
+        facts = None
+    rows, cols = image.shape
+    size = int(tile_px or adapted_tile_px((rows, cols), config.tile.size))
+    if size < MIN_TILE_PX:
+        raise InputError(f"tile: expected at least {MIN_TILE_PX} pixels (the frequency bands need them), got {size}")
+    if size > min(rows, cols):
+        raise InputError(f"tile: a {size}-pixel tile is larger than the hologram ({rows}x{cols})")
+    origins = tuple((r, c) for r in range(0, rows - size + 1, size) for c in range(0, cols - size + 1, size))
+    if len(origins) < 4:
+        raise InputError(f"tile: {size}-pixel tiles give {len(origins)} tiles of the {rows}x{cols} hologram; expected at least 4 (use a smaller tile)")
+    tiles = [image[r : r + size, c : c + size] for r, c in origins]
+    field_mean = float(np.mean([t.mean() for t in tiles]))
+    # the sensor's levels in the simulation's unit (the tiles' mean intensity is 1 there)
+    # sensor_image spreads 2^bits - 1 levels over [0, saturation]: one count a step only when that is the full scale
+    # (a pile-up below full scale, e.g. clipping at 200 of 255, is in `facts` but not simulated)
+    known_effects = {"quantization": {"bits": float(facts["bits"]), "saturation": facts["full_scale"] / field_mean}} if facts else {}
+    covered = ((rows // size) * size, (cols // size) * size)  # the field the tiles cover
+    diagnosis = diagnose_tiles(tiles, config, layout=TileLayout(covered, origins, field_mean), known=known_effects, settings=settings, progress=progress, should_stop=should_stop)
+    diagnosis.report["known_sensor"] = facts if facts else {"source": "none: not integer counts, a background was divided out, or switched off"}
+    return diagnosis

@@ -1,0 +1,222 @@
+"""Simulated tiles with common random numbers (`_Model`) and the refits of the baseline and added effects (`_fit`)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import optimize, stats
+
+from napari_lbs._core._config import ExperimentConfig
+from napari_lbs._core._effects import BASELINE, EFFECTS, OPTICAL_EFFECTS, optical_hologram, sensor_image
+from napari_lbs._core._gap._statistic import gap_statistic
+from napari_lbs._core._gap._summaries import tile_summaries
+from napari_lbs._core._gap._tiling import TileLayout, field_surroundings
+from napari_lbs._core._io import InputError
+from napari_lbs._core._synthesis import random_particle_field
+
+__all__ = ["DiagnosisSettings"]
+
+_DESIGN_POINTS = 16  # Sobol points tried by a fit that adds parameters
+_MIN_EVALUATIONS = 8  # each fit stage runs at least this many evaluations (see `_fit`)
+
+
+@dataclass(frozen=True)
+class DiagnosisSettings:
+    """How hard to look.
+
+    ``sim_tiles`` simulated tiles per model; ``evaluations`` per fit; ``confirm`` how many
+    effects, in order of screening significance, are refitted (default all: the linear
+    screening misses effects the baseline over-compensates, e.g. shot noise absorbed by read
+    noise); the others get the best of a coarse off/weak/strong scan; ``resamples`` bootstrap
+    draws for the intervals and the verdict's confidence.
+    """
+
+    sim_tiles: int = 8
+    evaluations: int = 40
+    confirm: int = len(EFFECTS)
+    resamples: int = 2000
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name, low in (("sim_tiles", 2), ("evaluations", _MIN_EVALUATIONS), ("confirm", 0), ("resamples", 100), ("seed", 0)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise InputError(f"{name}: expected an integer of at least {low}, got {value!r}")
+
+
+class _Model:
+    """Simulated tiles of one effect set, with fixed fields and noise (common random numbers).
+
+    With a `TileLayout` the simulation makes whole fields of the hologram's shape (so a
+    field-wide envelope spans them as it spans the experiment) and cuts ``sim_tiles`` tiles at
+    the real tiles' positions, spread over the field; without one, each simulated tile is a
+    field of its own and the "field" is the set of simulated tiles. ``known`` effects (with
+    fixed parameters: what the file states) are part of every model.
+    """
+
+    def __init__(self, config: ExperimentConfig, *, shape, count: int, settings: DiagnosisSettings, fringe_frequency: tuple[float, float], layout: TileLayout | None, known: dict) -> None:
+        self.config = config
+        self.fringe_frequency = fringe_frequency
+        self.known = known
+        self.shape = tuple(shape)
+        field_shape = tuple(layout.field_shape) if layout is not None else self.shape
+        if layout is not None:
+            picked = np.round(np.linspace(0, len(layout.origins) - 1, min(settings.sim_tiles, len(layout.origins)))).astype(int)
+            places = [layout.origins[i] for i in picked]
+        else:
+            places = [(0, 0)]
+        fields = -(-settings.sim_tiles // len(places))
+        self.cuts = [(index // len(places), places[index % len(places)]) for index in range(settings.sim_tiles)]
+        self.whole_fields = layout is not None
+        field_count = max(1, round(count * field_shape[0] * field_shape[1] / (self.shape[0] * self.shape[1])))
+        rng = np.random.default_rng([settings.seed, 11])
+        self.fields = [
+            random_particle_field(field_shape, count=field_count, diameter_min_um=config.particles.diameter_min_um, diameter_max_um=config.particles.diameter_max_um, layers_um=config.layer_depths_um(), pixel_um=config.optics.pixel_um, seed=rng)
+            for _ in range(fields)
+        ]
+        self.noise = [rng.standard_normal(field_shape).astype(np.float32) for _ in range(fields)]
+        self._optical: dict[tuple, list[np.ndarray]] = {}
+
+    def optical(self, effects: dict) -> list[np.ndarray]:
+        key = tuple(sorted((k, tuple(sorted(v.items()))) for k, v in effects.items() if k in OPTICAL_EFFECTS))
+        if key not in self._optical:
+            optical = {k: v for k, v in effects.items() if k in OPTICAL_EFFECTS}
+            self._optical[key] = [optical_hologram(f, optical, wavelength_um=self.config.optics.wavelength_um, medium_index=self.config.optics.medium_index) for f in self.fields]
+        return self._optical[key]
+
+    def summaries(self, baseline: dict, effects: dict) -> np.ndarray:
+        effects = {**self.known, **effects}
+        sensor = {k: v for k, v in effects.items() if k not in OPTICAL_EFFECTS}
+        images = [sensor_image(intensity, baseline, sensor, noise=noise) for intensity, noise in zip(self.optical(effects), self.noise, strict=True)]
+        rows, cols = self.shape
+        tiles = [images[f][r : r + rows, c : c + cols] for f, (r, c) in self.cuts]
+        # the field a tile is measured against: its own image, or (no layout) the whole set
+        if self.whole_fields:
+            field_means = [float(image.mean()) for image in images]
+            around = [field_surroundings(images[f], origin, self.shape) for f, origin in self.cuts]
+        else:
+            field_means = [float(np.mean([t.mean() for t in tiles]))] * len(images)
+            around = [None] * len(tiles)
+        return np.stack([
+            tile_summaries(t, config=self.config, fringe_frequency=self.fringe_frequency, field_mean=field_means[f], surroundings=region)[0]
+            for t, (f, _), region in zip(tiles, self.cuts, around, strict=True)
+        ])
+
+
+def _fit(model: _Model, real: np.ndarray, effect_ids: Sequence[str], *, start: dict, measured: dict, evaluations: int, spread: np.ndarray) -> tuple[dict, dict, float]:
+    """Fit the baseline and the listed effects' parameters to ``real`` (in unit coordinates; returns baseline, effects, χ²).
+
+    ``measured`` maps (effect, parameter) to a value read off the real tiles (e.g. the fringe
+    period), held fixed; optical parameters are searched on a small grid (each point
+    re-simulates the fields); new continuous parameters are searched globally, then polished.
+    """
+    bounds = [(("baseline", name), b) for name, b in BASELINE.bounds.items()]
+    photon_transfer = "shot_noise" in effect_ids
+    if photon_transfer:
+        # Read and photon noise as a camera's photon-transfer curve: the total noise at the mean
+        # level and the share of its variance that grows with the signal. In (sigma, photons) the
+        # good fits lie along a curved valley of constant total noise; here it is a straight axis.
+        bounds[[key for key, _ in bounds].index(("baseline", "sigma"))] = (("noise", "total"), BASELINE.bounds["sigma"])
+        bounds.append((("noise", "photon_share"), (0.0, 1.0)))
+        start = {**start, ("noise", "total"): start.get(("baseline", "sigma"), 0.05), ("noise", "photon_share"): 0.0}
+    grid_params = {}
+    for effect in effect_ids:
+        for name, (low, high) in EFFECTS[effect].bounds.items():
+            if (effect, name) in measured or (photon_transfer and effect == "shot_noise"):
+                continue
+            if effect in OPTICAL_EFFECTS:
+                grid_params[(effect, name)] = (low, high)
+            else:
+                bounds.append(((effect, name), (low, high)))
+
+    def unpack(unit, optical):
+        params = {"baseline": {}, "noise": {}, **{e: dict(EFFECTS[e].neutral) for e in effect_ids}}
+        for (key, (low, high)), u in zip(bounds, np.clip(unit, 0, 1), strict=True):
+            params[key[0]][key[1]] = _from_unit(key, float(u), low, high)
+        if photon_transfer:
+            total, share = params["noise"]["total"], params["noise"]["photon_share"]
+            params["baseline"]["sigma"] = float(total * np.sqrt(1.0 - share))
+            # photon variance at the mean level is 1/N: N = 1 / (share · total²), "off" at most
+            params["shot_noise"]["log10_photons"] = float(min(-np.log10(share * total**2 + 1e-300), EFFECTS["shot_noise"].neutral["log10_photons"]))
+        for (effect, name), value in {**optical, **{k: v for k, v in measured.items() if k[0] in effect_ids}}.items():
+            params[effect][name] = value
+        return params["baseline"], {e: params[e] for e in effect_ids}
+
+    def loss(unit, optical):
+        baseline, effects = unpack(unit, optical)
+        return gap_statistic(real, model.summaries(baseline, effects), spread=spread)[0]
+
+    # the previous optimum, with each new parameter at its weakest in-bounds setting (nearest to off)
+    x0 = np.array([_to_unit(key, start[key] if key in start else (EFFECTS[key[0]].neutral[key[1]] if key[0] in EFFECTS else (low + high) / 2), low, high) for key, (low, high) in bounds])
+    is_new = np.array([key not in start for key, _ in bounds])
+    grid_points = [{}]
+    for key, (low, high) in grid_params.items():
+        values = [low] if low == high else list(np.linspace(low, high, 4)[1:])
+        grid_points = [{**point, key: v} for point in grid_points for v in values]
+    nelder_mead = {"xatol": 1e-3, "fatol": 1e-3}
+    if len(grid_points) == 1 and is_new.any():
+        # New continuous parameters: precise summaries (noise level, bit depth) make narrow,
+        # curved valleys in which a simplex from one start stalls, and an added effect often
+        # needs the baseline's parameters to move too (blur matters only once there is noise to
+        # blur). So: the previous optimum (with the new parameters at their weakest setting
+        # and at 20/50/80 % of their range), the best of a space-filling design, and a global
+        # search (DIRECT-L) compete, and the best of them is polished with a simplex.
+        design = [x0, *[np.where(is_new, u, x0) for u in (0.2, 0.5, 0.8)], *stats.qmc.Sobol(len(x0), seed=0).random(_DESIGN_POINTS)]
+        searched = optimize.direct(loss, [(0.0, 1.0)] * len(x0), args=({},), maxfun=max(evaluations // 2, 8), locally_biased=True)
+        first = min([(loss(x, {}), x) for x in design] + [(searched.fun, searched.x)], key=lambda pair: pair[0])[1]
+        result = optimize.minimize(loss, first, args=({},), method="Nelder-Mead", options={"maxfev": max(evaluations // 2, 8), "initial_simplex": _simplex(first, 0.1), **nelder_mead})
+        best = (float(result.fun), result.x, {})
+    else:
+        # optical parameters: a short fit at each grid point from the previous optimum, then the
+        # rest of the budget on the best point
+        best = (np.inf, None, None)
+        per_point = max(evaluations // (2 * len(grid_points)), 8) if len(grid_points) > 1 else evaluations
+        for optical in grid_points:
+            result = optimize.minimize(loss, x0, args=(optical,), method="Nelder-Mead", options={"maxfev": per_point, "initial_simplex": _simplex(x0), **nelder_mead})
+            if result.fun < best[0]:
+                best = (float(result.fun), result.x, optical)
+        if len(grid_points) > 1:
+            result = optimize.minimize(loss, best[1], args=(best[2],), method="Nelder-Mead", options={"maxfev": evaluations, "initial_simplex": _simplex(np.clip(best[1], 0, 1)), **nelder_mead})
+            if result.fun < best[0]:
+                best = (float(result.fun), result.x, best[2])
+    baseline, effects = unpack(best[1], best[2])
+    # Never end worse than the start on the fitting tiles: the start (the previous optimum, the
+    # new effects switched off) is itself a model of this family.
+    if all(("baseline", name) in start for name in BASELINE.bounds):
+        start_baseline = {name: start[("baseline", name)] for name in BASELINE.bounds}
+        start_effects = {e: {**EFFECTS[e].neutral, **{k: v for (owner, k), v in start.items() if owner == e}} for e in effect_ids}
+        start_gap = gap_statistic(real, model.summaries(start_baseline, start_effects), spread=spread)[0]
+        if start_gap <= best[0]:
+            return start_baseline, start_effects, start_gap
+    return baseline, effects, best[0]
+
+
+# Fitted on a log scale: a noise level matters by its order of magnitude, and a linear scale
+# would leave the small values a real camera has squeezed against the lower bound.
+_LOG_SCALED = {("baseline", "sigma"), ("noise", "total")}
+
+
+def _from_unit(key: tuple, unit: float, low: float, high: float) -> float:
+    if key in _LOG_SCALED:
+        return float(low * (high / low) ** unit)
+    return low + (high - low) * unit
+
+
+def _to_unit(key: tuple, value: float, low: float, high: float) -> float:
+    if high <= low:
+        return 0.5
+    if key in _LOG_SCALED:
+        return float(np.clip(np.log(max(value, low) / low) / np.log(high / low), 0.0, 1.0))
+    return float(np.clip((value - low) / (high - low), 0.0, 1.0))
+
+
+def _simplex(x0: np.ndarray, size: float = 0.25) -> np.ndarray:
+    step = np.where(x0 > 0.5, -size, size)
+    return np.vstack([x0] + [x0 + np.eye(len(x0))[i] * step[i] for i in range(len(x0))])
+
+
+def _with_measured(effect_id: str, setting: dict, measured: dict) -> dict:
+    """An effect setting with the parameters measured on the real tiles put in."""
+    return {**setting, **{name: value for (effect, name), value in measured.items() if effect == effect_id}}

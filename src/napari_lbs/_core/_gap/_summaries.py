@@ -1,0 +1,228 @@
+"""Tile summaries: one code path for real and simulated tiles, none needing the two scenes to be aligned.
+
+Per spatial-frequency band (radial power spectrum, and the power at the experiment's
+static-fringe frequency, `measured_fringe`), per depth (contrast and relative sharpness of 8
+back-propagated planes, sharpness-weighted depth), per image region (illumination tilt and
+curvature within a tile, the field-wide envelope around it), intensity statistics (quantiles,
+moments, clipped fraction), noise character (residual std, variance against mean, distinct
+levels) and particle appearance through focus (brightest focal spots and darkest cores over
+all planes, dark-core area, autocorrelation of the fringes).
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+
+import numpy as np
+import scipy.fft
+from scipy import ndimage, stats
+
+from napari_lbs._core._config import ExperimentConfig
+from napari_lbs._core._effects import EFFECTS
+from napari_lbs._core._optics import transfer_function
+
+__all__ = ["tile_summaries", "measured_fringe", "SUMMARY_GROUPS", "MIN_TILE_PX"]
+
+SUMMARY_GROUPS = ("band", "depth", "region", "intensity", "noise", "appearance")
+_BANDS = np.geomspace(1 / 64, 0.5, 9)  # cycles per pixel: 8 bands
+_LAGS = (1, 2, 4, 8, 16)
+MIN_TILE_PX = 64  # the lowest frequency band (1/64 cycle per pixel) is empty in smaller tiles
+
+
+def _depths(config: ExperimentConfig, count: int = 8) -> np.ndarray:
+    """``count`` planes spread evenly inside the volume (µm)."""
+    return np.linspace(config.volume.z_min_um, config.volume.z_max_um, count + 2)[1:-1]
+
+
+def tile_summaries(
+    tile: np.ndarray,
+    *,
+    config: ExperimentConfig,
+    fringe_frequency: tuple[float, float] | None = None,
+    field_mean: float | None = None,
+    surroundings: np.ndarray | None = None,
+) -> tuple[np.ndarray, list[tuple[str, str]]]:
+    """Summary vector of one hologram tile and the (name, group) of each entry.
+
+    ``fringe_frequency`` (cycles/px, (fy, fx)): where to measure the power of a static fringe,
+    normally the experiment's strongest spectral peak (`measured_fringe`); real and simulated
+    tiles must be summarised with the same one. Default: this tile's own strongest peak.
+
+    ``field_mean`` (the mean of the whole image the tile was cut from; default the tile's own)
+    and ``surroundings`` (`field_surroundings`: the field around the tile, twice its size,
+    NaN outside the field; default none: tilt and curvature 0) give the field-wide envelope: the tile's
+    brightness against the field's, and the tilt and curvature of the log brightness fitted
+    over the surroundings. A smooth vignetting has nearly the same curvature at every tile,
+    so it stands out of the particles' tile-to-tile fluctuation where a tile's mean does not.
+    """
+    image = np.asarray(tile, np.float64)
+    tile_mean = image.mean()
+    image = image / tile_mean
+    rows, cols = image.shape
+    values: list[float] = []
+    names: list[tuple[str, str]] = []
+
+    def add(name, group, value):
+        values.append(float(value))
+        names.append((name, group))
+
+    # band: radially averaged power of the Hann-windowed fluctuation, 8 log bands
+    power = _power_spectrum(image)
+    radius = np.hypot(*np.meshgrid(np.fft.fftfreq(rows), np.fft.fftfreq(cols), indexing="ij"))
+    for low, high in zip(_BANDS[:-1], _BANDS[1:], strict=True):
+        band = power[(radius >= low) & (radius < high)]
+        add(f"log power {low:.3f}-{high:.3f} cyc/px", "band", np.log10(band.mean() + 1e-12))
+    # a static (etalon) fringe stands out of the ring of its own spatial frequency: power at the
+    # fringe's frequency over the median of that ring (a particle's rings spread over all angles)
+    fy, fx = fringe_frequency if fringe_frequency is not None else _peak_frequency(power)
+    row, col = int(round(fy * rows)) % rows, int(round(fx * cols)) % cols
+    ring = power[np.abs(radius - radius[row, col]) < 1.5 / min(rows, cols)]
+    # the 3x3 bins around it: the window spreads a fringe over neighbouring bins, and nine bins fluctuate less than one
+    near = np.take(np.take(power, np.arange(row - 1, row + 2) % rows, axis=0), np.arange(col - 1, col + 2) % cols, axis=1)
+    add("log power at the fringe frequency / its ring's median", "band", np.log10(near.mean() / (np.median(ring) + 1e-12)))
+    # depth: planes of the back-propagated tile, per plane (never only the depth average)
+    optics = {"wavelength_um": config.optics.wavelength_um, "pixel_um": config.optics.pixel_um, "medium_index": config.optics.medium_index}
+    depths = _depths(config)
+    planes = np.abs(_periodic_planes(image, -depths, **optics))
+    planes = planes / np.median(planes.reshape(len(depths), -1), axis=1)[:, None, None]  # background ≈ 1 in every plane
+    for z, contrast in zip(depths, planes.std(axis=(1, 2)), strict=True):
+        add(f"contrast at {z:.0f} um", "depth", contrast)
+    # edge energy: largest where the particles of that depth are in focus
+    gradient_y, gradient_x = np.gradient(planes, axis=(1, 2))
+    sharpness = np.mean(gradient_y**2 + gradient_x**2, axis=(1, 2), dtype=np.float64)
+    for z, value in zip(depths, sharpness / sharpness.mean(), strict=True):
+        add(f"relative sharpness at {z:.0f} um", "depth", value)
+    add("sharpness-weighted depth / volume", "depth", float(np.sum(sharpness * depths) / sharpness.sum()) / config.volume.z_max_um)
+    # appearance through focus: brightest focal spots and darkest cores anywhere in the volume
+    brightest, darkest = planes.max(axis=0), planes.min(axis=0)
+    for q, value in zip((0.99, 0.999), np.quantile(brightest, (0.99, 0.999)), strict=True):
+        add(f"focal spots: q{q} of the brightest plane", "appearance", value)
+    for q, value in zip((0.001, 0.01), np.quantile(darkest, (0.001, 0.01)), strict=True):
+        add(f"dark cores: q{q} of the darkest plane", "appearance", value)
+    add("dark-core area: fraction below half the background", "appearance", np.mean(darkest < 0.5))
+    # region: smooth illumination over the tile (tilt and curvature of a quadratic fit)
+    smooth = ndimage.uniform_filter(image, size=max(rows // 8, 3))
+    coefficients = _illumination_projector(rows, cols) @ smooth.ravel()
+    add("illumination tilt |grad|", "region", np.hypot(coefficients[1], coefficients[2]))
+    add("illumination curvature", "region", coefficients[3])
+    # field-wide envelope: the tile's brightness against the whole image's, and how it varies
+    # across the field (a vignetting spans tiles; within one tile it is only a slight tilt)
+    field_mean = field_mean if field_mean is not None else tile_mean
+    add("field envelope: |log tile mean / field mean|", "region", abs(np.log(tile_mean / field_mean)))
+    # without surroundings (tiles not cut from one field) there is no field-wide envelope to fit:
+    # within the tile, the illumination tilt and curvature above already see it
+    tilt, curvature = _envelope(surroundings, field_mean) if surroundings is not None else (0.0, 0.0)
+    add("field envelope: log-brightness tilt around the tile (per tile edge)", "region", tilt)
+    add("field envelope: log-brightness curvature around the tile (per tile edge²)", "region", curvature)
+    # intensity statistics
+    quantiles = (0.005, 0.05, 0.25, 0.5, 0.75, 0.95, 0.995)
+    for q, value in zip(quantiles, np.quantile(image, quantiles), strict=True):
+        add(f"quantile {q}", "intensity", value)
+    add("skewness", "intensity", stats.skew(image.ravel()))
+    add("log kurtosis", "intensity", np.log10(stats.kurtosis(image.ravel(), fisher=False)))
+    add("clipped fraction", "intensity", np.mean(image >= image.max() - 1e-9 * abs(image.max())))
+    # noise character
+    residual = image - ndimage.gaussian_filter(image, 1.0)
+    add("log residual std", "noise", np.log10(residual.std() + 1e-12))
+    blocks = (rows // 16) * 16, (cols // 16) * 16
+    block_mean = image[: blocks[0], : blocks[1]].reshape(blocks[0] // 16, 16, blocks[1] // 16, 16).mean(axis=(1, 3)).ravel()
+    block_var = residual[: blocks[0], : blocks[1]].reshape(blocks[0] // 16, 16, blocks[1] // 16, 16).var(axis=(1, 3)).ravel()
+    slope = np.polyfit(block_mean, block_var, 1)[0] if np.ptp(block_mean) > 0 else 0.0
+    add("residual variance vs mean slope", "noise", slope / (block_var.mean() + 1e-12))
+    smooth = ndimage.gaussian_filter(image, 2.0)
+    dark, bright = np.quantile(smooth, [0.25, 0.75])
+    # photon noise grows with the signal: residual variance in the bright quarter over the dark quarter
+    add("log residual variance bright/dark", "noise", np.log10((residual[smooth >= bright].var() + 1e-12) / (residual[smooth <= dark].var() + 1e-12)))
+    add("log distinct levels", "noise", np.log10(np.unique(np.round(image / (image.std() + 1e-12), 6)).size))
+    # appearance: autocorrelation of the fringes at a few lags
+    centred = image - 1.0
+    norm = (centred**2).mean() + 1e-12
+    for lag in _LAGS:
+        add(f"autocorrelation at {lag} px", "appearance", 0.5 * ((centred[lag:] * centred[:-lag]).mean() + (centred[:, lag:] * centred[:, :-lag]).mean()) / norm)
+    return np.asarray(values), names
+
+
+_ENVELOPE_BLOCKS = 16  # blocks per axis of a tile's surroundings (8 per tile edge)
+
+
+def _envelope(surroundings: np.ndarray, field_mean: float) -> tuple[float, float]:
+    """Tilt |∇| and curvature (∂²/∂x² + ∂²/∂y²)/2 of log brightness over a tile's surroundings, in tile edges.
+
+    The surroundings are averaged in 16 × 16 blocks (blocks holding NaN, outside the field,
+    are left out) and ``log(block mean / field_mean)`` is fitted with 1, x, y, x², y² about the
+    tile's centre.
+    """
+    rows, cols = surroundings.shape
+    blocks = surroundings[: rows - rows % _ENVELOPE_BLOCKS, : cols - cols % _ENVELOPE_BLOCKS].reshape(_ENVELOPE_BLOCKS, rows // _ENVELOPE_BLOCKS, _ENVELOPE_BLOCKS, cols // _ENVELOPE_BLOCKS).mean(axis=(1, 3))
+    centres = (np.arange(_ENVELOPE_BLOCKS) + 0.5) / _ENVELOPE_BLOCKS * 2.0 - 1.0  # tile edges from the tile's centre
+    y, x = np.meshgrid(centres, centres, indexing="ij")
+    valid = np.isfinite(blocks) & (blocks > 0)
+    design = np.stack([np.ones(valid.sum()), x[valid], y[valid], x[valid] ** 2, y[valid] ** 2], axis=1)
+    coefficients = np.linalg.lstsq(design, np.log(blocks[valid] / field_mean), rcond=None)[0]
+    return float(np.hypot(coefficients[1], coefficients[2])), float(coefficients[3] + coefficients[4])
+
+
+@functools.lru_cache(maxsize=8)
+def _illumination_projector(rows: int, cols: int) -> np.ndarray:
+    """(4, rows·cols) least-squares projector onto 1, x, y, x² + y² over the tile (x, y from -0.5 to 0.5)."""
+    y, x = np.mgrid[-0.5 : 0.5 : rows * 1j, -0.5 : 0.5 : cols * 1j]
+    return np.linalg.pinv(np.stack([np.ones(rows * cols), x.ravel(), y.ravel(), (x**2 + y**2).ravel()], axis=1))
+
+
+@functools.lru_cache(maxsize=8)
+def _plane_kernels(shape: tuple[int, int], distances_um: tuple[float, ...], wavelength_um: float, pixel_um: float, medium_index: float) -> np.ndarray:
+    """(planes, rows, cols) complex64 transfer functions on the tile's own grid, band-limited to a spread of half the tile."""
+    spread_limit_um = 0.5 * min(shape) * pixel_um
+    return np.stack([transfer_function(shape, z, wavelength_um=wavelength_um, pixel_um=pixel_um, medium_index=medium_index, spread_limit_um=spread_limit_um, cache=False) for z in distances_um])
+
+
+def _periodic_planes(image: np.ndarray, distances_um: np.ndarray, *, wavelength_um: float, pixel_um: float, medium_index: float) -> np.ndarray:
+    """The tile propagated to each distance on its own (periodic) grid, complex64 (planes, rows, cols).
+
+    Summaries need the same planes for real and simulated tiles, not light that left the tile:
+    without `propagate`'s padding (a 128² tile is padded to 512² for 4.5 mm) the planes cost
+    16 × less. Each kernel is band-limited to a spread of half the tile, so it is sampled
+    finely enough and nothing wraps more than half way round.
+    """
+    kernels = _plane_kernels(image.shape, tuple(float(z) for z in distances_um), wavelength_um, pixel_um, medium_index)
+    return scipy.fft.ifft2(scipy.fft.fft2(image.astype(np.complex64))[None] * kernels, workers=-1, overwrite_x=True)
+
+
+def _power_spectrum(image: np.ndarray) -> np.ndarray:
+    """Power of the Hann-windowed fluctuation of a mean-normalised image."""
+    rows, cols = image.shape
+    window = np.outer(np.hanning(rows), np.hanning(cols))
+    return np.abs(np.fft.fft2((image - 1.0) * window)) ** 2 / window.sum()
+
+
+def _peak_frequency(power: np.ndarray) -> tuple[float, float]:
+    """(fy, fx) in cycles/px of the bin that stands out most from its ring's median power,
+    within the `parasitic_fringes` period bounds (a particle scene's power falls steeply with
+    frequency, so the absolute maximum would sit at the longest period)."""
+    rows, cols = power.shape
+    fy, fx = np.meshgrid(np.fft.fftfreq(rows), np.fft.fftfreq(cols), indexing="ij")
+    shortest, longest = EFFECTS["parasitic_fringes"].bounds["period_px"]
+    radius = np.hypot(fy, fx)
+    ring = np.round(radius * min(rows, cols)).astype(int)
+    ring_median = ndimage.median(power, labels=ring, index=np.arange(ring.max() + 1))
+    contrast = np.where((radius >= 1 / longest) & (radius <= 1 / shortest), power / (np.asarray(ring_median)[ring] + 1e-30), -np.inf)
+    peak = np.unravel_index(np.argmax(contrast), power.shape)
+    return float(fy[peak]), float(fx[peak])
+
+
+def measured_fringe(tiles: Sequence[np.ndarray]) -> tuple[float, float]:
+    """Frequency (fy, fx) in cycles/px of a static fringe: the peak of the tiles' mean power spectrum.
+
+    An etalon fringe has the same frequency in every tile, so it adds up in the mean spectrum
+    while the particles' rings (random positions) average into a smooth background. Only
+    frequencies within the `parasitic_fringes` period bounds are searched.
+    """
+    # geometric mean over tiles: a particle's speckle-like power fluctuates from tile to tile, a fringe's does not
+    return _peak_frequency(np.exp(np.mean([np.log(_power_spectrum(np.asarray(t, np.float64) / np.mean(t)) + 1e-30) for t in tiles], axis=0)))
+
+
+def _fringe_parameters(frequency: tuple[float, float]) -> dict:
+    """The `parasitic_fringes` period (px) and angle (rad) of a frequency (fy, fx)."""
+    fy, fx = frequency
+    return {("parasitic_fringes", "period_px"): float(1.0 / np.hypot(fy, fx)), ("parasitic_fringes", "angle_rad"): float(np.arctan2(fy, fx) % np.pi)}
