@@ -8,6 +8,7 @@ import pytest
 
 from napari_lbs._core import ExperimentConfig, random_particle_field, simulate_hologram, write_particles
 from napari_lbs._core._config import config_to_toml
+from test_sequence import detector, tiny_config  # noqa: F401 (detector: the recordings' tiny eager model, a fixture)
 
 TIMEOUT_MS = 180_000
 
@@ -187,3 +188,48 @@ def test_diagnosis_widget_maps_the_gap_over_the_hologram_and_writes_the_report(m
     assert json.loads((tmp_path / "report" / "report.json").read_text())["verdict"].keys() >= {"id", "shrink", "residual"}
     layer = viewer.layers["gap by region"]
     assert layer.data.shape == (2, 2) and tuple(layer.scale) == pytest.approx((140.8, 140.8))
+
+
+def test_batch_widget_turns_a_recording_into_points_over_time_and_tracks_and_stops(make_napari_viewer, qtbot, tmp_path, detector):
+    import tifffile
+
+    from napari_lbs._core import simulate_sequence
+
+    recording = simulate_sequence(tiny_config(), frames=4, flow="uniform", size=128, count=6, speed_um=6.0, seed=2)
+    tifffile.imwrite(tmp_path / "run.tif", recording.frames, photometric="minisblack")
+    viewer = make_napari_viewer()
+    workflow = dock(viewer, "LBS workflow")
+    widget = workflow.batch
+    assert workflow.tabs.tabText(6) == "7 Batch" and widget.background.value == "global"  # the median background by default
+    workflow.training.produced.emit(detector.path)  # Training's model is Batch's model too
+    assert widget.model.value == detector.path
+    widget.frames.value = tmp_path / "gone.tif"
+    assert not widget._run.enabled and "not found" in widget._status.value
+    widget.frames.line_edit.value = str(tmp_path / "*.png")
+    assert not widget._run.enabled and "no file matches" in widget._status.value
+    (tmp_path / "empty").mkdir()
+    widget.frames.value = tmp_path / "empty"  # a folder without images: refused when run, the widget stays usable
+    run_to_end(qtbot, widget)
+    assert "error" in widget._status.value and "holds no images" in widget._status.value
+
+    widget.frames.value = tmp_path / "run.tif"
+    widget.device.value = "cpu"
+    widget.search_range.value, widget.memory.value = 10.0, 1  # the eager model finds hundreds a frame: a short range
+    run_to_end(qtbot, widget)
+    points, tracks = viewer.layers["run.tif particles"], viewer.layers["run.tif tracks"]
+    assert points.ndim == 4 and points.axis_labels[0] == "frame" and viewer.dims.axis_labels[0] == "frame"
+    assert set(points.data[:, 0]) == {0, 1, 2, 3} and viewer.dims.nsteps[0] == 4  # one time step per frame
+    assert all(str(unit) == "micrometer" for layer in (points, tracks) for unit in layer.units[1:])
+    world = points.data[:, 1:] * points.scale[1:] + points.translate[1:]
+    np.testing.assert_allclose(world[:, 0], points.features["z_um"])  # (z, y, x) in µm on the plane grid
+    assert tuple(points.scale) == pytest.approx((1.0, 100.0, 2.2, 2.2)) and tuple(tracks.scale) == tuple(points.scale)
+    assert len(np.unique(tracks.data[:, 0])) == len(np.unique(points.features["track"])) and len(tracks.data) == len(points.data)
+    assert points.metadata["provenance"]["model_sha256"] == detector.sha256 and points.metadata["provenance"]["background"] == "global"
+    assert tracks.metadata["linking"] == {"search_range_um": 10.0, "axial_search_range_um": None, "memory": 1}
+    assert "4 frames" in widget._status.value and "tracks" in widget._status.value
+
+    layers = len(viewer.layers)
+    widget._run.clicked.emit()
+    widget._stop.clicked.emit()
+    qtbot.waitUntil(lambda: widget._worker is None, timeout=TIMEOUT_MS)
+    assert widget._run.enabled and "stopped" in widget._status.value and len(viewer.layers) == layers

@@ -6,6 +6,9 @@ reconstruction: data are ``(plane index, row, col)`` with ``scale = (z_step_um, 
 pixel_um)`` and ``translate = (z_min_um, y0_um, x0_um)``, so world coordinates are the
 table's ``(z_um, y_um, x_um)``, the z slider steps through the planes, and in 2-D each particle
 is drawn on its nearest plane (napari shows Points within half a data unit of the slice).
+A recording's layers put its frame axis in front, napari's time axis: one step per frame,
+labelled ``frame`` and dimensionless (frames are counted, not measured), so they sit beside
+the single-frame layers without a units conflict.
 """
 
 from __future__ import annotations
@@ -14,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["UNITS", "PlaneGrid", "particle_points", "points_table"]
+__all__ = ["UNITS", "PlaneGrid", "frame_points", "particle_points", "points_table", "track_lines"]
 
 UNITS = "µm"
 
@@ -86,6 +89,53 @@ def particle_points(table: dict, grid: PlaneGrid) -> tuple[np.ndarray, dict]:
         "size": diameter / grid.pixel_um if count else 10.0,
         "face_color": "transparent",
     }
+    return data, keywords
+
+
+def _recording_keywords(grid: PlaneGrid) -> dict:
+    """The ``(frame, plane, row, col)`` axes of a recording's layers: scale, translate, units, labels."""
+    return {"scale": (1.0, *grid.scale), "translate": (0.0, *grid.translate), "units": ("", UNITS, UNITS, UNITS), "axis_labels": ("frame", "z", "y", "x")}
+
+
+def frame_points(table: dict, grid: PlaneGrid) -> tuple[np.ndarray, dict]:
+    """Points of a recording's table: `particle_points` with the frame in front as napari's time axis.
+
+    Parameters
+    ----------
+    table : dict of arrays
+        A particle table with ``frame`` (`predict_sequence`), and ``track`` once linked.
+    grid : PlaneGrid
+
+    Returns
+    -------
+    data : (n, 4) array
+        ``(frame, plane index, row, col)``.
+    keywords : dict
+        As `particle_points`, on four axes (``axis_labels`` too); ``frame`` and ``track``
+        join the features, so a table saved from the layer keeps them.
+    """
+    data, keywords = particle_points(table, grid)
+    frame = np.asarray(table["frame"], float)
+    keywords["features"].update({name: np.asarray(table[name]) for name in ("frame", "track") if name in table})
+    return np.column_stack([frame, data]), {**keywords, **_recording_keywords(grid)}
+
+
+def track_lines(table: dict, grid: PlaneGrid) -> tuple[np.ndarray, dict]:
+    """napari Tracks of a linked table (`link_tracks`) on ``grid``.
+
+    Returns
+    -------
+    data : (n, 5) array
+        ``(track, frame, plane index, row, col)``, sorted by track then frame (as napari needs).
+    keywords : dict
+        ``scale``, ``translate``, ``units`` and ``axis_labels`` of the four axes after the
+        track id: world coordinates are the table's ``(frame, z_um, y_um, x_um)``.
+    """
+    keywords = _recording_keywords(grid)
+    world = np.stack([np.asarray(table[c], float) for c in ("frame", "z_um", "y_um", "x_um")], axis=1).reshape(-1, 4)
+    track = np.asarray(table["track"], float)
+    order = np.lexsort((world[:, 0], track))
+    data = np.column_stack([track, (world - np.asarray(keywords["translate"])) / np.asarray(keywords["scale"])])[order]
     return data, keywords
 
 

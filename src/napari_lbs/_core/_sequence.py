@@ -525,7 +525,8 @@ def predict_sequence(
         What each frame is divided by before back-propagation: the median of
         ``background_samples`` frames spread over the recording, the running median of the
         ``background_window`` frames around each frame, nothing (each frame's own mean, as a
-        single hologram), or a background image taken without particles.
+        single hologram), or a background image taken without particles. A recording of one
+        frame has no median background (it would be the frame): ``none``.
     workers : int, optional
         Run on a ``dask.distributed`` ``LocalCluster`` of this many single-threaded workers
         (default: the local threaded scheduler, one frame per core at a time).
@@ -570,6 +571,8 @@ def predict_sequence(
         loaded = model if isinstance(model, LoadedModel) else load_model(model, device="cpu")
         config = config if config is not None else loaded.config
         count = len(frames)
+        if count == 1 and mode in ("global", "running"):
+            mode = "none"  # the median of one frame is that frame: dividing by it would leave nothing
         identity = {
             "sources": frames.describe(),
             "frames": count,

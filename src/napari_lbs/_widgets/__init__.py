@@ -1,10 +1,11 @@
 """napari dock widgets: thin fronts over `napari_lbs._core`, one per step, and the workflow dock.
 
 `_base` holds what every step shares (Run/Stop, validation, progress, results, settings);
-one module per step; `_workflow` puts the six steps in one dock.
+one module per step; `_workflow` puts the seven steps in one dock.
 """
 
 from napari_lbs._widgets._backprop import BackpropWidget
+from napari_lbs._widgets._batch import BatchWidget
 from napari_lbs._widgets._calibration import CalibrationWidget
 from napari_lbs._widgets._diagnosis import DiagnosisWidget
 from napari_lbs._widgets._generate import GenerateWidget
@@ -12,4 +13,4 @@ from napari_lbs._widgets._prediction import PredictionWidget
 from napari_lbs._widgets._training import TrainingWidget
 from napari_lbs._widgets._workflow import WorkflowWidget
 
-__all__ = ["BackpropWidget", "CalibrationWidget", "GenerateWidget", "TrainingWidget", "PredictionWidget", "DiagnosisWidget", "WorkflowWidget"]
+__all__ = ["BackpropWidget", "CalibrationWidget", "GenerateWidget", "TrainingWidget", "PredictionWidget", "DiagnosisWidget", "BatchWidget", "WorkflowWidget"]

@@ -1,4 +1,4 @@
-"""The "LBS workflow" dock: the six steps as tabs, each step's output filled into the next step's input."""
+"""The "LBS workflow" dock: the seven steps as tabs, each step's output filled into the next step's input."""
 
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ from pathlib import Path
 from qtpy.QtWidgets import QLabel, QTabWidget, QVBoxLayout, QWidget
 
 from napari_lbs._widgets._backprop import BackpropWidget
+from napari_lbs._widgets._batch import BatchWidget
 from napari_lbs._widgets._calibration import CalibrationWidget
 from napari_lbs._widgets._diagnosis import DiagnosisWidget
 from napari_lbs._widgets._generate import GenerateWidget
@@ -22,11 +23,11 @@ class WorkflowWidget(QWidget):
     """One dock for the whole workflow (fits a 1280×800 screen: every tab scrolls).
 
     The calibration JSON a run writes becomes Synthetic data's calibration, the data set
-    Training's data, the model Prediction's model; each stays editable.
+    Training's data, the model Prediction's and Batch's model; each stays editable.
 
     Attributes
     ----------
-    backprop, calibration, generate, training, prediction, diagnosis : StepWidget
+    backprop, calibration, generate, training, prediction, diagnosis, batch : StepWidget
         The steps, in tab order.
     tabs : QTabWidget
     """
@@ -39,9 +40,10 @@ class WorkflowWidget(QWidget):
         self.training = TrainingWidget(napari_viewer)
         self.prediction = PredictionWidget(napari_viewer)
         self.diagnosis = DiagnosisWidget(napari_viewer)
+        self.batch = BatchWidget(napari_viewer)
         self.tabs = QTabWidget()
         self.tabs.setUsesScrollButtons(True)
-        for label, step in (("1 Stack", self.backprop), ("2 Calib", self.calibration), ("3 Data", self.generate), ("4 Train", self.training), ("5 Predict", self.prediction), ("6 Gap", self.diagnosis)):
+        for label, step in (("1 Stack", self.backprop), ("2 Calib", self.calibration), ("3 Data", self.generate), ("4 Train", self.training), ("5 Predict", self.prediction), ("6 Gap", self.diagnosis), ("7 Batch", self.batch)):
             index = self.tabs.addTab(step.root_native_widget, label)
             self.tabs.setTabToolTip(index, type(step).__doc__.splitlines()[0])
         guide = QLabel("Open a hologram (File → Open Sample → LBS holography), then go through the tabs; each step's output fills the next step's input.")
@@ -54,10 +56,11 @@ class WorkflowWidget(QWidget):
         self.calibration.produced.connect(lambda path: self._feed(self.generate.calibration, path))
         self.generate.produced.connect(lambda path: self._feed(self.training.data, path))
         self.training.produced.connect(lambda path: self._feed(self.prediction.model, path))
+        self.training.produced.connect(lambda path: self._feed(self.batch.model, path))
 
     @property
     def steps(self) -> tuple:
-        return (self.backprop, self.calibration, self.generate, self.training, self.prediction, self.diagnosis)
+        return (self.backprop, self.calibration, self.generate, self.training, self.prediction, self.diagnosis, self.batch)
 
     @staticmethod
     def _feed(field, path: Path) -> None:

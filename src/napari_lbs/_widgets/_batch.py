@@ -1,0 +1,76 @@
+"""Step 7: a recording (folder, glob, multi-page TIFF or video) + model → Points per frame and 3-D Tracks (µm)."""
+
+from __future__ import annotations
+
+import glob
+
+import numpy as np
+from magicgui.widgets import ComboBox, FloatSpinBox, SpinBox
+
+from napari_lbs._core import BACKGROUND_MODES, link_tracks, load_config, open_frames, predict_sequence, sequence_background
+from napari_lbs._layers import PlaneGrid, frame_points, track_lines
+from napari_lbs._widgets._base import StepWidget, chosen, config_problem, doc_of, missing, path_edit
+
+__all__ = ["BatchWidget"]
+
+
+class BatchWidget(StepWidget):
+    """Recording + model → Points layer with frame as napari's time axis, and a Tracks layer (trackpy), in µm."""
+
+    title = "batch prediction"
+
+    def __init__(self, napari_viewer) -> None:
+        self.frames = path_edit(label="frames", name="frames", placeholder="a folder, run/*.tif, a multi-page TIFF or a video",
+                                tooltip=f"The recording (type a folder or a glob pattern; browse picks a file): {doc_of(open_frames, 'inputs')}")
+        self.model = path_edit(label="model file", name="model", filter="*.pt", value="lbs-model.pt", tooltip=doc_of(predict_sequence, "model"))
+        self.config = path_edit(label="config", name="config", placeholder="empty: the model's", filter="*.toml", tooltip=doc_of(predict_sequence, "config"))
+        self.background = ComboBox(label="background", name="background", choices=list(BACKGROUND_MODES), value="global", tooltip=doc_of(predict_sequence, "background"))
+        self.window = SpinBox(label="background window", name="window", value=21, min=1, max=10000, tooltip=f"running background: {doc_of(sequence_background, 'window')}")
+        self.device = ComboBox(label="device", name="device", choices=["auto", "cpu", "cuda"], value="auto", tooltip=doc_of(predict_sequence, "device"))
+        self.search_range = FloatSpinBox(label="search range µm", name="search_range_um", value=60.0, min=0.1, max=100000.0, tooltip=doc_of(link_tracks, "search_range_um"))
+        self.axial_range = FloatSpinBox(label="axial search range µm (0: same)", name="axial_search_range_um", value=0.0, min=0.0, max=100000.0,
+                                        tooltip=f"{doc_of(link_tracks, 'axial_search_range_um')} 0: the search range in 3-D")
+        self.memory = SpinBox(label="memory (frames)", name="memory", value=0, min=0, max=10000, tooltip=doc_of(link_tracks, "memory"))
+        super().__init__(napari_viewer, [self.frames, self.model, self.config, self.background, self.window, self.device, self.search_range, self.axial_range, self.memory])
+
+    def problem(self):
+        frames = chosen(self.frames)
+        if frames is None:
+            return "frames: choose a folder, a glob pattern (run/*.tif), a multi-page TIFF or a video"
+        if not frames.exists():
+            if not glob.has_magic(str(frames)):
+                return f"frames: {frames} not found"
+            if not glob.glob(str(frames)):
+                return f"frames: no file matches {frames}"
+        if chosen(self.model) is None:
+            return "model file: choose a model (.pt) that Training wrote"
+        return missing(self.model, "model") or config_problem(self.config)
+
+    def prepare(self):
+        config = load_config(chosen(self.config)) if chosen(self.config) is not None else None
+        linking = {"search_range_um": self.search_range.value, "axial_search_range_um": self.axial_range.value or None, "memory": self.memory.value}
+        return str(chosen(self.frames)), chosen(self.model), config, self.background.value, self.window.value, self.device.value, linking
+
+    def work(self, job, *, progress, should_stop, report):
+        frames, model, config, background, window, device, linking = job
+        result = predict_sequence([frames], model, config, background=background, background_window=window, device=device, progress=progress, should_stop=should_stop)
+        return result, link_tracks(result.particles, **linking), frames, linking
+
+    def show(self, outcome):
+        result, tracks, source, linking = outcome
+        first, last, count = result.provenance["planes_um"]
+        grid = PlaneGrid.of_planes(np.linspace(first, last, int(count)), pixel_um=result.provenance["config"]["optics"]["pixel_um"])
+        metadata = {"provenance": result.provenance, "source": source, "linking": linking}
+        frames, particles, found = result.provenance["frames"], len(tracks["x_um"]), np.unique(tracks["track"]).size
+        data, keywords = frame_points(tracks, grid)
+        self._viewer.add_points(data, **keywords, border_color="cyan", border_width=0.15, name=f"{_short(source)} particles", metadata=metadata)
+        if found:  # napari's Tracks cannot be empty
+            data, keywords = track_lines(tracks, grid)
+            self._viewer.add_tracks(data, **keywords, tail_length=frames, name=f"{_short(source)} tracks", metadata=metadata)
+        self._viewer.dims.set_point(self._viewer.dims.ndim - 4, 0)  # the first frame
+        self.done(f"{particles} particles in {frames} frames → {found} tracks in {result.seconds:.1f} s")
+
+
+def _short(source: str) -> str:
+    """A recording's name for its layers: the file, folder or pattern without its folders."""
+    return source.rstrip("/\\").replace("\\", "/").rsplit("/", 1)[-1]
