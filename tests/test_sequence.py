@@ -2,6 +2,7 @@
 (same table whatever the workers, resumed after a stop), ground-truth flows, tracks, and the CLI."""
 
 import csv
+import json
 import tracemalloc
 
 import numpy as np
@@ -253,3 +254,57 @@ def test_cli_simulate_frames_predict_and_track(tmp_path, detector):
         last[row["track"]] = row
     assert all(row["dx_um"] == "" for row in last.values())
     assert main(["track", str(tmp_path / "sim" / "particles.csv"), "--out", str(tmp_path / "sim" / "particles.csv")]) == 2
+
+
+def test_a_parquet_table_round_trips_with_its_frame_column_and_metadata(tmp_path):
+    import pandas as pd
+    import pyarrow.parquet as pq
+
+    from napari_lbs._core import read_particles, write_particles
+
+    table = {"x_um": np.array([1.5, 2.25, 3.0]), "y_um": np.array([4.0, 5.0, 6.0]), "z_um": np.array([1800.0, 1850.0, 1900.0]),
+             "diameter_um": np.array([20.0, 25.0, 30.0]), "score": np.array([0.9, 0.8, np.nan]), "frame": np.array([0, 0, 7], np.int64)}
+    path = write_particles(tmp_path / "p.parquet", table, metadata={"model_sha256": "abc", "planes_um": [1800.0, 2200.0, 5]})
+    stored = pd.read_parquet(path)
+    assert list(stored.columns) == list(table) and stored["frame"].dtype == np.int64  # columns in order, their own types
+    assert json.loads(pq.read_schema(path).metadata[b"napari_lbs"]) == {"model_sha256": "abc", "planes_um": [1800.0, 2200.0, 5]}
+    back = read_particles(path)
+    assert list(back) == list(table)
+    for name in table:
+        np.testing.assert_array_equal(back[name], table[name].astype(np.float64), err_msg=name)  # as a CSV reads: float64
+    with pytest.raises(InputError, match="missing column z_um"):
+        write_particles(tmp_path / "bad.parquet", {k: v for k, v in table.items() if k != "z_um"})
+    pd.DataFrame({"x_um": [1.0], "y_um": [2.0], "diameter_um": [3.0]}).to_parquet(tmp_path / "other.parquet")
+    with pytest.raises(InputError, match="other.parquet: missing column z_um"):
+        read_particles(tmp_path / "other.parquet")
+    (tmp_path / "broken.parquet").write_text("x_um,y_um\n")
+    with pytest.raises(InputError, match="broken.parquet: cannot be read as a Parquet table"):
+        read_particles(tmp_path / "broken.parquet")
+
+
+def test_cli_predicts_and_tracks_into_parquet_and_reads_a_one_frame_video(tmp_path, detector, vortex):
+    import cv2
+    import pyarrow.parquet as pq
+
+    from napari_lbs._cli import main
+    from napari_lbs._core import read_particles
+
+    tifffile.imwrite(tmp_path / "run.tif", vortex.frames[:3], photometric="minisblack")
+    assert main(["predict", str(tmp_path / "run.tif"), "--model", str(detector.path), "--out", str(tmp_path / "p.parquet")]) == 0
+    provenance = json.loads((tmp_path / "p.json").read_text())  # the sidecar, as for a CSV
+    assert json.loads(pq.read_schema(tmp_path / "p.parquet").metadata[b"napari_lbs"]) == provenance and provenance["frames"] == 3
+    particles = read_particles(tmp_path / "p.parquet")
+    assert set(particles["frame"]) == {0.0, 1.0, 2.0}
+    assert main(["track", str(tmp_path / "p.parquet"), "--out", str(tmp_path / "t.parquet"), "--search-range-um", "10"]) == 0
+    tracks = read_particles(tmp_path / "t.parquet")
+    assert len(tracks["track"]) == len(particles["x_um"]) and np.isnan(tracks["dx_um"]).sum() == len(np.unique(tracks["track"]))  # NaN at each track's end
+    assert json.loads(pq.read_schema(tmp_path / "t.parquet").metadata[b"napari_lbs"])["tracks"]["search_range_um"] == 10.0
+
+    # a video of one frame is one hologram, read through the recording's reader
+    frame = np.clip(vortex.frames[0] * 128, 0, 255).astype(np.uint8)
+    writer = cv2.VideoWriter(str(tmp_path / "one.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 10, frame.shape[::-1], isColor=False)
+    writer.write(frame)
+    writer.release()
+    assert main(["predict", str(tmp_path / "one.avi"), "--model", str(detector.path), "--out", str(tmp_path / "one.csv")]) == 0
+    one = _rows(tmp_path / "one.csv")
+    assert "frame" not in one[0] and json.loads((tmp_path / "one.json").read_text())["source"] == str(tmp_path / "one.avi")

@@ -181,12 +181,19 @@ def _read_inputs(args):
     from napari_lbs._core import read_hologram
 
     hologram = read_hologram(args.holo, log=_summary)
-    background = None
-    if getattr(args, "background", None):
-        background = read_hologram(args.background, log=_summary)
-        if background.shape != hologram.shape:
-            raise ValueError(f"{args.background}: expected the hologram's shape {hologram.shape}, got {background.shape}")
-    return hologram, background
+    return hologram, _read_background(args, hologram.shape)
+
+
+def _read_background(args, shape: tuple[int, int]):
+    """``--background`` (None when not given), refused unless it has the hologram's ``shape``."""
+    from napari_lbs._core import read_hologram
+
+    if not getattr(args, "background", None):
+        return None
+    background = read_hologram(args.background, log=_summary)
+    if background.shape != shape:
+        raise ValueError(f"{args.background}: expected the hologram's shape {shape}, got {background.shape}")
+    return background
 
 
 def _inputs(args) -> list:
@@ -328,7 +335,7 @@ def _predict_outputs(args) -> tuple[Path, Path]:
     """The particle table and its provenance JSON, refused where they would overwrite something else (inputs: `check_output_path`)."""
     out = Path(args.out)
     if out.suffix.lower() == ".json":
-        raise ValueError(f"--out {out}: expected a particle table (.csv); its provenance is written beside it as .json")
+        raise ValueError(f"--out {out}: expected a particle table (.csv, or .parquet); its provenance is written beside it as .json")
     provenance = out.with_suffix(".json")
     if provenance.is_file():
         try:
@@ -342,7 +349,7 @@ def _predict_outputs(args) -> tuple[Path, Path]:
 
 
 def _cmd_predict(args) -> None:
-    from napari_lbs._core import load_config, load_model, open_frames, predict_particles, write_json, write_particles
+    from napari_lbs._core import load_config, load_model, open_frames, predict_particles
 
     out, provenance = _predict_outputs(args)
     for path in (out, provenance):
@@ -352,29 +359,36 @@ def _cmd_predict(args) -> None:
         if len(frames) > 1:
             _predict_sequence(args, frames, config, out, provenance)
             return
-        args.holo = frames.name(0)  # one image: the single-hologram path
-    hologram, background = _read_inputs(args)
+        # one frame (an image, a one-page TIFF, a one-frame video): the single-hologram path
+        args.holo, hologram = frames.name(0), frames.read(0, log=_summary)
+    background = _read_background(args, hologram.shape)
     model = load_model(args.model, device=args.device)
     result = predict_particles(hologram, model, config, background=background, progress=_ProgressBar("predict"))
-    write_particles(out, result.particles)
-    write_json(provenance, {**result.provenance, "source": str(args.holo), "background_file": args.background, "particles": str(out)})
+    _write_table(out, provenance, result.particles, {**result.provenance, "source": str(args.holo), "background_file": args.background, "particles": str(out)})
     count = len(result.particles["x_um"])
     _summary(f"found {count} particles in {args.holo} in {result.seconds:.1f} s -> {out} (provenance: {provenance})")
+
+
+def _write_table(out: Path, provenance: Path, particles: dict, record: dict) -> None:
+    """The particle table (CSV, or Parquet with ``record`` in its key-value metadata too) and its provenance JSON beside it."""
+    from napari_lbs._core import write_json, write_particles
+
+    write_particles(out, particles, metadata=record)
+    write_json(provenance, record)
 
 
 def _predict_sequence(args, frames, config, out: Path, provenance: Path) -> None:
     """``predict`` of a recording: one table with a ``frame`` column; finished frames kept in OUT.parts/ until the table is written."""
     import shutil
 
-    from napari_lbs._core import load_model, predict_sequence, read_hologram, write_json, write_particles
+    from napari_lbs._core import load_model, predict_sequence, read_hologram
 
     work_dir = check_output_path(out.with_name(out.name + ".parts"), flag="--out", folder=True)
     background = read_hologram(args.background, log=_summary) if args.background else args.sequence_background
     model = load_model(args.model, device="cpu")  # each worker moves it to --device
     result = predict_sequence(frames, model, config, background=background, background_window=args.background_window, workers=args.workers, scheduler=args.scheduler,
                               work_dir=work_dir, device=args.device, progress=_ProgressBar("predict"))
-    write_particles(out, result.particles)
-    write_json(provenance, {**result.provenance, "background_file": args.background, "particles": str(out)})
+    _write_table(out, provenance, result.particles, {**result.provenance, "background_file": args.background, "particles": str(out)})
     shutil.rmtree(work_dir)
     count, done = len(result.particles["x_um"]), result.provenance["frames"]
     resumed = f"; {result.resumed} frames resumed from {work_dir}" if result.resumed else ""
@@ -391,9 +405,11 @@ def _cmd_track(args) -> None:
     if "frame" not in table:
         raise InputError(f"{args.particles}: no frame column; tracks need the table of a recording (predict with several frames)")
     tracks = link_tracks(table, search_range_um=args.search_range_um, axial_search_range_um=args.axial_search_range_um, memory=args.memory)
-    for name in DISPLACEMENT_COLUMNS:  # a track's last detection has no displacement: an empty cell
-        tracks[name] = np.array(["" if np.isnan(value) else f"{value:.9g}" for value in tracks[name]], dtype=object)
-    write_particles(out, tracks)
+    linking = {"particles": str(args.particles), "search_range_um": args.search_range_um, "axial_search_range_um": args.axial_search_range_um, "memory": args.memory}
+    if out.suffix.lower() != ".parquet":  # a track's last detection has no displacement: an empty CSV cell (Parquet keeps NaN)
+        for name in DISPLACEMENT_COLUMNS:
+            tracks[name] = np.array(["" if np.isnan(value) else f"{value:.9g}" for value in tracks[name]], dtype=object)
+    write_particles(out, tracks, metadata={"tracks": linking})
     lengths = np.bincount(tracks["track"]) if tracks["track"].size else np.zeros(0, int)
     frames = len(np.unique(tracks["frame"]))
     _summary(f"linked {tracks['track'].size} particles of {frames} frames into {lengths.size} tracks (median length {np.median(lengths) if lengths.size else 0:g} frames) -> {out}")
@@ -643,7 +659,7 @@ def _parser() -> argparse.ArgumentParser:
     p = sub.add_parser("predict", help="reconstruct the particles of a hologram or a recording with a trained model")
     p.add_argument("holo", metavar="HOLO", nargs="+", help="image files, folders of images, glob patterns, multi-page TIFFs or videos; frames numbered in this order")
     p.add_argument("--model", required=True, metavar="MODEL.pt")
-    p.add_argument("--out", required=True, metavar="PARTICLES.csv")
+    p.add_argument("--out", required=True, metavar="PARTICLES.csv", help="the particle table: CSV, or Parquet when the name ends in .parquet; provenance beside it as .json")
     p.add_argument("--config", help="optics and depths (default: the model's)")
     p.add_argument("--background", metavar="BG", help="a hologram taken without particles, divided out of every frame")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
@@ -656,8 +672,8 @@ def _parser() -> argparse.ArgumentParser:
     p.set_defaults(run=_cmd_predict)
 
     p = sub.add_parser("track", help="link the particles of a recording into 3-D tracks (trackpy)")
-    p.add_argument("particles", metavar="PARTICLES.csv", help="a particle table with a frame column")
-    p.add_argument("--out", required=True, metavar="TRACKS.csv")
+    p.add_argument("particles", metavar="PARTICLES.csv", help="a particle table with a frame column (CSV or .parquet)")
+    p.add_argument("--out", required=True, metavar="TRACKS.csv", help="the tracks table: CSV, or Parquet when the name ends in .parquet")
     p.add_argument("--search-range-um", type=_number(0.0, above=True), default=60.0,
                    help="largest displacement between two frames a particle is seen in (µm, default 60: a predicted depth may jump by a 50 µm plane)")
     p.add_argument("--axial-search-range-um", type=_number(0.0, above=True), help="a separate search range along z (µm; default: --search-range-um)")

@@ -216,12 +216,25 @@ def read_stack(path: str | Path) -> tuple[np.ndarray, dict]:
     return stack, description
 
 
-def write_particles(path: str | Path, table: dict[str, np.ndarray]) -> Path:
-    """Write a particle table (CONTRACT.md): ``x_um,y_um,z_um,diameter_um`` then any other columns."""
+def write_particles(path: str | Path, table: dict[str, np.ndarray], *, metadata: dict | None = None) -> Path:
+    """Write a particle table (CONTRACT.md): ``x_um,y_um,z_um,diameter_um`` then any other columns.
+
+    Parameters
+    ----------
+    path : path
+        ``.parquet``: an Apache Parquet file (pandas + pyarrow, the ``sequences`` extra), the
+        columns' own types kept (``frame`` stays int64); any other name: CSV.
+    table : dict of arrays
+    metadata : dict, optional
+        Parquet only: stored as JSON in the file's key-value metadata under ``napari_lbs``
+        (e.g. the provenance; a CSV's goes in a JSON file beside it).
+    """
     missing = [c for c in PARTICLE_COLUMNS if c not in table]
     if missing:
         raise InputError(f"particle table: missing column {missing[0]}")
     columns = list(PARTICLE_COLUMNS) + [c for c in table if c not in PARTICLE_COLUMNS]
+    if _is_parquet(path):
+        return _write_parquet(Path(path), {c: np.asarray(table[c]) for c in columns}, metadata)
     count = len(np.asarray(table["x_um"]))
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
@@ -231,6 +244,29 @@ def write_particles(path: str | Path, table: dict[str, np.ndarray]) -> Path:
     return atomic_write_bytes(Path(path), buffer.getvalue().encode("utf-8"))
 
 
+def _is_parquet(path: str | Path) -> bool:
+    return Path(path).suffix.lower() == ".parquet"
+
+
+def _pyarrow(path: Path):
+    try:
+        import pyarrow
+        import pyarrow.parquet
+    except ImportError:
+        raise InputError(f"{path}: Parquet tables need pyarrow (pip install 'napari-lbs[sequences]')") from None
+    return pyarrow
+
+
+def _write_parquet(path: Path, table: dict[str, np.ndarray], metadata: dict | None) -> Path:
+    pyarrow = _pyarrow(path)
+    arrow = pyarrow.table(table)
+    if metadata is not None:
+        arrow = arrow.replace_schema_metadata({**(arrow.schema.metadata or {}), b"napari_lbs": json.dumps(json_safe(metadata)).encode("utf-8")})
+    with atomic_path(path) as temporary:
+        pyarrow.parquet.write_table(arrow, temporary)
+    return path
+
+
 def _format(value: object) -> str:
     if isinstance(value, (float, np.floating)):
         return f"{float(value):.9g}"  # sub-nanometre for any position in µm up to metres
@@ -238,9 +274,9 @@ def _format(value: object) -> str:
 
 
 def read_particles(path: str | Path) -> dict[str, np.ndarray]:
-    """Read a particle table; numeric columns become float64 arrays.
+    """Read a particle table (CSV, or Parquet when the name ends in ``.parquet``); numeric columns become float64 arrays.
 
-    UTF-8 with or without a byte-order mark (Excel's "CSV UTF-8"); blank lines are skipped.
+    A CSV: UTF-8 with or without a byte-order mark (Excel's "CSV UTF-8"); blank lines are skipped.
 
     Raises
     ------
@@ -250,6 +286,8 @@ def read_particles(path: str | Path) -> dict[str, np.ndarray]:
         column not numeric, or a position (``x_um``, ``y_um``, ``z_um``) NaN or infinite.
     """
     path = Path(path)
+    if _is_parquet(path):
+        return _checked(path, _read_parquet(path))
     reader = csv.reader(io.StringIO(read_text(path, what="particle table"), newline=""))
     header = next(reader, None)
     if not header:
@@ -258,9 +296,7 @@ def read_particles(path: str | Path) -> dict[str, np.ndarray]:
     duplicated = next((name for index, name in enumerate(header) if name in header[:index]), None)
     if duplicated is not None:
         raise InputError(f"{path}: column {duplicated} appears twice in the header")
-    missing = [c for c in PARTICLE_COLUMNS if c not in header]
-    if missing:
-        raise InputError(f"{path}: missing column {missing[0]} (header: {','.join(header)})")
+    _check_columns(path, header)
     rows = []
     for row in reader:
         if not any(cell.strip() for cell in row):
@@ -277,7 +313,39 @@ def read_particles(path: str | Path) -> dict[str, np.ndarray]:
             if name in PARTICLE_COLUMNS:
                 raise InputError(f"{path}: column {name} is not numeric") from None
             table[name] = np.array(values, dtype=object)
+    return _checked(path, table)
+
+
+def _check_columns(path: Path, header: list[str]) -> None:
+    missing = [c for c in PARTICLE_COLUMNS if c not in header]
+    if missing:
+        raise InputError(f"{path}: missing column {missing[0]} (header: {','.join(header)})")
+
+
+def _checked(path: Path, table: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """``table`` once its positions are finite numbers (its columns already checked)."""
     for name in PARTICLE_COLUMNS[:3]:
         if not np.all(np.isfinite(table[name])):
             raise InputError(f"{path}: column {name} holds NaN or infinite values")
+    return table
+
+
+def _read_parquet(path: Path) -> dict[str, np.ndarray]:
+    if not path.is_file():
+        raise InputError(f"{path}: particle table file not found" + (" (it is a folder)" if path.is_dir() else ""))
+    pyarrow = _pyarrow(path)
+    try:
+        frame = pyarrow.parquet.read_table(path).to_pandas()
+    except (OSError, pyarrow.ArrowException) as error:
+        raise InputError(f"{path}: cannot be read as a Parquet table ({error})") from None
+    _check_columns(path, [str(name) for name in frame.columns])
+    table = {}
+    for name in frame.columns:
+        values = frame[name].to_numpy()
+        if values.dtype.kind in "fiub":
+            table[str(name)] = values.astype(np.float64)
+        elif str(name) in PARTICLE_COLUMNS:
+            raise InputError(f"{path}: column {name} is not numeric")
+        else:
+            table[str(name)] = values.astype(object)
     return table

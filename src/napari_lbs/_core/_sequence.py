@@ -184,8 +184,8 @@ class HologramFrames:
         source, local = self._locate(index)
         return str(source.path) if source.count == 1 else f"{source.path}[frame {local}]"
 
-    def read(self, index: int) -> np.ndarray:
-        """Frame ``index`` (0-based) as a 2-D float array."""
+    def read(self, index: int, *, log=None) -> np.ndarray:
+        """Frame ``index`` (0-based) as a 2-D float array; ``log`` as `as_hologram`'s (which channel of RGB was kept)."""
         source, local = self._locate(index)
         try:
             image = source.read(local)
@@ -193,7 +193,7 @@ class HologramFrames:
             raise
         except Exception as error:  # any decoder failure is the file's fault: say which frame
             raise InputError(f"{self.name(index)}: cannot be read as an image ({type(error).__name__}: {error})") from None
-        hologram = as_hologram(image, name=self.name(index))
+        hologram = as_hologram(image, name=self.name(index), log=log)
         if self.shape is None:
             self.shape = hologram.shape
         elif hologram.shape != self.shape:
