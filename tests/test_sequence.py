@@ -308,3 +308,22 @@ def test_cli_predicts_and_tracks_into_parquet_and_reads_a_one_frame_video(tmp_pa
     assert main(["predict", str(tmp_path / "one.avi"), "--model", str(detector.path), "--out", str(tmp_path / "one.csv")]) == 0
     one = _rows(tmp_path / "one.csv")
     assert "frame" not in one[0] and json.loads((tmp_path / "one.json").read_text())["source"] == str(tmp_path / "one.avi")
+
+
+def test_a_bad_frame_late_in_a_recording_is_refused_before_any_work(tmp_path, detector):
+    from napari_lbs._cli import main
+
+    rng = np.random.default_rng(4)
+    for k in range(5):
+        tifffile.imwrite(tmp_path / f"f{k}.tif", rng.uniform(0.5, 1.5, (64, 64)).astype(np.float32))
+    tifffile.imwrite(tmp_path / "f5.tif", rng.uniform(0.5, 1.5, (64, 48)).astype(np.float32))  # the last frame
+    (tmp_path / "f6.png").write_bytes(b"not a png")
+    steps = []
+    with pytest.raises(InputError, match=r"f5.tif: expected the first frame's shape \(64, 64\), got \(64, 48\)"):
+        predict_sequence([tmp_path / f"f{k}.tif" for k in range(6)], detector, progress=lambda d, t: steps.append(d))
+    assert steps == []  # refused from the headers: not one frame predicted
+    with pytest.raises(InputError, match="f6.png: cannot be read as an image"):
+        predict_sequence([tmp_path / "f0.tif", tmp_path / "f6.png"], detector, progress=lambda d, t: steps.append(d))
+    assert steps == []
+    assert main(["predict", str(tmp_path / "f*.tif"), "--model", str(detector.path), "--out", str(tmp_path / "p.csv")]) == 2
+    assert not list(tmp_path.glob("p.*"))  # nothing written, not even the work folder

@@ -80,6 +80,10 @@ class _TiffPages:
     def read(self, index: int) -> np.ndarray:
         return self._handle.pages[index].asarray()
 
+    def shape(self, index: int) -> tuple[int, int]:
+        page = self._handle.pages[index]  # its tags only
+        return int(page.imagelength), int(page.imagewidth)
+
     def close(self) -> None:
         self._handle.close()
 
@@ -97,6 +101,12 @@ class _ImageFile:
 
         with Image.open(self.path) as handle:
             return np.asarray(handle.convert("RGB") if handle.mode in ("P", "PA") else handle)
+
+    def shape(self, index: int) -> tuple[int, int]:
+        from PIL import Image
+
+        with Image.open(self.path) as handle:  # the header only
+            return handle.height, handle.width
 
     def close(self) -> None:
         pass
@@ -116,6 +126,7 @@ class _VideoFile:
         self._next = 0
         probe = cv2.VideoCapture(str(path))
         self.count = int(probe.get(cv2.CAP_PROP_FRAME_COUNT)) if probe.isOpened() else 0
+        self._shape = (int(probe.get(cv2.CAP_PROP_FRAME_HEIGHT)), int(probe.get(cv2.CAP_PROP_FRAME_WIDTH)))
         probe.release()
         if self.count <= 0:
             raise InputError(f"{path}: cannot be read as a video (no frames decoded)")
@@ -133,6 +144,9 @@ class _VideoFile:
             raise InputError(f"{self.path}: frame {index} cannot be decoded")
         return image[..., ::-1] if image.ndim == 3 else image  # OpenCV's BGR → RGB
 
+    def shape(self, index: int) -> tuple[int, int]:
+        return self._shape  # a video's frames share the stream's size
+
     def close(self) -> None:
         if self._capture is not None:
             self._capture.release()
@@ -149,6 +163,9 @@ class _ArrayFrames:
 
     def read(self, index: int) -> np.ndarray:
         return self._array[index]
+
+    def shape(self, index: int) -> tuple[int, int]:
+        return tuple(self._array.shape[1:3])
 
     def close(self) -> None:
         pass
@@ -199,6 +216,23 @@ class HologramFrames:
         elif hologram.shape != self.shape:
             raise InputError(f"{self.name(index)}: expected the first frame's shape {self.shape}, got {hologram.shape}")
         return hologram
+
+    def check(self) -> None:
+        """Refuse a recording whose frames differ in shape, from the files' headers (no frame is decoded).
+
+        Run before any heavy work, so a bad frame late in a recording stops nothing half-way;
+        a frame whose pixels cannot be decoded is still only found when it is read.
+        """
+        first = None
+        for index in range(len(self)):
+            source, local = self._locate(index)
+            try:
+                shape = source.shape(local)
+            except Exception as error:  # an unreadable header is the file's fault: say which frame
+                raise InputError(f"{self.name(index)}: cannot be read as an image ({type(error).__name__}: {error})") from None
+            first = first or shape
+            if shape != first:
+                raise InputError(f"{self.name(index)}: expected the first frame's shape {first}, got {shape}")
 
     def close(self) -> None:
         for source in self._sources:
@@ -568,6 +602,7 @@ def predict_sequence(
     with ExitStack() as cleanup:
         if opened:
             cleanup.callback(frames.close)
+        frames.check()  # every frame's shape, from the headers, before any set-up
         loaded = model if isinstance(model, LoadedModel) else load_model(model, device="cpu")
         config = config if config is not None else loaded.config
         count = len(frames)
@@ -583,7 +618,7 @@ def predict_sequence(
             "background_samples": background_samples if mode == "global" else None,
             "background_sha256": hashlib.sha256(static.tobytes()).hexdigest() if static is not None else None,
         }
-        first = frames.read(0)  # checks the first frame (and fixes the shape) before any set-up
+        first = frames.read(0)  # the first frame's pixels (and the shape every read checks)
         if static is not None and static.shape != first.shape:
             raise InputError(f"background: expected the frames' shape {first.shape}, got {static.shape}")
         import torch
