@@ -48,6 +48,7 @@ from napari_lbs._core import (  # noqa: E402
     effects_from_report,
     generate_dataset,
     load_config,
+    match_particles,
     predict_particles,
     read_hologram,
     read_particles,
@@ -86,13 +87,14 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None) -> d
         write_json(calibration_path, calibrate_hologram(experiment, config, settings=CalibrationSettings(generations=40, seed=0)).to_json())
     calibration = json.loads(calibration_path.read_text())
     report_path = out / "diagnosis" / "report.json"
-    if not report_path.is_file():
+    needs_report = not only or {"transparent", "effects"} & set(only)
+    if needs_report and not report_path.is_file():
         start = time.perf_counter()
         diagnosis = diagnose_hologram(experiment, config, settings=DiagnosisSettings())
         write_report(diagnosis, out / "diagnosis", provenance={"source": "pseudo-real hologram, real density"})
         print(f"diagnosis: {time.perf_counter() - start:.0f} s, verdict {diagnosis.report['verdict']}", flush=True)
-    report = json.loads(report_path.read_text())
-    effects = effects_from_report(report, name=str(report_path))
+    report = json.loads(report_path.read_text()) if needs_report else {"verdict": None, "waterfall": None}
+    effects = effects_from_report(report, name=str(report_path)) if needs_report else {}
 
     lbs = InputProcessing.from_calibration(calibration)
     stages = {
@@ -126,9 +128,14 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None) -> d
             result = predict_particles(hologram, model_path, config, device="cpu")
             metrics = score_particles(result.particles, truth)
             dz = np.abs(depth_errors_um(result.particles, truth))
-            row[label] = {**metrics, "median_abs_dz_um": float(np.median(dz)) if dz.size else None, "predict_seconds": round(result.seconds, 1)}
+            pairs = np.array(match_particles(result.particles, truth)).reshape(-1, 2)
+            predicted_d, true_d = result.particles["diameter_um"][pairs[:, 0]], truth["diameter_um"][pairs[:, 1]]
+            diameters = {"median_abs_dd_um": float(np.median(np.abs(predicted_d - true_d))), "diameter_corr": float(np.corrcoef(predicted_d, true_d)[0, 1]),
+                         "predicted_diameter_p5_p95_um": [float(v) for v in np.percentile(predicted_d, [5, 95])]} if len(pairs) > 2 else {}
+            row[label] = {**metrics, "median_abs_dz_um": float(np.median(dz)) if dz.size else None, **diameters, "predict_seconds": round(result.seconds, 1)}
             print(f"{stage:8s} {label:12s}: ER {100 * metrics['er']:6.2f} %  JI {metrics['ji']:.3f}  TP {metrics['tp']} FP {metrics['fp']} FN {metrics['fn']}  "
-                  f"median |dz| {row[label]['median_abs_dz_um'] or float('nan'):.0f} um  (synthetic validation JI {validation['ji']:.3f})", flush=True)
+                  f"median |dz| {row[label]['median_abs_dz_um'] or float('nan'):.0f} um  median |dd| {diameters.get('median_abs_dd_um', float('nan')):.1f} um "
+                  f"(corr {diameters.get('diameter_corr', float('nan')):.2f})  (synthetic validation JI {validation['ji']:.3f})", flush=True)
         results["stages"][stage] = row
         write_json(scores_path, row)
     write_json(out / "results.json", results)
