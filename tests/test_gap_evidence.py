@@ -80,6 +80,39 @@ def test_a_refit_never_returns_a_worse_gap_than_its_start_on_the_fitting_tiles(m
         assert gap_statistic(real, model.summaries(baseline, effects), spread=spread)[0] == pytest.approx(fit_gap)
 
 
+def test_a_fit_keeps_improving_where_the_clipped_gap_is_already_zero():
+    # Real summaries from the model at contrast 0.86, the fit started at 0.8: every summary is
+    # off by less than its sampling error, so the excess χ² (the gap) is already 0 at the start
+    # and a fit of the gap could stop there; the fit of χ² must still lower χ².
+    model, _ = small_model()
+    real = model.summaries({**TRUTH, "contrast": 0.86}, {})
+    spread = real_spread(real)
+    start = {("baseline", k): v for k, v in TRUTH.items()}
+    assert gap_statistic(real, model.summaries(TRUTH, {}), spread=spread)[0] == 0.0
+    chi_square = lambda b: float(np.mean(gap_statistic(real, model.summaries(b, {}), spread=spread)[1] ** 2))  # noqa: E731
+    baseline, _, _ = _fit(model, real, [], start=start, measured={}, evaluations=16, spread=spread)
+    assert chi_square(baseline) < chi_square(TRUTH) - 0.1  # (the clipped fit returned its start: 0.67 both)
+
+
+def test_simulated_tiles_lie_where_each_half_of_the_real_tiles_lies_and_are_resampled_in_pairs():
+    origins = tuple((r, c) for r in range(0, 256, 64) for c in range(0, 256, 64))
+    layout = TileLayout((256, 256), origins, 1.0)
+    model = _Model(CONFIG, shape=(64, 64), count=1, settings=DiagnosisSettings(sim_tiles=8), fringe_frequency=(0.1, 0.0), layout=layout, known={})
+    fitting = layout.fitting((64, 64))
+    assert [place for _, place in model.cuts["held"]] == [o for o, f in zip(origins, fitting) if not f]
+    assert [place for _, place in model.cuts["fit"]] == [o for o, f in zip(origins, fitting) if f]
+    assert model.paired
+    # a summary that depends on the place alone (a vignetting's tilt): real and simulated agree
+    # place by place, so drawing each place once for both leaves no gap to resample
+    rng = np.random.default_rng(4)
+    place = rng.normal(0, 5, (8, 1)) * np.ones((1, 6))
+    real, sim = place + rng.normal(0, 0.1, (8, 6)), place + rng.normal(0, 0.1, (8, 6))
+    spread = np.full(6, 5.0)
+    paired = resampled_gaps(real, {"m": sim}, spread=spread, resamples=500, paired=True)["m"]
+    unpaired = resampled_gaps(real, {"m": sim}, spread=spread, resamples=500)["m"]
+    assert np.quantile(paired, 0.95) < 0.05 < np.quantile(unpaired, 0.95)
+
+
 def test_the_refits_of_a_diagnosis_end_no_worse_than_the_baseline_on_the_fitting_tiles():
     rng = np.random.default_rng(5)
     tiles = []

@@ -112,9 +112,10 @@ def diagnose_tiles(
 
     steps.check()
     base_params, _, base_fit_gap = _fit(model, fit_real, [], start={}, measured=measured, evaluations=settings.evaluations, spread=spread)
-    base_sim = model.summaries(base_params, {})
-    baseline_gap = gap(held_real, base_sim)[0]
-    held_sims = {"baseline": base_sim}  # every model's held-out simulation, for the resampling
+    base_sim = model.summaries(base_params, {})  # at the fitting tiles' places
+    held_sims = {"baseline": model.summaries(base_params, {}, half="held")}  # every model's held-out simulation, for the resampling
+    baseline_gap = gap(held_real, held_sims["baseline"])[0]
+    base_all = np.vstack([base_sim, held_sims["baseline"]])  # both halves' places, for "where"
     steps.advance()
 
     # screen: regress the standardised residual on each effect's signature (finite difference)
@@ -144,12 +145,12 @@ def diagnose_tiles(
             start_params = {("baseline", k): v for k, v in base_params.items()}
             baseline_params, effect_params, fit_gap = _fit(model, fit_real, [effect_id], start=start_params, measured=measured, evaluations=settings.evaluations, spread=spread)
             entry["gap_fit"] = float(fit_gap)  # on the fitting tiles: never above the baseline's (`_fit` keeps its start)
-            held_sims[effect_id] = model.summaries(baseline_params, effect_params)
+            held_sims[effect_id] = model.summaries(baseline_params, effect_params, half="held")
             gap_after = gap(held_real, held_sims[effect_id])[0]
             # ablation at the optimum: the same fit with the effect switched off. A refit can
             # lower the gap by moving the baseline alone (out of an over-fitted optimum of
             # the fitting tiles); only what switching the effect on adds is the effect's.
-            held_sims[f"{effect_id} off"] = model.summaries(baseline_params, {})
+            held_sims[f"{effect_id} off"] = model.summaries(baseline_params, {}, half="held")
             entry["gap_ablated"] = float(gap(held_real, held_sims[f"{effect_id} off"])[0])
             fitted[effect_id] = (baseline_params, effect_params)
             entry["params"] = {**effect_params[effect_id], **{f"baseline.{k}": v for k, v in baseline_params.items()}}
@@ -158,14 +159,14 @@ def diagnose_tiles(
             # not refitted: the best of a coarse scan (off, weak, strong) with the baseline's parameters
             scan = [(baseline_gap, dict(EFFECTS[effect_id].neutral))]
             settings_scanned = [_with_measured(effect_id, setting, measured) for setting in EFFECTS[effect_id].injections]
-            scan += [(gap(held_real, model.summaries(base_params, {effect_id: setting}))[0], setting) for setting in settings_scanned]
+            scan += [(gap(held_real, model.summaries(base_params, {effect_id: setting}, half="held"))[0], setting) for setting in settings_scanned]
             gap_after, entry["params"] = min(scan, key=lambda pair: pair[0])
         entry["gap_after"] = float(gap_after)
         entry["shrink"] = float(1.0 - gap_after / baseline_gap) if baseline_gap > 0 else 0.0
         effects_report.append(entry)
 
     # evidence with its uncertainty: resample the held-out real tiles and the simulation seeds
-    draws = resampled_gaps(held_real, held_sims, spread=spread, resamples=settings.resamples, seed=settings.seed)
+    draws = resampled_gaps(held_real, held_sims, spread=spread, resamples=settings.resamples, seed=settings.seed, paired=model.paired)
     for entry in effects_report:
         if entry["confirmed"]:
             reduction = draws["baseline"] - draws[entry["id"]]
@@ -188,7 +189,7 @@ def diagnose_tiles(
         baseline_params, effect_params, _ = _fit(model, fit_real, pair, start=start_params, measured=measured, evaluations=settings.evaluations, spread=spread)
         waterfall.append({
             "model": f"+{pair[0]}+{pair[1]}",
-            "gap": float(gap(held_real, model.summaries(baseline_params, effect_params))[0]),
+            "gap": float(gap(held_real, model.summaries(baseline_params, effect_params, half="held"))[0]),
             "params": {effect_id: dict(effect_params[effect_id]) for effect_id in pair},  # the joint fit, for `effects_from_report`
         })
     steps.advance()
@@ -200,7 +201,7 @@ def diagnose_tiles(
             "baseline_fit": float(base_fit_gap),
             "baseline_interval": [float(v) for v in np.quantile(draws["baseline"], (0.05, 0.95))],
             "baseline_params": base_params,
-            **where_gap(real, base_sim, names),
+            **where_gap(real, base_all, names),
         },
         "known": known,
         "effects": effects_report,
@@ -214,7 +215,7 @@ def diagnose_tiles(
     }
     seconds = time.perf_counter() - start
     report["seconds"] = round(seconds, 2)
-    return Diagnosis(report, names, real, base_sim, seconds)
+    return Diagnosis(report, names, real, base_all, seconds)
 
 
 def diagnose_hologram(

@@ -14,7 +14,7 @@ _VERDICT_MIN_REDUCTION = 0.5
 _VERDICT_MIN_SHRINK = 0.3
 
 
-def resampled_gaps(real: np.ndarray, sims: dict, *, spread: np.ndarray, resamples: int, seed: int = 0) -> dict:
+def resampled_gaps(real: np.ndarray, sims: dict, *, spread: np.ndarray, resamples: int, seed: int = 0, paired: bool = False) -> dict:
     """Each model's gap on bootstrap resamples of what the gap depends on.
 
     Parameters
@@ -29,6 +29,10 @@ def resampled_gaps(real: np.ndarray, sims: dict, *, spread: np.ndarray, resample
     resamples : int
         Bootstrap draws: real tiles and simulation seeds, each drawn with replacement, paired
         across models (differences between models keep their correlation).
+    paired : bool
+        Row i of ``real`` and of every simulation lie at one place of the field (`_Model.paired`):
+        draw each place once for both, so that what depends on the place (a vignetting's tilt)
+        is not counted as sampling noise.
 
     Returns
     -------
@@ -36,8 +40,9 @@ def resampled_gaps(real: np.ndarray, sims: dict, *, spread: np.ndarray, resample
     """
     rng = np.random.default_rng([seed, 17])
     n_real, n_sim = len(real), len(next(iter(sims.values())))
-    real_means = real[rng.integers(0, n_real, (resamples, n_real))].mean(axis=1)
-    sim_draw = rng.integers(0, n_sim, (resamples, n_sim))
+    real_draw = rng.integers(0, n_real, (resamples, n_real))
+    sim_draw = real_draw if paired else rng.integers(0, n_sim, (resamples, n_sim))
+    real_means = real[real_draw].mean(axis=1)
     scale = spread * np.sqrt(1.0 / n_real + 1.0 / n_sim)
     return {name: np.maximum(0.0, np.mean(np.minimum(((real_means - sim[sim_draw].mean(axis=1)) / scale) ** 2, 1e4), axis=1) - 1.0) for name, sim in sims.items()}
 
