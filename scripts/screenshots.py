@@ -7,6 +7,7 @@ training, prediction, gap diagnosis), each step's output feeding the next. It sa
 after its run, the window with the particles in 2-D on their plane and in 3-D, into
 docs/figures/. About 12 minutes on 2 CPU cores (``--quick``: a token run of about 2 minutes
 that checks the script, not the figures). Work files go to ``--out`` (default a temporary folder).
+``--roi-preview`` makes only roi_preview.png (the reference ROI with its I_e before any run, seconds).
 """
 
 from __future__ import annotations
@@ -46,11 +47,30 @@ def run_step(dock, step) -> None:
     settle(0.5)
 
 
+def place_roi(viewer, dock, hologram, figures: Path) -> None:
+    """Put the reference ROI on the hologram's middle tile and save the window once its I_e preview is shown."""
+    step = dock.calibration
+    dock.tabs.setCurrentWidget(step.root_native_widget)
+    step.hologram.value = hologram
+    step.config.line_edit.value = ""
+    step.add_roi.clicked.emit()
+    roi = viewer.layers["reference ROI"]
+    roi.data = [np.array([[384.0, 384.0], [640.0, 640.0]])]
+    settle(1.0)
+    while "I_e (experiment)" not in viewer.layers or step._preview_running is not None or step._preview_timer.isActive():
+        settle(0.2)
+    viewer.scene.camera.center = tuple(np.asarray(hologram.scale) * 512)
+    viewer.scene.camera.zoom = viewer.window._qt_viewer.canvas.native.height() / (1.6 * 512 * hologram.scale[0])
+    settle(1.0)
+    viewer.window._qt_window.grab().save(str(figures / "roi_preview.png"))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=None, help="work folder (calibration, data set, model, report)")
     parser.add_argument("--quick", action="store_true", help="a token run that checks the script")
     parser.add_argument("--figures", type=Path, default=FIGURES, help="where the PNGs go (default docs/figures)")
+    parser.add_argument("--roi-preview", action="store_true", help="make only roi_preview.png")
     args = parser.parse_args()
     figures = args.figures
     work = args.out or Path(tempfile.mkdtemp(prefix="lbs-screenshots-"))
@@ -63,6 +83,10 @@ def main() -> None:
     hologram = viewer.open_sample("napari-lbs", "real_hologram")[0]
     _, dock = viewer.window.add_plugin_dock_widget("napari-lbs", "LBS workflow")
     settle(1.0)
+    if args.roi_preview:
+        place_roi(viewer, dock, hologram, figures)
+        viewer.close()
+        return
 
     step = dock.backprop
     step.hologram.value = hologram
@@ -70,12 +94,9 @@ def main() -> None:
     run_step(dock, step)
     stack = viewer.layers["LBS real hologram z-stack"]
 
+    place_roi(viewer, dock, hologram, figures)
+    viewer.reset_view()
     step = dock.calibration
-    step.hologram.value = hologram
-    step.config.line_edit.value = ""
-    step.add_roi.clicked.emit()
-    roi = viewer.layers["reference ROI"]
-    roi.data = [np.array([[384.0, 384.0], [640.0, 640.0]])]
     step.generations.value, step.population.value = (3, 6) if args.quick else (40, 12)
     step.output.value = work / "calibration.json"
     run_step(dock, step)

@@ -80,7 +80,11 @@ def test_real_sample_hologram_opens_with_micrometre_scale(make_napari_viewer):
     assert "MIT" in layer.metadata["provenance"]["source"]
 
 
-def test_workflow_dock_drives_the_whole_workflow_on_the_synthetic_sample(make_napari_viewer, qtbot, tmp_path, notifications):
+def integer_ticks(axes) -> bool:
+    return all(float(tick).is_integer() for tick in axes.get_xticks())
+
+
+def test_workflow_dock_drives_the_whole_workflow_on_the_synthetic_sample(make_napari_viewer, qtbot, tmp_path, notifications, recwarn):
     viewer = make_napari_viewer(show=True)
     viewer.window._qt_window.resize(1280, 800)
     hologram, truth = viewer.open_sample("napari-lbs", "synthetic_hologram")
@@ -90,6 +94,7 @@ def test_workflow_dock_drives_the_whole_workflow_on_the_synthetic_sample(make_na
     window = viewer.window._qt_window
     assert window.width() <= 1280 and window.height() <= 800, (window.width(), window.height())
     assert dock.width() <= 400 and viewer.window._qt_viewer.canvas.native.width() >= 500
+    assert all(field.tooltip for step in dock.steps for field in step._fields)
 
     # the particle table writer and reader round-trip through napari's own save/open
     truth_csv = tmp_path / "truth.csv"
@@ -131,6 +136,7 @@ def test_workflow_dock_drives_the_whole_workflow_on_the_synthetic_sample(make_na
     assert i_s.translate[1] > i_e.translate[1] + TILE * 2.2
     assert "SSIM" in step._status.value and len(step._plot.axes.lines) == 1
     assert [r["generation"] for r in step._live_history] == [1, 2]  # the curve grew generation by generation
+    assert step._plot.axes.get_legend() is not None and integer_ticks(step._plot.axes)
 
     # 3: synthetic data, fed the calibration just written
     step = dock.generate
@@ -154,6 +160,12 @@ def test_workflow_dock_drives_the_whole_workflow_on_the_synthetic_sample(make_na
     qtbot.waitUntil(lambda: step._worker is None, timeout=TIMEOUT_MS)
     assert shown and max(shown) > 0 and step._bar.value > 0 and "took" in step._timing.value
     assert (tmp_path / "m.pt").is_file() and step._plot.batches and step._plot.epochs
+    # its plot: on napari's dark theme, legended, whole batches, not squashed in the dock
+    dock.tabs.setCurrentWidget(step.root_native_widget)
+    qtbot.wait(100)
+    plot = step._plot
+    assert sum(plot.canvas.figure.get_facecolor()[:3]) < 0.9 and plot.canvas.height() >= 150
+    assert plot.ji_axes.get_legend() is not None and integer_ticks(plot.loss_axes)
 
     # 5: prediction, fed the model, scored against the truth saved above
     step = dock.prediction
@@ -168,6 +180,19 @@ def test_workflow_dock_drives_the_whole_workflow_on_the_synthetic_sample(make_na
     # a result stays until the step runs again
     viewer.add_image(np.zeros((8, 8), np.float32), name="extra", scale=(2.2, 2.2), units="µm")
     assert "JI" in step._status.value and "ready" not in step._status.value
+    assert "SSIM" in dock.calibration._status.value and "groups" in dock.generate._status.value
+
+    # 6: gap diagnosis, a map with a colour bar over the hologram
+    step = dock.diagnosis
+    step.hologram.value = hologram
+    step.config.value = config
+    step.tile.value, step.sim_tiles.value, step.evaluations.value = 128, 2, 8
+    step.output.line_edit.value = ""
+    assert not step._run.enabled and "choose where to save" in step._status.value
+    step.output.value = tmp_path / "gap"
+    run_to_end(qtbot, step)
+    gap_map = viewer.layers["gap by region"]
+    assert gap_map.colorbar.visible and gap_map.data.shape == (4, 4) and (tmp_path / "gap" / "report.json").is_file()
 
     # the z slider steps through planes and every layer is in µm (no napari units warning)
     qtbot.wait(300)
@@ -178,6 +203,119 @@ def test_workflow_dock_drives_the_whole_workflow_on_the_synthetic_sample(make_na
     assert 0 in shown and shown == set(np.flatnonzero(np.round(truth.data[:, 0]) == plane).tolist())
     assert all(str(unit) == "micrometer" for layer in viewer.layers for unit in layer.units), {layer.name: layer.units for layer in viewer.layers}
     assert not [m for m in notifications if "Inconsistent units" in m], notifications
+    assert not [w for w in recwarn if "out_of_slice_display" in str(w.message)]
+
+
+def test_the_roi_shows_its_tile_reference_image_before_any_run(make_napari_viewer, qtbot, tmp_path, monkeypatch):
+    from napari_lbs._core import experimental_reference, load_config, reference_planes
+    from napari_lbs._widgets import _calibration
+
+    planes_made, references_made = [], []
+
+    def counted_planes(*args, **kwargs):
+        planes_made.append(1)
+        return reference_planes(*args, **kwargs)
+
+    def slow_reference(stack, **kwargs):  # slow enough to be overtaken by a newer move
+        references_made.append(1)
+        time.sleep(0.4)
+        return experimental_reference(stack, **kwargs)
+
+    monkeypatch.setattr(_calibration, "reference_planes", counted_planes)
+    monkeypatch.setattr(_calibration, "experimental_reference", slow_reference)
+    viewer = make_napari_viewer()
+    hologram, _ = viewer.open_sample("napari-lbs", "synthetic_hologram")
+    step = workflow_dock(viewer).calibration
+    config = tiny_config_file(tmp_path / "tiny.toml")
+    step.hologram.value = hologram
+    step.config.value = config
+    step.add_roi.clicked.emit()
+    roi = viewer.layers["reference ROI"]
+
+    def place(row, col):  # the user draws the rectangle anew; the tool keeps only the newest
+        roi.add_rectangles(np.array([[row, col], [row + TILE, col + TILE]], float))
+
+    def idle():
+        return step._preview_running is None and not step._preview_timer.isActive()
+
+    # dragged through three places in quick succession: one computation once it rests, on the last place
+    for row, col in ((10, 20), (30, 40), (100, 201)):
+        place(row, col)
+    qtbot.waitUntil(lambda: "I_e (experiment)" in viewer.layers and idle(), timeout=60_000)
+    i_e = viewer.layers["I_e (experiment)"]
+    assert len(planes_made) == 1 and len(references_made) == 1
+    assert tuple(i_e.translate) == pytest.approx((100 * 2.2, 201 * 2.2)) and tuple(i_e.scale) == pytest.approx((2.2, 2.2))
+    assert all(str(unit) == "micrometer" for unit in i_e.units)
+    planes = reference_planes(np.asarray(hologram.data), load_config(config))
+    np.testing.assert_allclose(i_e.data, experimental_reference(planes[:, 100 : 100 + TILE, 201 : 201 + TILE]), atol=1e-6)
+    # one image, under the ROI, and the ROI stays in hand
+    assert viewer.layers.index(i_e) < viewer.layers.index(roi) and viewer.layers.selection.active is roi
+    assert [layer.name for layer in viewer.layers].count("I_e (experiment)") == 1
+
+    # moved while a preview is being computed: the stale one never shows, the newest does
+    shown = []
+    i_e.events.translate.connect(lambda event: shown.append(tuple(np.round(i_e.translate / 2.2))))
+    place(200, 60)
+    qtbot.waitUntil(lambda: step._preview_running is not None, timeout=5_000)
+    place(300, 400)
+    qtbot.waitUntil(lambda: len(references_made) == 3 and idle(), timeout=30_000)
+    assert shown == [(300, 400)] and len(planes_made) == 1  # the planes are reused while hologram and config stay
+    np.testing.assert_allclose(i_e.data, experimental_reference(planes[:, 300 : 300 + TILE, 400 : 400 + TILE]), atol=1e-6)
+
+
+def test_particle_tables_are_saved_and_opened_without_choosing_a_plugin(make_napari_viewer, tmp_path, monkeypatch):
+    import napari.settings
+    from napari._app_model import get_app_model
+    from napari._qt import qt_viewer
+    from napari._qt.dialogs.qt_reader_dialog import QtReaderDialog, open_with_dialog_choices
+    from napari.plugins import _npe2
+    from qtpy.QtWidgets import QFileDialog
+
+    from napari_lbs._core import PARTICLE_COLUMNS
+
+    monkeypatch.setattr(napari.settings, "_SETTINGS", napari.settings.NapariSettings(config_path=tmp_path / "napari-settings.yaml"))
+    viewer = make_napari_viewer()
+    _, truth = viewer.open_sample("napari-lbs", "synthetic_hologram")
+    path = tmp_path / "truth.csv"
+    io_menu = next(action.menu() for action in viewer.window.file_menu.actions() if action.menu() and action.text() == "IO Utilities")
+    assert {"Save particle table (LBS holography)", "Open particle table (LBS holography)"} <= {action.text() for action in io_menu.actions()}
+
+    # File → IO Utilities → Save particle table: the active Points layer, as the particle table, no writer to pick
+    monkeypatch.setattr(QFileDialog, "getSaveFileName", staticmethod(lambda *args, **kwargs: (str(tmp_path / "truth"), "")))
+    viewer.layers.selection.active = truth
+    get_app_model().commands.execute_command("napari-lbs.save_particle_table").result()
+    table = read_particles(path)
+    assert tuple(table)[:4] == PARTICLE_COLUMNS and len(table["x_um"]) == 48
+    # napari's own Save dialog offers the particle table for a Points layer too
+    assert "LBS holography particle table (*.csv)" in _npe2.file_extensions_string_for_layers([truth])[0].split(";;")
+
+    # File → IO Utilities → Open particle table: no reader to pick
+    monkeypatch.setattr(QFileDialog, "getOpenFileNames", staticmethod(lambda *args, **kwargs: ([str(path)], "")))
+    opened = get_app_model().commands.execute_command("napari-lbs.open_particle_table").result()
+    np.testing.assert_allclose(opened[0].data, truth.data, atol=1e-5)
+    np.testing.assert_allclose(opened[0].features["diameter_um"], truth.features["diameter_um"], rtol=1e-6)
+
+    # drag and drop / File → Open (napari's _qt_open): napari asks once, with LBS holography chosen ...
+    asked = []
+    monkeypatch.setattr(qt_viewer, "handle_gui_reading", lambda paths, *args, **kwargs: asked.append(paths))
+    viewer.window._qt_viewer._qt_open([str(path)], stack=False)
+    assert asked == [[str(path)]]
+    readers = _npe2.get_readers(str(path))
+    dialog = QtReaderDialog(pth=str(path), readers=readers)
+    assert dialog._get_plugin_choice() == "LBS holography"
+    # ... and after OK with "remember" ticked, particle tables open without asking
+    open_with_dialog_choices("LBS holography", True, dialog._extension, readers, [str(path)], False, viewer.window._qt_viewer)
+    viewer.window._qt_viewer._qt_open([str(path)], stack=False)
+    assert len(asked) == 1 and viewer.layers[-1].metadata["source"] == str(path) and tuple(viewer.layers[-1].units) == tuple(truth.units)
+    np.testing.assert_allclose(viewer.layers[-1].data, truth.data, atol=1e-5)
+    # napari's own Points CSVs still open as before, handed on to napari's reader
+    napari_csv = tmp_path / "napari-points.csv"
+    viewer.layers.selection.active = truth
+    viewer.layers.save(str(napari_csv), selected=True)  # napari's writer: index,axis-0,...
+    assert napari_csv.read_text().startswith("index,axis-0")
+    viewer.window._qt_viewer._qt_open([str(napari_csv)], stack=False)
+    assert len(asked) == 1 and viewer.layers[-1].name.startswith("napari-points")
+    np.testing.assert_allclose(viewer.layers[-1].data, truth.data, atol=1e-5)
 
 
 def test_prediction_stop_is_acknowledged_at_once(make_napari_viewer, qtbot, tmp_path):
@@ -222,6 +360,8 @@ def test_settings_are_restored_as_typed(make_napari_viewer, tmp_path):
     assert dock.generate.output.value == tmp_path / "to-make"
     dock.training.output.line_edit.value = ""
     assert not dock.training._run.enabled
+    dock.prediction.model.line_edit.value = ""
+    assert not dock.prediction._run.enabled and "choose a model" in dock.prediction._status.value and "not found" not in dock.prediction._status.value
 
 
 def test_an_rgb_hologram_is_reduced_with_a_notification(make_napari_viewer, qtbot, tmp_path, notifications):

@@ -2,11 +2,20 @@
 
 A table read here lands on the default config's plane grid (`napari_lbs._layers`), so its
 particles line up with a back-propagated stack of the default depths.
+
+napari 0.9 has its own Points CSV reader and writer (``index,axis-0,…``), and a plugin cannot
+rank above them: a ``.csv`` matches both readers, so napari asks which one (until the user
+ticks "remember", stored in ``settings.plugins.extension2reader``), and its own writer comes
+first in *Save Selected Layers…*. Hence two menu commands (*File → IO Utilities*) that read
+and write particle tables without a choice, and a reader that hands any CSV that is not a
+particle table on to napari's, so remembering "LBS holography" for ``.csv`` loses nothing.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
+
+import napari
 
 from napari_lbs._core import PARTICLE_COLUMNS, load_config, read_particles, write_particles
 from napari_lbs._layers import PlaneGrid, particle_points, points_table
@@ -22,10 +31,17 @@ def _is_particle_table(path: str) -> bool:
 
 
 def get_reader(path):
-    """Return a reader for a particle CSV, or None for anything else (napari then asks other plugins)."""
-    if isinstance(path, list) or not str(path).lower().endswith(".csv") or not _is_particle_table(str(path)):
+    """Return a reader for one CSV: particle tables become Points, any other CSV goes to napari's own reader; None for anything else."""
+    if isinstance(path, list) or not str(path).lower().endswith(".csv"):
         return None
-    return read_particle_csv
+    return read_particle_csv if _is_particle_table(str(path)) else _read_with_napari
+
+
+def _read_with_napari(path):
+    """A CSV that is not a particle table, read by napari's built-in reader (its Points/Shapes tables)."""
+    from npe2 import read
+
+    return read([path], stack=False, plugin_name="napari")
 
 
 def read_particle_csv(path):
@@ -44,3 +60,26 @@ def write_particle_csv(path: str, data, attributes: dict) -> list[str]:
     table = points_table(data, scale=attributes.get("scale", (1.0, 1.0, 1.0)), translate=attributes.get("translate", (0.0, 0.0, 0.0)), features=attributes.get("features"), size=attributes.get("size"))
     write_particles(path, table)
     return [path]
+
+
+def save_particle_table(viewer: napari.viewer.Viewer) -> list[str]:
+    """*File → IO Utilities → Save particle table*: the active Points layer as a particle table, no writer to choose."""
+    from napari.utils.notifications import show_info
+    from qtpy.QtWidgets import QFileDialog
+
+    layer = viewer.layers.selection.active
+    if not isinstance(layer, napari.layers.Points):
+        show_info("Save particle table: select a Points layer first")
+        return []
+    path, _ = QFileDialog.getSaveFileName(None, "Save particle table", f"{layer.name}.csv", "Particle table (*.csv)")
+    if not path:
+        return []
+    return layer.save(path if path.lower().endswith(".csv") else f"{path}.csv", plugin="napari-lbs")
+
+
+def open_particle_table(viewer: napari.viewer.Viewer) -> list:
+    """*File → IO Utilities → Open particle table*: particle tables as Points, no reader to choose."""
+    from qtpy.QtWidgets import QFileDialog
+
+    paths, _ = QFileDialog.getOpenFileNames(None, "Open particle table", "", "Particle table (*.csv)")
+    return [layer for path in paths for layer in viewer.open(path, plugin="napari-lbs")]

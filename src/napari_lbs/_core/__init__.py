@@ -14,7 +14,7 @@ import importlib
 _NAMES = {
     "_calibration": (
         "PARAM_BOUNDS", "CalibrationResult", "CalibrationSettings", "HoloParams", "calibrate", "calibrate_hologram", "choose_reference_tile",
-        "experimental_planes", "experimental_reference", "holo_processing", "score_params",
+        "experimental_planes", "experimental_reference", "holo_processing", "reference_planes", "score_params",
     ),
     "_config": (
         "ConfigError", "ExperimentConfig", "OpticsConfig", "ParticlesConfig", "TileConfig", "VolumeConfig", "load_config", "write_config",

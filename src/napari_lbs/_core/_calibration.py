@@ -49,6 +49,7 @@ __all__ = [
     "experimental_reference",
     "experimental_planes",
     "choose_reference_tile",
+    "reference_planes",
     "calibrate",
     "calibrate_hologram",
     "score_params",
@@ -451,6 +452,25 @@ def choose_reference_tile(stack: np.ndarray, *, size: int) -> tuple[tuple[int, i
     return origins[index], f"medoid of {len(origins)} non-overlapping {size}² tiles by mean, contrast and texture of I_e and plane statistics"
 
 
+def reference_planes(hologram: np.ndarray, config: ExperimentConfig, *, background: np.ndarray | None = None) -> np.ndarray:
+    """The whole hologram back-propagated to the reference planes, as calibration sees it.
+
+    The planes are ``config.layer_depths_um()`` (``z_min_um`` … ``z_max_um`` every
+    ``particles.layer_step_um``); a tile's ``experimental_reference(planes[:, y:y+size, x:x+size])``
+    is the ``I_e`` that `calibrate_hologram` compares against.
+
+    Returns
+    -------
+    (len(config.layer_depths_um()), rows, cols) float32 array
+    """
+    rows, cols = np.shape(hologram)
+    planes_um = config.layer_depths_um()
+    check_memory(len(planes_um) * rows * cols * np.dtype(np.float32).itemsize, what=f"{len(planes_um)} reference planes of {rows}x{cols} pixels",
+                 remedy="raise particles.layer_step_um or crop the hologram")
+    return backpropagate(hologram, planes_um, background=background, wavelength_um=config.optics.wavelength_um,
+                         pixel_um=config.optics.pixel_um, medium_index=config.optics.medium_index)
+
+
 def calibrate_hologram(
     hologram: np.ndarray,
     config: ExperimentConfig,
@@ -464,8 +484,8 @@ def calibrate_hologram(
 ) -> CalibrationResult:
     """Calibrate Holo-processing to a real hologram: the `napari-lbs calibrate` step.
 
-    The whole hologram is back-propagated to the reference planes (``z_min_um`` …
-    ``z_max_um`` every ``particles.layer_step_um``) so the tile keeps its true surroundings;
+    The whole hologram is back-propagated to the reference planes (`reference_planes`) so
+    the tile keeps its true surroundings;
     ``roi = (x, y)`` is the tile's top-left pixel, or None to let `choose_reference_tile` pick.
     The simulated fields have ``particles.per_tile`` particles on the same layers.
     """
@@ -478,10 +498,8 @@ def calibrate_hologram(
         if x < 0 or y < 0 or x + size > cols or y + size > rows:
             raise InputError(f"roi: a {size}² tile at x={x}, y={y} crosses the edge of the {cols}x{rows} (x by y) hologram")
     planes_um = config.layer_depths_um()
-    check_memory(len(planes_um) * rows * cols * np.dtype(np.float32).itemsize, what=f"{len(planes_um)} reference planes of {rows}x{cols} pixels",
-                 remedy="raise particles.layer_step_um or crop the hologram")
     optics = {"wavelength_um": config.optics.wavelength_um, "pixel_um": config.optics.pixel_um, "medium_index": config.optics.medium_index}
-    stack = backpropagate(hologram, planes_um, background=background, **optics)
+    stack = reference_planes(hologram, config, background=background)
     if roi is None:
         (x, y), reason = choose_reference_tile(stack, size=size)
     else:

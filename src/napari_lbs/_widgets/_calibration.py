@@ -1,4 +1,10 @@
-"""Step 2: GA calibration of Holo-processing on one reference tile (a Shapes rectangle)."""
+"""Step 2: GA calibration of Holo-processing on one reference tile (a Shapes rectangle).
+
+Before any run the ROI shows its tile's reference image ``I_e`` (the image calibration
+compares against): each move of the rectangle is debounced, the whole hologram's reference
+planes are back-propagated once in a ``thread_worker`` (kept while hologram and config stay
+the same) and the tile's ``I_e`` is cut from them; a result overtaken by a newer move is dropped.
+"""
 
 from __future__ import annotations
 
@@ -6,8 +12,9 @@ from pathlib import Path
 
 import numpy as np
 from magicgui.widgets import ComboBox, PushButton, SpinBox, create_widget
+from qtpy.QtCore import QTimer
 
-from napari_lbs._core import CalibrationSettings, calibrate_hologram, write_json
+from napari_lbs._core import CalibrationSettings, calibrate_hologram, experimental_reference, reference_planes, write_json
 from napari_lbs._layers import UNITS
 from napari_lbs._widgets._backprop import CONFIG_TOOLTIP, HOLOGRAM_TOOLTIP
 from napari_lbs._widgets._base import StepWidget, config_from, config_problem, doc_of, hologram_data, hologram_problem, output_problem, path_edit
@@ -16,7 +23,10 @@ from napari_lbs._widgets._plots import FitnessPlot
 __all__ = ["CalibrationWidget"]
 
 ROI_NAME = "reference ROI"
+I_E_NAME = "I_e (experiment)"
+I_S_NAME = "I_s (synthetic)"
 _GAP_PX = 8  # between I_e and I_s, side by side
+PREVIEW_DELAY_MS = 300  # the ROI must rest this long before its I_e is computed
 
 
 class CalibrationWidget(StepWidget):
@@ -46,6 +56,18 @@ class CalibrationWidget(StepWidget):
         self.add_roi.changed.connect(self._add_roi)
         self.result = None
         self._live_history: list[dict] = []
+        self._preview_timer = QTimer(self.native)
+        self._preview_timer.setSingleShot(True)
+        self._preview_timer.setInterval(PREVIEW_DELAY_MS)
+        self._preview_timer.timeout.connect(self._start_preview)
+        self._preview_wanted = 0  # counts requests: a result for an older one is stale
+        self._preview_running: int | None = None  # the request being computed
+        self._planes_cache: tuple | None = None  # (key, reference planes of the whole hologram)
+        self._watched_roi = None
+        for widget in (self.hologram, self.config, self.mode):
+            widget.changed.connect(self._schedule_preview)
+        self.roi.changed.connect(self._watch_roi)
+        self._watch_roi()
 
     def problem(self):
         problem = hologram_problem(self.hologram.value) or config_problem(self.config)
@@ -95,6 +117,89 @@ class CalibrationWidget(StepWidget):
         row, col = np.round(np.asarray(shapes.data[0]).min(axis=0)).astype(int)[-2:]
         return int(col), int(row)
 
+    # -- the ROI's I_e, before any run ------------------------------------------------------------
+    def _watch_roi(self, *_) -> None:
+        """Follow the chosen ROI layer's rectangle (and only that layer's)."""
+        if self._watched_roi is not None:
+            self._watched_roi.events.data.disconnect(self._schedule_preview)
+        self._watched_roi = self.roi.value
+        if self._watched_roi is not None:
+            self._watched_roi.events.data.connect(self._schedule_preview)
+        self._schedule_preview()
+
+    def _schedule_preview(self, *_) -> None:
+        self._preview_wanted += 1
+        self._preview_timer.start()  # restarts: a moving ROI is computed once it rests
+
+    def _preview_request(self):
+        """What the preview needs, read in the GUI thread, or None while it cannot be made."""
+        layer, origin = self.hologram.value, self._roi_origin()
+        if origin is None or hologram_problem(layer) or config_problem(self.config):
+            return None
+        config = config_from(self.config)
+        size = config.tile.size
+        rows, cols = layer.data.shape[:2]
+        x, y = origin
+        if x < 0 or y < 0 or x + size > cols or y + size > rows:
+            return None
+        key = (id(layer.data), repr(config))
+        cached = self._planes_cache if self._planes_cache is not None and self._planes_cache[0] == key else None
+        return key, None if cached else hologram_data(layer), cached[1] if cached else None, config, origin, self.mode.value, layer
+
+    def _start_preview(self) -> None:
+        from napari.qt.threading import thread_worker
+        from napari.utils.notifications import show_warning
+
+        if self._preview_running is not None:
+            return  # `_preview_finished` starts the newest request
+        request = self._preview_request()
+        if request is None:
+            return
+        key, hologram, planes, config, (x, y), mode, layer = request
+        size = config.tile.size
+
+        @thread_worker(start_thread=False)
+        def compute():
+            stack = reference_planes(hologram, config) if planes is None else planes
+            return key, stack, experimental_reference(stack[:, y : y + size, x : x + size], mode=mode)
+
+        self._preview_running = self._preview_wanted
+        worker = compute()
+        worker.returned.connect(lambda outcome, request=self._preview_running: self._show_preview(request, outcome, (x, y), layer))
+        worker.errored.connect(lambda error: show_warning(f"reference ROI preview: {error}"))
+        worker.finished.connect(self._preview_finished)
+        worker.start()
+
+    def _show_preview(self, request: int, outcome, origin, layer) -> None:
+        key, stack, image = outcome
+        self._planes_cache = (key, stack)
+        if request != self._preview_wanted:
+            return  # the ROI, hologram or config changed since: a newer preview follows
+        x, y = origin
+        self._put_image(I_E_NAME, image, layer, (y, x), {"napari_lbs_reference": "preview", "roi": [x, y]})
+
+    def _preview_finished(self) -> None:
+        started, self._preview_running = self._preview_running, None
+        if started != self._preview_wanted and not self._preview_timer.isActive():
+            self._start_preview()
+
+    def _put_image(self, name: str, data: np.ndarray, layer, corner_px: tuple[float, float], metadata: dict) -> None:
+        """Show ``data`` at pixel ``corner_px`` (row, col) of ``layer`` in µm: the plugin's layer of that name is updated, else added below the ROI."""
+        scale = np.asarray(layer.scale[-2:], float)
+        translate = tuple(np.asarray(layer.translate[-2:], float) + scale * np.asarray(corner_px, float))
+        existing = next((other for other in self._viewer.layers if other.name == name and "napari_lbs_reference" in other.metadata), None)
+        if existing is not None:
+            existing.data, existing.translate, existing.metadata = data, translate, metadata
+            existing.contrast_limits = (float(data.min()), float(data.max()) if data.max() > data.min() else float(data.min()) + 1.0)
+            return
+        active = self._viewer.layers.selection.active
+        added = self._viewer.add_image(data, name=name, scale=tuple(scale), translate=translate, units=UNITS, metadata=metadata)
+        roi = self.roi.value
+        if roi is not None and roi in self._viewer.layers:
+            self._viewer.layers.move(self._viewer.layers.index(added), self._viewer.layers.index(roi))
+        if active is not None:
+            self._viewer.layers.selection.active = active  # the ROI stays in hand
+
     def prepare(self):
         self._live_history = []
         self._plot.show_history([])
@@ -119,11 +224,9 @@ class CalibrationWidget(StepWidget):
         result, output, layer = outcome
         self.result = result
         x, y, size = result.roi
-        scale = np.asarray(layer.scale[-2:], float)
-        origin = np.asarray(layer.translate[-2:], float)
-        metadata = {"calibration": result.to_json(), "file": str(output)}
-        self._viewer.add_image(result.reference_experimental, name="I_e (experiment)", scale=tuple(scale), translate=tuple(origin + scale * (y, x)), units=UNITS, metadata=metadata)
-        self._viewer.add_image(result.reference_synthetic, name="I_s (synthetic)", scale=tuple(scale), translate=tuple(origin + scale * (y, x + size + _GAP_PX)), units=UNITS, metadata=metadata)
+        metadata = {"napari_lbs_reference": "calibration", "calibration": result.to_json(), "file": str(output)}
+        self._put_image(I_E_NAME, result.reference_experimental, layer, (y, x), metadata)
+        self._put_image(I_S_NAME, result.reference_synthetic, layer, (y, x + size + _GAP_PX), metadata)
         self._plot.show_history(result.history)
         p = result.params
         self.done(f"SSIM {result.ssim:.3f} at N_R={p.N_R:.3f}, N_σ={p.N_sigma:.3f}, γ={p.gamma:.3f}{' (stopped)' if result.stopped else ''} → {output.name}", output)
