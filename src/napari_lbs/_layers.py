@@ -48,6 +48,12 @@ class PlaneGrid:
         step = float(planes[1] - planes[0]) if len(planes) > 1 else 1.0
         return cls(float(planes[0]), step, float(pixel_um), (float(origin_um[0]), float(origin_um[1])))
 
+    @classmethod
+    def of_provenance(cls, provenance: dict, *, origin_um: tuple[float, float] = (0.0, 0.0)) -> PlaneGrid:
+        """The grid a prediction's particles lie on: its provenance's ``planes_um`` (first, last, count) and pixel pitch."""
+        first, last, count = provenance["planes_um"]
+        return cls.of_planes(np.linspace(first, last, int(count)), pixel_um=provenance["config"]["optics"]["pixel_um"], origin_um=origin_um)
+
     @property
     def scale(self) -> tuple[float, float, float]:
         """napari ``scale`` of a ``(plane, row, col)`` layer: ``(z_step_um, pixel_um, pixel_um)``."""
@@ -131,12 +137,10 @@ def track_lines(table: dict, grid: PlaneGrid) -> tuple[np.ndarray, dict]:
         ``scale``, ``translate``, ``units`` and ``axis_labels`` of the four axes after the
         track id: world coordinates are the table's ``(frame, z_um, y_um, x_um)``.
     """
-    keywords = _recording_keywords(grid)
-    world = np.stack([np.asarray(table[c], float) for c in ("frame", "z_um", "y_um", "x_um")], axis=1).reshape(-1, 4)
+    points, _ = frame_points(table, grid)  # the same (frame, plane, row, col) as the recording's Points
     track = np.asarray(table["track"], float)
-    order = np.lexsort((world[:, 0], track))
-    data = np.column_stack([track, (world - np.asarray(keywords["translate"])) / np.asarray(keywords["scale"])])[order]
-    return data, keywords
+    order = np.lexsort((points[:, 0], track))
+    return np.column_stack([track, points])[order], _recording_keywords(grid)
 
 
 def points_table(data, *, scale, translate, features=None, size=None) -> dict[str, np.ndarray]:

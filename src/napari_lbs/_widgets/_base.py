@@ -25,7 +25,10 @@ from qtpy.QtWidgets import QSizePolicy
 
 from napari_lbs._core import Stopped, as_hologram, load_config
 
-__all__ = ["StepWidget", "chosen", "config_from", "config_problem", "doc_of", "hologram_data", "hologram_problem", "missing", "output_problem", "path_edit", "wrapping_label"]
+__all__ = [
+    "StepWidget", "chosen", "config_from", "config_problem", "doc_of", "hologram_data", "hologram_problem", "missing", "model_config", "model_problem", "output_problem",
+    "path_edit", "wrapping_label",
+]
 
 
 class _Relay(QObject):
@@ -101,6 +104,19 @@ def output_problem(edit: FileEdit, label: str, *, folder: bool = False, suffix: 
 def config_from(edit: FileEdit):
     """The config a field names (empty: the defaults)."""
     return load_config(chosen(edit))
+
+
+def model_config(edit: FileEdit):
+    """The config a field names, or None when it is empty (the model's own config is used)."""
+    path = chosen(edit)
+    return load_config(path) if path is not None else None
+
+
+def model_problem(edit: FileEdit) -> str | None:
+    """Why a model field cannot be used (empty, or naming no file), or None."""
+    if chosen(edit) is None:
+        return "model file: choose a model (.pt) that Training wrote"
+    return missing(edit, "model")
 
 
 def config_problem(edit: FileEdit) -> str | None:

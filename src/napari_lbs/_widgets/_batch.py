@@ -7,9 +7,9 @@ import glob
 import numpy as np
 from magicgui.widgets import ComboBox, FloatSpinBox, SpinBox
 
-from napari_lbs._core import BACKGROUND_MODES, link_tracks, load_config, open_frames, predict_sequence, sequence_background
+from napari_lbs._core import BACKGROUND_MODES, link_tracks, open_frames, predict_sequence, sequence_background
 from napari_lbs._layers import PlaneGrid, frame_points, track_lines
-from napari_lbs._widgets._base import StepWidget, chosen, config_problem, doc_of, missing, path_edit
+from napari_lbs._widgets._base import StepWidget, chosen, config_problem, doc_of, model_config, model_problem, path_edit
 
 __all__ = ["BatchWidget"]
 
@@ -42,12 +42,10 @@ class BatchWidget(StepWidget):
                 return f"frames: {frames} not found"
             if not glob.glob(str(frames)):
                 return f"frames: no file matches {frames}"
-        if chosen(self.model) is None:
-            return "model file: choose a model (.pt) that Training wrote"
-        return missing(self.model, "model") or config_problem(self.config)
+        return model_problem(self.model) or config_problem(self.config)
 
     def prepare(self):
-        config = load_config(chosen(self.config)) if chosen(self.config) is not None else None
+        config = model_config(self.config)
         linking = {"search_range_um": self.search_range.value, "axial_search_range_um": self.axial_range.value or None, "memory": self.memory.value}
         return str(chosen(self.frames)), chosen(self.model), config, self.background.value, self.window.value, self.device.value, linking
 
@@ -58,8 +56,7 @@ class BatchWidget(StepWidget):
 
     def show(self, outcome):
         result, tracks, source, linking = outcome
-        first, last, count = result.provenance["planes_um"]
-        grid = PlaneGrid.of_planes(np.linspace(first, last, int(count)), pixel_um=result.provenance["config"]["optics"]["pixel_um"])
+        grid = PlaneGrid.of_provenance(result.provenance)
         metadata = {"provenance": result.provenance, "source": source, "linking": linking}
         frames, particles, found = result.provenance["frames"], len(tracks["x_um"]), np.unique(tracks["track"]).size
         data, keywords = frame_points(tracks, grid)

@@ -2,15 +2,13 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 from magicgui.widgets import ComboBox, create_widget
 
-from napari_lbs._core import load_config, match_particles, predict_particles, read_particles, score_particles
+from napari_lbs._core import match_particles, predict_particles, read_particles, score_particles
 from napari_lbs._layers import PlaneGrid, particle_points
 from napari_lbs._widgets._backprop import HOLOGRAM_TOOLTIP
-from napari_lbs._widgets._base import StepWidget, chosen, config_problem, doc_of, hologram_data, hologram_problem, missing, path_edit
+from napari_lbs._widgets._base import StepWidget, chosen, config_problem, doc_of, hologram_data, hologram_problem, missing, model_config, model_problem, path_edit
 
 __all__ = ["PredictionWidget"]
 
@@ -36,13 +34,10 @@ class PredictionWidget(StepWidget):
         super().__init__(napari_viewer, [self.hologram, self.model, self.config, self.device, self.reference])
 
     def problem(self):
-        model = chosen(self.model)
-        if model is None:
-            return "model file: choose a model (.pt) that Training wrote"
-        return hologram_problem(self.hologram.value) or missing(self.model, "model") or missing(self.reference, "reference") or config_problem(self.config)
+        return model_problem(self.model) or hologram_problem(self.hologram.value) or missing(self.reference, "reference") or config_problem(self.config)
 
     def prepare(self):
-        config = load_config(chosen(self.config)) if chosen(self.config) is not None else None
+        config = model_config(self.config)
         reference = read_particles(chosen(self.reference)) if chosen(self.reference) is not None else None
         layer = self.hologram.value
         return hologram_data(layer), chosen(self.model), config, self.device.value, reference, layer.name, tuple(layer.translate[-2:])
@@ -54,8 +49,7 @@ class PredictionWidget(StepWidget):
 
     def show(self, outcome):
         result, reference, name, origin = outcome
-        first, last, count = result.provenance["planes_um"]
-        grid = PlaneGrid.of_planes(np.linspace(first, last, int(count)), pixel_um=result.provenance["config"]["optics"]["pixel_um"], origin_um=origin)
+        grid = PlaneGrid.of_provenance(result.provenance, origin_um=origin)
         data, keywords = particle_points(result.particles, grid)
         metadata = {"provenance": result.provenance, "source": name}
         colours = np.tile(np.array([_FOUND]), (len(data), 1))
