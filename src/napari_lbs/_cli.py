@@ -333,9 +333,12 @@ def _cmd_train(args) -> None:
 
 def _predict_outputs(args) -> tuple[Path, Path]:
     """The particle table and its provenance JSON, refused where they would overwrite something else (inputs: `check_output_path`)."""
+    from napari_lbs._core import check_table_name
+
     out = Path(args.out)
     if out.suffix.lower() == ".json":
         raise ValueError(f"--out {out}: expected a particle table (.csv, or .parquet); its provenance is written beside it as .json")
+    check_table_name(out)  # a Parquet table without pyarrow is refused now, not after the work
     provenance = out.with_suffix(".json")
     if provenance.is_file():
         try:
@@ -398,9 +401,9 @@ def _predict_sequence(args, frames, config, out: Path, provenance: Path) -> None
 def _cmd_track(args) -> None:
     import numpy as np
 
-    from napari_lbs._core import DISPLACEMENT_COLUMNS, link_tracks, read_particles, write_particles
+    from napari_lbs._core import DISPLACEMENT_COLUMNS, check_table_name, link_tracks, read_particles, write_particles
 
-    out = check_output_path(args.out, flag="--out", inputs=[args.particles])
+    out = check_table_name(check_output_path(args.out, flag="--out", inputs=[args.particles]))
     table = read_particles(args.particles)
     if "frame" not in table:
         raise InputError(f"{args.particles}: no frame column; tracks need the table of a recording (predict with several frames)")

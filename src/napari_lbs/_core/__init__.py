@@ -36,7 +36,7 @@ _NAMES = {
     ),
     "_heatmaps": ("FocusSpec", "FocusTargets", "context_indices", "focus_targets"),
     "_io": (
-        "PARTICLE_COLUMNS", "InputError", "as_hologram", "read_hologram", "read_particles", "read_stack", "write_json", "write_particles",
+        "PARTICLE_COLUMNS", "InputError", "as_hologram", "check_table_name", "read_hologram", "read_particles", "read_stack", "write_json", "write_particles",
         "write_stack", "json_safe",
     ),
     "_metrics": ("AXIAL_TOL_UM", "LATERAL_TOL_UM", "depth_errors_um", "match_particles", "score_particles", "seed_scores"),

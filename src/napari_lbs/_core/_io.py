@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import glob
+import importlib.util
 import io
 import json
 import math
@@ -33,6 +34,7 @@ __all__ = [
     "write_stack",
     "read_particles",
     "write_particles",
+    "check_table_name",
     "write_json",
     "json_safe",
     "PARTICLE_COLUMNS",
@@ -248,12 +250,27 @@ def _is_parquet(path: str | Path) -> bool:
     return Path(path).suffix.lower() == ".parquet"
 
 
+def _no_pyarrow(path: Path) -> InputError:
+    return InputError(f"{path}: Parquet tables need pyarrow (pip install 'napari-lbs[sequences]')")
+
+
+def check_table_name(path: str | Path) -> Path:
+    """Refuse, before any work, a particle table that `write_particles` could not write: ``.parquet`` without pyarrow.
+
+    Only looks pyarrow up (no import), so a command stays quick to refuse and to start.
+    """
+    path = Path(path)
+    if _is_parquet(path) and importlib.util.find_spec("pyarrow") is None:
+        raise _no_pyarrow(path)
+    return path
+
+
 def _pyarrow(path: Path):
     try:
         import pyarrow
         import pyarrow.parquet
     except ImportError:
-        raise InputError(f"{path}: Parquet tables need pyarrow (pip install 'napari-lbs[sequences]')") from None
+        raise _no_pyarrow(path) from None
     return pyarrow
 
 
