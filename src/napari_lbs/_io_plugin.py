@@ -13,6 +13,7 @@ particle table on to napari's, so remembering "LBS holography" for ``.csv`` lose
 
 from __future__ import annotations
 
+import csv
 from pathlib import Path
 
 import napari
@@ -22,10 +23,11 @@ from napari_lbs._layers import PlaneGrid, particle_points, points_table
 
 
 def _is_particle_table(path: str) -> bool:
+    """Whether a CSV's header names the particle columns, read as `read_particles` reads it (a byte-order mark, quoted names)."""
     try:
-        with open(path, encoding="utf-8") as handle:
-            header = handle.readline().strip().split(",")
-    except (OSError, UnicodeDecodeError):
+        with open(path, encoding="utf-8-sig", newline="") as handle:
+            header = next(csv.reader(handle), [])
+    except (OSError, UnicodeDecodeError, csv.Error):
         return False
     return all(column in header for column in PARTICLE_COLUMNS)
 
