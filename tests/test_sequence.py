@@ -10,7 +10,6 @@ import pytest
 import tifffile
 
 from napari_lbs._core import (
-    ExperimentConfig,
     InputError,
     ParticleField,
     Stopped,
@@ -24,35 +23,9 @@ from napari_lbs._core import (
 )
 
 
-def tiny_config() -> ExperimentConfig:
-    return ExperimentConfig.from_dict({
-        "volume": {"z_min_um": 1800.0, "z_max_um": 2200.0, "z_step_um": 100.0},
-        "particles": {"per_tile": 3, "layer_step_um": 200.0},
-        "tile": {"size": 48},
-    })
-
-
 @pytest.fixture(scope="module")
-def detector(tmp_path_factory):
-    """A tiny focus model made eager: its centre logit raised so every frame gives a few dozen detections to compare."""
-    import torch
-
-    from napari_lbs._core import DatasetLayout, TrainingSettings, generate_dataset, load_model, save_model, train_model
-
-    folder = tmp_path_factory.mktemp("model")
-    data = generate_dataset(folder / "data", tiny_config(), groups=3, layout=DatasetLayout(kind="stack", context_planes=2), seed=5)
-    settings = TrainingSettings(epochs=1, batch_size=4, device="cpu", validation_groups=1, patch_size=32, context=(-2, -1, 0, 1, 2))
-    model = load_model(train_model(data, folder / "base.pt", settings=settings).model_path)
-    with torch.no_grad():
-        model.network.head.bias[0] += 3.0
-    model.meta["threshold"] = 0.1
-    save_model(folder / "eager.pt", model.network, model.meta)
-    return load_model(folder / "eager.pt")
-
-
-@pytest.fixture(scope="module")
-def vortex():
-    return simulate_sequence(tiny_config(), frames=5, flow="vortex", size=96, count=6, speed_um=6.0, seed=1)
+def vortex(tiny_config):
+    return simulate_sequence(tiny_config, frames=5, flow="vortex", size=96, count=6, speed_um=6.0, seed=1)
 
 
 # --- reading -----------------------------------------------------------------------------------
@@ -112,10 +85,10 @@ def test_folders_and_globs_sort_naturally_and_files_keep_input_order(tmp_path):
 # --- background --------------------------------------------------------------------------------
 
 
-def test_the_median_background_removes_a_static_pattern(vortex):
+def test_the_median_background_removes_a_static_pattern(vortex, tiny_config):
     rows, cols = np.indices((96, 96))
     pattern = (0.6 + 0.3 * np.sin(rows / 5.0) * np.cos(cols / 7.0) + 0.1 * (cols / 96)).astype(np.float32)  # fringes + vignetting
-    clean = simulate_sequence(tiny_config(), frames=9, flow="uniform", size=96, count=4, speed_um=30.0, seed=3).frames
+    clean = simulate_sequence(tiny_config, frames=9, flow="uniform", size=96, count=4, speed_um=30.0, seed=3).frames
     frames = clean * pattern
     recording = open_frames(frames)
     assert np.corrcoef(frames[4].ravel(), pattern.ravel())[0, 1] > 0.5  # the pattern dominates the raw frame
@@ -280,6 +253,21 @@ def test_a_parquet_table_round_trips_with_its_frame_column_and_metadata(tmp_path
     (tmp_path / "broken.parquet").write_text("x_um,y_um\n")
     with pytest.raises(InputError, match="broken.parquet: cannot be read as a Parquet table"):
         read_particles(tmp_path / "broken.parquet")
+
+
+def test_cli_refuses_a_parquet_output_without_pyarrow_before_any_work(tmp_path, monkeypatch, capsys):
+    import sys
+
+    from napari_lbs._cli import main
+
+    monkeypatch.setitem(sys.modules, "pyarrow", None)  # as if not installed
+    tifffile.imwrite(tmp_path / "holo.tif", np.ones((48, 48), np.float32))
+    (tmp_path / "p.csv").write_text("x_um,y_um,z_um,diameter_um,frame\n1,2,1800,20,0\n")
+    for command in (["predict", str(tmp_path / "holo.tif"), "--model", str(tmp_path / "absent.pt")], ["track", str(tmp_path / "p.csv")]):
+        assert main([*command, "--out", str(tmp_path / "out.parquet")]) == 2
+        error = capsys.readouterr().err.strip().splitlines()
+        assert len(error) == 1 and "out.parquet: Parquet tables need pyarrow" in error[0], error  # before the model is even looked at
+    assert not list(tmp_path.glob("out*"))
 
 
 def test_cli_predicts_and_tracks_into_parquet_and_reads_a_one_frame_video(tmp_path, detector, vortex):

@@ -8,7 +8,6 @@ import pytest
 
 from napari_lbs._core import ExperimentConfig, random_particle_field, simulate_hologram, write_particles
 from napari_lbs._core._config import config_to_toml
-from test_sequence import detector, tiny_config  # noqa: F401 (detector: the recordings' tiny eager model, a fixture)
 
 TIMEOUT_MS = 180_000
 
@@ -172,6 +171,17 @@ def test_synthetic_sample_and_particle_csv_reader_writer_round_trip(make_napari_
     np.testing.assert_allclose(reread.features["diameter_um"], truth.features["diameter_um"], rtol=1e-6)
 
 
+def test_the_reader_knows_a_particle_table_saved_by_excel_and_hands_other_csvs_on(tmp_path):
+    from napari_lbs._io_plugin import _read_with_napari, get_reader, read_particle_csv
+
+    excel = tmp_path / "excel.csv"  # Excel's "CSV UTF-8": a byte-order mark, and quoted names
+    excel.write_bytes('\ufeff"x_um","y_um","z_um","diameter_um"\r\n1,2,1800,20\r\n'.encode())
+    assert get_reader(str(excel)) is read_particle_csv
+    other = tmp_path / "other.csv"
+    other.write_text("index,axis-0,axis-1\n0,1,2\n")
+    assert get_reader(str(other)) is _read_with_napari and get_reader(str(tmp_path / "a.tif")) is None
+
+
 def test_diagnosis_widget_maps_the_gap_over_the_hologram_and_writes_the_report(make_napari_viewer, qtbot, tmp_path):
     viewer = make_napari_viewer()
     config_path, config = tiny_config_file(tmp_path / "c.toml")
@@ -190,12 +200,12 @@ def test_diagnosis_widget_maps_the_gap_over_the_hologram_and_writes_the_report(m
     assert layer.data.shape == (2, 2) and tuple(layer.scale) == pytest.approx((140.8, 140.8))
 
 
-def test_batch_widget_turns_a_recording_into_points_over_time_and_tracks_and_stops(make_napari_viewer, qtbot, tmp_path, detector):
+def test_batch_widget_turns_a_recording_into_points_over_time_and_tracks_and_stops(make_napari_viewer, qtbot, tmp_path, detector, tiny_config):
     import tifffile
 
     from napari_lbs._core import simulate_sequence
 
-    recording = simulate_sequence(tiny_config(), frames=4, flow="uniform", size=128, count=6, speed_um=6.0, seed=2)
+    recording = simulate_sequence(tiny_config, frames=4, flow="uniform", size=128, count=6, speed_um=6.0, seed=2)
     tifffile.imwrite(tmp_path / "run.tif", recording.frames, photometric="minisblack")
     viewer = make_napari_viewer()
     workflow = dock(viewer, "LBS workflow")
