@@ -108,7 +108,7 @@ def test_generate_records_the_effects_and_the_data_differs_only_through_them(tmp
     plain = generate_dataset(tmp_path / "plain", CONFIG, groups=1, layout=layout, seed=3)
     effects = {"particle_phase": {"index_contrast": 0.0126, "transmission": 0.8}}
     source = {"report": "r.json", "verdict": "particle_phase"}
-    phased = generate_dataset(tmp_path / "phased", CONFIG, groups=1, layout=layout, seed=3, effects=effects, effects_source=source)
+    generate_dataset(tmp_path / "phased", CONFIG, groups=1, layout=layout, seed=3, effects=effects, effects_source=source)
     spec = json.loads((tmp_path / "phased" / "dataset.json").read_text())
     assert spec["effects"] == effects and spec["effects_source"] == source
     assert "effects" not in json.loads((tmp_path / "plain" / "dataset.json").read_text())
