@@ -128,7 +128,7 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None) -> d
             result = predict_particles(hologram, model_path, config, device="cpu")
             metrics = score_particles(result.particles, truth)
             dz = np.abs(depth_errors_um(result.particles, truth))
-            pairs = np.array(match_particles(result.particles, truth)).reshape(-1, 2)
+            pairs = np.array(match_particles(result.particles, truth), dtype=int).reshape(-1, 2)  # int even when nothing matched
             predicted_d, true_d = result.particles["diameter_um"][pairs[:, 0]], truth["diameter_um"][pairs[:, 1]]
             diameters = {"median_abs_dd_um": float(np.median(np.abs(predicted_d - true_d))), "diameter_corr": float(np.corrcoef(predicted_d, true_d)[0, 1]),
                          "predicted_diameter_p5_p95_um": [float(v) for v in np.percentile(predicted_d, [5, 95])]} if len(pairs) > 2 else {}
