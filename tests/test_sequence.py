@@ -226,7 +226,12 @@ def test_cli_simulate_frames_predict_and_track(tmp_path, detector):
     for row in tracks:
         last[row["track"]] = row
     assert all(row["dx_um"] == "" for row in last.values())
+    sidecar = json.loads((tmp_path / "t.json").read_text())  # what linked them, and what detected them
+    assert sidecar["tracks"]["search_range_um"] == 20.0 and sidecar["prediction"] == json.loads((tmp_path / "p.json").read_text())
     assert main(["track", str(tmp_path / "sim" / "particles.csv"), "--out", str(tmp_path / "sim" / "particles.csv")]) == 2
+    before = (tmp_path / "p.json").read_bytes()
+    assert main(["track", str(tmp_path / "p.csv"), "--out", str(tmp_path / "p.parquet")]) == 2  # its sidecar would be p.json
+    assert (tmp_path / "p.json").read_bytes() == before and not (tmp_path / "p.parquet").exists()
 
 
 def test_a_parquet_table_round_trips_with_its_frame_column_and_metadata(tmp_path):
@@ -286,7 +291,8 @@ def test_cli_predicts_and_tracks_into_parquet_and_reads_a_one_frame_video(tmp_pa
     assert main(["track", str(tmp_path / "p.parquet"), "--out", str(tmp_path / "t.parquet"), "--search-range-um", "10"]) == 0
     tracks = read_particles(tmp_path / "t.parquet")
     assert len(tracks["track"]) == len(particles["x_um"]) and np.isnan(tracks["dx_um"]).sum() == len(np.unique(tracks["track"]))  # NaN at each track's end
-    assert json.loads(pq.read_schema(tmp_path / "t.parquet").metadata[b"napari_lbs"])["tracks"]["search_range_um"] == 10.0
+    stored = json.loads(pq.read_schema(tmp_path / "t.parquet").metadata[b"napari_lbs"])
+    assert stored["tracks"]["search_range_um"] == 10.0 and stored["prediction"] == provenance and stored == json.loads((tmp_path / "t.json").read_text())
 
     # a video of one frame is one hologram, read through the recording's reader
     frame = np.clip(vortex.frames[0] * 128, 0, 255).astype(np.uint8)

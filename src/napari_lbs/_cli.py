@@ -401,9 +401,12 @@ def _predict_sequence(args, frames, config, out: Path, provenance: Path) -> None
 def _cmd_track(args) -> None:
     import numpy as np
 
-    from napari_lbs._core import DISPLACEMENT_COLUMNS, check_table_name, link_tracks, read_particles, write_particles
+    from napari_lbs._core import DISPLACEMENT_COLUMNS, check_table_name, link_tracks, read_particles, write_json, write_particles
 
-    out = check_table_name(check_output_path(args.out, flag="--out", inputs=[args.particles]))
+    prediction_json = Path(args.particles).with_suffix(".json")
+    out = check_table_name(check_output_path(args.out, flag="--out", inputs=[args.particles, prediction_json]))
+    # the tracks' provenance beside them, never over the prediction's own
+    provenance_json = check_output_path(out.with_suffix(".json"), flag="--out", inputs=[args.particles, prediction_json])
     table = read_particles(args.particles)
     if "frame" not in table:
         raise InputError(f"{args.particles}: no frame column; tracks need the table of a recording (predict with several frames)")
@@ -412,7 +415,14 @@ def _cmd_track(args) -> None:
     if out.suffix.lower() != ".parquet":  # a track's last detection has no displacement: an empty CSV cell (Parquet keeps NaN)
         for name in DISPLACEMENT_COLUMNS:
             tracks[name] = np.array(["" if np.isnan(value) else f"{value:.9g}" for value in tracks[name]], dtype=object)
-    write_particles(out, tracks, metadata={"tracks": linking})
+    provenance = {"particles": str(out), "tracks": linking}
+    if prediction_json.is_file():  # what made the detections: model, settings, frames
+        try:
+            provenance["prediction"] = json.loads(prediction_json.read_text(encoding="utf-8"))
+        except (json.JSONDecodeError, UnicodeDecodeError):
+            provenance["prediction"] = None
+    write_particles(out, tracks, metadata=provenance)
+    write_json(provenance_json, provenance)
     lengths = np.bincount(tracks["track"]) if tracks["track"].size else np.zeros(0, int)
     frames = len(np.unique(tracks["frame"]))
     _summary(f"linked {tracks['track'].size} particles of {frames} frames into {lengths.size} tracks (median length {np.median(lengths) if lengths.size else 0:g} frames) -> {out}")
