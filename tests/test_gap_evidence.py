@@ -48,6 +48,37 @@ def test_resampled_gaps_pair_the_models_and_vanish_for_identical_ones():
     assert draws["a"].std() > 0
 
 
+def test_a_strong_term_on_a_few_summaries_is_not_diluted_by_the_many_it_cannot_change():
+    # 55 summaries; the baseline misses z = 4.5 on 3 of them (a vignetting's envelope). The
+    # effect's refit removes them but also shifts the baseline's parameters, which moves every
+    # other summary by about one sampling error; a second refit only shifts the baseline.
+    from napari_lbs._core._gap._verdict import _decision, effect_evidence
+
+    rng = np.random.default_rng(6)
+    tiles, summaries = 8, 55
+    real = rng.standard_normal((tiles, summaries))
+    spread = real_spread(real)
+    unit = spread * np.sqrt(2 / tiles)  # one sampling error of the difference of means
+    common = rng.standard_normal((tiles, summaries))  # the simulation's seeds, shared by all models
+    sim = common - common.mean(axis=0) + real.mean(axis=0)  # a model as good as the real mean allows
+    missing = np.zeros(summaries)
+    missing[:3] = 4.5 * unit[:3]
+    shift = rng.normal(0, 1.0, summaries) * unit * (np.arange(summaries) >= 3)
+    sims = {"baseline": sim + missing, "effect": sim + shift, "effect off": sim + missing + shift, "refit": sim + rng.normal(0, 1.0, summaries) * unit}
+    sims["refit off"] = sims["refit"]
+    gaps = {name: gap_statistic(real, s, spread=spread)[0] for name, s in sims.items()}
+    assert gaps["baseline"] - gaps["effect"] < 0.5  # the former verdict's threshold on the averaged gap
+    evidence = effect_evidence(real, sims, ["effect", "refit"], spread=spread, resamples=500)
+    assert evidence["effect"]["summaries"] == 3 and evidence["effect"]["reduction"] > 27.5 and evidence["refit"]["summaries"] == 0
+    entries = [{"id": e, "gap_after": gaps[e], "shrink": 1 - gaps[e] / gaps["baseline"], "shrink_interval": [0.0, 1.0]} for e in ("effect", "refit")]
+    verdict = _decision(entries, evidence, baseline_gap=gaps["baseline"], held_out=tiles, summaries=summaries)
+    assert verdict["id"] == "effect", verdict["reason"]
+    # without the missing term there is nothing to name
+    quiet = {**sims, "baseline": sim, "effect off": sim + shift}
+    evidence = effect_evidence(real, quiet, ["effect", "refit"], spread=spread, resamples=500)
+    assert _decision(entries, evidence, baseline_gap=0.0, held_out=tiles, summaries=summaries)["id"] is None
+
+
 def small_model(count=4):
     rng = np.random.default_rng(3)
     tiles = []

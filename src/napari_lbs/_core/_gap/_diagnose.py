@@ -24,7 +24,7 @@ from napari_lbs._core._gap._known import known_sensor
 from napari_lbs._core._gap._statistic import gap_statistic, real_spread, where_gap
 from napari_lbs._core._gap._summaries import MIN_TILE_PX, _fringe_parameters, measured_fringe, tile_summaries
 from napari_lbs._core._gap._tiling import TileLayout, adapted_tile_px, field_surroundings
-from napari_lbs._core._gap._verdict import _decision, resampled_gaps
+from napari_lbs._core._gap._verdict import _decision, effect_evidence, resampled_gaps
 from napari_lbs._core._io import InputError, as_hologram
 from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
 
@@ -166,15 +166,20 @@ def diagnose_tiles(
         effects_report.append(entry)
 
     # evidence with its uncertainty: resample the held-out real tiles and the simulation seeds
-    draws = resampled_gaps(held_real, held_sims, spread=spread, resamples=settings.resamples, seed=settings.seed, paired=model.paired)
+    resampling = {"spread": spread, "resamples": settings.resamples, "seed": settings.seed, "paired": model.paired}
+    draws = resampled_gaps(held_real, held_sims, **resampling)
+    evidence = effect_evidence(held_real, held_sims, [e["id"] for e in effects_report if e["confirmed"]], **resampling)
     for entry in effects_report:
         if entry["confirmed"]:
             reduction = draws["baseline"] - draws[entry["id"]]
             # shrink's interval: the reduction's 90 % interval over the measured baseline gap
             low, high = np.quantile(reduction, (0.05, 0.95)) / baseline_gap if baseline_gap > 0 else (0.0, 0.0)
             entry["shrink_interval"] = [float(low), float(high)]
-    effects_report.sort(key=lambda e: (not e["confirmed"], e["gap_after"]))
-    verdict = _decision([e for e in effects_report if e["confirmed"]], draws, baseline_gap=baseline_gap, held_out=len(held_real))
+            own = evidence[entry["id"]]
+            entry["evidence"] = {"summaries": own["summaries"], "reduction": own["reduction"], "interval": [float(v) for v in np.quantile(own["draws"], (0.05, 0.95))]}
+    # ranked by the evidence the verdict is decided on (then the screened ones, by their scan)
+    effects_report.sort(key=lambda e: (not e["confirmed"], -e["evidence"]["reduction"] if e["confirmed"] else e["gap_after"]))
+    verdict = _decision([e for e in effects_report if e["confirmed"]], evidence, baseline_gap=baseline_gap, held_out=len(held_real), summaries=len(names))
 
     # waterfall: baseline, + best, + best and the runner-up (greedy)
     waterfall = [{"model": "baseline", "gap": float(baseline_gap)}]

@@ -91,10 +91,14 @@ def write_report(diagnosis: Diagnosis, out_dir, *, provenance: dict | None = Non
         "",
         "## Effects",
         "",
-        "| effect | confirmed (refitted) | gap after | shrink (90 % interval) | gap with it switched off in its own fit | screening t |",
-        "|---|---|---|---|---|---|",
+        "Evidence: the χ² an effect removes on the held-out tiles, summed over its own summaries (those it moves by at least one sampling error).",
+        "",
+        "| effect | confirmed (refitted) | evidence: χ² removed on its summaries (90 % interval) | gap after | shrink (90 % interval) | gap with it switched off in its own fit | screening t |",
+        "|---|---|---|---|---|---|---|",
         *[
-            f"| {e['id']} | {'yes' if e['confirmed'] else 'no'} | {e['gap_after']:.2f} | {100 * e['shrink']:.0f} %"
+            f"| {e['id']} | {'yes' if e['confirmed'] else 'no'} | "
+            f"{'{:.1f} on {} ({:.1f} to {:.1f})'.format(e['evidence']['reduction'], e['evidence']['summaries'], *e['evidence']['interval']) if 'evidence' in e else '—'} | "
+            f"{e['gap_after']:.2f} | {100 * e['shrink']:.0f} %"
             f"{' ({:.0f} to {:.0f} %)'.format(*(100 * v for v in e['shrink_interval'])) if 'shrink_interval' in e else ''} | "
             f"{format(e['gap_ablated'], '.2f') if 'gap_ablated' in e else '—'} | {e['screening']['t']:.1f} |"
             for e in effects
