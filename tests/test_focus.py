@@ -286,3 +286,21 @@ def test_tile_normalisation_is_each_tiles_own_at_its_centre_and_stays_in_range()
     single = raw[:, :32, :32].copy()
     tile_normalisation(single, ([(0, 0, 32)], [(0, 0, 32)]), 32, invert=True, mode="robust")
     np.testing.assert_allclose(single, experimental_planes(raw[:, :32, :32], invert=True, mode="robust"), atol=1e-6)
+
+
+def test_the_inference_network_folds_batch_norm_without_changing_the_outputs():
+    import torch
+
+    from napari_lbs._core import build_network, inference_network
+
+    torch.manual_seed(0)
+    network = build_network("small", in_channels=9, out_channels=3).eval()
+    for norm in (m for m in network.modules() if isinstance(m, torch.nn.BatchNorm2d)):  # statistics far from the identity
+        norm.running_mean.uniform_(-1.0, 1.0), norm.running_var.uniform_(0.2, 3.0), norm.weight.data.uniform_(0.5, 1.5), norm.bias.data.uniform_(-0.5, 0.5)
+    fused = inference_network(network)
+    inputs = torch.rand(2, 9, 64, 48)
+    with torch.inference_mode():
+        expected, got = network(inputs), fused(inputs)
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in fused.modules())
+    assert torch.allclose(got, expected, atol=1e-5, rtol=1e-5) and expected.abs().max() > 0.1
+    assert sum(isinstance(m, torch.nn.BatchNorm2d) for m in network.modules()) == 2 * len(network.widths) * 2 - 2  # the original keeps its norms

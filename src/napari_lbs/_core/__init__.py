@@ -41,7 +41,7 @@ _NAMES = {
     ),
     "_metrics": ("AXIAL_TOL_UM", "LATERAL_TOL_UM", "depth_errors_um", "match_particles", "score_particles", "seed_scores"),
     "_network": (
-        "MODEL_FORMAT", "PRESETS", "FORMULATIONS", "focus_maps", "LoadedModel", "UNet", "build_network", "check_model_matches", "load_model",
+        "MODEL_FORMAT", "PRESETS", "FORMULATIONS", "focus_maps", "LoadedModel", "UNet", "build_network", "check_model_matches", "inference_network", "load_model",
         "network_outputs", "resolve_device", "save_model",
     ),
     "_optics": ("backpropagate", "padded_shape", "propagate", "propagation_grid", "set_transfer_cache_limit", "superpose", "transfer_function"),

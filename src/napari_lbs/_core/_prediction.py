@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +30,7 @@ from napari_lbs._core._calibration import experimental_planes
 from napari_lbs._core._config import ExperimentConfig
 from napari_lbs._core._detection import PeakDecoder, PlaneLinker, suppress
 from napari_lbs._core._io import InputError, as_hologram
-from napari_lbs._core._network import LoadedModel, check_model_matches, focus_maps, load_model, network_outputs
+from napari_lbs._core._network import LoadedModel, check_model_matches, focus_maps, inference_network, load_model, network_outputs
 from napari_lbs._core._optics import backpropagate
 from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
 from napari_lbs._core._validation import check_prediction_meta
@@ -114,6 +114,7 @@ def predict_particles(
     loaded = model if isinstance(model, LoadedModel) else load_model(model, device=device)
     meta = loaded.meta
     check_prediction_meta(meta, name=str(loaded.path or "model"))
+    loaded = replace(loaded, network=inference_network(loaded.network))  # the caller's model stays as it is
     config = config if config is not None else loaded.config
     planes = [float(z) for z in (planes_um if planes_um is not None else config.volume.planes_um())]
     check_model_matches(meta, config, planes_um=planes)
