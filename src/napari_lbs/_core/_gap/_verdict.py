@@ -80,24 +80,30 @@ def effect_evidence(real: np.ndarray, sims: dict, effect_ids: list, *, spread: n
     -------
     dict
         Per effect: ``summaries`` (|S|), ``reduction`` (point value, summed χ²) and ``draws``
-        ((resamples,) array of its bootstrap values).
+        ((resamples,) array of its bootstrap values); and under ``"leads"``, for each ordered
+        pair (a, b), how far a's χ² is below b's over the summaries either of them moves
+        (point value, draws): two effects are compared on the same summaries.
     """
     n_real, n_sim = len(real), len(sims["baseline"])
     scale = spread * np.sqrt(1.0 / n_real + 1.0 / n_sim)
     point = {name: (real.mean(axis=0) - sim.mean(axis=0)) / scale for name, sim in sims.items()}
     draws = _resampled_z(real, sims, spread=spread, resamples=resamples, seed=seed, paired=paired)
-    evidence = {}
+
+    def chi_square(z, own):
+        return np.minimum(z[..., own] ** 2, 1e4).sum(axis=-1)
+
+    evidence, owns = {}, {}
     for effect_id in effect_ids:
-        own = np.abs(point[effect_id] - point[f"{effect_id} off"]) >= _SUPPORT_Z
-
-        def chi_square(z, own=own):
-            return np.minimum(z[..., own] ** 2, 1e4).sum(axis=-1)
-
+        own = owns[effect_id] = np.abs(point[effect_id] - point[f"{effect_id} off"]) >= _SUPPORT_Z
         evidence[effect_id] = {
             "summaries": int(own.sum()),
-            "reduction": float(min(chi_square(point["baseline"]), chi_square(point[f"{effect_id} off"])) - chi_square(point[effect_id])),
-            "draws": np.minimum(chi_square(draws["baseline"]), chi_square(draws[f"{effect_id} off"])) - chi_square(draws[effect_id]),
+            "reduction": float(min(chi_square(point["baseline"], own), chi_square(point[f"{effect_id} off"], own)) - chi_square(point[effect_id], own)),
+            "draws": np.minimum(chi_square(draws["baseline"], own), chi_square(draws[f"{effect_id} off"], own)) - chi_square(draws[effect_id], own),
         }
+    evidence["leads"] = {
+        (a, b): (float(chi_square(point[b], owns[a] | owns[b]) - chi_square(point[a], owns[a] | owns[b])), chi_square(draws[b], owns[a] | owns[b]) - chi_square(draws[a], owns[a] | owns[b]))
+        for a in effect_ids for b in effect_ids if a != b
+    }
     return evidence
 
 
@@ -106,8 +112,8 @@ def _decision(entries: list, evidence: dict, *, baseline_gap: float, held_out: i
 
     The best effect (largest reduction on its own summaries) is named only when (a) that
     reduction is at least ``_VERDICT_MIN_REDUCTION`` per summary of the whole vector and its
-    lower confidence bound is above 0; and (b) its lead over the runner-up's reduction has a
-    lower confidence bound above 0. Bounds are one-sided at 95 %, Bonferroni-corrected for the
+    lower confidence bound is above 0; and (b) its lead over the runner-up (the runner-up's χ²
+    minus its own, over the summaries either of them moves) has a lower confidence bound above 0. Bounds are one-sided at 95 %, Bonferroni-corrected for the
     number of effects compared (the best of several is picked). ``tiles_to_decide``: held-out
     tiles at which the weaker of the two margins would reach its bound, if margin / bootstrap
     error grows as sqrt(tiles).
@@ -123,7 +129,7 @@ def _decision(entries: list, evidence: dict, *, baseline_gap: float, held_out: i
     margins = [(own["reduction"], own["draws"])]
     runner = ranked[1] if len(ranked) > 1 else None
     if runner is not None:
-        margins.append((own["reduction"] - evidence[runner["id"]]["reduction"], own["draws"] - evidence[runner["id"]]["draws"]))
+        margins.append(evidence["leads"][(best["id"], runner["id"])])
     ratios = [point / max(float(np.std(samples)), 1e-12) for point, samples in margins]
     tiles = [int(np.ceil(held_out * (z_needed / ratio) ** 2)) if ratio > 0 else None for ratio in ratios]
     tiles_to_decide = None if None in tiles else max(tiles)
@@ -135,7 +141,10 @@ def _decision(entries: list, evidence: dict, *, baseline_gap: float, held_out: i
         verdict["reason"] = f"gap within what {held_out} held-out tiles can resolve: " + (told if own["reduction"] > 0 else f"no refitted effect lowers the gap of {baseline_gap:.2f}")
         return verdict
     if runner is not None and float(np.quantile(margins[1][1], alpha)) <= 0:
-        verdict["reason"] = f"two effects indistinguishable: {best['id']} ({own['reduction']:.1f}) and {runner['id']} ({evidence[runner['id']]['reduction']:.1f}) on {held_out} held-out tiles"
+        verdict["reason"] = (
+            f"two effects indistinguishable: {best['id']} ({own['reduction']:.1f}) and {runner['id']} ({evidence[runner['id']]['reduction']:.1f}); "
+            f"on the summaries either moves, {best['id']} leads by {margins[1][0]:.1f} (lower bound {float(np.quantile(margins[1][1], alpha)):.1f}) on {held_out} held-out tiles"
+        )
         return verdict
     verdict.update({"id": best["id"], "shrink": best["shrink"], "residual": best["gap_after"], "interval": best["shrink_interval"]})
     verdict["reason"] = f"{told} and leads {runner['id'] if runner else 'nothing'}"
