@@ -64,7 +64,8 @@ def effect_evidence(real: np.ndarray, sims: dict, effect_ids: list, *, spread: n
     an effect is therefore its likelihood-ratio-like reduction ``Σ_{k∈S} (z_ref,k² - z_k²)``
     over its own summaries ``S`` (those its fitted setting moves by at least ``_SUPPORT_Z``,
     against the same fit with the effect switched off), ``ref`` the better (smaller Σ over S)
-    of the baseline and that ablated fit.
+    of the baseline and that ablated fit, in every bootstrap draw: a refit may lower the gap by
+    moving the baseline's parameters alone, and only what switching the effect on adds is its own.
 
     Parameters
     ----------
