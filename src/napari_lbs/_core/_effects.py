@@ -15,8 +15,10 @@ The simulator is split in two stages so that fitting is cheap:
     experiment and simulation share one code path; the seed's noise offset N_R·R acts as a
     fringe contrast once the image is normalised by its mean), plus ``illumination``
     (a Gaussian beam envelope, off-centre), ``parasitic_fringes`` (a static etalon fringe),
-    ``shot_noise`` (Poisson, signal dependent), ``sensor_blur`` (pixel crosstalk / MTF, on
-    the recorded image, noise included) and ``quantization`` (bit depth and saturation).
+    ``shot_noise`` (Poisson, signal dependent), ``sensor_blur`` (pixel crosstalk / MTF: it
+    acts on the light reaching the pixels, so it blurs the intensity before the photon and
+    read noise are added, and the noise stays white) and ``quantization`` (bit depth and
+    saturation).
 
 Every effect has physically sensible bounds, a neutral value (the effect switched off) and
 two injection strengths used by the withheld-effect validation. Parameters are plain dicts
@@ -185,7 +187,12 @@ def _blur(image: np.ndarray, sigma_px: float) -> np.ndarray:
 
 
 def sensor_image(intensity: np.ndarray, baseline: dict, effects: dict, *, noise: np.ndarray) -> np.ndarray:
-    """What the camera records of ``intensity``: baseline contrast, envelope, fringes, blur, gamma, noise, quantisation.
+    """What the camera records of ``intensity``, in the physical order: baseline contrast, envelope, fringes, blur, gamma, noise, quantisation.
+
+    The optical terms (contrast, envelope, fringes) and the blur (pixel crosstalk / MTF) act
+    on the light reaching the pixels; the response (gamma) and the noise (photon noise on the
+    blurred signal, then read noise added by the electronics) come after, so the noise is not
+    blurred; quantisation is last.
 
     ``noise`` is a standard-normal array of the image's shape (fixed per tile: common random
     numbers make the fit deterministic).
@@ -202,14 +209,14 @@ def sensor_image(intensity: np.ndarray, baseline: dict, effects: dict, *, noise:
         angle, period = _param(effects, "parasitic_fringes", "angle_rad"), _param(effects, "parasitic_fringes", "period_px")
         y, x = np.ogrid[:rows, :cols]
         image = image * (1.0 + amplitude * np.cos(2 * np.pi * (x * np.cos(angle) + y * np.sin(angle)) / period)).astype(np.float32)
+    blur = _param(effects, "sensor_blur", "sigma_px")
+    if blur > 0:  # crosstalk / MTF spreads the light over neighbouring pixels; the electronics' read noise comes later, unblurred
+        image = ndimage.gaussian_filter(image, blur)
     image = np.clip(image, 0.0, None) ** float(baseline["gamma"])
     photons = 10.0 ** _param(effects, "shot_noise", "log10_photons")
     # Poisson(N I)/N by its normal approximation, and Gaussian read noise, from one fixed draw
     scale = np.sqrt(image / photons + float(baseline["sigma"]) ** 2)
     image = image + scale * noise
-    blur = _param(effects, "sensor_blur", "sigma_px")
-    if blur > 0:  # pixel crosstalk / MTF acts on the recorded charge, noise included
-        image = ndimage.gaussian_filter(image, blur)
     bits, saturation = _param(effects, "quantization", "bits"), _param(effects, "quantization", "saturation")
     if bits < 16:
         levels = 2.0 ** round(bits) - 1
