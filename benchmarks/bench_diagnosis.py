@@ -22,7 +22,8 @@ Sub-commands:
     withheld effect written here, independently of `_effects`, with other parameterisations
     (the design comment above `MIE_EFFECTS`, fixed before the first run); diagnosed as the CLI does (`diagnose_hologram`
     on the uint8 image, default settings). Prints one JSON line per case, then top-1, the
-    false-alarm rate and their 95 % Wilson intervals. ``--seed`` draws other scenes of the same
+    false-alarm rate and their 95 % Wilson intervals, and the same for the first half's verdict
+    alone (where the diagnosis cross-fits: the verdict without cross-fitting). ``--seed`` draws other scenes of the same
     design (default 2026, the suite's; the method was developed on seed 7, docs/diagnosis.md).
 ``real``
     The seed's real 1024² hologram: the full diagnosis with default settings, timed (target
@@ -118,6 +119,7 @@ def _suite_case(case: tuple) -> dict:
         "baseline_gap": round(report["gap"]["baseline"], 2),
         "verdict": verdict["id"],
         "correct": verdict["id"] == effect_id,
+        "per_half": verdict.get("per_half"),
         "shrink_of_withheld": round(own["shrink"], 2) if own else None,
         "ablated_gap_of_withheld": round(own["gap_ablated"], 2) if own and "gap_ablated" in own else None,
         "confirmed": bool(own and own["confirmed"]),
@@ -146,6 +148,7 @@ def suite(tile: int, tiles: int, particles: int, evaluations: int, controls: int
           f"median shrink of the named effect {np.median(shrinks) if shrinks else float('nan'):.2f} (target >= 0.5); "
           f"false alarms on controls {sum(not r['correct'] for r in controls_rows)}/{len(controls_rows)}; "
           f"{(time.perf_counter() - start) / len(rows) * jobs:.1f} s per diagnosis ({tiles} tiles of {tile}², {jobs} at once)")
+    print(_single_split_line(rows))
 
 
 def independent(tile: int, tiles: int, particles: int, evaluations: int, sphere_index: float, supersample: int) -> None:
@@ -231,6 +234,19 @@ def _wilson(successes: int, trials: int) -> tuple[float, float]:
     return (max(0.0, centre - half), min(1.0, centre + half))
 
 
+def _single_split_line(rows: list[dict]) -> str:
+    """Top-1 and false alarms of the first half's verdict alone: the diagnosis without cross-fitting (its fits, scored on its own held-out half)."""
+    rows = [r for r in rows if r["per_half"]]
+    if not rows:
+        return "not cross-fitted"
+    injected = [r for r in rows if r["withheld"]]
+    hits = sum(r["per_half"][0] == r["withheld"] for r in injected)
+    alarms = sum(r["per_half"][0] is not None for r in rows if not r["withheld"])
+    both = sum(r["per_half"][0] == r["per_half"][1] == r["withheld"] for r in injected)
+    return (f"first half alone (no cross-fit): top-1 {hits}/{len(injected)} (95 % interval {_wilson(hits, len(injected))[0]:.2f}-{_wilson(hits, len(injected))[1]:.2f}), "
+            f"false alarms {alarms}/{len(rows) - len(injected)}; both halves right alone: {both}/{len(injected)}")
+
+
 def mie(cases: list[int] | None, seed: int = 2026) -> None:
     design = [*MIE_EFFECTS, *[None] * MIE_CONTROLS]
     rows = []
@@ -245,7 +261,7 @@ def mie(cases: list[int] | None, seed: int = 2026) -> None:
         verdict = report["verdict"]
         own = next((e for e in report["effects"] if e["id"] == effect_id), None)
         row = {
-            "case": index, "withheld": effect_id, "verdict": verdict["id"], "correct": verdict["id"] == effect_id, "reason": verdict["reason"],
+            "case": index, "withheld": effect_id, "verdict": verdict["id"], "correct": verdict["id"] == effect_id, "per_half": verdict.get("per_half"), "reason": verdict["reason"],
             "baseline_gap": round(report["gap"]["baseline"], 2), "baseline_interval": [round(v, 2) for v in report["gap"]["baseline_interval"]],
             "best": [(e["id"], round(e["evidence"]["reduction"], 1), e["evidence"]["summaries"], [round(v, 1) for v in e["evidence"]["interval"]], round(e["shrink"], 2)) for e in report["effects"][:3] if "evidence" in e],
             "shrink_of_withheld": round(own["shrink"], 2) if own else None, "tiles_to_decide": verdict["tiles_to_decide"],
@@ -259,6 +275,7 @@ def mie(cases: list[int] | None, seed: int = 2026) -> None:
     print(f"top-1 {hits}/{len(injected)} (95 % interval {_wilson(hits, len(injected))[0]:.2f}-{_wilson(hits, len(injected))[1]:.2f}); "
           f"false alarms {alarms}/{len(controls)} (95 % interval {_wilson(alarms, len(controls))[0]:.2f}-{_wilson(alarms, len(controls))[1]:.2f}); "
           f"mean {np.mean([r['seconds'] for r in rows]):.0f} s per diagnosis")
+    print(_single_split_line(rows))
 
 
 def real() -> None:

@@ -169,7 +169,9 @@ FAST = DiagnosisSettings(sim_tiles=6, evaluations=60)
 def test_control_with_nothing_withheld_gives_the_null_verdict(tmp_path):
     diagnosis = diagnose_tiles(pseudo_tiles({}), CONFIG, settings=FAST, particles_per_tile=2)
     report = diagnosis.report
-    assert report["verdict"]["id"] is None
+    assert report["verdict"]["id"] is None and report["verdict"]["per_half"] == [None, None]
+    # 4 tiles of 64² held out: cross-fitted, every tile scored once
+    assert report["tiles"]["cross_fitted"] and report["tiles"]["held_out"] == 8
     assert {e["id"] for e in report["effects"]} == set(EFFECTS)
     paths = write_report(diagnosis, tmp_path / "r")
     payload = json.loads((tmp_path / "r" / "report.json").read_text())
@@ -180,9 +182,10 @@ def test_control_with_nothing_withheld_gives_the_null_verdict(tmp_path):
 @pytest.mark.parametrize("effect_id", ["quantization", "shot_noise"])
 def test_a_withheld_strong_effect_is_named_and_adding_it_shrinks_the_gap(effect_id):
     # shot noise: the baseline's read noise absorbs it unless the fit follows the photon-transfer curve.
-    # Strong sensor blur is no longer named on these 2-particle 64² tiles since it blurs the
-    # light before the noise (docs/diagnosis.md, third pass).
-    diagnosis = diagnose_tiles(pseudo_tiles({effect_id: EFFECTS[effect_id].injections[1]}), CONFIG, settings=FAST, particles_per_tile=2)
+    # One split (not cross-fitted: half the time). Strong sensor blur is no longer named on these
+    # 2-particle 64² tiles since it blurs the light before the noise (docs/diagnosis.md, third pass).
+    settings = DiagnosisSettings(sim_tiles=6, evaluations=60, cross_fit_below_px=0)
+    diagnosis = diagnose_tiles(pseudo_tiles({effect_id: EFFECTS[effect_id].injections[1]}), CONFIG, settings=settings, particles_per_tile=2)
     report = diagnosis.report
     assert report["gap"]["baseline"] > 1.0
     assert report["verdict"]["id"] == effect_id and report["verdict"]["shrink"] >= 0.5

@@ -241,3 +241,48 @@ def test_a_field_wide_envelope_has_the_same_curvature_at_every_tile():
             for r in range(0, 512, size) for c in range(0, 512, size)
         ]
         assert np.allclose(values, expected, atol=0.01), values
+
+
+def test_cross_fitting_holds_every_tile_out_once_and_pools_both_halves_evidence():
+    # 16 tiles; the baseline misses z = 2.5 per half on 3 of 55 summaries: too little for a
+    # verdict on either half's 8 held-out tiles (27.5 of χ² needed, about 19 there), enough
+    # on all 16 pooled (z = 2.5·√2). The second half's summaries are in other units (its own
+    # fringe frequency): pooling is in each half's spreads.
+    from types import SimpleNamespace
+
+    from napari_lbs._core._gap._diagnose import _Half, _scored
+
+    rng = np.random.default_rng(8)
+    tiles, summaries = 16, 55
+    real = rng.standard_normal((tiles, summaries))
+    halves = []
+    for fitting, units in ((np.arange(tiles) % 2 == 0, 1.0), (np.arange(tiles) % 2 == 1, 3.0)):
+        spread = real_spread(units * real)
+        held = units * real[~fitting]
+        common = units * rng.standard_normal(held.shape)
+        sim = common - common.mean(axis=0) + held.mean(axis=0)  # as good as the real mean allows
+        missing = np.where(np.arange(summaries) < 3, 2.5 * spread * np.sqrt(2 / len(held)), 0.0)
+        shift = rng.normal(0, 1.0, summaries) * spread * np.sqrt(2 / len(held)) * (np.arange(summaries) >= 3)
+        sims = {"baseline": sim + missing, "effect": sim, "effect off": sim + missing, "refit": sim + missing + shift, "refit off": sim + missing + shift}
+        entries = {e: {"gap_fit": 0.0, "params": {}} for e in ("effect", "refit")}
+        halves.append(_Half(fitting, "fit", [], units * real, spread, SimpleNamespace(paired=True), {}, {}, 0.0, None, {e: {"t": 0.0} for e in entries}, list(entries), sims, {}, entries, {}))
+    settings = DiagnosisSettings(resamples=1000)
+    alone = [_scored([half], ["effect", "refit"], settings=settings) for half in halves]
+    pooled = _scored(halves, ["effect", "refit"], settings=settings)
+    assert [len(s["held_real"]) for s in alone] == [8, 8] and len(pooled["held_real"]) == tiles  # every tile held out once
+    assert [s["verdict"]["id"] for s in alone] == [None, None], [s["verdict"]["reason"] for s in alone]
+    assert pooled["verdict"]["id"] == "effect", pooled["verdict"]["reason"]
+    evidence = {s["id"]: s["evidence"]["reduction"] for s in pooled["effects"]}
+    assert evidence["effect"] == pytest.approx(3 * 2 * 2.5**2, rel=0.01) and evidence["refit"] == 0.0
+
+
+def test_a_cross_fits_resampling_keeps_each_halfs_share_of_the_tiles():
+    # two halves whose summaries differ by 10 spreads, real and simulated alike: drawn as the
+    # design holds them out (8 of each), a resample's means differ only by sampling noise
+    rng = np.random.default_rng(9)
+    level = np.repeat([0.0, 10.0], 8)[:, None]
+    real, sim = level + rng.standard_normal((16, 20)), np.repeat([0.0, 10.0], 6)[:, None] + rng.standard_normal((12, 20))
+    spread = np.ones(20)
+    mixed = resampled_gaps(real, {"m": sim}, spread=spread, resamples=500)["m"]
+    kept = resampled_gaps(real, {"m": sim}, spread=spread, resamples=500, strata=((8, 8), (6, 6)))["m"]
+    assert np.quantile(kept, 0.95) < 3.0 and np.median(mixed) > 10.0  # measured: 1.9 and 14

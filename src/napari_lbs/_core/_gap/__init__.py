@@ -17,7 +17,8 @@ One concern per module:
 `_known`
     `known_sensor`: what a file of integer counts states (bit depth, saturation).
 `_diagnose`
-    `diagnose_tiles`, `diagnose_hologram`: fit, screen, confirm, ablate, rank, decide.
+    `diagnose_tiles`, `diagnose_hologram`: fit, screen, confirm, ablate, rank, decide; cross-fit
+    (each half fitted, the other scored) where the held-out half is small.
 `_report`
     `write_report`: ``report.json`` (CONTRACT.md), ``report.md``, figures.
 """

@@ -5,6 +5,9 @@ effect by regressing the standardised residual on its signature, confirm the mos
 ones (largest |t|) by adding each and refitting all parameters, score every model on the other
 half (tiles never used for a fit), ablate each confirmed fit (the same parameters with the
 effect switched off), rank, and name a verdict — or ``null`` with the reason (`_verdict`).
+Where the held-out half is small (`DiagnosisSettings.cross_fit_below_px`), all of this is done
+twice, the halves swapping roles, and the evidence is pooled over both held-out halves: every
+tile is held out once.
 No refit ends worse than its start on the fitting tiles. What the file states (`known_sensor`)
 is put into every model as known (`diagnose_hologram(known=True)`), not diagnosed.
 """
@@ -65,6 +68,10 @@ def diagnose_tiles(
         Where the tiles were cut from one hologram: the simulation then makes whole fields and
         the tiles are split into fitting and held-out halves as a checkerboard. Without it,
         alternate tiles are fitted and held out, and each simulated tile is a field of its own.
+        Where the held-out half holds fewer than ``settings.cross_fit_below_px`` pixels, the
+        halves then swap roles and the evidence is pooled over both held-out halves
+        (``report["tiles"]["cross_fitted"]``; each half's own verdict in
+        ``report["verdict"]["per_half"]``).
     known : dict, optional
         ``{effect_id: params}``: effects the experiment states (e.g. the file's bit depth),
         put into every model with fixed parameters and not diagnosed.
@@ -89,8 +96,6 @@ def diagnose_tiles(
     candidates = [e for e in EFFECTS if e not in known]
     count = particles_per_tile if particles_per_tile is not None else max(1, round(config.particles.per_tile * shape[0] * shape[1] / config.tile.size**2))
     fitting = layout.fitting(shape) if layout is not None else np.arange(len(tiles)) % 2 == 0
-    fringe_frequency = measured_fringe([t for t, fit in zip(tiles, fitting, strict=True) if fit])  # from the fitting half only
-    measured = _fringe_parameters(fringe_frequency)
     if layout is not None:
         # the field the tiles cover, reassembled: each tile's surroundings come from it
         field = np.full(layout.field_shape, np.nan)
@@ -100,73 +105,97 @@ def diagnose_tiles(
         field_mean = layout.field_mean
     else:
         around, field_mean = [None] * len(tiles), float(means.mean())
-    summaries = [tile_summaries(t, config=config, fringe_frequency=fringe_frequency, field_mean=field_mean, surroundings=region) for t, region in zip(tiles, around, strict=True)]
-    names = summaries[0][1]
-    real = np.stack([s[0] for s in summaries])
-    fit_real, held_real = real[fitting], real[~fitting]
-    spread = real_spread(real)  # the experiment's own tile-to-tile spread: the unit of every gap
-    gap = lambda a, b: gap_statistic(a, b, spread=spread)  # noqa: E731
-    model = _Model(config, shape=shape, count=count, settings=settings, fringe_frequency=fringe_frequency, layout=layout, known=known)
+    # cross-fit where the held-out half is small: fit on each half, score on the other
+    cross_fitted = 0 < int((~fitting).sum()) * shape[0] * shape[1] < settings.cross_fit_below_px
     confirmed = min(settings.confirm, len(candidates))
-    steps = Steps(2 + confirmed + 1, progress=progress, should_stop=should_stop)
+    steps = Steps((2 if cross_fitted else 1) * (2 + confirmed) + 1, progress=progress, should_stop=should_stop)
+    common = {"config": config, "count": count, "settings": settings, "layout": layout, "known": known, "candidates": candidates, "steps": steps}
+    first = _fit_half(tiles, fitting, "fit", around=around, field_mean=field_mean, refitted=None, **common)
+    halves = [first, _fit_half(tiles, ~fitting, "held", around=around, field_mean=field_mean, refitted=first.refitted, **common)] if cross_fitted else [first]
+    names = first.names
 
+    scored = _scored(halves, candidates, settings=settings)
+    effects_report, verdict, baseline_gap = scored["effects"], scored["verdict"], scored["baseline_gap"]
+    if cross_fitted:
+        # each half's verdict on its own held-out tiles: does the pooled verdict hold in both?
+        verdict["per_half"] = [_scored([h], candidates, settings=settings)["verdict"]["id"] for h in halves]
+
+    # waterfall: baseline, + best, + best and the runner-up (greedy, refitted in every half)
+    waterfall = [{"model": "baseline", "gap": float(baseline_gap)}]
+    confirmed_sorted = [e for e in effects_report if e["confirmed"]]
+    if confirmed_sorted:
+        waterfall.append({"model": f"+{confirmed_sorted[0]['id']}", "gap": confirmed_sorted[0]["gap_after"]})
     steps.check()
-    base_params, _, base_fit_gap = _fit(model, fit_real, [], start={}, measured=measured, evaluations=settings.evaluations, spread=spread)
-    base_sim = model.summaries(base_params, {})  # at the fitting tiles' places
-    held_sims = {"baseline": model.summaries(base_params, {}, half="held")}  # every model's held-out simulation, for the resampling
+    if len(confirmed_sorted) > 1:
+        pair = [confirmed_sorted[0]["id"], confirmed_sorted[1]["id"]]
+        joint = [_fit_pair(h, pair, evaluations=settings.evaluations) for h in halves]
+        waterfall.append({
+            "model": f"+{pair[0]}+{pair[1]}",
+            "gap": float(gap_statistic(scored["held_real"], np.vstack([sim / h.spread for (_, sim), h in zip(joint, halves, strict=True)]), spread=np.ones(len(names)))[0]),
+            "params": {effect_id: dict(joint[0][0][effect_id]) for effect_id in pair},  # the first half's joint fit, for `effects_from_report`
+        })
+    steps.advance()
+
+    base_all = np.vstack([first.base_sim, first.held["baseline"]])  # the first half's baseline at both halves' places, for "where"
+    report = {
+        "gap": {
+            "metric": f"excess standardised chi-square over {len(names)} summaries, held-out real tiles vs simulation (0 = indistinguishable)",
+            "baseline": float(baseline_gap),
+            "baseline_fit": float(first.base_fit_gap),
+            "baseline_interval": scored["baseline_interval"],
+            "baseline_params": first.base_params,
+            **where_gap(first.real, base_all, names),
+        },
+        "known": known,
+        "effects": effects_report,
+        "verdict": verdict,
+        "waterfall": waterfall,
+        "tiles": {
+            "real": len(tiles), "fit": int(fitting.sum()), "held_out": len(scored["held_real"]), "simulated": settings.sim_tiles, "shape": list(shape), "particles_per_tile": count,
+            "split": ("checkerboard over the hologram" if layout is not None else "alternate tiles") + ("; cross-fitted: each half fitted and the other scored, every tile held out once" if cross_fitted else ""),
+            "cross_fitted": bool(cross_fitted),
+        },
+        "settings": {"sim_tiles": settings.sim_tiles, "evaluations": settings.evaluations, "confirm": settings.confirm, "resamples": settings.resamples, "seed": settings.seed, "cross_fit_below_px": settings.cross_fit_below_px},
+    }
+    seconds = time.perf_counter() - start
+    report["seconds"] = round(seconds, 2)
+    return Diagnosis(report, names, first.real, base_all, seconds)
+
+
+def _scored(halves: list, candidates: list, *, settings: DiagnosisSettings) -> dict:
+    """Every model scored on the held-out tiles of ``halves``, pooled: the effects' report entries (ranked), the verdict, the baseline gap.
+
+    Each half's held-out tiles and simulations are put in its own spreads (its fringe
+    frequency, and so its summaries, are its own): z units, pooled over the halves. Returns
+    ``effects``, ``verdict``, ``baseline_gap``, ``baseline_interval`` and ``held_real`` (the
+    pooled held-out summaries, in z units).
+    """
+    first = halves[0]
+    held_real = np.vstack([h.real[~h.fitting] / h.spread for h in halves])
+    held_sims = {name: np.vstack([h.held[name] / h.spread for h in halves]) for name in first.held}
+    unit = np.ones(held_real.shape[1])
+    gap = lambda a, b: gap_statistic(a, b, spread=unit)  # noqa: E731
     baseline_gap = gap(held_real, held_sims["baseline"])[0]
-    base_all = np.vstack([base_sim, held_sims["baseline"]])  # both halves' places, for "where"
-    steps.advance()
-
-    # screen: regress the standardised residual on each effect's signature (finite difference)
-    steps.check()
-    _, z_residual = gap(fit_real, base_sim)
-    screening = {}
-    for effect_id in candidates:
-        signature_sim = model.summaries(base_params, {effect_id: _with_measured(effect_id, EFFECTS[effect_id].injections[1], measured)})
-        _, signature = gap(signature_sim, base_sim)  # how far the effect moves the simulation, in z units
-        norm = float(signature @ signature)
-        coefficient = float(z_residual @ signature) / norm if norm > 0 else 0.0
-        residual = z_residual - coefficient * signature
-        dof = max(len(signature) - 1, 1)
-        error = np.sqrt(float(residual @ residual) / dof / norm) if norm > 0 else np.inf
-        screening[effect_id] = {"coefficient": coefficient, "t": coefficient / error if error > 0 else 0.0, "explained": 1.0 - float(residual @ residual) / max(float(z_residual @ z_residual), 1e-12)}
-    steps.advance()
-
-    # Confirm the effects whose fingerprint is most significant, whichever its sign: the
-    # baseline's own parameters may already have over-compensated for the missing effect.
-    refitted = sorted(candidates, key=lambda e: -abs(screening[e]["t"]))[:confirmed]
     effects_report = []
-    fitted = {}
     for effect_id in candidates:
-        entry = {"id": effect_id, "screening": screening[effect_id], "confirmed": effect_id in refitted}
-        if effect_id in refitted:
-            steps.check()
-            start_params = {("baseline", k): v for k, v in base_params.items()}
-            baseline_params, effect_params, fit_gap = _fit(model, fit_real, [effect_id], start=start_params, measured=measured, evaluations=settings.evaluations, spread=spread)
-            entry["gap_fit"] = float(fit_gap)  # on the fitting tiles: never above the baseline's (`_fit` keeps its start)
-            held_sims[effect_id] = model.summaries(baseline_params, effect_params, half="held")
+        entry = {"id": effect_id, "screening": first.screening[effect_id], "confirmed": effect_id in first.refitted, **first.entries[effect_id]}
+        if len(halves) > 1 and "gap_fit" in entry:
+            entry["params_other_half"] = halves[1].entries[effect_id]["params"]
+        if entry["confirmed"]:
             gap_after = gap(held_real, held_sims[effect_id])[0]
-            # ablation at the optimum: the same fit with the effect switched off. A refit can
-            # lower the gap by moving the baseline alone (out of an over-fitted optimum of
-            # the fitting tiles); only what switching the effect on adds is the effect's.
-            held_sims[f"{effect_id} off"] = model.summaries(baseline_params, {}, half="held")
             entry["gap_ablated"] = float(gap(held_real, held_sims[f"{effect_id} off"])[0])
-            fitted[effect_id] = (baseline_params, effect_params)
-            entry["params"] = {**effect_params[effect_id], **{f"baseline.{k}": v for k, v in baseline_params.items()}}
-            steps.advance()
         else:
-            # not refitted: the best of a coarse scan (off, weak, strong) with the baseline's parameters
-            scan = [(baseline_gap, dict(EFFECTS[effect_id].neutral))]
-            settings_scanned = [_with_measured(effect_id, setting, measured) for setting in EFFECTS[effect_id].injections]
-            scan += [(gap(held_real, model.summaries(base_params, {effect_id: setting}, half="held"))[0], setting) for setting in settings_scanned]
+            # the best of the coarse scan (off, weak, strong) with the baseline's parameters
+            scan = [(baseline_gap, dict(EFFECTS[effect_id].neutral))] + [(gap(held_real, held_sims[f"{effect_id} scan {i}"])[0], setting) for i, setting in enumerate(first.scanned[effect_id])]
             gap_after, entry["params"] = min(scan, key=lambda pair: pair[0])
         entry["gap_after"] = float(gap_after)
         entry["shrink"] = float(1.0 - gap_after / baseline_gap) if baseline_gap > 0 else 0.0
         effects_report.append(entry)
 
     # evidence with its uncertainty: resample the held-out real tiles and the simulation seeds
-    resampling = {"spread": spread, "resamples": settings.resamples, "seed": settings.seed, "paired": model.paired}
+    # resampled within each half: the design holds out each half's tiles against its own fit
+    strata = ([int((~h.fitting).sum()) for h in halves], [len(h.held["baseline"]) for h in halves])
+    resampling = {"spread": unit, "resamples": settings.resamples, "seed": settings.seed, "paired": first.model.paired, "strata": strata}
     draws = resampled_gaps(held_real, held_sims, **resampling)
     evidence = effect_evidence(held_real, held_sims, [e["id"] for e in effects_report if e["confirmed"]], **resampling)
     for entry in effects_report:
@@ -179,48 +208,113 @@ def diagnose_tiles(
             entry["evidence"] = {"summaries": own["summaries"], "reduction": own["reduction"], "interval": [float(v) for v in np.quantile(own["draws"], (0.05, 0.95))]}
     # ranked by the evidence the verdict is decided on (then the screened ones, by their scan)
     effects_report.sort(key=lambda e: (not e["confirmed"], -e["evidence"]["reduction"] if e["confirmed"] else e["gap_after"]))
-    verdict = _decision([e for e in effects_report if e["confirmed"]], evidence, baseline_gap=baseline_gap, held_out=len(held_real), summaries=len(names))
+    verdict = _decision([e for e in effects_report if e["confirmed"]], evidence, baseline_gap=baseline_gap, held_out=len(held_real), summaries=len(unit))
+    return {
+        "effects": effects_report, "verdict": verdict, "baseline_gap": baseline_gap, "held_real": held_real,
+        "baseline_interval": [float(v) for v in np.quantile(draws["baseline"], (0.05, 0.95))],
+    }
 
-    # waterfall: baseline, + best, + best and the runner-up (greedy)
-    waterfall = [{"model": "baseline", "gap": float(baseline_gap)}]
-    confirmed_sorted = [e for e in effects_report if e["confirmed"]]
-    if confirmed_sorted:
-        waterfall.append({"model": f"+{confirmed_sorted[0]['id']}", "gap": confirmed_sorted[0]["gap_after"]})
+
+@dataclass
+class _Half:
+    """One fit of the diagnosis: fitted on the real tiles ``fitting`` selects, scored on the others.
+
+    ``real`` holds every real tile's summaries with this half's fringe frequency (measured on
+    its fitting tiles only), ``spread`` their tile-to-tile spread; ``held`` each model's
+    simulated summaries at the held-out tiles' places (raw), keyed ``"baseline"``, the effect
+    id (its refit), ``"<id> off"`` (the refit with the effect switched off) and, for effects
+    not refitted, ``"<id> scan <i>"`` (`scanned`); ``entries`` the report fields of this
+    half's fits (``params``, ``gap_fit``).
+    """
+
+    fitting: np.ndarray
+    half: str
+    names: list
+    real: np.ndarray
+    spread: np.ndarray
+    model: _Model
+    measured: dict
+    base_params: dict
+    base_fit_gap: float
+    base_sim: np.ndarray
+    screening: dict
+    refitted: list
+    held: dict
+    fitted: dict
+    entries: dict
+    scanned: dict
+
+
+def _fit_half(tiles: list, fitting: np.ndarray, half: str, *, config: ExperimentConfig, count: int, settings: DiagnosisSettings, layout: TileLayout | None, known: dict, candidates: list, around: list, field_mean: float, refitted: list | None, steps: Steps) -> _Half:
+    """Fit the baseline to the tiles ``fitting`` selects (the layout's ``half``), screen, refit, ablate, and simulate the other tiles' places.
+
+    ``refitted``: the effects to refit (None: the most significant in this half's screening).
+    """
+    fringe_frequency = measured_fringe([t for t, fit in zip(tiles, fitting, strict=True) if fit])  # from the fitting tiles only
+    measured = _fringe_parameters(fringe_frequency)
+    summaries = [tile_summaries(t, config=config, fringe_frequency=fringe_frequency, field_mean=field_mean, surroundings=region) for t, region in zip(tiles, around, strict=True)]
+    names = summaries[0][1]
+    real = np.stack([s[0] for s in summaries])
+    fit_real = real[fitting]
+    spread = real_spread(real)  # the experiment's own tile-to-tile spread: the unit of every gap
+    other = "held" if half == "fit" else "fit"
+    model = _Model(config, shape=tiles[0].shape, count=count, settings=settings, fringe_frequency=fringe_frequency, layout=layout, known=known)
+    fit = lambda ids, start: _fit(model, fit_real, ids, start=start, measured=measured, evaluations=settings.evaluations, spread=spread, half=half)  # noqa: E731
+
     steps.check()
-    if len(confirmed_sorted) > 1:
-        pair = [confirmed_sorted[0]["id"], confirmed_sorted[1]["id"]]
-        start_params = {("baseline", k): v for k, v in fitted[pair[0]][0].items()}
-        start_params.update({(pair[0], k): v for k, v in fitted[pair[0]][1][pair[0]].items()})
-        baseline_params, effect_params, _ = _fit(model, fit_real, pair, start=start_params, measured=measured, evaluations=settings.evaluations, spread=spread)
-        waterfall.append({
-            "model": f"+{pair[0]}+{pair[1]}",
-            "gap": float(gap(held_real, model.summaries(baseline_params, effect_params, half="held"))[0]),
-            "params": {effect_id: dict(effect_params[effect_id]) for effect_id in pair},  # the joint fit, for `effects_from_report`
-        })
+    base_params, _, base_fit_gap = fit([], {})
+    base_sim = model.summaries(base_params, {}, half=half)
+    held = {"baseline": model.summaries(base_params, {}, half=other)}  # every model's held-out simulation, for the resampling
     steps.advance()
 
-    report = {
-        "gap": {
-            "metric": f"excess standardised chi-square over {len(names)} summaries, held-out real tiles vs simulation (0 = indistinguishable)",
-            "baseline": float(baseline_gap),
-            "baseline_fit": float(base_fit_gap),
-            "baseline_interval": [float(v) for v in np.quantile(draws["baseline"], (0.05, 0.95))],
-            "baseline_params": base_params,
-            **where_gap(real, base_all, names),
-        },
-        "known": known,
-        "effects": effects_report,
-        "verdict": verdict,
-        "waterfall": waterfall,
-        "tiles": {
-            "real": len(tiles), "fit": len(fit_real), "held_out": len(held_real), "simulated": settings.sim_tiles, "shape": list(shape), "particles_per_tile": count,
-            "split": "checkerboard over the hologram" if layout is not None else "alternate tiles",
-        },
-        "settings": {"sim_tiles": settings.sim_tiles, "evaluations": settings.evaluations, "confirm": settings.confirm, "resamples": settings.resamples, "seed": settings.seed},
-    }
-    seconds = time.perf_counter() - start
-    report["seconds"] = round(seconds, 2)
-    return Diagnosis(report, names, real, base_all, seconds)
+    # screen: regress the standardised residual on each effect's signature (finite difference)
+    steps.check()
+    _, z_residual = gap_statistic(fit_real, base_sim, spread=spread)
+    screening = {}
+    for effect_id in candidates:
+        signature_sim = model.summaries(base_params, {effect_id: _with_measured(effect_id, EFFECTS[effect_id].injections[1], measured)}, half=half)
+        _, signature = gap_statistic(signature_sim, base_sim, spread=spread)  # how far the effect moves the simulation, in z units
+        norm = float(signature @ signature)
+        coefficient = float(z_residual @ signature) / norm if norm > 0 else 0.0
+        residual = z_residual - coefficient * signature
+        dof = max(len(signature) - 1, 1)
+        error = np.sqrt(float(residual @ residual) / dof / norm) if norm > 0 else np.inf
+        screening[effect_id] = {"coefficient": coefficient, "t": coefficient / error if error > 0 else 0.0, "explained": 1.0 - float(residual @ residual) / max(float(z_residual @ z_residual), 1e-12)}
+    steps.advance()
+
+    # Confirm the effects whose fingerprint is most significant, whichever its sign: the
+    # baseline's own parameters may already have over-compensated for the missing effect.
+    if refitted is None:
+        refitted = sorted(candidates, key=lambda e: -abs(screening[e]["t"]))[: min(settings.confirm, len(candidates))]
+    fitted, entries, scanned = {}, {}, {}
+    for effect_id in candidates:
+        if effect_id in refitted:
+            steps.check()
+            baseline_params, effect_params, fit_gap = fit([effect_id], {("baseline", k): v for k, v in base_params.items()})
+            held[effect_id] = model.summaries(baseline_params, effect_params, half=other)
+            # ablation at the optimum: the same fit with the effect switched off. A refit can
+            # lower the gap by moving the baseline alone (out of an over-fitted optimum of
+            # the fitting tiles); only what switching the effect on adds is the effect's.
+            held[f"{effect_id} off"] = model.summaries(baseline_params, {}, half=other)
+            fitted[effect_id] = (baseline_params, effect_params)
+            # gap_fit: on the fitting tiles, never above the baseline's (`_fit` keeps its start)
+            entries[effect_id] = {"gap_fit": float(fit_gap), "params": {**effect_params[effect_id], **{f"baseline.{k}": v for k, v in baseline_params.items()}}}
+            steps.advance()
+        else:
+            # not refitted: a coarse scan (weak, strong) with the baseline's parameters
+            scanned[effect_id] = [_with_measured(effect_id, setting, measured) for setting in EFFECTS[effect_id].injections]
+            for i, setting in enumerate(scanned[effect_id]):
+                held[f"{effect_id} scan {i}"] = model.summaries(base_params, {effect_id: setting}, half=other)
+            entries[effect_id] = {}
+    return _Half(fitting, half, names, real, spread, model, measured, base_params, base_fit_gap, base_sim, screening, refitted, held, fitted, entries, scanned)
+
+
+def _fit_pair(half: _Half, pair: list, *, evaluations: int) -> tuple[dict, np.ndarray]:
+    """Refit ``pair`` together in one half, from its first effect's fit: (effect params, simulated summaries at the held-out places)."""
+    start = {("baseline", k): v for k, v in half.fitted[pair[0]][0].items()}
+    start.update({(pair[0], k): v for k, v in half.fitted[pair[0]][1][pair[0]].items()})
+    baseline_params, effect_params, _ = _fit(half.model, half.real[half.fitting], pair, start=start, measured=half.measured, evaluations=evaluations, spread=half.spread, half=half.half)
+    return effect_params, half.model.summaries(baseline_params, effect_params, half="held" if half.half == "fit" else "fit")
 
 
 def diagnose_hologram(
@@ -242,7 +336,8 @@ def diagnose_hologram(
         As recorded (integer counts keep what the file states about the camera).
     tile_px : int, optional
         Tile edge (px). Default: the largest edge up to ``tile.size`` that cuts at least 16
-        tiles (512²: 128 px), so the held-out half has 8 tiles to resolve a gap with.
+        tiles (512²: 128 px), so the held-out half has 8 tiles to resolve a gap with (and
+        a 512² hologram is cross-fitted: all 16 are scored, `DiagnosisSettings.cross_fit_below_px`).
     known : bool
         Put what the file states into every model as known, not diagnosed: for integer
         counts (`known_sensor`), the bit depth and saturation as ``quantization``. Off, or

@@ -30,7 +30,12 @@ class DiagnosisSettings:
     effects, in order of screening significance, are refitted (default all: the linear
     screening misses effects the baseline over-compensates, e.g. shot noise absorbed by read
     noise); the others get the best of a coarse off/weak/strong scan; ``resamples`` bootstrap
-    draws for the intervals and the verdict's confidence.
+    draws for the intervals and the verdict's confidence; ``cross_fit_below_px``: cross-fit
+    (fit on each half, score on the other: every tile held out once) when one half of the real
+    tiles holds fewer pixels than this (0: never). The default, 2^19 px, is half of a 1024²
+    hologram: a 512² hologram's 8 held-out tiles of 128² (about 12 spheres) are what limits
+    its verdicts, while cross-fitting a 1024² one (twice the fits) would break its 3-minute
+    target.
     """
 
     sim_tiles: int = 8
@@ -38,9 +43,10 @@ class DiagnosisSettings:
     confirm: int = len(EFFECTS)
     resamples: int = 2000
     seed: int = 0
+    cross_fit_below_px: int = 2**19
 
     def __post_init__(self) -> None:
-        for name, low in (("sim_tiles", 2), ("evaluations", _MIN_EVALUATIONS), ("confirm", 0), ("resamples", 100), ("seed", 0)):
+        for name, low in (("sim_tiles", 2), ("evaluations", _MIN_EVALUATIONS), ("confirm", 0), ("resamples", 100), ("seed", 0), ("cross_fit_below_px", 0)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise InputError(f"{name}: expected an integer of at least {low}, got {value!r}")
@@ -116,10 +122,12 @@ class _Model:
         ])
 
 
-def _fit(model: _Model, real: np.ndarray, effect_ids: Sequence[str], *, start: dict, measured: dict, evaluations: int, spread: np.ndarray) -> tuple[dict, dict, float]:
+def _fit(model: _Model, real: np.ndarray, effect_ids: Sequence[str], *, start: dict, measured: dict, evaluations: int, spread: np.ndarray, half: str = "fit") -> tuple[dict, dict, float]:
     """Fit the baseline and the listed effects' parameters to the fitting tiles ``real`` (in unit coordinates; returns baseline, effects, gap).
 
-    The loss is `_chi_square`; the gap returned is its excess, ``max(0, χ² - 1)``.
+    The loss is `_chi_square`; the gap returned is its excess, ``max(0, χ² - 1)``. ``half``:
+    the half of the layout ``real`` comes from (`_Model.summaries`; ``"held"`` when the halves
+    swap roles in a cross-fit).
 
     ``measured`` maps (effect, parameter) to a value read off the real tiles (e.g. the fringe
     period), held fixed; optical parameters are searched on a small grid (each point
@@ -159,7 +167,7 @@ def _fit(model: _Model, real: np.ndarray, effect_ids: Sequence[str], *, start: d
 
     def loss(unit, optical):
         baseline, effects = unpack(unit, optical)
-        return _chi_square(real, model.summaries(baseline, effects), spread=spread)
+        return _chi_square(real, model.summaries(baseline, effects, half=half), spread=spread)
 
     # the previous optimum, with each new parameter at its weakest in-bounds setting (nearest to off)
     x0 = np.array([_to_unit(key, start[key] if key in start else (EFFECTS[key[0]].neutral[key[1]] if key[0] in EFFECTS else (low + high) / 2), low, high) for key, (low, high) in bounds])
@@ -200,7 +208,7 @@ def _fit(model: _Model, real: np.ndarray, effect_ids: Sequence[str], *, start: d
     if all(("baseline", name) in start for name in BASELINE.bounds):
         start_baseline = {name: start[("baseline", name)] for name in BASELINE.bounds}
         start_effects = {e: {**EFFECTS[e].neutral, **{k: v for (owner, k), v in start.items() if owner == e}} for e in effect_ids}
-        start_chi_square = _chi_square(real, model.summaries(start_baseline, start_effects), spread=spread)
+        start_chi_square = _chi_square(real, model.summaries(start_baseline, start_effects, half=half), spread=spread)
         if start_chi_square <= best[0]:
             return start_baseline, start_effects, max(0.0, start_chi_square - 1.0)
     return baseline, effects, max(0.0, best[0] - 1.0)

@@ -118,7 +118,9 @@ def _tiles_to_decide_text(verdict: dict, tiles: dict) -> str:
         return "no amount of data: the best effect does not improve on the baseline or on the runner-up."
     if needed <= tiles["held_out"]:
         return f"these {tiles['held_out']} held-out tiles suffice."
-    return f"about {needed} held-out tiles of {tiles['shape'][0]}x{tiles['shape'][1]} px (now {tiles['held_out']}), i.e. about {2 * needed} tiles in all, if the margins stay as measured."
+    # cross-fitted, every tile is held out once; else half of them are
+    in_all = needed if tiles.get("cross_fitted") else 2 * needed
+    return f"about {needed} held-out tiles of {tiles['shape'][0]}x{tiles['shape'][1]} px (now {tiles['held_out']}), i.e. about {in_all} tiles in all, if the margins stay as measured."
 
 
 def _known_text(report: dict) -> str:

@@ -16,18 +16,25 @@ _SUPPORT_Z = 1.0
 _VERDICT_MIN_REDUCTION = 0.5
 
 
-def _resampled_z(real: np.ndarray, sims: dict, *, spread: np.ndarray, resamples: int, seed: int, paired: bool) -> dict:
+def _draw(rng: np.random.Generator, counts: tuple, resamples: int) -> np.ndarray:
+    """(resamples, sum(counts)) row indices: each block of ``counts[i]`` consecutive rows redrawn with replacement from itself."""
+    offsets = np.cumsum((0, *counts[:-1]))
+    return np.concatenate([offset + rng.integers(0, count, (resamples, count)) for offset, count in zip(offsets, counts, strict=True)], axis=1)
+
+
+def _resampled_z(real: np.ndarray, sims: dict, *, spread: np.ndarray, resamples: int, seed: int, paired: bool, strata: tuple | None = None) -> dict:
     """Each model's per-summary z on bootstrap resamples: dict of (resamples, K) arrays (see `resampled_gaps`)."""
     rng = np.random.default_rng([seed, 17])
     n_real, n_sim = len(real), len(next(iter(sims.values())))
-    real_draw = rng.integers(0, n_real, (resamples, n_real))
-    sim_draw = real_draw if paired else rng.integers(0, n_sim, (resamples, n_sim))
+    real_counts, sim_counts = strata if strata is not None else ((n_real,), (n_sim,))
+    real_draw = _draw(rng, tuple(real_counts), resamples)
+    sim_draw = real_draw if paired else _draw(rng, tuple(sim_counts), resamples)
     real_means = real[real_draw].mean(axis=1)
     scale = spread * np.sqrt(1.0 / n_real + 1.0 / n_sim)
     return {name: (real_means - sim[sim_draw].mean(axis=1)) / scale for name, sim in sims.items()}
 
 
-def resampled_gaps(real: np.ndarray, sims: dict, *, spread: np.ndarray, resamples: int, seed: int = 0, paired: bool = False) -> dict:
+def resampled_gaps(real: np.ndarray, sims: dict, *, spread: np.ndarray, resamples: int, seed: int = 0, paired: bool = False, strata: tuple | None = None) -> dict:
     """Each model's gap on bootstrap resamples of what the gap depends on.
 
     Parameters
@@ -46,16 +53,20 @@ def resampled_gaps(real: np.ndarray, sims: dict, *, spread: np.ndarray, resample
         Row i of ``real`` and of every simulation lie at one place of the field (`_Model.paired`):
         draw each place once for both, so that what depends on the place (a vignetting's tilt)
         is not counted as sampling noise.
+    strata : (real counts, simulated counts), optional
+        The rows come in consecutive blocks of these sizes (a cross-fit's halves: each half's
+        held-out tiles, scored against its own fit): every draw takes as many rows from each
+        block as it holds, as the design does. Default: one block.
 
     Returns
     -------
     dict of (resamples,) arrays, one per model.
     """
-    z = _resampled_z(real, sims, spread=spread, resamples=resamples, seed=seed, paired=paired)
+    z = _resampled_z(real, sims, spread=spread, resamples=resamples, seed=seed, paired=paired, strata=strata)
     return {name: np.maximum(0.0, np.mean(np.minimum(draws**2, 1e4), axis=1) - 1.0) for name, draws in z.items()}
 
 
-def effect_evidence(real: np.ndarray, sims: dict, effect_ids: list, *, spread: np.ndarray, resamples: int, seed: int = 0, paired: bool = False) -> dict:
+def effect_evidence(real: np.ndarray, sims: dict, effect_ids: list, *, spread: np.ndarray, resamples: int, seed: int = 0, paired: bool = False, strata: tuple | None = None) -> dict:
     """Each effect's χ² reduction on the held-out tiles, over the summaries the effect itself moves.
 
     The gap averages z² over all K summaries, so an effect that removes z = 5 from a few of
@@ -74,7 +85,7 @@ def effect_evidence(real: np.ndarray, sims: dict, effect_ids: list, *, spread: n
     sims : dict of (n_sim, K) arrays
         ``"baseline"``, and for each effect id its refit and ``"<id> off"`` (common random numbers).
     effect_ids : list of str
-    spread, resamples, seed, paired
+    spread, resamples, seed, paired, strata
         As in `resampled_gaps` (the same draws).
 
     Returns
@@ -88,7 +99,7 @@ def effect_evidence(real: np.ndarray, sims: dict, effect_ids: list, *, spread: n
     n_real, n_sim = len(real), len(sims["baseline"])
     scale = spread * np.sqrt(1.0 / n_real + 1.0 / n_sim)
     point = {name: (real.mean(axis=0) - sim.mean(axis=0)) / scale for name, sim in sims.items()}
-    draws = _resampled_z(real, sims, spread=spread, resamples=resamples, seed=seed, paired=paired)
+    draws = _resampled_z(real, sims, spread=spread, resamples=resamples, seed=seed, paired=paired, strata=strata)
 
     def chi_square(z, own):
         return np.minimum(z[..., own] ** 2, 1e4).sum(axis=-1)
