@@ -2,12 +2,14 @@
 
 Sub-commands:
 
-``suite [--tile PX] [--tiles N] [--particles P] [--evaluations E] [--controls C] [--jobs J]``
+``suite [--tile PX] [--tiles N] [--particles P] [--evaluations E] [--controls C] [--jobs J] [--cases I ...]``
     Injection and recovery: for every effect id, pseudo-experiments made with that effect on
     at its weak and its strong setting (`Effect.injections`, at `Effect.injection_density`
     times P particles per tile) on top of a known baseline (contrast 0.8, read noise 0.04,
     gamma 1.2), diagnosed by a simulator that has to find it; plus C controls with nothing
-    withheld, the last at the densest injection's density; J cases at once (processes). Prints
+    withheld, the last at the densest injection's density; J cases at once (processes); only the
+    cases of indices I, in that order, if given (0-17: the effects, weak then strong, in catalog
+    order; then the controls). Prints
     one JSON line per case, then top-1 accuracy of the verdict, the median shrink of a
     correctly named effect, the controls' false alarms and the mean time per diagnosis.
 ``independent [--index N] [--supersample S] ...``
@@ -127,7 +129,7 @@ def _suite_case(case: tuple) -> dict:
     }
 
 
-def suite(tile: int, tiles: int, particles: int, evaluations: int, controls: int, jobs: int) -> None:
+def suite(tile: int, tiles: int, particles: int, evaluations: int, controls: int, jobs: int, indices: list[int] | None = None) -> None:
     # (effect, strength, density); the last control sits at the densest injection's density
     densest = max(density for effect in EFFECTS.values() for density in effect.injection_density)
     cases = [(effect_id, strength, EFFECTS[effect_id].injection_density[strength]) for effect_id in EFFECTS for strength in (0, 1)]
@@ -137,7 +139,8 @@ def suite(tile: int, tiles: int, particles: int, evaluations: int, controls: int
     rows = []
     # each case is seeded by its index, so the rows do not depend on how many run at once
     with ProcessPoolExecutor(max_workers=jobs) as pool:
-        for row in pool.map(_suite_case, [(index, *case, options) for index, case in enumerate(cases)]):
+        chosen = indices if indices is not None else range(len(cases))
+        for row in pool.map(_suite_case, [(index, *cases[index], options) for index in chosen]):
             rows.append(row)
             print(json.dumps(row), flush=True)
     injected = [r for r in rows if r["withheld"]]
@@ -305,6 +308,7 @@ def main() -> None:
         if name == "suite":
             p.add_argument("--controls", type=int, default=5, help="controls; the last at the densest injection density")
             p.add_argument("--jobs", type=int, default=1, help="cases diagnosed at once (processes)")
+            p.add_argument("--cases", type=int, nargs="+", help="case indices to run, in this order (default all)")
         else:
             p.add_argument("--index", type=float, default=1.59, help="refractive index of the spheres (water: 1.33)")
             p.add_argument("--supersample", type=int, default=3, help="intensity samples per pixel edge, averaged (pixel area integration)")
@@ -314,7 +318,7 @@ def main() -> None:
     sub.add_parser("real")
     args = parser.parse_args()
     if args.command == "suite":
-        suite(args.tile, args.tiles, args.particles, args.evaluations, args.controls, args.jobs)
+        suite(args.tile, args.tiles, args.particles, args.evaluations, args.controls, args.jobs, args.cases)
     elif args.command == "independent":
         independent(args.tile, args.tiles, args.particles, args.evaluations, args.index, args.supersample)
     elif args.command == "mie":
