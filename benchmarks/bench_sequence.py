@@ -45,9 +45,11 @@ from napari_lbs._core import (
     local_cluster,
     load_model,
     match_particles,
+    open_frames,
     predict_particles,
     predict_sequence,
     score_particles,
+    sequence_background,
     simulate_sequence,
     train_model,
 )
@@ -163,7 +165,7 @@ def main() -> None:
     report = {"frames": args.frames, "size": args.size, "particles": args.particles, "speed_um": args.speed_um, "planes": len(config.volume.planes_um()),
               "cpu_count": psutil.cpu_count(), "load_average_at_start": list(psutil.getloadavg()), "simulate_seconds": round(time.perf_counter() - start, 2)}
 
-    background = np.median(recording.frames[:32], axis=0)  # the sequence's global background when it has at most 32 frames
+    background = sequence_background(open_frames(recording.frames))  # the global background predict_sequence uses
     predict_particles(recording.frames[0], model, background=background)  # warm-up: kernels and threads
     seconds, cpu_start = [], cpu_seconds()
     for frame in recording.frames[1:4]:  # as `napari-lbs predict` runs one hologram: torch on every core
