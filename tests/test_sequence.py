@@ -321,3 +321,11 @@ def test_a_bad_frame_late_in_a_recording_is_refused_before_any_work(tmp_path, de
     assert steps == []
     assert main(["predict", str(tmp_path / "f*.tif"), "--model", str(detector.path), "--out", str(tmp_path / "p.csv")]) == 2
     assert not list(tmp_path.glob("p.*"))  # nothing written, not even the work folder
+
+
+def test_the_packaged_sample_hologram_webp_reads_as_one_frame_like_the_sample_loader():
+    from napari_lbs._core import load_sample_hologram, open_frames, sample_hologram_path
+
+    frames = open_frames([sample_hologram_path()])  # what `predict` does with one file
+    assert len(frames) == 1
+    np.testing.assert_array_equal(frames.read(0), load_sample_hologram())

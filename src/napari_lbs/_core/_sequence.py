@@ -60,7 +60,7 @@ __all__ = [
 ]
 
 BACKGROUND_MODES = ("global", "running", "none")
-IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".bmp", ".jpg", ".jpeg")
+IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".bmp", ".jpg", ".jpeg", ".webp")
 VIDEO_SUFFIXES = (".avi", ".mp4", ".mov", ".mkv", ".m4v")
 _WORK_FORMAT = "napari-lbs-sequence-work"
 _IN_FLIGHT_PER_WORKER = 2
