@@ -243,3 +243,43 @@ def test_batch_widget_turns_a_recording_into_points_over_time_and_tracks_and_sto
     widget._stop.clicked.emit()
     qtbot.waitUntil(lambda: widget._worker is None, timeout=TIMEOUT_MS)
     assert widget._run.enabled and "stopped" in widget._status.value and len(viewer.layers) == layers
+
+
+def test_batch_widget_refuses_workers_with_a_scheduler_and_resumes_a_stopped_run(make_napari_viewer, qtbot, tmp_path, detector, tiny_config):
+    import tifffile
+    from pandas.testing import assert_frame_equal
+
+    from napari_lbs._core import simulate_sequence
+
+    recording = simulate_sequence(tiny_config, frames=3, flow="uniform", size=128, count=4, speed_um=6.0, seed=3)
+    tifffile.imwrite(tmp_path / "run.tif", recording.frames, photometric="minisblack")
+    viewer = make_napari_viewer()
+    widget = dock(viewer, "7 Batch")
+    widget.frames.value, widget.model.value, widget.device.value, widget.search_range.value = tmp_path / "run.tif", detector.path, "cpu", 10.0
+    widget.workers.value, widget.scheduler.value = 2, "tcp://head:8786"
+    assert not widget._run.enabled and "either a number of local workers or a scheduler address, not both" in widget._status.value
+    widget.workers.value, widget.scheduler.value = 0, "head:8786"
+    assert not widget._run.enabled and "scheme://host:port" in widget._status.value
+    widget.scheduler.value = "tcp://head:8786"
+    assert widget._run.enabled, widget._status.value
+    widget.scheduler.value = ""
+    run_to_end(qtbot, widget)  # in one go, in memory
+    once = viewer.layers["run.tif particles"]
+    assert {key: once.metadata[key] for key in ("workers", "scheduler", "work_dir")} == {"workers": None, "scheduler": None, "work_dir": None}
+    expected, features = once.data.copy(), once.features.copy()
+    viewer.layers.clear()
+
+    widget.work_dir.value = tmp_path / "work"
+    widget._run.clicked.emit()
+    widget._stop.clicked.emit()  # the frames in flight finish and stay in the work folder, the others are not predicted
+    qtbot.waitUntil(lambda: widget._worker is None, timeout=TIMEOUT_MS)
+    kept = {path.name: path.stat().st_mtime_ns for path in (tmp_path / "work").glob("frame_*.npz")}
+    assert 0 < len(kept) and len(viewer.layers) == 0
+    assert f"stopped after {len(kept)} of 3 frames" in widget._status.value and "run again to resume" in widget._status.value
+    run_to_end(qtbot, widget)
+    points = viewer.layers["run.tif particles"]
+    assert points.metadata["work_dir"] == str(tmp_path / "work") and points.metadata["provenance"]["resumed_frames"] == len(kept)
+    assert f"{len(kept)} frames resumed" in widget._status.value
+    assert {name: (tmp_path / "work" / name).stat().st_mtime_ns for name in kept} == kept  # the finished frames were not predicted again
+    np.testing.assert_array_equal(points.data, expected)
+    assert_frame_equal(points.features, features)
