@@ -37,13 +37,13 @@ _PROFILE_STEP_PX = 0.05
 _TAPER = 0.8  # the field is tapered from this fraction of its cut-off radius to the cut-off
 
 
-def _lorenz_mie(points_px: np.ndarray, radius_um: float, z_water_um: float):
+def _lorenz_mie(points_px: np.ndarray, radius_um: float, z_water_um: float, n_particle: float = N_PARTICLE):
     from pylorenzmie.theory import LorenzMie, Sphere
     from pylorenzmie.theory.Instrument import Instrument
 
     instrument = Instrument(wavelength=WAVELENGTH_UM, magnification=PIXEL_UM, n_m=N_MEDIUM)
     # pylorenzmie is wrong where k_m a is a multiple of pi: a radius off by 1e-6 um avoids it
-    sphere = Sphere(a_p=radius_um + 1e-6, n_p=N_PARTICLE, k_p=0.0, x_p=0.0, y_p=0.0, z_p=z_water_um / PIXEL_UM)
+    sphere = Sphere(a_p=radius_um + 1e-6, n_p=n_particle, k_p=0.0, x_p=0.0, y_p=0.0, z_p=z_water_um / PIXEL_UM)
     model = LorenzMie(coordinates=points_px, particle=[sphere], instrument=instrument)
     return model.field().copy()
 
@@ -54,18 +54,18 @@ def cutoff_px(z_water_um: float) -> float:
     return z_water_um * sin_theta / np.sqrt(1 - sin_theta**2) / PIXEL_UM
 
 
-def radial_profiles(radius_um: float, z_water_um: float, length_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def radial_profiles(radius_um: float, z_water_um: float, length_px: float, n_particle: float = N_PARTICLE) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``(rho_px, E_x along +x, E_x along +y, E_z along +x)`` of one sphere's scattered field."""
     rho = np.arange(0.0, length_px + 2 * _PROFILE_STEP_PX, _PROFILE_STEP_PX)
     zeros = np.zeros_like(rho)
-    along_x = _lorenz_mie(np.stack([rho, zeros, zeros]), radius_um, z_water_um)
-    along_y = _lorenz_mie(np.stack([zeros, rho, zeros]), radius_um, z_water_um)
+    along_x = _lorenz_mie(np.stack([rho, zeros, zeros]), radius_um, z_water_um, n_particle)
+    along_y = _lorenz_mie(np.stack([zeros, rho, zeros]), radius_um, z_water_um, n_particle)
     return rho, along_x[0], along_y[0], along_x[2]
 
 
-def sphere_field(points_x_px: np.ndarray, points_y_px: np.ndarray, radius_um: float, z_water_um: float, *, length_px: float, taper: bool = True):
+def sphere_field(points_x_px: np.ndarray, points_y_px: np.ndarray, radius_um: float, z_water_um: float, *, length_px: float, taper: bool = True, n_particle: float = N_PARTICLE):
     """``(E_x, E_y, E_z)`` of one sphere at the origin, at the given points (pixels), via its radial profiles."""
-    rho_grid, px, py, pz = radial_profiles(radius_um, z_water_um, length_px)
+    rho_grid, px, py, pz = radial_profiles(radius_um, z_water_um, length_px, n_particle)
     rho = np.hypot(points_x_px, points_y_px)
     with np.errstate(invalid="ignore", divide="ignore"):
         cos_phi = np.where(rho > 0, points_x_px / rho, 1.0)
@@ -83,8 +83,8 @@ def sphere_field(points_x_px: np.ndarray, points_y_px: np.ndarray, radius_um: fl
     return tuple(f * window for f in fields)
 
 
-def mie_intensity(shape: tuple[int, int], x_um, y_um, z_air_um, diameter_um) -> np.ndarray:
-    """Pixel-integrated Lorenz–Mie intensity of spheres (unobstructed light = 1), float32."""
+def mie_intensity(shape: tuple[int, int], x_um, y_um, z_air_um, diameter_um, n_particle=None) -> np.ndarray:
+    """Pixel-integrated Lorenz–Mie intensity of spheres (unobstructed light = 1), float32; ``n_particle`` per sphere (default polystyrene)."""
     rows, cols = shape
     s = SUPERSAMPLE
     ex = np.zeros((rows * s, cols * s), np.complex64)
@@ -93,14 +93,15 @@ def mie_intensity(shape: tuple[int, int], x_um, y_um, z_air_um, diameter_um) -> 
     offsets = (np.arange(s) + 0.5) / s - 0.5
     sub_rows = (np.arange(rows)[:, None] + offsets).ravel()
     sub_cols = (np.arange(cols)[:, None] + offsets).ravel()
-    for x, y, z_air, d in zip(x_um, y_um, z_air_um, diameter_um, strict=True):
+    indices = np.full(len(x_um), N_PARTICLE) if n_particle is None else np.asarray(n_particle, float)
+    for x, y, z_air, d, n in zip(x_um, y_um, z_air_um, diameter_um, indices, strict=True):
         z_water = z_air * N_MEDIUM
         length = cutoff_px(z_water)
         col, row = x / PIXEL_UM, y / PIXEL_UM
         r0, r1 = np.searchsorted(sub_rows, row - length), np.searchsorted(sub_rows, row + length)
         c0, c1 = np.searchsorted(sub_cols, col - length), np.searchsorted(sub_cols, col + length)
         dy, dx = np.meshgrid((sub_rows[r0:r1] - row).astype(np.float32), (sub_cols[c0:c1] - col).astype(np.float32), indexing="ij")
-        fx, fy, fz = sphere_field(dx, dy, d / 2, z_water, length_px=length)
+        fx, fy, fz = sphere_field(dx, dy, d / 2, z_water, length_px=length, n_particle=n)
         ex[r0:r1, c0:c1] += fx
         ey[r0:r1, c0:c1] += fy
         ez[r0:r1, c0:c1] += fz
@@ -123,8 +124,20 @@ def camera(intensity: np.ndarray, *, rng: np.random.Generator, photons: float = 
     return np.clip(np.round(counts * (mean_level / photons)), 0, 255).astype(np.uint8)
 
 
-def pseudo_real(count: int, *, size: int = 1024, seed: int = 0, z_air_um: tuple[float, float] = (1900.0, 4700.0)) -> tuple[np.ndarray, dict]:
-    """An 8-bit pseudo-real hologram of ``count`` polystyrene spheres and its truth table (air-equivalent depths)."""
+IMPURITY_INDEX = 1.45  # debris: not the particles' material (silica-like), so not what training assumed
+
+
+def pseudo_real(count: int, *, size: int = 1024, seed: int = 0, z_air_um: tuple[float, float] = (1900.0, 4700.0),
+                impurities: int = 0, impurity_diameter_um: tuple[float, float] = (3.0, 12.0), margin_px: int = 0) -> tuple[np.ndarray, dict]:
+    """An 8-bit pseudo-real hologram of ``count`` polystyrene spheres and its truth table (air-equivalent depths).
+
+    With ``impurities``, that many small spheres of index `IMPURITY_INDEX` (diameters uniform
+    in ``impurity_diameter_um``) per window area scatter too, at depths over the volume; with
+    ``margin_px`` the field is simulated over the window widened by that margin, spheres and
+    impurities at the same density there, and the window is kept, as a crop of a real sensor.
+    Neither is in the truth table. The ``count`` spheres of the window are the same as without
+    them (drawn first, from the same seed).
+    """
     rng = np.random.default_rng(seed)
     extent = (size - 1) * PIXEL_UM
     table = {
@@ -133,8 +146,28 @@ def pseudo_real(count: int, *, size: int = 1024, seed: int = 0, z_air_um: tuple[
         "z_um": rng.uniform(*z_air_um, count),
         "diameter_um": rng.uniform(20.0, 30.0, count),
     }
-    intensity = mie_intensity((size, size), table["x_um"], table["y_um"], table["z_um"], table["diameter_um"])
-    return camera(intensity, rng=rng), table
+    if not (impurities or margin_px):
+        intensity = mie_intensity((size, size), table["x_um"], table["y_um"], table["z_um"], table["diameter_um"])
+        return camera(intensity, rng=rng), table
+    extra = np.random.default_rng([seed, 1])
+    big = size + 2 * margin_px
+    ratio = (big / size) ** 2
+    shift = margin_px * PIXEL_UM
+    neighbours = int(round(count * (ratio - 1)))
+    nx, ny = [], []
+    while len(nx) < neighbours:  # uniform over the margin
+        x, y = extra.uniform(0, (big - 1) * PIXEL_UM, 2)
+        if not (shift <= x <= shift + extent and shift <= y <= shift + extent):
+            nx.append(x)
+            ny.append(y)
+    n_imp = int(round(impurities * ratio))
+    x = np.concatenate([table["x_um"] + shift, nx, extra.uniform(0, (big - 1) * PIXEL_UM, n_imp)])
+    y = np.concatenate([table["y_um"] + shift, ny, extra.uniform(0, (big - 1) * PIXEL_UM, n_imp)])
+    z = np.concatenate([table["z_um"], extra.uniform(*z_air_um, neighbours), extra.uniform(*z_air_um, n_imp)])
+    d = np.concatenate([table["diameter_um"], extra.uniform(20.0, 30.0, neighbours), extra.uniform(*impurity_diameter_um, n_imp)])
+    n = np.concatenate([np.full(count + neighbours, N_PARTICLE), np.full(n_imp, IMPURITY_INDEX)])
+    intensity = mie_intensity((big, big), x, y, z, d, n)[margin_px : margin_px + size, margin_px : margin_px + size]
+    return camera(np.ascontiguousarray(intensity), rng=rng), table
 
 
 def check_azimuthal(size: int = 96, z_air_um: float = 2000.0, diameter_um: float = 25.0) -> float:

@@ -104,8 +104,16 @@ def test_generate_train_predict_widgets_from_data_to_points(make_napari_viewer, 
     generate.config.value = config_path
     generate.groups.value = 4
     generate.output.value = tmp_path / "data"
+    generate.effects.value = "particle_phase:index_contrast=abc"
+    assert not generate._run.enabled and "particle_phase.index_contrast" in generate._status.value
+    # the demo's recipe: transparent spheres, with unlabelled impurities and neighbours
+    generate.effects.value = "particle_phase:index_contrast=0.26,transmission=1"
+    generate.impurities.value = 2
+    generate.neighbours_margin.value = 16
     run_to_end(qtbot, generate)
-    assert json.loads((tmp_path / "data" / "dataset.json").read_text())["complete"]
+    spec = json.loads((tmp_path / "data" / "dataset.json").read_text())
+    assert spec["complete"] and spec["effects"]["particle_phase"]["index_contrast"] == 0.26
+    assert spec["distractors"]["impurities_per_tile"] == 2 and spec["distractors"]["neighbours_margin_px"] == 16
     # the stack layout: the reconstruction grid plus 8 context planes beyond each end
     assert viewer.layers["training input (group 0)"].data.shape == (len(config.volume.planes_um()) + 16, 48, 48)
 

@@ -264,7 +264,7 @@ def _read_calibration(path) -> dict:
 
 
 def _cmd_generate(args) -> None:
-    from napari_lbs._core import DatasetLayout, InputProcessing, effects_from_report, generate_dataset, load_config, parse_effect
+    from napari_lbs._core import DatasetLayout, Distractors, InputProcessing, effects_from_report, generate_dataset, load_config, parse_effect
 
     config = load_config(args.config)
     check_output_path(args.out, flag="--out", folder=True, inputs=_inputs(args))
@@ -284,14 +284,21 @@ def _cmd_generate(args) -> None:
         source = {**(source or {}), "explicit": list(args.effect)}
     start = time.perf_counter()
     layout = _settings(DatasetLayout, kind=args.layout, depths=args.depths, context_planes=args.context_planes)
+    low, high = args.impurity_diameter_um
+    if args.impurities and not low <= high < config.particles.diameter_min_um:
+        raise InputError(f"--impurity-diameter-um: expected MIN <= MAX below the particles' diameter_min_um={config.particles.diameter_min_um:g} of {args.config}, got {low:g} {high:g}")
+    distractors = _settings(Distractors, impurities_per_tile=args.impurities, impurity_diameter_min_um=args.impurity_diameter_um[0],
+                            impurity_diameter_max_um=args.impurity_diameter_um[1], neighbours_margin_px=args.neighbours_margin_px)
     dataset = generate_dataset(args.out, config, groups=args.groups, processing=processing, layout=layout, calibration=calibration, effects=effects, effects_source=source,
-                               seed=args.seed, workers=args.workers, progress=_ProgressBar("generate"))
+                               distractors=distractors, seed=args.seed, workers=args.workers, progress=_ProgressBar("generate"))
     seconds = time.perf_counter() - start
     planes = len(dataset.groups) * len(dataset.planes_um)
     kind = f"calibrated ({args.calibration})" if calibration else "uncalibrated: Holo-processing (0, 0, 1)"
     added = f", effects: {', '.join(effects)}" if effects else ""
     if args.effects_from and not effects:
         added = f", no effects: {args.effects_from} names none"
+    if distractors.active:
+        added += f", unlabelled distractors: {distractors.impurities_per_tile} impurities per tile, neighbours in a {distractors.neighbours_margin_px}-pixel margin"
     _summary(f"wrote {len(dataset.groups)} groups ({planes} input planes, {kind}{added}) in {seconds:.1f} s -> {args.out}")
 
 
@@ -483,6 +490,7 @@ def _cmd_demo(args) -> None:
     from napari_lbs._core import (
         SAMPLE_PROVENANCE,
         CalibrationSettings,
+        Distractors,
         InputProcessing,
         TrainingSettings,
         backpropagate,
@@ -525,17 +533,21 @@ def _cmd_demo(args) -> None:
 
     start = time.perf_counter()
     if args.calibrated:  # the seed's LBS: calibrated Holo-processing of opaque discs
-        processing, effects = InputProcessing.from_calibration(calibration), {}
+        processing, effects, distractors = InputProcessing.from_calibration(calibration), {}, Distractors()
         data = f"{groups} better-synthetic groups of {config.tile.size}² (calibrated Holo-processing)"
     else:
         # What the sample is (polystyrene spheres in water) rather than the calibration: on the
         # Lorenz-Mie pseudo-real benchmark, calibrated data scored JI 0.21 where the seed's plain
         # simulation with these transparent spheres scored 0.86 (0.83 against 0.45 at 4x the density).
-        processing, effects = InputProcessing(), dict(DEMO_SAMPLE_EFFECTS)
-        data = f"{groups} synthetic groups of {config.tile.size}² of transparent spheres (particle_phase: index contrast {effects['particle_phase']['index_contrast']:g}), uncalibrated"
+        # Its distractors too (unlabelled): on the pseudo-real hologram with debris and spheres
+        # outside the crop, a model trained without them reported 20 false particles among 119.
+        processing, effects, distractors = InputProcessing(), dict(DEMO_SAMPLE_EFFECTS), Distractors(**DEMO_SAMPLE_DISTRACTORS)
+        data = (f"{groups} synthetic groups of {config.tile.size}² of transparent spheres (particle_phase: index contrast {effects['particle_phase']['index_contrast']:g}), "
+                f"uncalibrated, with unlabelled distractors ({distractors.impurities_per_tile} impurities of {distractors.impurity_diameter_min_um:g}-{distractors.impurity_diameter_max_um:g} um "
+                f"per tile, neighbours in a {distractors.neighbours_margin_px}-pixel margin)")
     generate_dataset(out / "data", config, groups=groups, processing=processing, calibration=calibration, effects=effects,
                      effects_source={"explicit": ["the built-in sample: polystyrene (n 1.59) spheres in water (n 1.33), 25 um, 660 nm"]} if effects else None,
-                     seed=args.seed, progress=_ProgressBar("generate"))
+                     distractors=distractors, seed=args.seed, progress=_ProgressBar("generate"))
     timings["generate"] = time.perf_counter() - start
 
     start = time.perf_counter()
@@ -558,7 +570,8 @@ def _cmd_demo(args) -> None:
         "model": str(trained.model_path),
         "model_sha256": best["sha256"],
         "training": {"formulation": training.formulation, "preset": training.preset, "epochs_done": len(trained.log["epochs"]), "stopped_by_budget": trained.stopped,
-                     "data": f"{data}, the last {len(trained.log['validation_groups'])} held out", "effects": effects, "calibrated": bool(args.calibrated)},
+                     "data": f"{data}, the last {len(trained.log['validation_groups'])} held out", "effects": effects,
+                     "distractors": distractors.to_dict() if distractors.active else None, "calibrated": bool(args.calibrated)},
         "validation": {key: validation.get(key) for key in ("er", "ji", "tp", "fp", "fn", "threshold", "axial_um", "median_abs_dz_um")},
         "particles": str(particles_path),
         "particle_count": len(result.particles["x_um"]),
@@ -579,6 +592,9 @@ def _cmd_demo(args) -> None:
 # The built-in sample's spheres: polystyrene (n 1.59) in water (n 1.33), all light transmitted;
 # the phase delay through a sphere's centre is 2π · 0.26 · d / 0.66 µm (62 rad at 25 µm).
 DEMO_SAMPLE_EFFECTS = {"particle_phase": {"index_contrast": 0.26, "transmission": 1.0}}
+# Its unlabelled distractors (`Distractors`): small foci of debris in the water, and the
+# fringes of spheres outside the crop near its edges.
+DEMO_SAMPLE_DISTRACTORS = {"impurities_per_tile": 6, "impurity_diameter_min_um": 4.0, "impurity_diameter_max_um": 14.0, "neighbours_margin_px": 96}
 
 
 class _Parser(argparse.ArgumentParser):
@@ -648,6 +664,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--effects-from", metavar="REPORT.json", help="add the effects a diagnosis report names (its verdict and waterfall, with their fitted parameters)")
     p.add_argument("--effect", action="append", default=[], metavar="ID[:NAME=VALUE,...]",
                    help="add an effect of the catalog, e.g. particle_phase:index_contrast=0.26,transmission=1 or quantization:bits=8,saturation=2 (repeatable)")
+    p.add_argument("--impurities", type=_integer(0), default=0, metavar="N",
+                   help="unlabelled small scatterers per tile, smaller than the particles (default 0; the demo uses %d)" % DEMO_SAMPLE_DISTRACTORS["impurities_per_tile"])
+    p.add_argument("--impurity-diameter-um", type=_number(0.0, above=True), nargs=2, default=(4.0, 14.0), metavar=("MIN", "MAX"), help="their diameter range in um (default 4 14)")
+    p.add_argument("--neighbours-margin-px", type=_integer(0, 4096), default=0, metavar="PX",
+                   help="simulate each group with unlabelled particles in a margin of PX pixels around it and keep the window, as a crop of a real hologram is (default 0; the demo uses %d)" % DEMO_SAMPLE_DISTRACTORS["neighbours_margin_px"])
     p.set_defaults(run=_cmd_generate)
 
     p = sub.add_parser("train", help="train the U-Net on a synthetic training set")

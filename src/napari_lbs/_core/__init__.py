@@ -50,8 +50,8 @@ _NAMES = {
     "_sequence": ("BACKGROUND_MODES", "HologramFrames", "SequenceResult", "local_cluster", "open_frames", "predict_sequence", "sequence_background"),
     "_samples": ("SAMPLE_PROVENANCE", "load_sample_hologram", "sample_hologram_path"),
     "_synthesis": (
-        "LABEL_SCALE", "ParticleField", "count_for_ppp", "disc_coverage", "label_planes", "layer_images", "random_particle_field",
-        "simulate_hologram",
+        "LABEL_SCALE", "Distractors", "ParticleField", "count_for_ppp", "disc_coverage", "distractor_scene", "label_planes", "layer_images",
+        "random_particle_field", "simulate_hologram",
     ),
     "_tracking": ("DISPLACEMENT_COLUMNS", "link_tracks"),
     "_training": ("THRESHOLD_FRACTIONS", "FOCUS_THRESHOLDS", "TrainingResult", "TrainingSettings", "train_model"),

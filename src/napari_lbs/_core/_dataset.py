@@ -40,7 +40,7 @@ from napari_lbs._core._config import ExperimentConfig
 from napari_lbs._core._effects import check_effects, effect_hologram
 from napari_lbs._core._io import InputError, atomic_path, write_json
 from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
-from napari_lbs._core._synthesis import ParticleField, label_planes, random_particle_field, simulate_hologram
+from napari_lbs._core._synthesis import Distractors, ParticleField, distractor_scene, label_planes, random_particle_field, simulate_hologram
 from napari_lbs._core._validation import check_dataset_manifest, read_json_object
 
 __all__ = ["DatasetLayout", "InputProcessing", "SyntheticDataset", "synthetic_group", "generate_dataset", "open_dataset", "dataset_summary", "DATASET_FORMAT"]
@@ -145,6 +145,7 @@ def synthetic_group(
     count: int | None = None,
     layout: DatasetLayout = DatasetLayout(kind="layers"),
     effects: dict | None = None,
+    distractors: Distractors = Distractors(),
 ) -> tuple[np.ndarray, np.ndarray, ParticleField]:
     """One training group: ``(inputs, labels, field)``.
 
@@ -163,6 +164,9 @@ def synthetic_group(
     effects : dict, optional
         Effects of the catalog added to the simulated hologram (`effect_hologram`); none: the
         seed's opaque discs.
+    distractors : Distractors
+        Unlabelled impurities and neighbours outside the window, simulated with the particles
+        (`distractor_scene`); default none, the seed's scene.
 
     Returns
     -------
@@ -172,18 +176,28 @@ def synthetic_group(
     rng = np.random.default_rng(seed)
     planes_um = layout.planes_um(config)
     size = config.tile.size
+    on_layers = layout.kind == "layers" or layout.depths == "layers"
+    diameter_range_um = (config.particles.diameter_min_um, config.particles.diameter_max_um)
     particles = random_particle_field(
         shape or (size, size),
         count=config.particles.per_tile if count is None else count,
-        diameter_min_um=config.particles.diameter_min_um,
-        diameter_max_um=config.particles.diameter_max_um,
-        layers_um=config.layer_depths_um() if layout.kind == "layers" or layout.depths == "layers" else (config.volume.z_min_um, config.volume.z_max_um),
-        continuous=layout.kind == "stack" and layout.depths == "uniform",
+        diameter_min_um=diameter_range_um[0],
+        diameter_max_um=diameter_range_um[1],
+        layers_um=config.layer_depths_um() if on_layers else (config.volume.z_min_um, config.volume.z_max_um),
+        continuous=not on_layers,
         pixel_um=config.optics.pixel_um,
         seed=rng,
     )
+    # the optics sees the particles and the distractors; the labels only the particles
+    scene = distractor_scene(particles, distractors, tile_px=size, depth_range_um=(config.volume.z_min_um, config.volume.z_max_um), diameter_range_um=diameter_range_um,
+                             layers_um=config.layer_depths_um() if on_layers else None, rng=rng)
+    margin = distractors.neighbours_margin_px
     optics = {"wavelength_um": config.optics.wavelength_um, "medium_index": config.optics.medium_index}
-    hologram = effect_hologram(particles, effects, rng=rng, **optics) if effects else simulate_hologram(particles, **optics)
+    if effects:
+        hologram = effect_hologram(scene, effects, crop_px=margin, rng=rng, **optics)
+    else:
+        hologram = simulate_hologram(scene, **optics)
+        hologram = np.ascontiguousarray(hologram[margin:-margin, margin:-margin]) if margin else hologram
     inputs = holo_processing(hologram, processing.params, planes_um=planes_um, pixel_um=config.optics.pixel_um, seed=rng, mode=processing.mode, average=False, **optics)
     return inputs, label_planes(particles, planes_um), particles
 
@@ -245,7 +259,7 @@ class SyntheticDataset:
         return inputs, labels, tables
 
 
-def _spec(config: ExperimentConfig, processing: InputProcessing, layout: DatasetLayout, seed: int, effects: dict) -> dict:
+def _spec(config: ExperimentConfig, processing: InputProcessing, layout: DatasetLayout, seed: int, effects: dict, distractors: Distractors) -> dict:
     spec = {
         "format": DATASET_FORMAT,
         "version": _FORMAT_VERSION,
@@ -259,10 +273,12 @@ def _spec(config: ExperimentConfig, processing: InputProcessing, layout: Dataset
     }
     if effects:  # absent when none, so sets made before effects existed still extend
         spec["effects"] = effects
+    if distractors.active:  # likewise
+        spec["distractors"] = distractors.to_dict()
     return spec
 
 
-_IDENTITY_KEYS = ("format", "version", "config", "processing", "layout", "effects", "seed", "planes_um", "tile_size", "particles_per_group")
+_IDENTITY_KEYS = ("format", "version", "config", "processing", "layout", "effects", "distractors", "seed", "planes_um", "tile_size", "particles_per_group")
 
 
 def _group_is_valid(path: Path, planes: int, size: int) -> bool:
@@ -285,6 +301,7 @@ def generate_dataset(
     calibration: dict | None = None,
     effects: dict | None = None,
     effects_source: dict | None = None,
+    distractors: Distractors = Distractors(),
     seed: int = 0,
     workers: int = 1,
     progress: ProgressCallback | None = None,
@@ -315,6 +332,11 @@ def generate_dataset(
         set's identity.
     effects_source : dict, optional
         Where the effects came from (e.g. the report's path and verdict), recorded as provenance.
+    distractors : Distractors
+        Unlabelled impurities and out-of-window neighbours in every group (`distractor_scene`).
+        Recorded in ``dataset.json`` and part of the set's identity. The impurities must be
+        smaller than the particles (``impurity_diameter_max_um`` < ``diameter_min_um``), or
+        the labels would contradict each other.
     seed : int
     workers : int
         Processes simulating groups at once (1: in this process). The set does not depend on it.
@@ -328,7 +350,9 @@ def generate_dataset(
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: expected a folder for the data set, got a file")
     effects = check_effects(effects or {})
-    spec = _spec(config, processing, layout, seed, effects)
+    if distractors.impurities_per_tile and distractors.impurity_diameter_max_um >= config.particles.diameter_min_um:
+        raise InputError(f"impurity_diameter_max_um: expected a diameter below the particles' diameter_min_um={config.particles.diameter_min_um:g} um, got {distractors.impurity_diameter_max_um:g} um")
+    spec = _spec(config, processing, layout, seed, effects, distractors)
     manifest = out / "dataset.json"
     if manifest.is_file():
         existing = read_json_object(manifest, what="data set manifest")
@@ -348,7 +372,7 @@ def generate_dataset(
     dataset.groups.extend(present)
     if present:
         steps.advance(len(present))
-    jobs = [(dataset.group_path(g), config, processing, layout, effects, int(seed), g) for g in missing]
+    jobs = [(dataset.group_path(g), config, processing, layout, effects, distractors, int(seed), g) for g in missing]
     if workers > 1 and len(jobs) > 1:
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
@@ -376,11 +400,11 @@ def generate_dataset(
     return dataset
 
 
-def _write_group(path: Path, config: ExperimentConfig, processing: InputProcessing, layout: DatasetLayout, effects: dict, seed: int, group: int) -> int:
+def _write_group(path: Path, config: ExperimentConfig, processing: InputProcessing, layout: DatasetLayout, effects: dict, distractors: Distractors, seed: int, group: int) -> int:
     """Simulate group ``group`` and write its file atomically (runs in a worker process too)."""
     import tifffile
 
-    inputs, labels, particles = synthetic_group(config, processing, seed=[seed, group], layout=layout, effects=effects)
+    inputs, labels, particles = synthetic_group(config, processing, seed=[seed, group], layout=layout, effects=effects, distractors=distractors)
     if layout.kind == "stack":  # values in [0, 1]: float16 keeps 11 bits and halves the cache
         inputs = inputs.astype(np.float16)
     description = json.dumps({
@@ -418,5 +442,7 @@ def dataset_summary(dataset: SyntheticDataset) -> dict:
     }
     if dataset.spec.get("effects"):  # absent when none, so training states saved before effects existed still resume
         summary["effects"] = dataset.spec["effects"]
+    if dataset.spec.get("distractors"):  # likewise
+        summary["distractors"] = dataset.spec["distractors"]
     return summary
 

@@ -309,16 +309,21 @@ def effects_from_report(report: dict, *, name: str = "report") -> dict:
     return check_effects(chosen)
 
 
-def effect_hologram(field: ParticleField, effects: dict, *, wavelength_um: float, medium_index: float = 1.0, rng: np.random.Generator) -> np.ndarray:
+def effect_hologram(field: ParticleField, effects: dict, *, wavelength_um: float, medium_index: float = 1.0, crop_px: int = 0, rng: np.random.Generator) -> np.ndarray:
     """A synthetic hologram with ``effects`` added to the seed's opaque-disc model (float32, unobstructed ≈ 1).
 
     Optical effects change the intensity reaching the sensor (`optical_hologram`); sensor
     effects are then applied with the baseline neutral (contrast 1, no read noise, gamma 1),
     because the calibrated Holo-processing adds the seed's noise and gamma afterwards. The
     shot-noise draw comes from ``rng``, and only when a sensor effect is present.
+    ``crop_px``: a border of that many pixels is cut from the light before it reaches the
+    sensor (a field simulated with its neighbours, `distractor_scene`), so the sensor
+    effects (illumination envelope, noise) see the window alone.
     """
     effects = check_effects(effects)
     intensity = optical_hologram(field, {k: v for k, v in effects.items() if k in OPTICAL_EFFECTS}, wavelength_um=wavelength_um, medium_index=medium_index)
+    if crop_px:
+        intensity = np.ascontiguousarray(intensity[crop_px:-crop_px, crop_px:-crop_px])
     sensor = {k: v for k, v in effects.items() if k not in OPTICAL_EFFECTS}
     if not sensor:
         return intensity

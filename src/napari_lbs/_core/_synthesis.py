@@ -19,7 +19,9 @@ from napari_lbs._core._optics import propagation_grid, superpose, transfer_funct
 
 __all__ = [
     "ParticleField",
+    "Distractors",
     "random_particle_field",
+    "distractor_scene",
     "count_for_ppp",
     "disc_coverage",
     "layer_images",
@@ -64,6 +66,104 @@ class ParticleField:
     def layers_um(self) -> np.ndarray:
         """Distinct particle depths (µm), farthest first."""
         return np.unique(self.z_um)[::-1]
+
+
+@dataclass(frozen=True)
+class Distractors:
+    """Scatterers a real sample holds besides the particles to report: in training data they are unlabelled.
+
+    Attributes
+    ----------
+    impurities_per_tile : int
+        Small scatterers (debris, dust or bubbles in the medium) per ``tile.size`` window, at
+        uniform positions and depths over the volume, with diameters uniform in
+        ``impurity_diameter_min_um`` … ``impurity_diameter_max_um`` (µm), below the particles'
+        size range. A real sample's back-propagation shows such small foci (the seed's real
+        hologram has dozens); a network that never saw them reports them as particles.
+    impurity_diameter_min_um, impurity_diameter_max_um : float
+        Their diameter range (µm).
+    neighbours_margin_px : int
+        The hologram is simulated over the window widened by this margin on every side, with
+        particles and impurities at the same density there, and only the window is kept. A
+        real hologram is a crop of a larger field: near its edges it holds fringes of
+        particles whose centres lie outside it, which are not to be reported.
+    """
+
+    impurities_per_tile: int = 0
+    impurity_diameter_min_um: float = 4.0
+    impurity_diameter_max_um: float = 14.0
+    neighbours_margin_px: int = 0
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.impurities_per_tile, int) and self.impurities_per_tile >= 0):
+            raise InputError(f"impurities_per_tile: expected a non-negative integer, got {self.impurities_per_tile!r}")
+        if not 0.0 < self.impurity_diameter_min_um <= self.impurity_diameter_max_um:
+            raise InputError(f"impurity_diameter_min_um: expected 0 < min <= impurity_diameter_max_um (um), got {self.impurity_diameter_min_um!r} and {self.impurity_diameter_max_um!r}")
+        if not (isinstance(self.neighbours_margin_px, int) and 0 <= self.neighbours_margin_px <= 4096):
+            raise InputError(f"neighbours_margin_px: expected 0..4096 pixels, got {self.neighbours_margin_px!r}")
+
+    @property
+    def active(self) -> bool:
+        return self.impurities_per_tile > 0 or self.neighbours_margin_px > 0
+
+    def to_dict(self) -> dict:
+        return {"impurities_per_tile": int(self.impurities_per_tile), "impurity_diameter_min_um": float(self.impurity_diameter_min_um),
+                "impurity_diameter_max_um": float(self.impurity_diameter_max_um), "neighbours_margin_px": int(self.neighbours_margin_px)}
+
+    @classmethod
+    def from_dict(cls, payload: dict | None) -> Distractors:
+        return cls(**payload) if payload else cls()
+
+
+def distractor_scene(
+    field: ParticleField,
+    distractors: Distractors,
+    *,
+    tile_px: int,
+    depth_range_um: tuple[float, float],
+    diameter_range_um: tuple[float, float],
+    layers_um: Sequence[float] | None = None,
+    rng: np.random.Generator,
+) -> ParticleField:
+    """The scene the optics sees: ``field`` plus its distractors, on the window widened by the margin.
+
+    Coordinates are shifted by the margin, so ``field``'s particles keep their place in the
+    window ``[m:m + rows, m:m + cols]`` of the returned shape. Neighbours fill the margin at
+    ``field``'s particle density (per area), with its diameter range and depths (on
+    ``layers_um`` when given, else uniform over ``depth_range_um``); impurities fill the whole
+    widened window at ``impurities_per_tile`` per ``tile_px``² with depths uniform over
+    ``depth_range_um``. Nothing is drawn from ``rng`` when ``distractors`` is inactive.
+    """
+    if not distractors.active:
+        return field
+    margin = int(distractors.neighbours_margin_px)
+    rows, cols = field.shape
+    shape = (rows + 2 * margin, cols + 2 * margin)
+    extent_x, extent_y = (shape[1] - 1) * field.pixel_um, (shape[0] - 1) * field.pixel_um
+    window = (margin * field.pixel_um, (margin + cols - 1) * field.pixel_um, margin * field.pixel_um, (margin + rows - 1) * field.pixel_um)
+    area_ratio = shape[0] * shape[1] / (rows * cols)
+    neighbours = int(round(len(field) * (area_ratio - 1.0)))
+    x, y = [], []
+    while len(x) < neighbours:  # uniform over the margin: rejection of the window (at least 1 - 1/area_ratio accepted)
+        xi, yi = rng.uniform(0.0, extent_x), rng.uniform(0.0, extent_y)
+        if not (window[0] <= xi <= window[1] and window[2] <= yi <= window[3]):
+            x.append(xi)
+            y.append(yi)
+    neighbour_z = rng.choice(np.asarray(layers_um, np.float64), neighbours) if layers_um is not None else rng.uniform(*depth_range_um, neighbours)
+    neighbour_d = rng.uniform(*diameter_range_um, neighbours)
+    impurities = int(round(distractors.impurities_per_tile * shape[0] * shape[1] / tile_px**2))
+    impurity_x, impurity_y = rng.uniform(0.0, extent_x, impurities), rng.uniform(0.0, extent_y, impurities)
+    impurity_z = rng.uniform(*depth_range_um, impurities)
+    impurity_d = rng.uniform(distractors.impurity_diameter_min_um, distractors.impurity_diameter_max_um, impurities)
+    shift = margin * field.pixel_um
+    return ParticleField(
+        np.concatenate([field.x_um + shift, x, impurity_x]),
+        np.concatenate([field.y_um + shift, y, impurity_y]),
+        np.concatenate([field.z_um, neighbour_z, impurity_z]),
+        np.concatenate([field.diameter_um, neighbour_d, impurity_d]),
+        shape,
+        field.pixel_um,
+    )
 
 
 def count_for_ppp(ppp: float, shape: tuple[int, int], *, pixel_um: float, voxel_um: float) -> int:

@@ -6,9 +6,9 @@ import json
 from pathlib import Path
 
 import numpy as np
-from magicgui.widgets import ComboBox, SpinBox
+from magicgui.widgets import ComboBox, LineEdit, SpinBox
 
-from napari_lbs._core import DatasetLayout, InputProcessing, generate_dataset
+from napari_lbs._core import DatasetLayout, Distractors, InputError, InputProcessing, generate_dataset, parse_effect
 from napari_lbs._layers import UNITS, PlaneGrid
 from napari_lbs._widgets._backprop import CONFIG_TOOLTIP
 from napari_lbs._widgets._base import StepWidget, config_from, config_problem, doc_of, missing, output_problem, path_edit
@@ -28,23 +28,45 @@ class GenerateWidget(StepWidget):
         self.groups = SpinBox(label="groups", name="groups", value=256, min=2, max=100000, tooltip=doc_of(generate_dataset, "groups"))
         self.layout_kind = ComboBox(label="planes", name="layout_kind", choices=["stack", "layers"], value="stack",
                                     tooltip="stack: the reconstruction planes plus context (focus formulation); layers: one plane per simulated layer (the seed's)")
+        self.effects = LineEdit(label="effects", name="effects", value="",
+                                tooltip="Effects of the catalog added to every hologram, as on the command line, separated by ';' "
+                                        "(the demo's: particle_phase:index_contrast=0.26,transmission=1). Empty: the seed's opaque discs")
+        self.impurities = SpinBox(label="impurities per tile", name="impurities", value=0, min=0, max=1000, tooltip=doc_of(Distractors, "impurities_per_tile") + " (the demo: 6)")
+        self.neighbours_margin = SpinBox(label="neighbours margin (px)", name="neighbours_margin", value=0, min=0, max=4096, tooltip=doc_of(Distractors, "neighbours_margin_px") + " (the demo: 96)")
         self.seed = SpinBox(label="seed", name="seed", value=0, min=0, max=2**31 - 1, tooltip="Seeds the particle fields and the noise")
         self.output = path_edit(label="data set folder", name="output", mode="d", value="lbs-data", tooltip=f"{doc_of(generate_dataset, 'out_dir')} Resumable: run again after a Stop")
-        super().__init__(napari_viewer, [self.config, self.calibration, self.groups, self.layout_kind, self.seed, self.output])
+        super().__init__(napari_viewer, [self.config, self.calibration, self.groups, self.layout_kind, self.effects, self.impurities, self.neighbours_margin, self.seed, self.output])
 
     def problem(self):
-        return missing(self.calibration, "calibration") or config_problem(self.config) or output_problem(self.output, "data set folder", folder=True)
+        return missing(self.calibration, "calibration") or config_problem(self.config) or self._effects_problem() or output_problem(self.output, "data set folder", folder=True)
+
+    def _effects_problem(self) -> str | None:
+        try:
+            self._parsed_effects()
+        except InputError as error:
+            return str(error)
+        return None
+
+    def _parsed_effects(self) -> dict:
+        effects = {}
+        for text in filter(None, (part.strip() for part in self.effects.value.split(";"))):
+            effects.update(parse_effect(text))
+        return effects
 
     def prepare(self):
         path = self.calibration.value
         calibration = json.loads(Path(path).read_text()) if path is not None else None
         processing = InputProcessing.from_calibration(calibration) if calibration else InputProcessing()
         layout = DatasetLayout(kind=self.layout_kind.value)
-        return config_from(self.config), processing, layout, calibration, self.groups.value, self.seed.value, Path(self.output.value)
+        effects = self._parsed_effects()
+        source = {"explicit": [part.strip() for part in self.effects.value.split(";") if part.strip()]} if effects else None
+        distractors = Distractors(impurities_per_tile=self.impurities.value, neighbours_margin_px=self.neighbours_margin.value)
+        return config_from(self.config), processing, layout, calibration, effects, source, distractors, self.groups.value, self.seed.value, Path(self.output.value)
 
     def work(self, job, *, progress, should_stop, report):
-        config, processing, layout, calibration, groups, seed, output = job
-        return generate_dataset(output, config, groups=groups, processing=processing, layout=layout, calibration=calibration, seed=seed, progress=progress, should_stop=should_stop)
+        config, processing, layout, calibration, effects, source, distractors, groups, seed, output = job
+        return generate_dataset(output, config, groups=groups, processing=processing, layout=layout, calibration=calibration, effects=effects, effects_source=source,
+                                distractors=distractors, seed=seed, progress=progress, should_stop=should_stop)
 
     def show(self, dataset):
         if dataset.groups:
