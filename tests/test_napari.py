@@ -351,6 +351,7 @@ def test_settings_are_restored_as_typed(make_napari_viewer, tmp_path):
     dock.calibration.generations.value = 7
     dock.training.data.value = tmp_path / "gone"  # a folder that will not exist at the next start
     dock.generate.output.value = tmp_path / "to-make"  # an output folder that does not exist yet
+    dock.generate.effects.value = "particle_phase:index_contrast=0.26,transmission=1"  # a text field
     viewer.close()
     viewer = make_napari_viewer()
     dock = workflow_dock(viewer)
@@ -358,6 +359,7 @@ def test_settings_are_restored_as_typed(make_napari_viewer, tmp_path):
     assert "not found" not in dock.calibration._status.value and "not found" not in dock.backprop._status.value
     assert dock.training.data.line_edit.value == "lbs-data"  # the stale folder fell back to the default
     assert dock.generate.output.value == tmp_path / "to-make"
+    assert dock.generate.effects.value == "particle_phase:index_contrast=0.26,transmission=1"
     dock.training.output.line_edit.value = ""
     assert not dock.training._run.enabled
     dock.prediction.model.line_edit.value = ""

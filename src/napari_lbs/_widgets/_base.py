@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from magicgui.widgets import ComboBox, Container, FileEdit, FloatSpinBox, Label, ProgressBar, PushButton, SpinBox
+from magicgui.widgets import ComboBox, Container, FileEdit, FloatSpinBox, Label, LineEdit, ProgressBar, PushButton, SpinBox
 from psygnal import Signal
 from qtpy.QtCore import QObject, QSettings, Qt
 from qtpy.QtCore import Signal as QtSignal
@@ -198,7 +198,7 @@ class StepWidget(Container):
         return QSettings("napari-lbs", type(self).__name__)
 
     def _persisted(self) -> list:
-        return [w for w in self._fields if isinstance(w, (SpinBox, FloatSpinBox, FileEdit)) or (isinstance(w, ComboBox) and w.choices and isinstance(w.choices[0], str))]
+        return [w for w in self._fields if isinstance(w, (SpinBox, FloatSpinBox, FileEdit, LineEdit)) or (isinstance(w, ComboBox) and w.choices and isinstance(w.choices[0], str))]
 
     def _restore_settings(self) -> None:
         settings = self._settings()
