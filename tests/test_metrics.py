@@ -5,7 +5,7 @@ import sys
 import numpy as np
 import pytest
 
-from napari_lbs._core import InputError, match_particles, score_particles, seed_scores, write_particles
+from napari_lbs._core import InputError, depth_errors_um, diameter_errors_um, match_particles, score_particles, seed_scores, write_particles
 
 
 def table(*rows):
@@ -21,6 +21,14 @@ def test_duplicates_count_once_one_to_one_but_repeatedly_for_the_seed():
     assert metrics["er"] == 1.0 and metrics["ji"] == pytest.approx(1 / 3)
     seed = seed_scores(pred, truth)
     assert (seed["tp"], seed["fp"], seed["fn"]) == (3, 0, 0) and seed["ji"] == 1.0
+
+
+def test_depth_and_diameter_errors_are_those_of_the_one_to_one_matches():
+    truth = table([100, 100, 2000, 25], [500, 500, 3000, 20])
+    pred = table([500, 501, 3040, 23.5], [101, 100, 1990, 27], [900, 900, 2000, 25])  # the last matches nothing
+    assert sorted(depth_errors_um(pred, truth)) == pytest.approx([-10.0, 40.0])
+    assert sorted(diameter_errors_um(pred, truth)) == pytest.approx([2.0, 3.5])
+    assert diameter_errors_um(table(), truth).size == 0
 
 
 def test_exact_tolerance_matches_and_just_beyond_does_not():

@@ -39,7 +39,7 @@ _NAMES = {
         "PARTICLE_COLUMNS", "InputError", "as_hologram", "check_table_name", "read_hologram", "read_particles", "read_stack", "write_json", "write_particles",
         "write_stack", "json_safe",
     ),
-    "_metrics": ("AXIAL_TOL_UM", "LATERAL_TOL_UM", "depth_errors_um", "match_particles", "score_particles", "seed_scores"),
+    "_metrics": ("AXIAL_TOL_UM", "LATERAL_TOL_UM", "depth_errors_um", "diameter_errors_um", "match_particles", "score_particles", "seed_scores"),
     "_network": (
         "MODEL_FORMAT", "PRESETS", "FORMULATIONS", "focus_maps", "LoadedModel", "UNet", "build_network", "check_model_matches", "inference_network", "load_model",
         "network_outputs", "resolve_device", "save_model",

@@ -20,7 +20,7 @@ from scipy.optimize import linear_sum_assignment
 
 from napari_lbs._core._io import InputError
 
-__all__ = ["match_particles", "score_particles", "depth_errors_um", "seed_scores", "LATERAL_TOL_UM", "AXIAL_TOL_UM"]
+__all__ = ["match_particles", "score_particles", "depth_errors_um", "diameter_errors_um", "seed_scores", "LATERAL_TOL_UM", "AXIAL_TOL_UM"]
 
 LATERAL_TOL_UM = 22.0
 AXIAL_TOL_UM = 150.0
@@ -75,8 +75,17 @@ def score_particles(pred: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarr
 
 def depth_errors_um(pred: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray], *, lateral_tol_um: float = LATERAL_TOL_UM, axial_tol_um: float = AXIAL_TOL_UM) -> np.ndarray:
     """Signed depth errors ``z_pred - z_truth`` (µm) of the one-to-one matches (negative: nearer the sensor)."""
+    return _matched_differences(pred, truth, "z_um", lateral_tol_um=lateral_tol_um, axial_tol_um=axial_tol_um)
+
+
+def diameter_errors_um(pred: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray], *, lateral_tol_um: float = LATERAL_TOL_UM, axial_tol_um: float = AXIAL_TOL_UM) -> np.ndarray:
+    """Signed diameter errors ``d_pred - d_truth`` (µm) of the one-to-one matches."""
+    return _matched_differences(pred, truth, "diameter_um", lateral_tol_um=lateral_tol_um, axial_tol_um=axial_tol_um)
+
+
+def _matched_differences(pred, truth, column: str, *, lateral_tol_um: float, axial_tol_um: float) -> np.ndarray:
     matches = match_particles(pred, truth, lateral_tol_um=lateral_tol_um, axial_tol_um=axial_tol_um)
-    return np.array([float(pred["z_um"][i]) - float(truth["z_um"][j]) for i, j in matches])
+    return np.array([float(pred[column][i]) - float(truth[column][j]) for i, j in matches])
 
 
 def seed_scores(pred: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray], *, lateral_tol_um: float = LATERAL_TOL_UM, axial_tol_um: float = AXIAL_TOL_UM) -> dict:
