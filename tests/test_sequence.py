@@ -219,7 +219,7 @@ def test_cli_simulate_frames_predict_and_track(tmp_path, detector):
     assert main(["predict", str(tmp_path / "sim" / "frames.tif"), "--model", str(detector.path), "--out", str(tmp_path / "p.csv")]) == 0
     particles = _rows(tmp_path / "p.csv")
     assert {row["frame"] for row in particles} == {"0", "1", "2"} and not (tmp_path / "p.csv.parts").exists()
-    assert main(["track", str(tmp_path / "p.csv"), "--out", str(tmp_path / "t.csv"), "--search-range-um", "20"]) == 0
+    assert main(["track", str(tmp_path / "p.csv"), "--out", str(tmp_path / "t.csv"), "--search-range-um", "8"]) == 0  # the eager model: dozens a frame
     tracks = _rows(tmp_path / "t.csv")
     assert len(tracks) == len(particles) and {"track", "dx_um", "dy_um", "dz_um"} <= set(tracks[0])
     last = {}
@@ -227,7 +227,7 @@ def test_cli_simulate_frames_predict_and_track(tmp_path, detector):
         last[row["track"]] = row
     assert all(row["dx_um"] == "" for row in last.values())
     sidecar = json.loads((tmp_path / "t.json").read_text())  # what linked them, and what detected them
-    assert sidecar["tracks"]["search_range_um"] == 20.0 and sidecar["prediction"] == json.loads((tmp_path / "p.json").read_text())
+    assert sidecar["tracks"]["search_range_um"] == 8.0 and sidecar["prediction"] == json.loads((tmp_path / "p.json").read_text())
     assert main(["track", str(tmp_path / "sim" / "particles.csv"), "--out", str(tmp_path / "sim" / "particles.csv")]) == 2
     before = (tmp_path / "p.json").read_bytes()
     assert main(["track", str(tmp_path / "p.csv"), "--out", str(tmp_path / "p.parquet")]) == 2  # its sidecar would be p.json
