@@ -41,6 +41,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import pseudoreal  # noqa: E402
 
+from napari_lbs._cli import DEMO_SAMPLE_DISTRACTORS  # noqa: E402
+
 from napari_lbs._core import (  # noqa: E402
     CalibrationSettings,
     DiagnosisSettings,
@@ -67,7 +69,7 @@ from napari_lbs._core import (  # noqa: E402
 DENSITIES = {"real density": 100, "4x density": 400}
 EDGE_BAND_UM = 200.0  # false positives this close to the window's edge are counted apart (neighbours' fringes)
 WITH_DISTRACTORS = {"impurities": 50, "margin_px": 128}  # the real density's 100 spheres, with distractors
-DEMO_DISTRACTORS = Distractors(impurities_per_tile=6, impurity_diameter_min_um=4.0, impurity_diameter_max_um=14.0, neighbours_margin_px=96)
+DEMO_DISTRACTORS = Distractors(**DEMO_SAMPLE_DISTRACTORS)
 TRANSPARENT = {"particle_phase": {"index_contrast": round(pseudoreal.N_PARTICLE - pseudoreal.N_MEDIUM, 3), "transmission": 1.0}}
 
 
@@ -127,13 +129,16 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None) -> d
             trained = train_model(dataset, model_path, settings=TrainingSettings(epochs=epochs, seed=0), resume=model_path.with_suffix(".last.pt").is_file())
             print(f"{stage}: generated {groups} groups in {generated:.0f} s, trained {epochs} epochs (from epoch {done}) in {trained.log['seconds']:.0f} s", flush=True)
         scores_path = out / f"{stage}_scores.json"
-        row = json.loads(scores_path.read_text()) if scores_path.is_file() else {}  # holograms scored before with this very model
+        log = json.loads(log_path.read_text())
+        best = log["best"]
+        row = json.loads(scores_path.read_text()) if scores_path.is_file() else {}
+        if row.get("model_sha256") != best["sha256"]:  # scores of another model (retrained since): start over
+            row = {}
         if all(label in row for label in holograms):
             results["stages"][stage] = row
             continue
-        log = json.loads(log_path.read_text())
-        best = log["best"]
         validation = next(e for e in log["epochs"] if e["epoch"] == best["epoch"])["validation"]
+        row["model_sha256"] = best["sha256"]
         row["synthetic_validation"] = {"er": validation["er"], "ji": validation["ji"]}
         for label, (hologram, truth) in holograms.items():
             if label in row:

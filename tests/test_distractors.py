@@ -106,3 +106,7 @@ def test_cli_generate_with_distractors_and_a_refusal(tmp_path, capsys):
     error = capsys.readouterr().err.strip().splitlines()
     assert len(error) == 1 and "--impurity-diameter-um" in error[0]
     assert not (tmp_path / "x").exists()
+    assert main(["generate", "--config", str(config), "--groups", "1", "--out", str(tmp_path / "z"), "--neighbours-margin-px", "8", "--impurity-diameter-um", "10", "5"]) == 2
+    assert "--impurity-diameter-um" in capsys.readouterr().err
+    # without impurities their diameters shape nothing, so they are no part of the set's identity
+    assert Distractors(neighbours_margin_px=8).to_dict() == Distractors(neighbours_margin_px=8, impurity_diameter_min_um=1.0).to_dict() == {"impurities_per_tile": 0, "neighbours_margin_px": 8}

@@ -177,6 +177,12 @@ def test_training_is_deterministic_and_resumes_to_the_same_weights(tiny_data, ti
     done = []
     first = train_model(tiny_data, tmp_path / "a.pt", settings=settings, progress=lambda d, t: done.append(d), should_stop=lambda: len(done) >= 2 * batches_per_epoch)
     assert first.stopped and len(first.log["epochs"]) == 2  # interrupted at the start of epoch 3
+    from dataclasses import replace
+
+    from napari_lbs._core import InputError
+
+    with pytest.raises(InputError, match="was made with diameter_weight=4.0, this run has 2.0"):  # another loss
+        train_model(tiny_data, tmp_path / "a.pt", settings=replace(settings, diameter_weight=2.0), resume=True)
     resumed = train_model(tiny_data, tmp_path / "a.pt", settings=settings, resume=True)
     assert [e["epoch"] for e in resumed.log["epochs"]] == [1, 2, 3]
     assert [e["train_loss"] for e in resumed.log["epochs"]] == [e["train_loss"] for e in tiny_model.log["epochs"]]

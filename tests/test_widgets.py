@@ -2,6 +2,7 @@
 run on tiny data to completion, stopped mid-run, and refused invalid input."""
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -259,7 +260,9 @@ def test_batch_widget_refuses_workers_with_a_scheduler_and_resumes_a_stopped_run
 
     from napari_lbs._core import simulate_sequence
 
-    recording = simulate_sequence(tiny_config, frames=3, flow="uniform", size=128, count=4, speed_um=6.0, seed=3)
+    # one frame more than the local scheduler runs at once, so a stop always leaves some to resume
+    frames = (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1) + 1
+    recording = simulate_sequence(tiny_config, frames=frames, flow="uniform", size=128, count=4, speed_um=6.0, seed=3)
     tifffile.imwrite(tmp_path / "run.tif", recording.frames, photometric="minisblack")
     viewer = make_napari_viewer()
     widget = dock(viewer, "7 Batch")
@@ -282,8 +285,8 @@ def test_batch_widget_refuses_workers_with_a_scheduler_and_resumes_a_stopped_run
     widget._stop.clicked.emit()  # the frames in flight finish and stay in the work folder, the others are not predicted
     qtbot.waitUntil(lambda: widget._worker is None, timeout=TIMEOUT_MS)
     kept = {path.name: path.stat().st_mtime_ns for path in (tmp_path / "work").glob("frame_*.npz")}
-    assert 0 < len(kept) and len(viewer.layers) == 0
-    assert f"stopped after {len(kept)} of 3 frames" in widget._status.value and "run again to resume" in widget._status.value
+    assert 0 < len(kept) < frames and len(viewer.layers) == 0
+    assert f"stopped after {len(kept)} of {frames} frames" in widget._status.value and "run again to resume" in widget._status.value
     run_to_end(qtbot, widget)
     points = viewer.layers["run.tif particles"]
     assert points.metadata["work_dir"] == str(tmp_path / "work") and points.metadata["provenance"]["resumed_frames"] == len(kept)

@@ -285,7 +285,7 @@ def _cmd_generate(args) -> None:
     start = time.perf_counter()
     layout = _settings(DatasetLayout, kind=args.layout, depths=args.depths, context_planes=args.context_planes)
     low, high = args.impurity_diameter_um
-    if args.impurities and not low <= high < config.particles.diameter_min_um:
+    if low > high or (args.impurities and high >= config.particles.diameter_min_um):
         raise InputError(f"--impurity-diameter-um: expected MIN <= MAX below the particles' diameter_min_um={config.particles.diameter_min_um:g} of {args.config}, got {low:g} {high:g}")
     distractors = _settings(Distractors, impurities_per_tile=args.impurities, impurity_diameter_min_um=args.impurity_diameter_um[0],
                             impurity_diameter_max_um=args.impurity_diameter_um[1], neighbours_margin_px=args.neighbours_margin_px)
@@ -573,7 +573,7 @@ def _cmd_demo(args) -> None:
         "training": {"formulation": training.formulation, "preset": training.preset, "epochs_done": len(trained.log["epochs"]), "stopped_by_budget": trained.stopped,
                      "data": f"{data}, the last {len(trained.log['validation_groups'])} held out", "effects": effects,
                      "distractors": distractors.to_dict() if distractors.active else None, "calibrated": bool(args.calibrated)},
-        "validation": {key: validation.get(key) for key in ("er", "ji", "tp", "fp", "fn", "threshold", "axial_um", "median_abs_dz_um")},
+        "validation": {key: validation.get(key) for key in ("er", "ji", "tp", "fp", "fn", "threshold", "axial_um", "median_abs_dz_um", "median_abs_dd_um")},
         "particles": str(particles_path),
         "particle_count": len(result.particles["x_um"]),
         "seconds": {key: round(value, 2) for key, value in timings.items()},

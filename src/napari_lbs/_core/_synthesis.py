@@ -107,8 +107,9 @@ class Distractors:
         return self.impurities_per_tile > 0 or self.neighbours_margin_px > 0
 
     def to_dict(self) -> dict:
-        return {"impurities_per_tile": int(self.impurities_per_tile), "impurity_diameter_min_um": float(self.impurity_diameter_min_um),
-                "impurity_diameter_max_um": float(self.impurity_diameter_max_um), "neighbours_margin_px": int(self.neighbours_margin_px)}
+        """The settings that shape the data (no impurity diameters without impurities)."""
+        sizes = {"impurity_diameter_min_um": float(self.impurity_diameter_min_um), "impurity_diameter_max_um": float(self.impurity_diameter_max_um)}
+        return {"impurities_per_tile": int(self.impurities_per_tile), **(sizes if self.impurities_per_tile else {}), "neighbours_margin_px": int(self.neighbours_margin_px)}
 
     @classmethod
     def from_dict(cls, payload: dict | None) -> Distractors:

@@ -7,7 +7,7 @@ Two formulations (`napari_lbs._core._network`):
     diameter (`napari_lbs._core._heatmaps`). Loss: the penalty-reduced focal loss of CenterNet
     (Zhou et al. 2019) on the heat — positives are the peak voxels, every other voxel is a
     negative weighted by ``(1 - heat)^4`` so that planes just beside a focus cost less than far
-    ones — plus L1 on offset and (weighted 4×) diameter at the peaks only. Samples: 128² (``patch_size``)
+    ones — plus L1 on offset and (weighted ``diameter_weight``, 4) diameter at the peaks only. Samples: 128² (``patch_size``)
     crops, half of them holding a particle at or near its focal plane (the hard negatives are
     the planes 1–3 away), half anywhere; dihedral flips and, with ``augment``, gamma, contrast,
     noise and 8-bit quantisation.
@@ -67,10 +67,6 @@ FOCUS_THRESHOLDS = (0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8)
 _AXIAL_PLANES = (2.0, 5.0, 1e6)  # axial suppression radii tried on validation, in planes (1e6: any depth)
 _DEFAULT_RATE = {"paper": 3e-4, "medium": 1e-3, "small": 2e-3}
 _FOCAL_ALPHA, _FOCAL_BETA = 2.0, 4.0
-# The diameter is regressed as d / diameter_max_um, so a 1 µm error is 0.03 of a unit: weighted
-# like the offset, the L1 term barely moved it when distractors made the heat harder to learn
-# (pseudo-real diameter correlation 0.07 after 5 epochs).
-_DIAMETER_WEIGHT = 4.0
 
 
 @dataclass(frozen=True)
@@ -103,6 +99,11 @@ class TrainingSettings:
         Stop after this many epochs without a better validation JI (0 = never).
     augment : bool
         ``focus``: random gamma, contrast, noise and quantisation of the inputs.
+    diameter_weight : float
+        ``focus``: weight of the diameter's L1 term in the loss. The diameter is regressed as
+        d / diameter_max_um, so a 1 µm error is 0.03 of a unit: weighted 1, like the depth
+        offset, it barely moved once unlabelled distractors made the heat harder to learn
+        (pseudo-real diameter correlation 0.07 after 5 epochs; 0.95 with 4, docs/learning.md).
     """
 
     formulation: str = "focus"
@@ -119,6 +120,7 @@ class TrainingSettings:
     minutes: float = 0.0
     patience: int = 0
     augment: bool = True
+    diameter_weight: float = 4.0
 
     def __post_init__(self) -> None:
         if self.formulation not in FORMULATIONS:
@@ -132,6 +134,8 @@ class TrainingSettings:
             raise InputError(f"learning_rate: expected a value in (0, 1), got {self.learning_rate}")
         if self.validation_groups < 0 or self.patch_size < 0 or (0 < self.patch_size < 16):
             raise InputError(f"validation_groups / patch_size: expected >= 0 (patch >= 16), got {self.validation_groups} / {self.patch_size}")
+        if not 0 < self.diameter_weight < 1e3:
+            raise InputError(f"diameter_weight: expected a value in (0, 1000), got {self.diameter_weight}")
         if self.foreground_weight < 1:
             raise InputError(f"foreground_weight: expected >= 1, got {self.foreground_weight}")
         if self.minutes < 0 or self.patience < 0:
@@ -320,7 +324,7 @@ class _FocusFormulation:
         loss = (positive_loss + negative_loss) / count
         if positive.any():
             loss = loss + (prediction[:, 1][positive] - offset[positive]).abs().mean()
-            loss = loss + _DIAMETER_WEIGHT * (torch.nn.functional.softplus(prediction[:, 2][positive]) - diameter[positive]).abs().mean()
+            loss = loss + self.settings.diameter_weight * (torch.nn.functional.softplus(prediction[:, 2][positive]) - diameter[positive]).abs().mean()
         return loss
 
     def candidates(self, network, stack: np.ndarray) -> dict[str, np.ndarray]:

@@ -38,7 +38,14 @@ class GenerateWidget(StepWidget):
         super().__init__(napari_viewer, [self.config, self.calibration, self.groups, self.layout_kind, self.effects, self.impurities, self.neighbours_margin, self.seed, self.output])
 
     def problem(self):
-        return missing(self.calibration, "calibration") or config_problem(self.config) or self._effects_problem() or output_problem(self.output, "data set folder", folder=True)
+        return (missing(self.calibration, "calibration") or config_problem(self.config) or self._effects_problem() or self._impurities_problem()
+                or output_problem(self.output, "data set folder", folder=True))
+
+    def _impurities_problem(self) -> str | None:
+        smallest, largest_impurity = config_from(self.config).particles.diameter_min_um, Distractors().impurity_diameter_max_um
+        if self.impurities.value and largest_impurity >= smallest:
+            return f"impurities: they are {Distractors().impurity_diameter_min_um:g}-{largest_impurity:g} um, not smaller than the config's particles ({smallest:g} um); use 0"
+        return None
 
     def _effects_problem(self) -> str | None:
         try:
