@@ -789,5 +789,22 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def console_main() -> None:
+    """The ``napari-lbs`` console script: `main`, and its exit status.
+
+    An interrupted command leaves with 130 through ``os._exit`` once its streams are flushed:
+    a SIGTERM that lands inside an import (numpy loads submodules lazily) makes CPython end
+    the process with SIGINT at shutdown, although `main` caught it (exit -2 instead of 130).
+    """
+    import os
+
+    status = main()
+    if status == 130:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(130)
+    sys.exit(status)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    console_main()
