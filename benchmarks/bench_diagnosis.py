@@ -27,11 +27,20 @@ Sub-commands:
     false-alarm rate and their 95 % Wilson intervals, and the same for the first half's verdict
     alone (where the diagnosis cross-fits: the verdict without cross-fitting). ``--seed`` draws other scenes of the same
     design (default 2026, the suite's; the method was developed on seed 7, docs/diagnosis.md).
+``absorbing [--cases I ...] [--seed S] [--keep DIR]``
+    The third withheld-effect suite (issue 13, fixed 2026-11-23 before its first run; the design
+    comment above `ABSORBING_DESIGN`): Lorenz–Mie spheres that absorb (what the seed's simulator
+    assumes) as the scene, so that transparent spheres and a coarse bit depth can be withheld
+    too; 512² and 1024² holograms; effects parameterised independently of `_effects` and of the
+    ``mie`` suite. ``--keep`` pickles each case's fits (`Diagnosis.halves`) so that the verdict
+    rule can be re-scored (`rescore`) without refitting. Development scenes: ``--seed 8``.
+``rescore DIR``
+    The verdicts of kept cases (``absorbing --keep DIR``) scored again with the current code.
 ``real``
     The seed's real 1024² hologram: the full diagnosis with default settings, timed (target
     <= 3 min on 2 idle cores), report written to docs/figures/diagnosis-real/.
 
-Run: python benchmarks/bench_diagnosis.py suite|independent|mie|real
+Run: python benchmarks/bench_diagnosis.py suite|independent|mie|absorbing|rescore|real
 """
 
 from __future__ import annotations
@@ -44,6 +53,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
+from scipy import ndimage
 
 from napari_lbs._core import (
     EFFECTS,
@@ -261,24 +271,156 @@ def mie(cases: list[int] | None, seed: int = 2026) -> None:
         made = time.perf_counter() - made
         start, cpu = time.perf_counter(), time.process_time()
         report = diagnose_hologram(counts, CONFIG).report
-        verdict = report["verdict"]
-        own = next((e for e in report["effects"] if e["id"] == effect_id), None)
-        row = {
-            "case": index, "withheld": effect_id, "verdict": verdict["id"], "correct": verdict["id"] == effect_id, "per_half": verdict.get("per_half"), "reason": verdict["reason"],
-            "baseline_gap": round(report["gap"]["baseline"], 2), "baseline_interval": [round(v, 2) for v in report["gap"]["baseline_interval"]],
-            "best": [(e["id"], round(e["evidence"]["reduction"], 1), e["evidence"]["summaries"], [round(v, 1) for v in e["evidence"]["interval"]], round(e["shrink"], 2)) for e in report["effects"][:3] if "evidence" in e],
-            "shrink_of_withheld": round(own["shrink"], 2) if own else None, "tiles_to_decide": verdict["tiles_to_decide"],
-            "seconds": round(time.perf_counter() - start, 1), "cpu_seconds": round(time.process_time() - cpu, 1), "hologram_seconds": round(made, 1),
-        }
+        row = _row(index, effect_id, report, {"seconds": round(time.perf_counter() - start, 1), "cpu_seconds": round(time.process_time() - cpu, 1), "hologram_seconds": round(made, 1)})
         rows.append(row)
         print(json.dumps(row), flush=True)
+    print(_score_line(rows) + f"; mean {np.mean([r['seconds'] for r in rows]):.0f} s per diagnosis")
+    print(_single_split_line(rows))
+
+
+# The third suite's design, fixed on 2026-11-23 before its first run. Every case: a hologram of
+# Lorenz–Mie spheres of 20–30 µm at 1900–4700 µm (air-equivalent; seeded by the case index and
+# the suite's seed) at the real hologram's density (25 per 512², 100 per 1024²), ABSORBING
+# (n = 1.59 + 1.0i: the seed's simulator assumes opaque particles), recorded by the camera
+# `absorbing_camera` (mean ABSORBING_LEVEL counts, Gaussian read noise 1.5 counts, rounding,
+# uint8), with at most one withheld effect, each parameterised independently of `_effects` and
+# of the ``mie`` suite:
+#   illumination       a polynomial vignetting, I·(1 − 0.35 ρ²), ρ the distance from (0.3, 0.65)
+#                      of the field in field widths (`_effects`: a Gaussian envelope; ``mie``: cos⁴)
+#   shot_noise         Poisson photon counts, 120 photons at the mean level
+#   sensor_blur        pixel crosstalk: a 3 × 3 kernel on the light (centre 0.6, edges 0.08,
+#                      corners 0.02), before the noise
+#   coherence          an extended source: a square of ±1.8 mrad, sampled by 3 × 3 angles, each
+#                      shifting a sphere's hologram by z·θ, intensities averaged
+#   parasitic_fringes  a reflection off a tilted cover glass: a fringe of period 9 px at 1.1 rad,
+#                      amplitude 5 % at the field's centre falling as a Gaussian (half the field
+#                      width, 1/e) across it
+#   particle_phase     the spheres transparent polystyrene (n = 1.59) instead of absorbing
+#   quantization       a 6-bit camera: 64 levels over the same full scale, written to uint8
+#                      (every 4th level)
+#   spherical_wave     a point source 25 mm before the sensor (each sphere magnified by
+#                      M = L / (L − z) in position, size and depth)
+#   control            nothing withheld (expected verdict: null)
+# Cases 0–7: the effects above at 512²; 8–12: 5 controls at 512²; 13–17 at 1024²:
+# illumination, particle_phase, shot_noise, 2 controls. Scored: top-1 over the effect cases,
+# false alarms over the controls, each with its 95 % Wilson interval. Left out: dust and
+# multiple_scattering (no catalog effect for dust; Mie fields are superposed, single scattering).
+ABSORBING_DESIGN = (
+    *[(effect, 512) for effect in ("illumination", "shot_noise", "sensor_blur", "coherence", "parasitic_fringes", "particle_phase", "quantization", "spherical_wave")],
+    *[(None, 512)] * 5,
+    ("illumination", 1024), ("particle_phase", 1024), ("shot_noise", 1024), (None, 1024), (None, 1024),
+)
+ABSORBING_INDEX = 1.59 + 1.0j
+ABSORBING_LEVEL = 150.0
+
+
+def _absorbing_scene(effect_id: str | None, size: int, rng: np.random.Generator) -> np.ndarray:
+    """Pixel-integrated Lorenz–Mie intensity of one case of the third suite, with its optical withheld effect (unobstructed = 1)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import pseudoreal
+
+    count = round(MIE_SPHERES * (size / MIE_SIZE) ** 2)
+    extent = (size - 1) * pseudoreal.PIXEL_UM
+    x, y = rng.uniform(0, extent, count), rng.uniform(0, extent, count)
+    z, d = rng.uniform(1900.0, 4700.0, count), rng.uniform(20.0, 30.0, count)
+    index = 1.59 if effect_id == "particle_phase" else ABSORBING_INDEX
+    shape = (size, size)
+    if effect_id == "spherical_wave":
+        source_um, centre = 25000.0, extent / 2
+        magnification = source_um / (source_um - z)
+        return pseudoreal.mie_intensity(shape, centre + magnification * (x - centre), centre + magnification * (y - centre), magnification * z, magnification * d, index)
+    if effect_id == "coherence":
+        angles = [(tx, ty) for tx in (-1.8e-3, 0.0, 1.8e-3) for ty in (-1.8e-3, 0.0, 1.8e-3)]
+        return np.mean([pseudoreal.mie_intensity(shape, x + z * tx, y + z * ty, z, d, index) for tx, ty in angles], axis=0)
+    return pseudoreal.mie_intensity(shape, x, y, z, d, index)
+
+
+def absorbing_camera(intensity: np.ndarray, effect_id: str | None, rng: np.random.Generator) -> np.ndarray:
+    """The third suite's camera, with its sensor-side withheld effect (the design comment above `ABSORBING_DESIGN`)."""
+    rows, cols = intensity.shape
+    image = intensity.astype(np.float64)
+    yy, xx = np.mgrid[0:rows, 0:cols] / max(rows, cols)
+    if effect_id == "illumination":
+        image = image * (1 - 0.35 * ((xx - 0.3) ** 2 + (yy - 0.65) ** 2))
+    if effect_id == "parasitic_fringes":
+        amplitude = 0.05 * np.exp(-((xx - 0.5) ** 2 + (yy - 0.5) ** 2) / 0.5**2)
+        image = image * (1 + amplitude * np.cos(2 * np.pi * (xx * np.cos(1.1) + yy * np.sin(1.1)) * max(rows, cols) / 9.0))
+    if effect_id == "sensor_blur":
+        kernel = np.array([[0.02, 0.08, 0.02], [0.08, 0.6, 0.08], [0.02, 0.08, 0.02]])
+        image = ndimage.convolve(image, kernel, mode="reflect")
+    if effect_id == "shot_noise":
+        image = rng.poisson(image * 120.0) / 120.0
+    counts = image * ABSORBING_LEVEL + rng.normal(0.0, MIE_READ_NOISE, image.shape)
+    if effect_id == "quantization":
+        return (np.clip(np.round(counts / 4.0), 0, 63) * 4).astype(np.uint8)
+    return np.clip(np.round(counts), 0, 255).astype(np.uint8)
+
+
+def _row(index: int, effect_id: str | None, report: dict, seconds: dict) -> dict:
+    """One case's result line (the ``mie`` and ``absorbing`` suites)."""
+    verdict = report["verdict"]
+    own = next((e for e in report["effects"] if e["id"] == effect_id), None)
+    return {
+        "case": index, "withheld": effect_id, "verdict": verdict["id"], "correct": verdict["id"] == effect_id, "per_half": verdict.get("per_half"), "reason": verdict["reason"],
+        "baseline_gap": round(report["gap"]["baseline"], 2), "baseline_interval": [round(v, 2) for v in report["gap"]["baseline_interval"]],
+        "best": [(e["id"], round(e["evidence"]["reduction"], 1), e["evidence"]["summaries"], [round(v, 1) for v in e["evidence"]["interval"]], round(e["shrink"], 2)) for e in report["effects"][:3] if "evidence" in e],
+        "shrink_of_withheld": round(own["shrink"], 2) if own else None, "tiles_to_decide": verdict["tiles_to_decide"], "known": report["known"], **seconds,
+    }
+
+
+def _score_line(rows: list[dict]) -> str:
     injected = [r for r in rows if r["withheld"]]
     controls = [r for r in rows if not r["withheld"]]
     hits, alarms = sum(r["correct"] for r in injected), sum(not r["correct"] for r in controls)
-    print(f"top-1 {hits}/{len(injected)} (95 % interval {_wilson(hits, len(injected))[0]:.2f}-{_wilson(hits, len(injected))[1]:.2f}); "
-          f"false alarms {alarms}/{len(controls)} (95 % interval {_wilson(alarms, len(controls))[0]:.2f}-{_wilson(alarms, len(controls))[1]:.2f}); "
-          f"mean {np.mean([r['seconds'] for r in rows]):.0f} s per diagnosis")
+    return (f"top-1 {hits}/{len(injected)} (95 % interval {_wilson(hits, len(injected))[0]:.2f}-{_wilson(hits, len(injected))[1]:.2f}); "
+            f"false alarms {alarms}/{len(controls)} (95 % interval {_wilson(alarms, len(controls))[0]:.2f}-{_wilson(alarms, len(controls))[1]:.2f})")
+
+
+def absorbing(cases: list[int] | None, seed: int = 2027, keep: str | None = None) -> None:
+    import dataclasses
+    import pickle
+    from types import SimpleNamespace
+
+    rows = []
+    for index in cases if cases is not None else range(len(ABSORBING_DESIGN)):
+        effect_id, size = ABSORBING_DESIGN[index]
+        rng = np.random.default_rng([index, seed])
+        made = time.perf_counter()
+        counts = absorbing_camera(_absorbing_scene(effect_id, size, rng), effect_id, rng)
+        made = time.perf_counter() - made
+        start, cpu = time.perf_counter(), time.process_time()
+        diagnosis = diagnose_hologram(counts, CONFIG)
+        seconds = {"size": size, "seconds": round(time.perf_counter() - start, 1), "cpu_seconds": round(time.process_time() - cpu, 1), "hologram_seconds": round(made, 1)}
+        row = _row(index, effect_id, diagnosis.report, seconds)
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+        if keep:
+            # what `_scored` needs, without the simulator (its kernels and fields)
+            halves = [dataclasses.replace(h, model=SimpleNamespace(paired=h.model.paired)) for h in diagnosis.halves]
+            candidates = [e["id"] for e in diagnosis.report["effects"]]
+            Path(keep).mkdir(parents=True, exist_ok=True)
+            with open(Path(keep) / f"case_{index:02d}.pkl", "wb") as file:
+                pickle.dump({"row": row, "halves": halves, "candidates": candidates}, file)
+    print(_score_line(rows) + f"; mean {np.mean([r['seconds'] for r in rows]):.0f} s per diagnosis")
     print(_single_split_line(rows))
+
+
+def rescore(folder: str) -> None:
+    """Each kept case's verdict again, from its kept fits, with the current verdict code."""
+    import pickle
+
+    from napari_lbs._core._gap._diagnose import _scored
+
+    rows = []
+    for path in sorted(Path(folder).glob("case_*.pkl")):
+        with open(path, "rb") as file:
+            kept = pickle.load(file)  # our own files, written by `absorbing --keep`
+        halves = kept["halves"]
+        verdict = _scored(halves, kept["candidates"], settings=DiagnosisSettings())["verdict"]
+        row = {**kept["row"], "verdict": verdict["id"], "correct": verdict["id"] == kept["row"]["withheld"], "reason": verdict["reason"], "was": kept["row"]["verdict"]}
+        rows.append(row)
+        print(json.dumps({k: row[k] for k in ("case", "withheld", "verdict", "was", "reason")}))
+    print(_score_line(rows))
 
 
 def real() -> None:
@@ -315,6 +457,12 @@ def main() -> None:
     p = sub.add_parser("mie")
     p.add_argument("--cases", type=int, nargs="+", help="case indices to run (default all: the effects, then the controls)")
     p.add_argument("--seed", type=int, default=2026, help="scene seed (2026: the suite; others: scenes of the same design)")
+    p = sub.add_parser("absorbing")
+    p.add_argument("--cases", type=int, nargs="+", help="case indices to run (default all, `ABSORBING_DESIGN`)")
+    p.add_argument("--seed", type=int, default=2027, help="scene seed (2027: the suite; 8: development scenes)")
+    p.add_argument("--keep", help="pickle each case's fits here, for `rescore`")
+    p = sub.add_parser("rescore")
+    p.add_argument("folder")
     sub.add_parser("real")
     args = parser.parse_args()
     if args.command == "suite":
@@ -323,6 +471,10 @@ def main() -> None:
         independent(args.tile, args.tiles, args.particles, args.evaluations, args.index, args.supersample)
     elif args.command == "mie":
         mie(args.cases, args.seed)
+    elif args.command == "absorbing":
+        absorbing(args.cases, args.seed, args.keep)
+    elif args.command == "rescore":
+        rescore(args.folder)
     else:
         real()
 

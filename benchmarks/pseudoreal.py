@@ -43,7 +43,8 @@ def _lorenz_mie(points_px: np.ndarray, radius_um: float, z_water_um: float, n_pa
 
     instrument = Instrument(wavelength=WAVELENGTH_UM, magnification=PIXEL_UM, n_m=N_MEDIUM)
     # pylorenzmie is wrong where k_m a is a multiple of pi: a radius off by 1e-6 um avoids it
-    sphere = Sphere(a_p=radius_um + 1e-6, n_p=n_particle, k_p=0.0, x_p=0.0, y_p=0.0, z_p=z_water_um / PIXEL_UM)
+    # a complex index n + ik is an absorbing sphere
+    sphere = Sphere(a_p=radius_um + 1e-6, n_p=float(np.real(n_particle)), k_p=float(np.imag(n_particle)), x_p=0.0, y_p=0.0, z_p=z_water_um / PIXEL_UM)
     model = LorenzMie(coordinates=points_px, particle=[sphere], instrument=instrument)
     return model.field().copy()
 
@@ -84,7 +85,7 @@ def sphere_field(points_x_px: np.ndarray, points_y_px: np.ndarray, radius_um: fl
 
 
 def mie_intensity(shape: tuple[int, int], x_um, y_um, z_air_um, diameter_um, n_particle=None) -> np.ndarray:
-    """Pixel-integrated Lorenz–Mie intensity of spheres (unobstructed light = 1), float32; ``n_particle`` per sphere (default polystyrene)."""
+    """Pixel-integrated Lorenz–Mie intensity of spheres (unobstructed light = 1), float32; ``n_particle`` per sphere (default polystyrene; complex: absorbing)."""
     rows, cols = shape
     s = SUPERSAMPLE
     ex = np.zeros((rows * s, cols * s), np.complex64)
@@ -93,7 +94,7 @@ def mie_intensity(shape: tuple[int, int], x_um, y_um, z_air_um, diameter_um, n_p
     offsets = (np.arange(s) + 0.5) / s - 0.5
     sub_rows = (np.arange(rows)[:, None] + offsets).ravel()
     sub_cols = (np.arange(cols)[:, None] + offsets).ravel()
-    indices = np.full(len(x_um), N_PARTICLE) if n_particle is None else np.asarray(n_particle, float)
+    indices = np.full(len(x_um), N_PARTICLE, complex) if n_particle is None else np.broadcast_to(np.asarray(n_particle, complex), (len(x_um),))
     for x, y, z_air, d, n in zip(x_um, y_um, z_air_um, diameter_um, indices, strict=True):
         z_water = z_air * N_MEDIUM
         length = cutoff_px(z_water)

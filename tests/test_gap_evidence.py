@@ -172,6 +172,21 @@ def test_known_bit_depth_is_read_from_integer_files(tmp_path, dtype, top, bits):
     clipped = np.minimum(counts, dtype(top // 2))
     assert known_sensor(clipped)["saturation"] == top // 2
     assert known_sensor(rng.random((64, 64)).astype(np.float32)) is None  # a float simulation states nothing
+    assert known_sensor(counts)["levels_used"] > 0.9 and not known_sensor(counts)["coarse"]
+
+
+def test_values_coarser_than_the_file_format_leave_the_bit_depth_to_the_diagnosis():
+    rng = np.random.default_rng(3)
+    field = random_particle_field((256, 256), count=12, diameter_min_um=20, diameter_max_um=30, layers_um=CONFIG.layer_depths_um(), pixel_um=2.2, seed=rng)
+    image = sensor_image(optical_hologram(field, {}, wavelength_um=0.66), TRUTH, {}, noise=rng.standard_normal((256, 256)).astype(np.float32))
+    six_bits = (np.clip(np.round(image * 35), 0, 63) * 4).astype(np.uint8)  # a 6-bit image in a uint8 file: every 4th level
+    facts = known_sensor(six_bits)
+    assert facts["coarse"] and facts["levels_used"] <= 0.3 and abs(facts["effective_bits"] - 6.0) < 0.3
+    assert not known_sensor(np.clip(np.round(image * 140), 0, 255).astype(np.uint8))["coarse"]  # the same scene at 8 bits
+    fast = DiagnosisSettings(sim_tiles=2, evaluations=8, confirm=0, resamples=100)
+    report = diagnose_hologram(six_bits, CONFIG, settings=fast).report
+    assert report["known"] == {} and report["known_sensor"]["coarse"]
+    assert "quantization" in {e["id"] for e in report["effects"]}  # a candidate: the levels are a finding
 
 
 def test_known_bit_depth_goes_into_every_model_and_can_be_switched_off():

@@ -43,6 +43,7 @@ class Diagnosis:
     real: np.ndarray = field(repr=False)
     baseline_sim: np.ndarray = field(repr=False)
     seconds: float = 0.0
+    halves: list = field(default_factory=list, repr=False)  # each fit's `_Half`: what the verdict is scored from
 
 
 def diagnose_tiles(
@@ -159,7 +160,7 @@ def diagnose_tiles(
     }
     seconds = time.perf_counter() - start
     report["seconds"] = round(seconds, 2)
-    return Diagnosis(report, names, first.real, base_all, seconds)
+    return Diagnosis(report, names, first.real, base_all, seconds, halves)
 
 
 def _scored(halves: list, candidates: list, *, settings: DiagnosisSettings) -> dict:
@@ -340,8 +341,9 @@ def diagnose_hologram(
         a 512² hologram is cross-fitted: all 16 are scored, `DiagnosisSettings.cross_fit_below_px`).
     known : bool
         Put what the file states into every model as known, not diagnosed: for integer
-        counts (`known_sensor`), the bit depth and saturation as ``quantization``. Off, or
-        with a ``background`` (the division makes the levels uneven), they are diagnosed.
+        counts (`known_sensor`), the bit depth and saturation as ``quantization``. Off, with
+        a ``background`` (the division makes the levels uneven), or where the values use
+        fewer levels than the format holds (a 6-bit image in a uint8 file), they are diagnosed.
     """
     image = as_hologram(hologram)
     # the array as given keeps its dtype; an RGB one is read from its channel of integer counts
@@ -363,7 +365,8 @@ def diagnose_hologram(
     # the sensor's levels in the simulation's unit (the tiles' mean intensity is 1 there)
     # sensor_image spreads 2^bits - 1 levels over [0, saturation]: one count a step only when that is the full scale
     # (a pile-up below full scale, e.g. clipping at 200 of 255, is in `facts` but not simulated)
-    known_effects = {"quantization": {"bits": float(facts["bits"]), "saturation": facts["full_scale"] / field_mean}} if facts else {}
+    # values coarser than the format (`known_sensor`'s ``coarse``): the file does not state the bit depth, diagnose it
+    known_effects = {"quantization": {"bits": float(facts["bits"]), "saturation": facts["full_scale"] / field_mean}} if facts and not facts["coarse"] else {}
     covered = ((rows // size) * size, (cols // size) * size)  # the field the tiles cover
     diagnosis = diagnose_tiles(tiles, config, layout=TileLayout(covered, origins, field_mean), known=known_effects, settings=settings, progress=progress, should_stop=should_stop)
     diagnosis.report["known_sensor"] = facts if facts else {"source": "none: not integer counts, a background was divided out, or switched off"}

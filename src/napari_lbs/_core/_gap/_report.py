@@ -125,7 +125,10 @@ def _tiles_to_decide_text(verdict: dict, tiles: dict) -> str:
 
 def _known_text(report: dict) -> str:
     known = report.get("known") or {}
-    if not known:
-        return "nothing."
     sensor = report.get("known_sensor", {})
+    if not known:
+        if sensor.get("coarse"):
+            return (f"nothing: the {sensor['source']} uses {100 * sensor['levels_used']:.0f} % of the levels within its range "
+                    f"(about {sensor['effective_bits']:.1f} bits of its {sensor['bits']}), so the bit depth is diagnosed, not taken from the format.")
+        return "nothing."
     return "; ".join(f"{effect_id} {params}" for effect_id, params in known.items()) + (f" (from the {sensor['source']})" if "source" in sensor else "") + "."
