@@ -295,26 +295,30 @@ def mie(cases: list[int] | None, seed: int = 2026) -> None:
 #   parasitic_fringes  a reflection off a tilted cover glass: a fringe of period 9 px at 1.1 rad,
 #                      amplitude 5 % at the field's centre falling as a Gaussian (half the field
 #                      width, 1/e) across it
+#   dust               (expected `parasitic_fringes`: CONTRACT.md's "static fringes from dust,
+#                      windows, etalons") 12 absorbing Lorenz–Mie dust grains per 512² of 8–40 µm
+#                      on the far window, 6000 µm air-equivalent, outside the volume
 #   particle_phase     the spheres transparent polystyrene (n = 1.59) instead of absorbing
 #   quantization       a 6-bit camera: 64 levels over the same full scale, written to uint8
 #                      (every 4th level)
 #   spherical_wave     a point source 25 mm before the sensor (each sphere magnified by
 #                      M = L / (L − z) in position, size and depth)
 #   control            nothing withheld (expected verdict: null)
-# Cases 0–7: the effects above at 512²; 8–12: 5 controls at 512²; 13–17 at 1024²:
+# Cases 0–8: the cases above at 512²; 9–13: 5 controls at 512²; 14–18 at 1024²:
 # illumination, particle_phase, shot_noise, 2 controls. Scored: top-1 over the effect cases,
-# false alarms over the controls, each with its 95 % Wilson interval. Left out: dust and
-# multiple_scattering (no catalog effect for dust; Mie fields are superposed, single scattering).
-ABSORBING_DESIGN = (
-    *[(effect, 512) for effect in ("illumination", "shot_noise", "sensor_blur", "coherence", "parasitic_fringes", "particle_phase", "quantization", "spherical_wave")],
-    *[(None, 512)] * 5,
-    ("illumination", 1024), ("particle_phase", 1024), ("shot_noise", 1024), (None, 1024), (None, 1024),
+# false alarms over the controls, each with its 95 % Wilson interval. Left out:
+# multiple_scattering (Mie fields are superposed: single scattering).
+ABSORBING_DESIGN = (  # (case, expected verdict, hologram edge in px)
+    *[(case, case, 512) for case in ("illumination", "shot_noise", "sensor_blur", "coherence", "parasitic_fringes", "particle_phase", "quantization", "spherical_wave")],
+    ("dust", "parasitic_fringes", 512),
+    *[(None, None, 512)] * 5,
+    ("illumination", "illumination", 1024), ("particle_phase", "particle_phase", 1024), ("shot_noise", "shot_noise", 1024), (None, None, 1024), (None, None, 1024),
 )
 ABSORBING_INDEX = 1.59 + 1.0j
 ABSORBING_LEVEL = 150.0
 
 
-def _absorbing_scene(effect_id: str | None, size: int, rng: np.random.Generator) -> np.ndarray:
+def _absorbing_scene(case: str | None, size: int, rng: np.random.Generator) -> np.ndarray:
     """Pixel-integrated Lorenz–Mie intensity of one case of the third suite, with its optical withheld effect (unobstructed = 1)."""
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import pseudoreal
@@ -323,35 +327,39 @@ def _absorbing_scene(effect_id: str | None, size: int, rng: np.random.Generator)
     extent = (size - 1) * pseudoreal.PIXEL_UM
     x, y = rng.uniform(0, extent, count), rng.uniform(0, extent, count)
     z, d = rng.uniform(1900.0, 4700.0, count), rng.uniform(20.0, 30.0, count)
-    index = 1.59 if effect_id == "particle_phase" else ABSORBING_INDEX
+    index = 1.59 if case == "particle_phase" else ABSORBING_INDEX
     shape = (size, size)
-    if effect_id == "spherical_wave":
+    if case == "dust":
+        grains = round(12 * (size / MIE_SIZE) ** 2)
+        x, y = np.concatenate([x, rng.uniform(0, extent, grains)]), np.concatenate([y, rng.uniform(0, extent, grains)])
+        z, d = np.concatenate([z, np.full(grains, 6000.0)]), np.concatenate([d, rng.uniform(8.0, 40.0, grains)])
+    if case == "spherical_wave":
         source_um, centre = 25000.0, extent / 2
         magnification = source_um / (source_um - z)
         return pseudoreal.mie_intensity(shape, centre + magnification * (x - centre), centre + magnification * (y - centre), magnification * z, magnification * d, index)
-    if effect_id == "coherence":
+    if case == "coherence":
         angles = [(tx, ty) for tx in (-1.8e-3, 0.0, 1.8e-3) for ty in (-1.8e-3, 0.0, 1.8e-3)]
         return np.mean([pseudoreal.mie_intensity(shape, x + z * tx, y + z * ty, z, d, index) for tx, ty in angles], axis=0)
     return pseudoreal.mie_intensity(shape, x, y, z, d, index)
 
 
-def absorbing_camera(intensity: np.ndarray, effect_id: str | None, rng: np.random.Generator) -> np.ndarray:
+def absorbing_camera(intensity: np.ndarray, case: str | None, rng: np.random.Generator) -> np.ndarray:
     """The third suite's camera, with its sensor-side withheld effect (the design comment above `ABSORBING_DESIGN`)."""
     rows, cols = intensity.shape
     image = intensity.astype(np.float64)
     yy, xx = np.mgrid[0:rows, 0:cols] / max(rows, cols)
-    if effect_id == "illumination":
+    if case == "illumination":
         image = image * (1 - 0.35 * ((xx - 0.3) ** 2 + (yy - 0.65) ** 2))
-    if effect_id == "parasitic_fringes":
+    if case == "parasitic_fringes":
         amplitude = 0.05 * np.exp(-((xx - 0.5) ** 2 + (yy - 0.5) ** 2) / 0.5**2)
         image = image * (1 + amplitude * np.cos(2 * np.pi * (xx * np.cos(1.1) + yy * np.sin(1.1)) * max(rows, cols) / 9.0))
-    if effect_id == "sensor_blur":
+    if case == "sensor_blur":
         kernel = np.array([[0.02, 0.08, 0.02], [0.08, 0.6, 0.08], [0.02, 0.08, 0.02]])
         image = ndimage.convolve(image, kernel, mode="reflect")
-    if effect_id == "shot_noise":
+    if case == "shot_noise":
         image = rng.poisson(image * 120.0) / 120.0
     counts = image * ABSORBING_LEVEL + rng.normal(0.0, MIE_READ_NOISE, image.shape)
-    if effect_id == "quantization":
+    if case == "quantization":
         return (np.clip(np.round(counts / 4.0), 0, 63) * 4).astype(np.uint8)
     return np.clip(np.round(counts), 0, 255).astype(np.uint8)
 
@@ -383,14 +391,14 @@ def absorbing(cases: list[int] | None, seed: int = 2027, keep: str | None = None
 
     rows = []
     for index in cases if cases is not None else range(len(ABSORBING_DESIGN)):
-        effect_id, size = ABSORBING_DESIGN[index]
+        case, effect_id, size = ABSORBING_DESIGN[index]
         rng = np.random.default_rng([index, seed])
         made = time.perf_counter()
-        counts = absorbing_camera(_absorbing_scene(effect_id, size, rng), effect_id, rng)
+        counts = absorbing_camera(_absorbing_scene(case, size, rng), case, rng)
         made = time.perf_counter() - made
         start, cpu = time.perf_counter(), time.process_time()
         diagnosis = diagnose_hologram(counts, CONFIG)
-        seconds = {"size": size, "seconds": round(time.perf_counter() - start, 1), "cpu_seconds": round(time.process_time() - cpu, 1), "hologram_seconds": round(made, 1)}
+        seconds = {"scene": case, "size": size, "seconds": round(time.perf_counter() - start, 1), "cpu_seconds": round(time.process_time() - cpu, 1), "hologram_seconds": round(made, 1)}
         row = _row(index, effect_id, diagnosis.report, seconds)
         rows.append(row)
         print(json.dumps(row), flush=True)

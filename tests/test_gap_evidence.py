@@ -79,6 +79,30 @@ def test_a_strong_term_on_a_few_summaries_is_not_diluted_by_the_many_it_cannot_c
     assert _decision(entries, evidence, baseline_gap=0.0, held_out=tiles, summaries=summaries)["id"] is None
 
 
+def test_only_an_alternative_with_evidence_of_its_own_can_block_the_lead():
+    # the best effect removes 120 ± 10 of χ²; a rival moving one summary removes 40 ± 50 (its
+    # lower bound below 0), and the best's lead over it, on the summaries either moves, is 80 ± 60
+    from napari_lbs._core._gap._verdict import _decision
+
+    rng = np.random.default_rng(8)
+    draws = lambda mean, sd: mean + sd * rng.standard_normal(2000)  # noqa: E731
+    entries = [{"id": e, "gap_after": 0.5, "shrink": 0.8, "shrink_interval": [0.5, 1.0]} for e in ("best", "rival")]
+    evidence = {
+        "best": {"summaries": 12, "reduction": 120.0, "draws": draws(120.0, 10.0)},
+        "rival": {"summaries": 1, "reduction": 40.0, "draws": draws(40.0, 50.0)},
+        "leads": {("best", "rival"): (80.0, draws(80.0, 60.0)), ("rival", "best"): (-80.0, draws(-80.0, 60.0))},
+    }
+    verdict = _decision(entries, evidence, baseline_gap=3.0, held_out=16, summaries=55)
+    assert verdict["id"] == "best", verdict["reason"]
+    # a rival that removes χ² beyond doubt, and is not clearly behind, blocks it
+    evidence["rival"]["draws"] = draws(40.0, 5.0)
+    verdict = _decision(entries, evidence, baseline_gap=3.0, held_out=16, summaries=55)
+    assert verdict["id"] is None and verdict["runner_up"] == "rival" and "indistinguishable" in verdict["reason"]
+    # and one clearly behind does not
+    evidence["leads"][("best", "rival")] = (80.0, draws(80.0, 10.0))
+    assert _decision(entries, evidence, baseline_gap=3.0, held_out=16, summaries=55)["id"] == "best"
+
+
 def small_model(count=4):
     rng = np.random.default_rng(3)
     tiles = []

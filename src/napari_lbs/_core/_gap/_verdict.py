@@ -124,11 +124,14 @@ def _decision(entries: list, evidence: dict, *, baseline_gap: float, held_out: i
 
     The best effect (largest reduction on its own summaries) is named only when (a) that
     reduction is at least ``_VERDICT_MIN_REDUCTION`` per summary of the whole vector and its
-    lower confidence bound is above 0; and (b) its lead over the runner-up (the runner-up's χ²
-    minus its own, over the summaries either of them moves) has a lower confidence bound above 0. Bounds are one-sided at 95 %, Bonferroni-corrected for the
-    number of effects compared (the best of several is picked). ``tiles_to_decide``: held-out
-    tiles at which the weaker of the two margins would reach its bound, if margin / bootstrap
-    error grows as sqrt(tiles).
+    lower confidence bound is above 0; and (b) it leads every credible alternative: an other
+    effect whose own reduction has a lower bound above 0 (one that cannot itself be shown to
+    remove χ² is no rival explanation), by the alternative's χ² minus its own over the
+    summaries either of them moves, with a lower bound above 0. Bounds are one-sided at 95 %,
+    Bonferroni-corrected for the number of effects compared (the best of several is picked).
+    The runner-up is the strongest credible alternative (else the second ranked).
+    ``tiles_to_decide``: held-out tiles at which the weakest margin would reach its bound,
+    if margin / bootstrap error grows as sqrt(tiles).
     """
     ranked = sorted(entries, key=lambda e: -evidence[e["id"]]["reduction"])
     alpha = 0.05 / max(len(ranked), 1)
@@ -138,26 +141,30 @@ def _decision(entries: list, evidence: dict, *, baseline_gap: float, held_out: i
         return {**verdict, "reason": "no effect was refitted", "tiles_to_decide": None}
     best = ranked[0]
     own = evidence[best["id"]]
-    margins = [(own["reduction"], own["draws"])]
-    runner = ranked[1] if len(ranked) > 1 else None
-    if runner is not None:
-        margins.append(evidence["leads"][(best["id"], runner["id"])])
+    lower = lambda samples: float(np.quantile(samples, alpha))  # noqa: E731
+    credible = [e for e in ranked[1:] if lower(evidence[e["id"]]["draws"]) > 0]
+    runner = credible[0] if credible else (ranked[1] if len(ranked) > 1 else None)
+    leads = [(e, evidence["leads"][(best["id"], e["id"])]) for e in credible]
+    margins = [(own["reduction"], own["draws"])] + [lead for _, lead in leads]
     ratios = [point / max(float(np.std(samples)), 1e-12) for point, samples in margins]
     tiles = [int(np.ceil(held_out * (z_needed / ratio) ** 2)) if ratio > 0 else None for ratio in ratios]
     tiles_to_decide = None if None in tiles else max(tiles)
     verdict.update({"runner_up": runner["id"] if runner else None, "tiles_to_decide": tiles_to_decide})
     needed = _VERDICT_MIN_REDUCTION * summaries
-    low_reduction = float(np.quantile(own["draws"], alpha))
+    low_reduction = lower(own["draws"])
     told = f"{best['id']} removes {own['reduction']:.1f} of χ² on its {own['summaries']} summaries (lower bound {low_reduction:.1f}; needed {needed:.1f})"
     if own["reduction"] < needed or low_reduction <= 0:
         verdict["reason"] = f"gap within what {held_out} held-out tiles can resolve: " + (told if own["reduction"] > 0 else f"no refitted effect lowers the gap of {baseline_gap:.2f}")
         return verdict
-    if runner is not None and float(np.quantile(margins[1][1], alpha)) <= 0:
-        verdict["reason"] = (
-            f"two effects indistinguishable: {best['id']} ({own['reduction']:.1f}) and {runner['id']} ({evidence[runner['id']]['reduction']:.1f}); "
-            f"on the summaries either moves, {best['id']} leads by {margins[1][0]:.1f} (lower bound {float(np.quantile(margins[1][1], alpha)):.1f}) on {held_out} held-out tiles"
-        )
-        return verdict
+    for rival, (margin, samples) in leads:
+        if lower(samples) <= 0:
+            verdict["runner_up"] = rival["id"]
+            verdict["reason"] = (
+                f"two effects indistinguishable: {best['id']} ({own['reduction']:.1f}) and {rival['id']} ({evidence[rival['id']]['reduction']:.1f}, lower bound {lower(evidence[rival['id']]['draws']):.1f}); "
+                f"on the summaries either moves, {best['id']} leads by {margin:.1f} (lower bound {lower(samples):.1f}) on {held_out} held-out tiles"
+            )
+            return verdict
     verdict.update({"id": best["id"], "shrink": best["shrink"], "residual": best["gap_after"], "interval": best["shrink_interval"]})
-    verdict["reason"] = f"{told} and leads {runner['id'] if runner else 'nothing'}"
+    rivals = ", ".join(e["id"] for e in credible) or "no other effect with evidence of its own"
+    verdict["reason"] = f"{told} and leads {rivals}"
     return verdict
