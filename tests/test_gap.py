@@ -144,6 +144,41 @@ def test_a_static_fringe_is_measured_at_its_period_and_angle_under_a_particle_sc
     assert min(abs(np.arctan2(fy, fx) % np.pi - angle_rad), np.pi - abs(np.arctan2(fy, fx) % np.pi - angle_rad)) < 0.1
 
 
+def test_a_dust_grains_fresnel_shadow_has_the_arago_spot_and_conserves_light():
+    from napari_lbs._core._effects import _dust_pattern, _fresnel_intensity
+
+    yy, xx = np.mgrid[-128:128, -128:128]
+    grain = xx**2 + yy**2 <= 6**2  # an opaque disc, 6 px in radius
+    near = _fresnel_intensity(grain, 0.01)  # no distance: the geometric shadow
+    np.testing.assert_allclose(near, 1.0 - grain, atol=1e-3)
+    for zone_px in (12.0, 25.0):
+        far = _fresnel_intensity(grain, zone_px)
+        # light is conserved (the propagation is unitary: mean |1 - mask|² = 1 - fill on the periodic grid)
+        assert far.mean() == pytest.approx(1.0 - grain.mean(), rel=1e-4)
+        # Poisson's (Arago's) spot: on the axis behind an opaque disc the light is back to the incident
+        assert far[128, 128] == pytest.approx(1.0, abs=0.1)
+    # the catalog's dust: static (the same grains every call), more grains keep the fewer ones' places
+    few, more = _dust_pattern((128, 128), 100.0, 20.0), _dust_pattern((128, 128), 200.0, 20.0)
+    assert few.std() > 0.01 and more.std() > few.std()
+    np.testing.assert_array_equal(few, _dust_pattern.__wrapped__((128, 128), 100.0, 20.0))
+
+
+def test_dust_on_a_window_is_part_of_the_static_fringes_and_optional_in_a_stated_setting():
+    from napari_lbs._core import parse_effect
+
+    etalon = parse_effect("parasitic_fringes:amplitude=0.05,period_px=10,angle_rad=0")["parasitic_fringes"]
+    assert etalon["dust_per_mpx"] == 0.0  # left out: that part is off
+    dusty = parse_effect("parasitic_fringes:amplitude=0,period_px=10,angle_rad=0,dust_per_mpx=150,dust_zone_px=25")["parasitic_fringes"]
+    rng = np.random.default_rng(5)
+    intensity = simulate_hologram(field((128, 128), count=4, seed=rng), wavelength_um=0.66)
+    noise = np.zeros((128, 128), np.float32)
+    clean = sensor_image(intensity, NEUTRAL, {"parasitic_fringes": etalon | {"amplitude": 0.0}}, noise=noise)
+    np.testing.assert_allclose(clean, intensity, atol=1e-6)
+    assert np.abs(sensor_image(intensity, NEUTRAL, {"parasitic_fringes": dusty}, noise=noise) - intensity).std() > 0.01
+    with pytest.raises(InputError, match="amplitude"):
+        parse_effect("parasitic_fringes:period_px=10,angle_rad=0")  # only the dust is optional
+
+
 def test_summaries_cover_every_kind_and_the_gap_statistic_behaves():
     rng = np.random.default_rng(3)
     values, names = tile_summaries(simulate_hologram(field(), wavelength_um=0.66), config=CONFIG)

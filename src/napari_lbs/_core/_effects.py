@@ -14,7 +14,8 @@ The simulator is split in two stages so that fitting is cheap:
     and response gamma (the seed's Gaussian noise + gamma, in the hologram domain so that
     experiment and simulation share one code path; the seed's noise offset N_R·R acts as a
     fringe contrast once the image is normalised by its mean), plus ``illumination``
-    (a Gaussian beam envelope, off-centre), ``parasitic_fringes`` (a static etalon fringe),
+    (a Gaussian beam envelope, off-centre), ``parasitic_fringes`` (static fringes: an etalon's
+    straight fringe and the rings of dust on a window out of the volume),
     ``shot_noise`` (Poisson, signal dependent), ``sensor_blur`` (pixel crosstalk / MTF: it
     acts on the light reaching the pixels, so it blurs the intensity before the photon and
     read noise are added, and the noise stays white) and ``quantization`` (bit depth and
@@ -31,10 +32,12 @@ the synthetic holograms of `generate_dataset`.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.fft
 from scipy import ndimage
 
 from napari_lbs._core._io import InputError
@@ -73,6 +76,9 @@ class Effect:
         Particle density of the weak and the strong injection, relative to the suite's own
         density: an effect whose strength is set by the scene rather than by a parameter
         (shadowing between layers grows with how often particles overlap in projection).
+    optional : tuple of str
+        Parameters that may be left out of a stated setting (`check_effects`): they take
+        their neutral value, i.e. that part of the effect is off.
     """
 
     id: str
@@ -81,6 +87,7 @@ class Effect:
     neutral: dict
     injections: tuple
     injection_density: tuple = (1.0, 1.0)
+    optional: tuple = ()
 
 
 BASELINE = Effect("baseline", "seed's simulator: opaque discs, Gaussian noise, gamma", {"contrast": (0.2, 1.6), "sigma": (0.001, 0.3), "gamma": (0.5, 2.0)}, {"contrast": 1.0, "sigma": 0.0, "gamma": 1.0}, ())
@@ -94,14 +101,63 @@ EFFECTS: dict[str, Effect] = {e.id: e for e in (
     # index contrast Δn = n_particle − n_medium; the fit range (0 … 0.025) is the old 0 … 6 rad through a 25 µm sphere
     Effect("particle_phase", "transparent, refracting spheres", {"index_contrast": (0.0, 0.025), "transmission": (0.0, 1.0)}, {"index_contrast": 0.0, "transmission": 0.0}, ({"index_contrast": 0.0084, "transmission": 0.6}, {"index_contrast": 0.0168, "transmission": 0.9})),
     Effect("multiple_scattering", "shadowing between particle layers", {"on": (1.0, 1.0)}, {"on": 0.0}, ({"on": 1.0}, {"on": 1.0}), (6.0, 12.0)),
-    Effect("parasitic_fringes", "static etalon fringes", {"amplitude": (0.0, 0.2), "period_px": (4.0, 24.0), "angle_rad": (0.0, 3.1416)}, {"amplitude": 0.0, "period_px": 20.0, "angle_rad": 0.0}, ({"amplitude": 0.04, "period_px": 14.0, "angle_rad": 0.7}, {"amplitude": 0.1, "period_px": 14.0, "angle_rad": 0.7})),
+    # static fringes: an etalon's straight fringe, and dust grains on a window out of the volume
+    # (`_dust_pattern`: grains per megapixel, and the first Fresnel zone √(λz) in pixels, which
+    # sets the rings' spacing: 6 … 60 px is z ≈ 0.26 … 20 mm at 660 nm and 2.2 µm pixels)
+    Effect(
+        "parasitic_fringes", "static fringes: etalon, dust on a window",
+        {"amplitude": (0.0, 0.2), "period_px": (4.0, 24.0), "angle_rad": (0.0, 3.1416), "dust_per_mpx": (0.0, 300.0), "dust_zone_px": (6.0, 60.0)},
+        {"amplitude": 0.0, "period_px": 20.0, "angle_rad": 0.0, "dust_per_mpx": 0.0, "dust_zone_px": 30.0},
+        ({"amplitude": 0.04, "period_px": 14.0, "angle_rad": 0.7}, {"amplitude": 0.1, "period_px": 14.0, "angle_rad": 0.7}),
+        optional=("dust_per_mpx", "dust_zone_px"),
+    ),
     Effect("spherical_wave", "diverging illumination (point source at L)", {"source_mm": (8.0, 200.0)}, {"source_mm": 1e9}, ({"source_mm": 40.0}, {"source_mm": 15.0})),
 )}
 OPTICAL_EFFECTS = ("coherence", "particle_phase", "multiple_scattering", "spherical_wave")
 
 
 def _param(effects: dict, effect: str, name: str) -> float:
-    return float(effects.get(effect, EFFECTS[effect].neutral)[name])
+    return float({**EFFECTS[effect].neutral, **effects.get(effect, {})}[name])
+
+
+_DUST_GRAIN_PX = 5  # grain radius (px): 11 µm at 2.2 µm pixels
+_DUST_SEED = 2718  # static grains: the same places in every hologram of a shape
+
+
+def _fresnel_intensity(opaque: np.ndarray, zone_px: float) -> np.ndarray:
+    """Intensity (unobstructed = 1) behind an opaque mask (1 where opaque), after Fresnel diffraction on its periodic grid.
+
+    The transfer function ``exp(-iπ N |f|²)``, ``N = zone_px²`` = λz over the pixel area (f in
+    cycles per pixel): the paraxial propagation of the mask's scattered field ``-opaque``.
+    """
+    fy, fx = np.fft.fftfreq(opaque.shape[0])[:, None], np.fft.fftfreq(opaque.shape[1])[None, :]
+    kernel = np.exp(-1j * np.pi * zone_px**2 * (fy**2 + fx**2)).astype(np.complex64)
+    scattered = scipy.fft.ifft2(scipy.fft.fft2(-opaque.astype(np.complex64), workers=-1) * kernel, workers=-1, overwrite_x=True)
+    return (np.abs(1.0 + scattered) ** 2).astype(np.float32)
+
+
+@functools.lru_cache(maxsize=32)
+def _dust_pattern(shape: tuple[int, int], count_per_mpx: float, zone_px: float) -> np.ndarray:
+    """Intensity (unobstructed = 1, float32) of dust grains on a window out of the volume.
+
+    Opaque discs of radius `_DUST_GRAIN_PX` at fixed random places (seed `_DUST_SEED`;
+    ``count_per_mpx`` per megapixel, over the window and a border of half its size, whose
+    rings reach in), diffracted to the sensor (`_fresnel_intensity`) on a grid twice the
+    window's size, so that rings leave it rather than wrap. Grains are added in a fixed order:
+    a higher density keeps the grains of a lower one.
+    """
+    rows, cols = shape
+    grid = (2 * rows, 2 * cols)
+    count = int(round(count_per_mpx * grid[0] * grid[1] / 1e6))
+    places = (np.random.default_rng(_DUST_SEED).random((count, 2)) * grid).astype(int)
+    r = _DUST_GRAIN_PX
+    yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
+    disc = yy**2 + xx**2 <= r**2
+    opaque = np.zeros(grid, bool)
+    for row, col in places:
+        at = np.ix_(np.arange(row - r, row + r + 1) % grid[0], np.arange(col - r, col + r + 1) % grid[1])
+        opaque[at] |= disc
+    return _fresnel_intensity(opaque, zone_px)[rows // 2 : rows // 2 + rows, cols // 2 : cols // 2 + cols]
 
 
 _SPHERE_SUPERSAMPLE = 4  # fine samples per pixel and axis for a sphere's transmission
@@ -204,6 +260,9 @@ def sensor_image(intensity: np.ndarray, baseline: dict, effects: dict, *, noise:
         y, x = np.ogrid[-0.5 : 0.5 : rows * 1j, -0.5 : 0.5 : cols * 1j]
         r2 = (x - _param(effects, "illumination", "x0")) ** 2 + (y - _param(effects, "illumination", "y0")) ** 2
         image = image * (1.0 - depth * (1.0 - np.exp(-r2 / 0.18))).astype(np.float32)
+    dust = _param(effects, "parasitic_fringes", "dust_per_mpx")
+    if dust > 0:  # the grains' rings, formed by the light on its way to the sensor
+        image = image * _dust_pattern((rows, cols), round(dust, 3), round(_param(effects, "parasitic_fringes", "dust_zone_px"), 3))
     amplitude = _param(effects, "parasitic_fringes", "amplitude")
     if amplitude > 0:
         angle, period = _param(effects, "parasitic_fringes", "angle_rad"), _param(effects, "parasitic_fringes", "period_px")
@@ -227,7 +286,8 @@ def sensor_image(intensity: np.ndarray, baseline: dict, effects: dict, *, noise:
 def check_effects(effects: dict) -> dict:
     """A validated copy of ``{effect_id: {param: value}}``: known ids and names, every parameter a finite number.
 
-    A parameter whose bounds are a single value (``multiple_scattering.on``) may be left out.
+    A parameter whose bounds are a single value (``multiple_scattering.on``) or that the effect
+    lists as optional (`Effect.optional`: it takes its neutral value) may be left out.
     Values are not clipped to the fit bounds (a stated value such as 12 bits is legitimate);
     they must only be finite. Raises `InputError` naming the culprit.
     """
@@ -246,9 +306,9 @@ def check_effects(effects: dict) -> dict:
         values = {}
         for name, (low, high) in effect.bounds.items():
             if name not in params:
-                if low != high:
+                if low != high and name not in effect.optional:
                     raise InputError(f"effects: {effect_id}: missing parameter {name!r} (fit range {low:g} to {high:g})")
-                values[name] = float(low)
+                values[name] = float(low) if low == high else float(effect.neutral[name])
                 continue
             try:
                 value = float(params[name])
