@@ -145,22 +145,29 @@ def test_a_static_fringe_is_measured_at_its_period_and_angle_under_a_particle_sc
 
 
 def test_a_dust_grains_fresnel_shadow_has_the_arago_spot_and_conserves_light():
-    from napari_lbs._core._effects import _dust_pattern, _fresnel_intensity
+    from napari_lbs._core._effects import _dust_mask, _dust_pattern, _fresnel_intensity
 
+    diffract = lambda opaque, zone_px: _fresnel_intensity(np.fft.fft2(opaque.astype(np.complex64)), zone_px)  # noqa: E731
     yy, xx = np.mgrid[-128:128, -128:128]
     grain = xx**2 + yy**2 <= 6**2  # an opaque disc, 6 px in radius
-    near = _fresnel_intensity(grain, 0.01)  # no distance: the geometric shadow
-    np.testing.assert_allclose(near, 1.0 - grain, atol=1e-3)
+    np.testing.assert_allclose(diffract(grain, 0.01), 1.0 - grain, atol=1e-3)  # no distance: the geometric shadow
     for zone_px in (12.0, 25.0):
-        far = _fresnel_intensity(grain, zone_px)
+        far = diffract(grain, zone_px)
         # light is conserved (the propagation is unitary: mean |1 - mask|² = 1 - fill on the periodic grid)
         assert far.mean() == pytest.approx(1.0 - grain.mean(), rel=1e-4)
         # Poisson's (Arago's) spot: on the axis behind an opaque disc the light is back to the incident
         assert far[128, 128] == pytest.approx(1.0, abs=0.1)
-    # the catalog's dust: static (the same grains every call), more grains keep the fewer ones' places
-    few, more = _dust_pattern((128, 128), 100.0, 20.0), _dust_pattern((128, 128), 200.0, 20.0)
-    assert few.std() > 0.01 and more.std() > few.std()
-    np.testing.assert_array_equal(few, _dust_pattern.__wrapped__((128, 128), 100.0, 20.0))
+    # the distance itself: on the axis behind a circular aperture of radius r, I = 4 sin²(π r² / 2N), N = zone²
+    aperture = ~(xx**2 + yy**2 <= 20**2)  # opaque outside
+    for zone_px in (10.0, 14.0, 20.0):
+        expected = 4 * np.sin(np.pi * 20**2 / (2 * zone_px**2)) ** 2
+        assert diffract(aperture, zone_px)[128, 128] == pytest.approx(expected, abs=0.15)
+    # the catalog's dust: static, and more grains keep the fewer ones' places
+    fewer, more = _dust_mask((256, 256), 10), _dust_mask((256, 256), 20)
+    assert fewer.any() and np.all(more[fewer]) and more.sum() > fewer.sum()
+    pattern = _dust_pattern((128, 128), 100.0, 20.0)
+    assert pattern.std() > 0.01 and _dust_pattern((128, 128), 200.0, 20.0).std() > pattern.std()
+    np.testing.assert_array_equal(pattern, _dust_pattern((128, 128), 100.0, 20.0))
 
 
 def test_dust_on_a_window_is_part_of_the_static_fringes_and_optional_in_a_stated_setting():

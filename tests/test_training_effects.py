@@ -118,6 +118,14 @@ def test_generate_records_the_effects_and_the_data_differs_only_through_them(tmp
     assert np.abs(plain_inputs.astype(np.float32) - phased_inputs.astype(np.float32)).max() > 0.05  # other holograms
     with pytest.raises(InputError, match="differs in effects"):
         generate_dataset(tmp_path / "phased", CONFIG, groups=1, layout=layout, seed=3)
+    # a set stated before an effect gained optional parameters (here the fringe's dust) is the same set
+    fringe = {"parasitic_fringes": {"amplitude": 0.05, "period_px": 9.0, "angle_rad": 0.3}}
+    generate_dataset(tmp_path / "fringe", CONFIG, groups=1, layout=layout, seed=3, effects=fringe)
+    manifest = tmp_path / "fringe" / "dataset.json"
+    old = json.loads(manifest.read_text())
+    old["effects"] = fringe  # as written before the dust parameters existed
+    manifest.write_text(json.dumps(old))
+    assert len(generate_dataset(tmp_path / "fringe", CONFIG, groups=2, layout=layout, seed=3, effects=fringe).groups) == 2
 
 
 def test_cli_generate_effects_from_a_report_and_refusals(tmp_path, capsys):

@@ -356,6 +356,9 @@ def generate_dataset(
     manifest = out / "dataset.json"
     if manifest.is_file():
         existing = read_json_object(manifest, what="data set manifest")
+        # a set stated before an effect gained optional parameters holds them switched off: the same images
+        if existing.get("effects"):
+            existing["effects"] = check_effects(existing["effects"])
         differing = [key for key in _IDENTITY_KEYS if existing.get(key) != spec.get(key)]
         if differing:
             raise InputError(f"{out}: holds a data set made with other settings (differs in {', '.join(differing)}); choose another folder")

@@ -103,7 +103,7 @@ EFFECTS: dict[str, Effect] = {e.id: e for e in (
     Effect("multiple_scattering", "shadowing between particle layers", {"on": (1.0, 1.0)}, {"on": 0.0}, ({"on": 1.0}, {"on": 1.0}), (6.0, 12.0)),
     # static fringes: an etalon's straight fringe, and dust grains on a window out of the volume
     # (`_dust_pattern`: grains per megapixel, and the first Fresnel zone √(λz) in pixels, which
-    # sets the rings' spacing: 6 … 60 px is z ≈ 0.26 … 20 mm at 660 nm and 2.2 µm pixels)
+    # sets the rings' spacing: 6 … 60 px is z ≈ 0.26 … 26 mm at 660 nm and 2.2 µm pixels)
     Effect(
         "parasitic_fringes", "static fringes: etalon, dust on a window",
         {"amplitude": (0.0, 0.2), "period_px": (4.0, 24.0), "angle_rad": (0.0, 3.1416), "dust_per_mpx": (0.0, 300.0), "dust_zone_px": (6.0, 60.0)},
@@ -117,47 +117,67 @@ OPTICAL_EFFECTS = ("coherence", "particle_phase", "multiple_scattering", "spheri
 
 
 def _param(effects: dict, effect: str, name: str) -> float:
-    return float({**EFFECTS[effect].neutral, **effects.get(effect, {})}[name])
+    """A parameter of ``effects`` (the effect's neutral setting where it is absent; an optional parameter left out is neutral)."""
+    catalog = EFFECTS[effect]
+    return float({**{n: catalog.neutral[n] for n in catalog.optional}, **effects.get(effect, catalog.neutral)}[name])
 
 
 _DUST_GRAIN_PX = 5  # grain radius (px): 11 µm at 2.2 µm pixels
 _DUST_SEED = 2718  # static grains: the same places in every hologram of a shape
 
 
-def _fresnel_intensity(opaque: np.ndarray, zone_px: float) -> np.ndarray:
-    """Intensity (unobstructed = 1) behind an opaque mask (1 where opaque), after Fresnel diffraction on its periodic grid.
+def _fresnel_intensity(opaque_spectrum: np.ndarray, zone_px: float) -> np.ndarray:
+    """Intensity (unobstructed = 1) behind an opaque mask, after Fresnel diffraction on its periodic grid.
 
-    The transfer function ``exp(-iπ N |f|²)``, ``N = zone_px²`` = λz over the pixel area (f in
-    cycles per pixel): the paraxial propagation of the mask's scattered field ``-opaque``.
+    ``opaque_spectrum`` is the FFT of the mask (1 where opaque). The transfer function
+    ``exp(-iπ N |f|²)``, ``N = zone_px²`` = λz over the pixel area (f in cycles per pixel), is
+    the paraxial propagation of the mask's scattered field ``-opaque``; it factorises over the
+    two axes. A propagator of its own, in pixel units, because `sensor_image` knows no
+    wavelength or pitch (`_optics.propagate` works in µm).
     """
-    fy, fx = np.fft.fftfreq(opaque.shape[0])[:, None], np.fft.fftfreq(opaque.shape[1])[None, :]
-    kernel = np.exp(-1j * np.pi * zone_px**2 * (fy**2 + fx**2)).astype(np.complex64)
-    scattered = scipy.fft.ifft2(scipy.fft.fft2(-opaque.astype(np.complex64), workers=-1) * kernel, workers=-1, overwrite_x=True)
+    rows, cols = opaque_spectrum.shape
+    along = [np.exp(-1j * np.pi * zone_px**2 * np.fft.fftfreq(n) ** 2).astype(np.complex64) for n in (rows, cols)]
+    scattered = scipy.fft.ifft2(-opaque_spectrum * along[0][:, None] * along[1][None, :])
     return (np.abs(1.0 + scattered) ** 2).astype(np.float32)
 
 
-@functools.lru_cache(maxsize=32)
-def _dust_pattern(shape: tuple[int, int], count_per_mpx: float, zone_px: float) -> np.ndarray:
-    """Intensity (unobstructed = 1, float32) of dust grains on a window out of the volume.
+def _dust_mask(grid: tuple[int, int], count: int) -> np.ndarray:
+    """(grid) bool: ``count`` opaque grains of radius `_DUST_GRAIN_PX` at fixed random places (seed `_DUST_SEED`), periodic.
 
-    Opaque discs of radius `_DUST_GRAIN_PX` at fixed random places (seed `_DUST_SEED`;
-    ``count_per_mpx`` per megapixel, over the window and a border of half its size, whose
-    rings reach in), diffracted to the sensor (`_fresnel_intensity`) on a grid twice the
-    window's size, so that rings leave it rather than wrap. Grains are added in a fixed order:
-    a higher density keeps the grains of a lower one.
+    The places are drawn in a fixed order, so the mask of fewer grains is part of the mask of more.
     """
-    rows, cols = shape
-    grid = (2 * rows, 2 * cols)
-    count = int(round(count_per_mpx * grid[0] * grid[1] / 1e6))
     places = (np.random.default_rng(_DUST_SEED).random((count, 2)) * grid).astype(int)
     r = _DUST_GRAIN_PX
     yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
     disc = yy**2 + xx**2 <= r**2
-    opaque = np.zeros(grid, bool)
+    mask = np.zeros(grid, bool)
     for row, col in places:
         at = np.ix_(np.arange(row - r, row + r + 1) % grid[0], np.arange(col - r, col + r + 1) % grid[1])
-        opaque[at] |= disc
-    return _fresnel_intensity(opaque, zone_px)[rows // 2 : rows // 2 + rows, cols // 2 : cols // 2 + cols]
+        mask[at] |= disc
+    return mask
+
+
+@functools.lru_cache(maxsize=4)
+def _dust_spectrum(grid: tuple[int, int], count: int) -> np.ndarray:
+    """FFT (complex64, read-only) of `_dust_mask`: a fit varies the grains' distance far more often than their number."""
+    spectrum = scipy.fft.fft2(_dust_mask(grid, count).astype(np.complex64))
+    spectrum.flags.writeable = False
+    return spectrum
+
+
+def _dust_pattern(shape: tuple[int, int], count_per_mpx: float, zone_px: float) -> np.ndarray:
+    """Intensity (unobstructed = 1, float32) of dust grains on a window out of the volume.
+
+    Opaque grains (`_dust_mask`; ``count_per_mpx`` per megapixel, over the window and a border
+    of half its size, whose rings reach in), diffracted to the sensor (`_fresnel_intensity`)
+    on a periodic grid twice the window's size: rings that spread further (a 5 px grain at
+    ``zone_px`` 60 spreads over about 360 px) wrap around, as a window evenly covered with dust
+    would also send them in.
+    """
+    rows, cols = shape
+    grid = (2 * rows, 2 * cols)
+    count = int(round(count_per_mpx * grid[0] * grid[1] / 1e6))
+    return _fresnel_intensity(_dust_spectrum(grid, count), zone_px)[rows // 2 : rows // 2 + rows, cols // 2 : cols // 2 + cols]
 
 
 _SPHERE_SUPERSAMPLE = 4  # fine samples per pixel and axis for a sphere's transmission
@@ -262,7 +282,7 @@ def sensor_image(intensity: np.ndarray, baseline: dict, effects: dict, *, noise:
         image = image * (1.0 - depth * (1.0 - np.exp(-r2 / 0.18))).astype(np.float32)
     dust = _param(effects, "parasitic_fringes", "dust_per_mpx")
     if dust > 0:  # the grains' rings, formed by the light on its way to the sensor
-        image = image * _dust_pattern((rows, cols), round(dust, 3), round(_param(effects, "parasitic_fringes", "dust_zone_px"), 3))
+        image = image * _dust_pattern((rows, cols), dust, _param(effects, "parasitic_fringes", "dust_zone_px"))
     amplitude = _param(effects, "parasitic_fringes", "amplitude")
     if amplitude > 0:
         angle, period = _param(effects, "parasitic_fringes", "angle_rad"), _param(effects, "parasitic_fringes", "period_px")
