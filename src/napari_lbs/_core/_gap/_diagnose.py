@@ -161,7 +161,7 @@ def diagnose_tiles(
     seconds = time.perf_counter() - start
     report["seconds"] = round(seconds, 2)
     for half in halves:
-        half.model._optical.clear()  # the simulated light of every fitted setting: not needed once scored
+        half.model.forget_light()
     return Diagnosis(report, names, first.real, base_all, seconds, halves)
 
 

@@ -101,6 +101,10 @@ class _Model:
             self._optical[key] = [optical_hologram(f, optical, wavelength_um=self.config.optics.wavelength_um, medium_index=self.config.optics.medium_index) for f in self.fields]
         return self._optical[key]
 
+    def forget_light(self) -> None:
+        """Drop the simulated light of every setting tried (`optical`): once scored, only the summaries are needed."""
+        self._optical.clear()
+
     def summaries(self, baseline: dict, effects: dict, *, half: str = "fit") -> np.ndarray:
         """(sim_tiles, K) summaries of the tiles cut for ``half`` ("fit" or "held") of the real tiles."""
         effects = {**self.known, **effects}

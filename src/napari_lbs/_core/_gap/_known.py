@@ -31,11 +31,12 @@ def known_sensor(image: np.ndarray) -> dict | None:
         ``bits`` (uint8: 8; otherwise the fewest bits, at least 8, that hold the largest
         count), ``full_scale`` and ``saturation`` (counts: the largest value where at least
         0.1 % of the pixels pile up there, else the full scale), ``saturated_fraction``,
-        ``levels_used`` (the share of the integer levels between the quartiles
-        that occur; 1.0 where half the pixels fill fewer than 5 a level there, too few to tell), ``coarse`` (``levels_used`` below 0.6: the values are coarser
-        than the format, so the bit depth is a finding to diagnose, not a fact the file
-        states), ``effective_bits`` (``bits + log2(levels_used)``) and ``source``. None for
-        an image that is not integer counts (a float simulation).
+        ``levels_used`` (the share of the integer levels between the quartiles that occur;
+        1.0 where half the pixels fill fewer than 5 a level there, too few to tell),
+        ``coarse`` (``levels_used`` below 0.6: the values are coarser than the format, so the
+        bit depth is a finding to diagnose, not a fact the file states), ``effective_bits``
+        (``bits + log2(levels_used)``) and ``source``. None for an image that is not integer
+        counts (a float simulation).
     """
     array = np.asarray(image)
     if array.ndim != 2 or array.dtype == bool or array.dtype.kind not in "uif" or array.size == 0:
