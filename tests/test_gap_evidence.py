@@ -168,6 +168,17 @@ def test_simulated_tiles_lie_where_each_half_of_the_real_tiles_lies_and_are_resa
     assert np.quantile(paired, 0.95) < 0.05 < np.quantile(unpaired, 0.95)
 
 
+def test_the_two_halves_of_a_cross_fit_share_their_simulated_light_and_get_the_same_tiles_as_alone():
+    origins = tuple((r, c) for r in range(0, 256, 64) for c in range(0, 256, 64))
+    layout = TileLayout((256, 256), origins, 1.0)
+    make = lambda light, frequency: _Model(CONFIG, shape=(64, 64), count=1, settings=DiagnosisSettings(sim_tiles=8), fringe_frequency=frequency, layout=layout, known={}, light=light)  # noqa: E731
+    light = {}
+    first, second, alone = make(light, (0.1, 0.0)), make(light, (0.0, 0.12)), make(None, (0.0, 0.12))
+    phase = {"particle_phase": {"index_contrast": 0.0168, "transmission": 0.9}}
+    assert first.optical(phase) is second.optical(phase) and len(light) == 1  # simulated once for both halves
+    assert np.array_equal(second.summaries(TRUTH, phase, half="held"), alone.summaries(TRUTH, phase, half="held"))
+
+
 def test_the_refits_of_a_diagnosis_end_no_worse_than_the_baseline_on_the_fitting_tiles():
     rng = np.random.default_rng(5)
     tiles = []

@@ -110,7 +110,8 @@ def diagnose_tiles(
     cross_fitted = 0 < int((~fitting).sum()) * shape[0] * shape[1] < settings.cross_fit_below_px
     confirmed = min(settings.confirm, len(candidates))
     steps = Steps((2 if cross_fitted else 1) * (2 + confirmed) + 1, progress=progress, should_stop=should_stop)
-    common = {"config": config, "count": count, "settings": settings, "layout": layout, "known": known, "candidates": candidates, "steps": steps}
+    # one cache of simulated light for both halves: their fields are the same draw
+    common = {"config": config, "count": count, "settings": settings, "layout": layout, "known": known, "candidates": candidates, "steps": steps, "light": {}}
     first = _fit_half(tiles, fitting, "fit", around=around, field_mean=field_mean, refitted=None, **common)
     halves = [first, _fit_half(tiles, ~fitting, "held", around=around, field_mean=field_mean, refitted=first.refitted, **common)] if cross_fitted else [first]
     names = first.names
@@ -248,10 +249,11 @@ class _Half:
     scanned: dict
 
 
-def _fit_half(tiles: list, fitting: np.ndarray, half: str, *, config: ExperimentConfig, count: int, settings: DiagnosisSettings, layout: TileLayout | None, known: dict, candidates: list, around: list, field_mean: float, refitted: list | None, steps: Steps) -> _Half:
+def _fit_half(tiles: list, fitting: np.ndarray, half: str, *, config: ExperimentConfig, count: int, settings: DiagnosisSettings, layout: TileLayout | None, known: dict, candidates: list, around: list, field_mean: float, refitted: list | None, steps: Steps, light: dict) -> _Half:
     """Fit the baseline to the tiles ``fitting`` selects (the layout's ``half``), screen, refit, ablate, and simulate the other tiles' places.
 
-    ``refitted``: the effects to refit (None: the most significant in this half's screening).
+    ``refitted``: the effects to refit (None: the most significant in this half's screening);
+    ``light``: the simulated light cache shared by the halves (`_Model`).
     """
     fringe_frequency = measured_fringe([t for t, fit in zip(tiles, fitting, strict=True) if fit])  # from the fitting tiles only
     measured = _fringe_parameters(fringe_frequency)
@@ -261,7 +263,7 @@ def _fit_half(tiles: list, fitting: np.ndarray, half: str, *, config: Experiment
     fit_real = real[fitting]
     spread = real_spread(real)  # the experiment's own tile-to-tile spread: the unit of every gap
     other = "held" if half == "fit" else "fit"
-    model = _Model(config, shape=tiles[0].shape, count=count, settings=settings, fringe_frequency=fringe_frequency, layout=layout, known=known)
+    model = _Model(config, shape=tiles[0].shape, count=count, settings=settings, fringe_frequency=fringe_frequency, layout=layout, known=known, light=light)
     fit = lambda ids, start: _fit(model, fit_real, ids, start=start, measured=measured, evaluations=settings.evaluations, spread=spread, half=half)  # noqa: E731
 
     steps.check()

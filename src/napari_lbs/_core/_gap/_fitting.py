@@ -32,10 +32,10 @@ class DiagnosisSettings:
     noise); the others get the best of a coarse off/weak/strong scan; ``resamples`` bootstrap
     draws for the intervals and the verdict's confidence; ``cross_fit_below_px``: cross-fit
     (fit on each half, score on the other: every tile held out once) when one half of the real
-    tiles holds fewer pixels than this (0: never). The default, 2^19 px, is half of a 1024²
-    hologram: a 512² hologram's 8 held-out tiles of 128² (about 12 spheres) are what limits
-    its verdicts, while cross-fitting a 1024² one (twice the fits) would break its 3-minute
-    target.
+    tiles holds fewer pixels than this (0: never). The default, 2^20 px, cross-fits up to a
+    1024² hologram (its halves hold 2^19): 8 held-out tiles (a 512² hologram's 8 tiles of 128²
+    hold about 12 spheres, a 1024² one's of 256² about 50) are what limits the verdicts; a
+    larger hologram has data enough in one split.
     """
 
     sim_tiles: int = 8
@@ -43,7 +43,7 @@ class DiagnosisSettings:
     confirm: int = len(EFFECTS)
     resamples: int = 2000
     seed: int = 0
-    cross_fit_below_px: int = 2**19
+    cross_fit_below_px: int = 2**20
 
     def __post_init__(self) -> None:
         for name, low in (("sim_tiles", 2), ("evaluations", _MIN_EVALUATIONS), ("confirm", 0), ("resamples", 100), ("seed", 0), ("cross_fit_below_px", 0)):
@@ -63,10 +63,12 @@ class _Model:
     simulated tiles as real ones row i of both lies at one place (``paired``). Without a
     layout, each simulated tile is a field of its own, the "field" is the set of simulated
     tiles and both halves see the same tiles. ``known`` effects (with fixed parameters: what
-    the file states) are part of every model.
+    the file states) are part of every model. ``light``: a cache of simulated light (`optical`)
+    to share with the other half's model of a cross-fit, whose fields are the same (both are
+    drawn from ``settings.seed``): each optical setting is then simulated once.
     """
 
-    def __init__(self, config: ExperimentConfig, *, shape, count: int, settings: DiagnosisSettings, fringe_frequency: tuple[float, float], layout: TileLayout | None, known: dict) -> None:
+    def __init__(self, config: ExperimentConfig, *, shape, count: int, settings: DiagnosisSettings, fringe_frequency: tuple[float, float], layout: TileLayout | None, known: dict, light: dict | None = None) -> None:
         self.config = config
         self.fringe_frequency = fringe_frequency
         self.known = known
@@ -92,10 +94,12 @@ class _Model:
             for _ in range(fields)
         ]
         self.noise = [rng.standard_normal(field_shape).astype(np.float32) for _ in range(fields)]
-        self._optical: dict[tuple, list[np.ndarray]] = {}
+        self._optical: dict[tuple, list[np.ndarray]] = {} if light is None else light
 
     def optical(self, effects: dict) -> list[np.ndarray]:
-        key = tuple(sorted((k, tuple(sorted(v.items()))) for k, v in effects.items() if k in OPTICAL_EFFECTS))
+        # field i is the same draw whatever the number of fields (drawn first, one after the other):
+        # the count in the key keeps two models of different counts apart
+        key = (len(self.fields), *sorted((k, tuple(sorted(v.items()))) for k, v in effects.items() if k in OPTICAL_EFFECTS))
         if key not in self._optical:
             optical = {k: v for k, v in effects.items() if k in OPTICAL_EFFECTS}
             self._optical[key] = [optical_hologram(f, optical, wavelength_um=self.config.optics.wavelength_um, medium_index=self.config.optics.medium_index) for f in self.fields]

@@ -87,9 +87,7 @@ def tile_summaries(
     optics = {"wavelength_um": config.optics.wavelength_um, "pixel_um": config.optics.pixel_um, "medium_index": config.optics.medium_index}
     depths = _depths(config)
     planes = np.abs(_periodic_planes(image, -depths, **optics))
-    # background ≈ 1 in every plane: its median, over every other pixel each way (a quarter of
-    # them is plenty for a level, and the full median was the costliest step of a summary)
-    planes = planes / np.median(planes[:, ::2, ::2].reshape(len(depths), -1), axis=1)[:, None, None]
+    planes = planes / _quantiles(planes.reshape(len(depths), -1), (0.5,), axis=-1).astype(planes.dtype)[:, :1, None]  # background ≈ 1 in every plane
     for z, contrast in zip(depths, planes.std(axis=(1, 2)), strict=True):
         add(f"contrast at {z:.0f} um", "depth", contrast)
     # edge energy: largest where the particles of that depth are in focus
@@ -100,9 +98,9 @@ def tile_summaries(
     add("sharpness-weighted depth / volume", "depth", float(np.sum(sharpness * depths) / sharpness.sum()) / config.volume.z_max_um)
     # appearance through focus: brightest focal spots and darkest cores anywhere in the volume
     brightest, darkest = planes.max(axis=0), planes.min(axis=0)
-    for q, value in zip((0.99, 0.999), np.quantile(brightest, (0.99, 0.999)), strict=True):
+    for q, value in zip((0.99, 0.999), _quantiles(brightest, (0.99, 0.999)), strict=True):
         add(f"focal spots: q{q} of the brightest plane", "appearance", value)
-    for q, value in zip((0.001, 0.01), np.quantile(darkest, (0.001, 0.01)), strict=True):
+    for q, value in zip((0.001, 0.01), _quantiles(darkest, (0.001, 0.01)), strict=True):
         add(f"dark cores: q{q} of the darkest plane", "appearance", value)
     add("dark-core area: fraction below half the background", "appearance", np.mean(darkest < 0.5))
     # region: smooth illumination over the tile (tilt and curvature of a quadratic fit)
@@ -121,7 +119,7 @@ def tile_summaries(
     add("field envelope: log-brightness curvature around the tile (per tile edge²)", "region", curvature)
     # intensity statistics
     quantiles = (0.005, 0.05, 0.25, 0.5, 0.75, 0.95, 0.995)
-    for q, value in zip(quantiles, np.quantile(image, quantiles), strict=True):
+    for q, value in zip(quantiles, _quantiles(image, quantiles), strict=True):
         add(f"quantile {q}", "intensity", value)
     # the population (biased) moments, as scipy.stats' skew and kurtosis give them, without their per-call overhead
     deviation = image - image.mean()
@@ -139,7 +137,7 @@ def tile_summaries(
     slope = np.polyfit(block_mean, block_var, 1)[0] if np.ptp(block_mean) > 0 else 0.0
     add("residual variance vs mean slope", "noise", slope / (block_var.mean() + 1e-12))
     smooth = ndimage.gaussian_filter(image, 2.0)
-    dark, bright = np.quantile(smooth, [0.25, 0.75])
+    dark, bright = _quantiles(smooth, (0.25, 0.75))
     # photon noise grows with the signal: residual variance in the bright quarter over the dark quarter
     add("log residual variance bright/dark", "noise", np.log10((residual[smooth >= bright].var() + 1e-12) / (residual[smooth <= dark].var() + 1e-12)))
     add("log distinct levels", "noise", np.log10(np.unique(np.round(image / (image.std() + 1e-12), 6)).size))
@@ -209,10 +207,31 @@ def _periodic_planes(image: np.ndarray, distances_um: np.ndarray, *, wavelength_
 
 
 def _power_spectrum(image: np.ndarray) -> np.ndarray:
-    """Power of the Hann-windowed fluctuation of a mean-normalised image."""
-    rows, cols = image.shape
+    """Power of the Hann-windowed fluctuation of a mean-normalised image (in the image's precision)."""
+    window = _hann(*image.shape).astype(image.dtype, copy=False)
+    return np.abs(scipy.fft.fft2((image - 1) * window, workers=-1)) ** 2 / window.sum(dtype=np.float64)
+
+
+@functools.lru_cache(maxsize=8)
+def _hann(rows: int, cols: int) -> np.ndarray:
     window = np.outer(np.hanning(rows), np.hanning(cols))
-    return np.abs(np.fft.fft2((image - 1.0) * window)) ** 2 / window.sum()
+    window.flags.writeable = False
+    return window
+
+
+def _quantiles(values: np.ndarray, quantiles: Sequence[float], *, axis: int | None = None) -> np.ndarray:
+    """``np.quantile``'s default (linear) quantiles of ``values`` (all of it, or along the last axis with ``axis=-1``), from one sort.
+
+    numpy sorts float32 with vectorised kernels an order of magnitude faster than the
+    partitions ``np.quantile`` does for several quantiles, above all on integer counts with
+    many ties, where a partition degrades: the quantiles were a third of a summary's time.
+    """
+    ordered = np.sort(values.ravel() if axis is None else values, axis=-1)
+    position = np.asarray(quantiles, np.float64) * (ordered.shape[-1] - 1)
+    low = np.floor(position).astype(np.intp)
+    high = np.minimum(low + 1, ordered.shape[-1] - 1)
+    fraction = position - low
+    return ordered[..., low] + (ordered[..., high] - ordered[..., low]) * fraction
 
 
 def _peak_frequency(power: np.ndarray) -> tuple[float, float]:
