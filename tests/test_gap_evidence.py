@@ -175,8 +175,32 @@ def test_the_two_halves_of_a_cross_fit_share_their_simulated_light_and_get_the_s
     light = {}
     first, second, alone = make(light, (0.1, 0.0)), make(light, (0.0, 0.12)), make(None, (0.0, 0.12))
     phase = {"particle_phase": {"index_contrast": 0.0168, "transmission": 0.9}}
-    assert first.optical(phase) is second.optical(phase) and len(light) == 1  # simulated once for both halves
+    assert first.light(phase, 0) is second.light(phase, 0) and len(light) == 1  # simulated once for both halves
     assert np.array_equal(second.summaries(TRUTH, phase, half="held"), alone.summaries(TRUTH, phase, half="held"))
+
+
+def test_models_are_scored_on_replicate_fields_at_the_held_out_places_and_resampled_place_by_place():
+    origins = tuple((r, c) for r in range(0, 256, 64) for c in range(0, 256, 64))
+    layout = TileLayout((256, 256), origins, 1.0)
+    model = _Model(CONFIG, shape=(64, 64), count=1, settings=DiagnosisSettings(sim_tiles=8, scoring_replicates=3), fringe_frequency=(0.1, 0.0), layout=layout, known={})
+    single = _Model(CONFIG, shape=(64, 64), count=1, settings=DiagnosisSettings(sim_tiles=8, scoring_replicates=1), fringe_frequency=(0.1, 0.0), layout=layout, known={})
+    scored = model.summaries(TRUTH, {}, half="held", scored=True)
+    assert scored.shape[0] == 24 and [place for _, place in model.scored_cuts["held"]] == [place for _, place in model.cuts["held"]] * 3
+    # the fits' tiles are those of one set of fields, as without replicates; the replicates are other fields
+    assert np.array_equal(model.summaries(TRUTH, {}, half="held"), single.summaries(TRUTH, {}, half="held"))
+    assert np.array_equal(scored[:8], single.summaries(TRUTH, {}, half="held")) and not np.allclose(scored[8:16], scored[:8])
+    # a summary set by the place alone: pairing each drawn place with all its replicates leaves no gap
+    rng = np.random.default_rng(4)
+    place = rng.normal(0, 5, (8, 1)) * np.ones((1, 6))
+    real, sim = place + rng.normal(0, 0.1, (8, 6)), np.tile(place, (3, 1)) + rng.normal(0, 0.1, (24, 6))
+    paired = resampled_gaps(real, {"m": sim}, spread=np.full(6, 5.0), resamples=500, paired=True, strata=((8,), (24,)))["m"]
+    assert np.quantile(paired, 0.95) < 0.05
+    # and the replicates shrink the simulation's share of the noise: a gap of 0.6 spread in one summary
+    # is clearer against 24 simulated tiles than against 8
+    real = rng.normal(0, 1, (8, 6)) + np.array([0.6, 0, 0, 0, 0, 0])
+    z_8 = gap_statistic(real, np.zeros((8, 6)), spread=np.ones(6))[1][0]
+    z_24 = gap_statistic(real, np.zeros((24, 6)), spread=np.ones(6))[1][0]
+    assert z_24 == pytest.approx(z_8 * np.sqrt((1 / 8 + 1 / 8) / (1 / 8 + 1 / 24)))
 
 
 def test_the_refits_of_a_diagnosis_end_no_worse_than_the_baseline_on_the_fitting_tiles():

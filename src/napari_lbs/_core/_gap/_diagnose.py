@@ -138,7 +138,7 @@ def diagnose_tiles(
         })
     steps.advance()
 
-    base_all = np.vstack([first.base_sim, first.held["baseline"]])  # the first half's baseline at both halves' places, for "where"
+    base_all = np.vstack([first.base_sim, first.held["baseline"][: settings.sim_tiles]])  # the first half's baseline at both halves' places (one set of fields), for "where"
     report = {
         "gap": {
             "metric": f"excess standardised chi-square over {len(names)} summaries, held-out real tiles vs simulation (0 = indistinguishable)",
@@ -153,11 +153,11 @@ def diagnose_tiles(
         "verdict": verdict,
         "waterfall": waterfall,
         "tiles": {
-            "real": len(tiles), "fit": int(fitting.sum()), "held_out": len(scored["held_real"]), "simulated": settings.sim_tiles, "shape": list(shape), "particles_per_tile": count,
+            "real": len(tiles), "fit": int(fitting.sum()), "held_out": len(scored["held_real"]), "simulated": settings.sim_tiles, "simulated_scored": settings.sim_tiles * settings.scoring_replicates, "shape": list(shape), "particles_per_tile": count,
             "split": ("checkerboard over the hologram" if layout is not None else "alternate tiles") + ("; cross-fitted: each half fitted and the other scored, every tile held out once" if cross_fitted else ""),
             "cross_fitted": bool(cross_fitted),
         },
-        "settings": {"sim_tiles": settings.sim_tiles, "evaluations": settings.evaluations, "confirm": settings.confirm, "resamples": settings.resamples, "seed": settings.seed, "cross_fit_below_px": settings.cross_fit_below_px},
+        "settings": {"sim_tiles": settings.sim_tiles, "evaluations": settings.evaluations, "confirm": settings.confirm, "resamples": settings.resamples, "seed": settings.seed, "cross_fit_below_px": settings.cross_fit_below_px, "scoring_replicates": settings.scoring_replicates},
     }
     seconds = time.perf_counter() - start
     report["seconds"] = round(seconds, 2)
@@ -269,7 +269,7 @@ def _fit_half(tiles: list, fitting: np.ndarray, half: str, *, config: Experiment
     steps.check()
     base_params, _, base_fit_gap = fit([], {})
     base_sim = model.summaries(base_params, {}, half=half)
-    held = {"baseline": model.summaries(base_params, {}, half=other)}  # every model's held-out simulation, for the resampling
+    held = {"baseline": model.summaries(base_params, {}, half=other, scored=True)}  # every model's held-out simulation, for the resampling
     steps.advance()
 
     # screen: regress the standardised residual on each effect's signature (finite difference)
@@ -296,11 +296,11 @@ def _fit_half(tiles: list, fitting: np.ndarray, half: str, *, config: Experiment
         if effect_id in refitted:
             steps.check()
             baseline_params, effect_params, fit_gap = fit([effect_id], {("baseline", k): v for k, v in base_params.items()})
-            held[effect_id] = model.summaries(baseline_params, effect_params, half=other)
+            held[effect_id] = model.summaries(baseline_params, effect_params, half=other, scored=True)
             # ablation at the optimum: the same fit with the effect switched off. A refit can
             # lower the gap by moving the baseline alone (out of an over-fitted optimum of
             # the fitting tiles); only what switching the effect on adds is the effect's.
-            held[f"{effect_id} off"] = model.summaries(baseline_params, {}, half=other)
+            held[f"{effect_id} off"] = model.summaries(baseline_params, {}, half=other, scored=True)
             fitted[effect_id] = (baseline_params, effect_params)
             # gap_fit: on the fitting tiles, never above the baseline's (`_fit` keeps its start)
             entries[effect_id] = {"gap_fit": float(fit_gap), "params": {**effect_params[effect_id], **{f"baseline.{k}": v for k, v in baseline_params.items()}}}
@@ -309,7 +309,7 @@ def _fit_half(tiles: list, fitting: np.ndarray, half: str, *, config: Experiment
             # not refitted: a coarse scan (weak, strong) with the baseline's parameters
             scanned[effect_id] = [_with_measured(effect_id, setting, measured) for setting in EFFECTS[effect_id].injections]
             for i, setting in enumerate(scanned[effect_id]):
-                held[f"{effect_id} scan {i}"] = model.summaries(base_params, {effect_id: setting}, half=other)
+                held[f"{effect_id} scan {i}"] = model.summaries(base_params, {effect_id: setting}, half=other, scored=True)
             entries[effect_id] = {}
     return _Half(fitting, half, names, real, spread, model, measured, base_params, base_fit_gap, base_sim, screening, refitted, held, fitted, entries, scanned)
 
@@ -319,7 +319,7 @@ def _fit_pair(half: _Half, pair: list, *, evaluations: int) -> tuple[dict, np.nd
     start = {("baseline", k): v for k, v in half.fitted[pair[0]][0].items()}
     start.update({(pair[0], k): v for k, v in half.fitted[pair[0]][1][pair[0]].items()})
     baseline_params, effect_params, _ = _fit(half.model, half.real[half.fitting], pair, start=start, measured=half.measured, evaluations=evaluations, spread=half.spread, half=half.half)
-    return effect_params, half.model.summaries(baseline_params, effect_params, half="held" if half.half == "fit" else "fit")
+    return effect_params, half.model.summaries(baseline_params, effect_params, half="held" if half.half == "fit" else "fit", scored=True)
 
 
 def diagnose_hologram(

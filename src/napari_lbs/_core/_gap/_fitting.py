@@ -35,7 +35,13 @@ class DiagnosisSettings:
     tiles holds fewer pixels than this (0: never). The default, 2^20 px, cross-fits up to a
     1024² hologram (its halves hold 2^19): 8 held-out tiles (a 512² hologram's 8 tiles of 128²
     hold about 12 spheres, a 1024² one's of 256² about 50) are what limits the verdicts; a
-    larger hologram has data enough in one split.
+    larger hologram has data enough in one split. ``scoring_replicates``: simulated tiles per
+    held-out tile when the models are scored (the fits use ``sim_tiles``): a model's held-out
+    score compares the real tiles' mean with the mean of this many times as many simulated
+    tiles, from fields drawn apart from the fits' (`_Model`), so the simulation's own sampling
+    noise, which weighed as much as the real tiles' in every z, weighs a quarter of it by
+    default: every difference the held-out tiles show is resolved with the real tiles' noise
+    alone. It costs a few summaries per model, not per fit evaluation.
     """
 
     sim_tiles: int = 8
@@ -44,9 +50,10 @@ class DiagnosisSettings:
     resamples: int = 2000
     seed: int = 0
     cross_fit_below_px: int = 2**20
+    scoring_replicates: int = 4
 
     def __post_init__(self) -> None:
-        for name, low in (("sim_tiles", 2), ("evaluations", _MIN_EVALUATIONS), ("confirm", 0), ("resamples", 100), ("seed", 0), ("cross_fit_below_px", 0)):
+        for name, low in (("sim_tiles", 2), ("evaluations", _MIN_EVALUATIONS), ("confirm", 0), ("resamples", 100), ("seed", 0), ("cross_fit_below_px", 0), ("scoring_replicates", 1)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise InputError(f"{name}: expected an integer of at least {low}, got {value!r}")
@@ -63,9 +70,14 @@ class _Model:
     simulated tiles as real ones row i of both lies at one place (``paired``). Without a
     layout, each simulated tile is a field of its own, the "field" is the set of simulated
     tiles and both halves see the same tiles. ``known`` effects (with fixed parameters: what
-    the file states) are part of every model. ``light``: a cache of simulated light (`optical`)
+    the file states) are part of every model. ``light``: a cache of simulated light (`light`)
     to share with the other half's model of a cross-fit, whose fields are the same (both are
     drawn from ``settings.seed``): each optical setting is then simulated once.
+
+    Scoring (``summaries(..., scored=True)``) adds ``settings.scoring_replicates - 1`` more sets
+    of fields, drawn from their own stream (the fits' fields and noise stay those of one set):
+    replicate r's tiles follow the first set's, cut at the same places (row ``r·n + i`` lies
+    where row i does).
     """
 
     def __init__(self, config: ExperimentConfig, *, shape, count: int, settings: DiagnosisSettings, fringe_frequency: tuple[float, float], layout: TileLayout | None, known: dict, light: dict | None = None) -> None:
@@ -85,44 +97,53 @@ class _Model:
             places = [origins[i] for i in picked]
             fields = max(fields, -(-settings.sim_tiles // len(places)))
             self.cuts[half] = [(index // len(places), places[index % len(places)]) for index in range(settings.sim_tiles)]
+        replicates = settings.scoring_replicates
+        self.scored_cuts = {half: [(f + r * fields, place) for r in range(replicates) for f, place in cuts] for half, cuts in self.cuts.items()}
+        self.fields_per_set = fields
         self.paired = layout is not None and all(len(origins) == settings.sim_tiles for origins in halves.values())
         self.whole_fields = layout is not None
         field_count = max(1, round(count * field_shape[0] * field_shape[1] / (self.shape[0] * self.shape[1])))
-        rng = np.random.default_rng([settings.seed, 11])
-        self.fields = [
-            random_particle_field(field_shape, count=field_count, diameter_min_um=config.particles.diameter_min_um, diameter_max_um=config.particles.diameter_max_um, layers_um=config.layer_depths_um(), pixel_um=config.optics.pixel_um, seed=rng)
-            for _ in range(fields)
-        ]
-        self.noise = [rng.standard_normal(field_shape).astype(np.float32) for _ in range(fields)]
-        self._optical: dict[tuple, list[np.ndarray]] = {} if light is None else light
+        self.fields, self.noise = [], []
+        for stream in [11] + [12] * (replicates > 1):
+            rng = np.random.default_rng([settings.seed, stream])
+            sets = 1 if stream == 11 else replicates - 1
+            self.fields += [
+                random_particle_field(field_shape, count=field_count, diameter_min_um=config.particles.diameter_min_um, diameter_max_um=config.particles.diameter_max_um, layers_um=config.layer_depths_um(), pixel_um=config.optics.pixel_um, seed=rng)
+                for _ in range(sets * fields)
+            ]
+            self.noise += [rng.standard_normal(field_shape).astype(np.float32) for _ in range(sets * fields)]
+        self._light: dict[tuple, np.ndarray] = {} if light is None else light
 
-    def optical(self, effects: dict) -> list[np.ndarray]:
-        # field i is the same draw whatever the number of fields (drawn first, one after the other):
-        # the count in the key keeps two models of different counts apart
-        key = (len(self.fields), *sorted((k, tuple(sorted(v.items()))) for k, v in effects.items() if k in OPTICAL_EFFECTS))
-        if key not in self._optical:
+    def light(self, effects: dict, field: int) -> np.ndarray:
+        """The simulated light (intensity, unobstructed 1) of field ``field`` with the optical effects of ``effects``, cached."""
+        # field i is the same draw in every model of one diagnosis (the fields come first in
+        # their stream): (field, setting) names it across the halves of a cross-fit
+        key = (field, *sorted((k, tuple(sorted(v.items()))) for k, v in effects.items() if k in OPTICAL_EFFECTS))
+        if key not in self._light:
             optical = {k: v for k, v in effects.items() if k in OPTICAL_EFFECTS}
-            self._optical[key] = [optical_hologram(f, optical, wavelength_um=self.config.optics.wavelength_um, medium_index=self.config.optics.medium_index) for f in self.fields]
-        return self._optical[key]
+            self._light[key] = optical_hologram(self.fields[field], optical, wavelength_um=self.config.optics.wavelength_um, medium_index=self.config.optics.medium_index)
+        return self._light[key]
 
     def forget_light(self) -> None:
-        """Drop the simulated light of every setting tried (`optical`): once scored, only the summaries are needed."""
-        self._optical.clear()
+        """Drop the simulated light of every setting tried (`light`): once scored, only the summaries are needed."""
+        self._light.clear()
 
-    def summaries(self, baseline: dict, effects: dict, *, half: str = "fit") -> np.ndarray:
-        """(sim_tiles, K) summaries of the tiles cut for ``half`` ("fit" or "held") of the real tiles."""
+    def summaries(self, baseline: dict, effects: dict, *, half: str = "fit", scored: bool = False) -> np.ndarray:
+        """Summaries of the tiles cut for ``half`` ("fit" or "held") of the real tiles: (sim_tiles, K), or with ``scored`` (sim_tiles · scoring_replicates, K)."""
         effects = {**self.known, **effects}
         sensor = {k: v for k, v in effects.items() if k not in OPTICAL_EFFECTS}
-        images = [sensor_image(intensity, baseline, sensor, noise=noise) for intensity, noise in zip(self.optical(effects), self.noise, strict=True)]
+        cuts = self.scored_cuts[half] if scored else self.cuts[half]
+        images = {f: sensor_image(self.light(effects, f), baseline, sensor, noise=self.noise[f]) for f in sorted({f for f, _ in cuts})}
         rows, cols = self.shape
-        cuts = self.cuts[half]
         tiles = [images[f][r : r + rows, c : c + cols] for f, (r, c) in cuts]
-        # the field a tile is measured against: its own image, or (no layout) the whole set
+        # the field a tile is measured against: its own image, or (no layout) its set of tiles
         if self.whole_fields:
-            field_means = [float(image.mean()) for image in images]
+            field_means = {f: float(image.mean()) for f, image in images.items()}
             around = [field_surroundings(images[f], origin, self.shape) for f, origin in cuts]
         else:
-            field_means = [float(np.mean([t.mean() for t in tiles]))] * len(images)
+            sets = [f // self.fields_per_set for f, _ in cuts]
+            set_means = {s: float(np.mean([t.mean() for t, t_set in zip(tiles, sets, strict=True) if t_set == s])) for s in set(sets)}
+            field_means = {f: set_means[f // self.fields_per_set] for f in images}
             around = [None] * len(tiles)
         return np.stack([
             tile_summaries(t, config=self.config, fringe_frequency=self.fringe_frequency, field_mean=field_means[f], surroundings=region)[0]

@@ -22,13 +22,26 @@ def _draw(rng: np.random.Generator, counts: tuple, resamples: int) -> np.ndarray
     return np.concatenate([offset + rng.integers(0, count, (resamples, count)) for offset, count in zip(offsets, counts, strict=True)], axis=1)
 
 
+def _replicated(real_draw: np.ndarray, real_counts: tuple, sim_counts: tuple) -> np.ndarray:
+    """The simulated rows that lie where the drawn real rows lie: a block of n real places holds
+    m·n simulated rows, replicate r of place i at row r·n + i (`_Model`'s scored tiles); each
+    drawn place brings all of its replicates."""
+    blocks = []
+    for real_offset, sim_offset, places, rows in zip(np.cumsum((0, *real_counts[:-1])), np.cumsum((0, *sim_counts[:-1])), real_counts, sim_counts, strict=True):
+        if rows % places:
+            raise ValueError(f"paired rows: {rows} simulated rows are no whole number of replicates of {places} places")
+        local = real_draw[:, real_offset : real_offset + places] - real_offset
+        blocks += [sim_offset + r * places + local for r in range(rows // places)]
+    return np.concatenate(blocks, axis=1)
+
+
 def _resampled_z(real: np.ndarray, sims: dict, *, spread: np.ndarray, resamples: int, seed: int, paired: bool, strata: tuple | None = None) -> dict:
     """Each model's per-summary z on bootstrap resamples: dict of (resamples, K) arrays (see `resampled_gaps`)."""
     rng = np.random.default_rng([seed, 17])
     n_real, n_sim = len(real), len(next(iter(sims.values())))
     real_counts, sim_counts = strata if strata is not None else ((n_real,), (n_sim,))
     real_draw = _draw(rng, tuple(real_counts), resamples)
-    sim_draw = real_draw if paired else _draw(rng, tuple(sim_counts), resamples)
+    sim_draw = _replicated(real_draw, tuple(real_counts), tuple(sim_counts)) if paired else _draw(rng, tuple(sim_counts), resamples)
     real_means = real[real_draw].mean(axis=1)
     scale = spread * np.sqrt(1.0 / n_real + 1.0 / n_sim)
     return {name: (real_means - sim[sim_draw].mean(axis=1)) / scale for name, sim in sims.items()}
@@ -50,7 +63,8 @@ def resampled_gaps(real: np.ndarray, sims: dict, *, spread: np.ndarray, resample
         Bootstrap draws: real tiles and simulation seeds, each drawn with replacement, paired
         across models (differences between models keep their correlation).
     paired : bool
-        Row i of ``real`` and of every simulation lie at one place of the field (`_Model.paired`):
+        Row i of ``real`` and of every simulation lie at one place of the field (`_Model.paired`;
+        with m simulated replicates per place, rows i, n + i, ..., (m-1)·n + i of a block of n):
         draw each place once for both, so that what depends on the place (a vignetting's tilt)
         is not counted as sampling noise.
     strata : (real counts, simulated counts), optional
