@@ -342,7 +342,7 @@ def diagnose_hologram(
     tile_px : int, optional
         Tile edge (px). Default: the largest edge up to ``tile.size`` that cuts at least 16
         tiles (512²: 128 px), so the held-out half has 8 tiles to resolve a gap with (and
-        a 512² hologram is cross-fitted: all 16 are scored, `DiagnosisSettings.cross_fit_below_px`).
+        a 512² or 1024² hologram is cross-fitted: all 16 are scored, `DiagnosisSettings.cross_fit_below_px`).
     known : bool
         Put what the file states into every model as known, not diagnosed: for integer
         counts (`known_sensor`), the bit depth and saturation as ``quantization``. Off, with
