@@ -151,8 +151,9 @@ def tile_summaries(
 
 _ENVELOPE_BLOCKS = 16  # blocks per axis of a tile's surroundings (8 per tile edge)
 _CENTRES = (np.arange(_ENVELOPE_BLOCKS) + 0.5) / _ENVELOPE_BLOCKS * 2.0 - 1.0  # block centres in tile edges from the tile's centre
+_BLOCK_Y, _BLOCK_X = (a.ravel() for a in np.meshgrid(_CENTRES, _CENTRES, indexing="ij"))
 # the envelope's design matrix (1, x, y, x², y²) over the blocks, in row-major block order
-_ENVELOPE_DESIGN = np.stack([np.ones(_ENVELOPE_BLOCKS**2), *(lambda y, x: (x, y, x**2, y**2))(*(a.ravel() for a in np.meshgrid(_CENTRES, _CENTRES, indexing="ij")))], axis=1)
+_ENVELOPE_DESIGN = np.stack([np.ones_like(_BLOCK_X), _BLOCK_X, _BLOCK_Y, _BLOCK_X**2, _BLOCK_Y**2], axis=1)
 
 
 def _envelope(surroundings: np.ndarray, field_mean: float) -> tuple[float, float]:
