@@ -294,3 +294,20 @@ def test_batch_widget_refuses_workers_with_a_scheduler_and_resumes_a_stopped_run
     assert {name: (tmp_path / "work" / name).stat().st_mtime_ns for name in kept} == kept  # the finished frames were not predicted again
     np.testing.assert_array_equal(points.data, expected)
     assert_frame_equal(points.features, features)
+
+    # on a dask.distributed scheduler given by its tcp address (a worker thread of this process: it starts in a
+    # second, where worker processes would import torch for many): the same table
+    from dask.distributed import LocalCluster
+
+    viewer.layers.clear()
+    widget.work_dir.value = tmp_path / "on-cluster"
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, protocol="tcp://", dashboard_address=None) as cluster:
+        widget.scheduler.value = cluster.scheduler_address
+        assert widget._run.enabled, widget._status.value
+        run_to_end(qtbot, widget)
+    points = viewer.layers["run.tif particles"]
+    assert points.metadata["scheduler"] == cluster.scheduler_address
+    assert points.metadata["provenance"]["scheduler"] == f"dask.distributed at {cluster.scheduler_address}"
+    assert f"dask.distributed at {cluster.scheduler_address}" in widget._status.value
+    np.testing.assert_array_equal(points.data, expected)
+    assert_frame_equal(points.features, features)
