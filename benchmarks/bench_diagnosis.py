@@ -34,13 +34,20 @@ Sub-commands:
     too; 512² and 1024² holograms; effects parameterised independently of `_effects` and of the
     ``mie`` suite. ``--keep`` pickles each case's fits (`Diagnosis.halves`) so that the verdict
     rule can be re-scored (`rescore`) without refitting. Development scenes: ``--seed 8``.
+``signature CASE [--size PX] [--scenes N] [--top K]``
+    Which summaries a withheld effect of the third suite moves, and by how much: N scenes of
+    `_absorbing_scene` drawn twice with the same spheres and camera noise, once plain and once
+    with CASE (an `ABSORBING_DESIGN` case), cut into the tiles `diagnose_hologram` would cut;
+    prints the K largest paired differences of each summary in units of the plain tiles'
+    tile-to-tile spread (what a held-out z divides by), beside the same for the baseline's
+    own noise (read noise doubled), so that an effect the fitted noise can mimic shows.
 ``rescore DIR``
     The verdicts of kept cases (``absorbing --keep DIR``) scored again with the current code.
 ``real``
     The seed's real 1024² hologram: the full diagnosis with default settings, timed (target
     <= 3 min on 2 idle cores), report written to docs/figures/diagnosis-real/.
 
-Run: python benchmarks/bench_diagnosis.py suite|independent|mie|absorbing|rescore|real
+Run: python benchmarks/bench_diagnosis.py suite|independent|mie|absorbing|rescore|signature|real
 """
 
 from __future__ import annotations
@@ -343,7 +350,7 @@ def _absorbing_scene(case: str | None, size: int, rng: np.random.Generator) -> n
     return pseudoreal.mie_intensity(shape, x, y, z, d, index)
 
 
-def absorbing_camera(intensity: np.ndarray, case: str | None, rng: np.random.Generator) -> np.ndarray:
+def absorbing_camera(intensity: np.ndarray, case: str | None, rng: np.random.Generator, *, read_noise: float = MIE_READ_NOISE) -> np.ndarray:
     """The third suite's camera, with its sensor-side withheld effect (the design comment above `ABSORBING_DESIGN`)."""
     rows, cols = intensity.shape
     image = intensity.astype(np.float64)
@@ -358,7 +365,7 @@ def absorbing_camera(intensity: np.ndarray, case: str | None, rng: np.random.Gen
         image = ndimage.convolve(image, kernel, mode="reflect")
     if case == "shot_noise":
         image = rng.poisson(image * 120.0) / 120.0
-    counts = image * ABSORBING_LEVEL + rng.normal(0.0, MIE_READ_NOISE, image.shape)
+    counts = image * ABSORBING_LEVEL + rng.normal(0.0, read_noise, image.shape)
     if case == "quantization":
         return (np.clip(np.round(counts / 4.0), 0, 63) * 4).astype(np.uint8)
     return np.clip(np.round(counts), 0, 255).astype(np.uint8)
@@ -431,6 +438,36 @@ def rescore(folder: str) -> None:
     print(_score_line(rows))
 
 
+def signature(case: str, size: int, scenes: int, top: int) -> None:
+    from napari_lbs._core._gap._summaries import tile_summaries
+    from napari_lbs._core._gap._tiling import adapted_tile_px, field_surroundings
+
+    if case not in {c for c, _, _ in ABSORBING_DESIGN if c}:
+        raise SystemExit(f"signature: unknown case {case!r}")
+    tile = adapted_tile_px((size, size), CONFIG.tile.size)
+    origins = [(r, c) for r in range(0, size - tile + 1, tile) for c in range(0, size - tile + 1, tile)]
+
+    def summaries(withheld: str | None, seed: int, read_noise: float) -> tuple[np.ndarray, list]:
+        scene = _absorbing_scene(withheld, size, np.random.default_rng([seed, 1]))  # the same spheres with and without
+        counts = absorbing_camera(scene, withheld, np.random.default_rng([seed, 2]), read_noise=read_noise).astype(np.float32)  # the same noise
+        field_mean = float(counts.mean())
+        rows = [tile_summaries(counts[r : r + tile, c : c + tile], config=CONFIG, field_mean=field_mean, surroundings=field_surroundings(counts, (r, c), (tile, tile))) for r, c in origins]
+        return np.array([values for values, _ in rows]), rows[0][1]
+
+    def tiles(withheld: str | None, read_noise: float) -> tuple[np.ndarray, list]:
+        made = [summaries(withheld, seed, read_noise) for seed in range(scenes)]
+        return np.concatenate([values for values, _ in made]), made[0][1]
+
+    plain, names = tiles(None, MIE_READ_NOISE)
+    spread = plain.std(axis=0) + 1e-12
+    noisier = (tiles(None, 2 * MIE_READ_NOISE)[0] - plain).mean(axis=0) / spread
+    withheld = (tiles(case, MIE_READ_NOISE)[0] - plain).mean(axis=0) / spread
+    print(f"{case} at {size}², {scenes} scenes x {len(origins)} tiles of {tile}²: paired mean change / tile-to-tile spread (read noise x2 beside it)")
+    for i in np.argsort(-np.abs(withheld))[:top]:
+        name, group = names[i]
+        print(f"{withheld[i]:+7.2f}   noise x2 {noisier[i]:+7.2f}   {group:10s} {name}")
+
+
 def real() -> None:
     config = load_config(None)
     start, cpu = time.perf_counter(), time.process_time()
@@ -471,6 +508,11 @@ def main() -> None:
     p.add_argument("--keep", help="pickle each case's fits here, for `rescore`")
     p = sub.add_parser("rescore")
     p.add_argument("folder")
+    p = sub.add_parser("signature")
+    p.add_argument("case", help="a withheld case of the third suite (`ABSORBING_DESIGN`)")
+    p.add_argument("--size", type=int, default=512)
+    p.add_argument("--scenes", type=int, default=4)
+    p.add_argument("--top", type=int, default=12)
     sub.add_parser("real")
     args = parser.parse_args()
     if args.command == "suite":
@@ -483,6 +525,8 @@ def main() -> None:
         absorbing(args.cases, args.seed, args.keep)
     elif args.command == "rescore":
         rescore(args.folder)
+    elif args.command == "signature":
+        signature(args.case, args.size, args.scenes, args.top)
     else:
         real()
 
