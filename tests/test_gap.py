@@ -195,6 +195,28 @@ def test_summaries_cover_every_kind_and_the_gap_statistic_behaves():
     assert gap_statistic(a, a + 3.0)[0] > 10.0
 
 
+def peakedness(tile):
+    values, names = tile_summaries(tile.astype(np.float32), config=CONFIG)
+    return values[[name for name, _ in names].index("log high-band spectral peakedness (32-px blocks)")]
+
+
+def test_high_band_peakedness_is_log2_for_any_white_noise_and_larger_for_aliased_chirps():
+    rng = np.random.default_rng(5)
+    # white noise: exponential periodogram values, mean(P²)/mean(P)² = 2 whatever the power
+    for sigma in (0.003, 0.03):
+        assert abs(peakedness(1 + rng.normal(0, sigma, (256, 256))) - np.log10(2)) < 0.03
+    # Fresnel zones of point scatterers 3 mm away, sampled far beyond their bandwidth (aliased):
+    # a few chirps in each block, as a transparent sphere's wide-angle light arrives
+    y, x = np.mgrid[:256, :256] * 2.2
+    zones = sum(np.cos(np.pi * ((x - cx) ** 2 + (y - cy) ** 2) / (0.66 * 3000.0)) for cx, cy in rng.uniform(-800, 1400, (4, 2)))
+    noise = rng.normal(0, 1.0, zones.shape)
+    faint, strong = (peakedness(1 + amplitude * zones + 1e-4 * noise) for amplitude in (0.002, 0.02))
+    assert faint > np.log10(2) + 0.5 and abs(faint - strong) < 0.05  # the spectrum's shape, not its power
+    # white noise of the chirps' own power takes it most of the way back to log 2
+    mixed = peakedness(1 + 0.002 * zones + 0.002 * zones.std() * noise)
+    assert mixed < faint - 0.3
+
+
 def pseudo_tiles(effects, *, count=8, seed=7, baseline=None):
     rng = np.random.default_rng(seed)
     tiles = []

@@ -5,7 +5,7 @@ static-fringe frequency, `measured_fringe`), per depth (contrast and relative sh
 back-propagated planes, sharpness-weighted depth), per image region (illumination tilt and
 curvature within a tile, the field-wide envelope around it), intensity statistics (quantiles,
 moments, clipped fraction), noise character (residual std, variance against mean, distinct
-levels) and particle appearance through focus (brightest focal spots and darkest cores over
+levels, how peaked the high band's spectrum is: noise is flat, aliased light a few chirps) and particle appearance through focus (brightest focal spots and darkest cores over
 all planes, dark-core area, autocorrelation of the fringes).
 """
 
@@ -141,12 +141,47 @@ def tile_summaries(
     # photon noise grows with the signal: residual variance in the bright quarter over the dark quarter
     add("log residual variance bright/dark", "noise", np.log10((residual[smooth >= bright].var() + 1e-12) / (residual[smooth <= dark].var() + 1e-12)))
     add("log distinct levels", "noise", np.log10(np.unique(np.round(image / (image.std() + 1e-12), 6)).size))
+    add(f"log high-band spectral peakedness ({_PEAKEDNESS_BLOCK_PX}-px blocks)", "noise", _high_band_peakedness(image))
     # appearance: autocorrelation of the fringes at a few lags
     centred = image - 1.0
     norm = (centred**2).mean() + 1e-12
     for lag in _LAGS:
         add(f"autocorrelation at {lag} px", "appearance", 0.5 * ((centred[lag:] * centred[:-lag]).mean() + (centred[:, lag:] * centred[:, :-lag]).mean()) / norm)
     return np.asarray(values), names
+
+
+_PEAKEDNESS_BLOCK_PX = 32
+_PEAKEDNESS_BAND = (0.25, 0.5)  # cycles per pixel
+
+
+def _high_band_peakedness(image: np.ndarray) -> float:
+    """Mean over 32-px blocks of log10(mean(P²) / mean(P)²) of the periodogram P at 0.25-0.5 cycles/px.
+
+    White noise (read or photon) gives exponentially distributed periodogram values, a ratio
+    of 2 (log 0.30) whatever its power. Fringes are a few chirps, each narrow in a block:
+    a few strong bins, a larger ratio. So this tells added light from added noise where the
+    band's power cannot: light a transparent sphere refracts beyond the sensor's bandwidth
+    arrives aliased, as power at every high frequency like noise, but as chirps. Photon or
+    doubled read noise lowers it by 4-11 tile-to-tile spreads, transparent spheres raise it
+    by 0.3-1 (docs/diagnosis.md, sixth pass).
+    """
+    block = _PEAKEDNESS_BLOCK_PX
+    rows, cols = (image.shape[0] // block) * block, (image.shape[1] // block) * block
+    blocks = image[:rows, :cols].reshape(rows // block, block, cols // block, block).swapaxes(1, 2).reshape(-1, block, block)
+    blocks = (blocks - blocks.mean(axis=(1, 2), keepdims=True)) * _hann(block, block).astype(image.dtype)
+    power = np.abs(scipy.fft.fft2(blocks, workers=-1)) ** 2
+    values = power[:, _peakedness_bins(block)].astype(np.float64)
+    return float(np.mean(np.log10(np.mean(values**2, axis=1) / (np.mean(values, axis=1) ** 2 + 1e-300) + 1e-12)))
+
+
+@functools.lru_cache(maxsize=2)
+def _peakedness_bins(block: int) -> np.ndarray:
+    """Boolean mask of a block's FFT bins in `_PEAKEDNESS_BAND`, one of each Hermitian pair (non-negative fx)."""
+    fy, fx = np.meshgrid(np.fft.fftfreq(block), np.fft.fftfreq(block), indexing="ij")
+    radius = np.hypot(fy, fx)
+    mask = (radius >= _PEAKEDNESS_BAND[0]) & (radius <= _PEAKEDNESS_BAND[1]) & (fx >= 0)
+    mask.flags.writeable = False
+    return mask
 
 
 _ENVELOPE_BLOCKS = 16  # blocks per axis of a tile's surroundings (8 per tile edge)
