@@ -14,6 +14,8 @@ synthetic groups only) on three kinds of synthetic data:
              water, 2π/λ · (1.59 − 1.33) · 25 µm = 62 rad, transmission 1 (what a user who knows
              the sample would add with ``generate --effect``);
 ``plain_transparent`` the seed's simulation (no calibration) with those transparent spheres.
+``plain_effects`` the seed's simulation (no calibration) plus the effects `diagnose` names: the
+             closed loop for the demo's uncalibrated recipe, against ``plain``.
 ``distractors`` as ``plain_transparent``, plus the demo's unlabelled distractors (`Distractors`:
              6 impurities of 4–14 µm per tile, neighbours in a 96-pixel margin).
 
@@ -98,7 +100,7 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None) -> d
         write_json(calibration_path, calibrate_hologram(experiment, config, settings=CalibrationSettings(generations=40, seed=0)).to_json())
     calibration = json.loads(calibration_path.read_text())
     report_path = out / "diagnosis" / "report.json"
-    needs_report = not only or {"transparent", "effects"} & set(only)
+    needs_report = not only or {"transparent", "effects", "plain_effects"} & set(only)
     if needs_report and not report_path.is_file():
         start = time.perf_counter()
         diagnosis = diagnose_hologram(experiment, config, settings=DiagnosisSettings())
@@ -114,6 +116,7 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None) -> d
         "plain_transparent": (InputProcessing(), TRANSPARENT, Distractors()),
         "transparent": (lbs, {**effects, **TRANSPARENT}, Distractors()),
         "effects": (lbs, effects, Distractors()),
+        "plain_effects": (InputProcessing(), effects, Distractors()),
         "distractors": (InputProcessing(), TRANSPARENT, DEMO_DISTRACTORS),
     }
     results = {"calibration": calibration["params"], "ssim": calibration["ssim"], "verdict": report["verdict"], "waterfall": report["waterfall"], "effects": effects, "stages": {}}
