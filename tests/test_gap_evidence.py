@@ -79,7 +79,7 @@ def test_a_strong_term_on_a_few_summaries_is_not_diluted_by_the_many_it_cannot_c
     assert _decision(entries, evidence, baseline_gap=0.0, held_out=tiles, summaries=summaries)["id"] is None
 
 
-def test_only_an_alternative_with_evidence_of_its_own_can_block_the_lead():
+def test_only_an_alternative_with_evidence_of_its_own_on_the_same_summaries_can_block_the_lead():
     # the best effect removes 120 ± 10 of χ²; a rival moving one summary removes 40 ± 50 (its
     # lower bound below 0), and the best's lead over it, on the summaries either moves, is 80 ± 60
     from napari_lbs._core._gap._verdict import _decision
@@ -91,6 +91,8 @@ def test_only_an_alternative_with_evidence_of_its_own_can_block_the_lead():
         "best": {"summaries": 12, "reduction": 120.0, "draws": draws(120.0, 10.0)},
         "rival": {"summaries": 1, "reduction": 40.0, "draws": draws(40.0, 50.0)},
         "leads": {("best", "rival"): (80.0, draws(80.0, 60.0)), ("rival", "best"): (-80.0, draws(-80.0, 60.0))},
+        # on the best's own summaries the rival's refit removes most of what the best removes
+        "beyond": {("best", "rival"): (20.0, draws(20.0, 30.0)), ("rival", "best"): (10.0, draws(10.0, 30.0))},
     }
     verdict = _decision(entries, evidence, baseline_gap=3.0, held_out=16, summaries=55)
     assert verdict["id"] == "best", verdict["reason"]
@@ -101,6 +103,12 @@ def test_only_an_alternative_with_evidence_of_its_own_can_block_the_lead():
     # and one clearly behind does not
     evidence["leads"][("best", "rival")] = (80.0, draws(80.0, 10.0))
     assert _decision(entries, evidence, baseline_gap=3.0, held_out=16, summaries=55)["id"] == "best"
+    # a rival as strong, on other summaries: its refit leaves all the best removes there, so
+    # both are present (a beam's envelope beside transparent spheres): the best is named
+    evidence["leads"][("best", "rival")] = (80.0, draws(80.0, 60.0))
+    evidence["beyond"][("best", "rival")] = (118.0, draws(118.0, 12.0))
+    verdict = _decision(entries, evidence, baseline_gap=3.0, held_out=16, summaries=55)
+    assert verdict["id"] == "best" and "rival also removes" in verdict["reason"], verdict["reason"]
 
 
 def small_model(count=4):

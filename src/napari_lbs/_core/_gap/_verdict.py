@@ -108,7 +108,9 @@ def effect_evidence(real: np.ndarray, sims: dict, effect_ids: list, *, spread: n
         Per effect: ``summaries`` (|S|), ``reduction`` (point value, summed χ²) and ``draws``
         ((resamples,) array of its bootstrap values); and under ``"leads"``, for each ordered
         pair (a, b), how far a's χ² is below b's over the summaries either of them moves
-        (point value, draws): two effects are compared on the same summaries.
+        (point value, draws): two effects are compared on the same summaries; under
+        ``"beyond"``, the same over a's own summaries only: what a removes there that b's
+        refit leaves (two effects on different summaries are both present, not rivals).
     """
     n_real, n_sim = len(real), len(sims["baseline"])
     scale = spread * np.sqrt(1.0 / n_real + 1.0 / n_sim)
@@ -130,6 +132,10 @@ def effect_evidence(real: np.ndarray, sims: dict, effect_ids: list, *, spread: n
         (a, b): (float(chi_square(point[b], owns[a] | owns[b]) - chi_square(point[a], owns[a] | owns[b])), chi_square(draws[b], owns[a] | owns[b]) - chi_square(draws[a], owns[a] | owns[b]))
         for a in effect_ids for b in effect_ids if a != b
     }
+    evidence["beyond"] = {
+        (a, b): (float(chi_square(point[b], owns[a]) - chi_square(point[a], owns[a])), chi_square(draws[b], owns[a]) - chi_square(draws[a], owns[a]))
+        for a in effect_ids for b in effect_ids if a != b
+    }
     return evidence
 
 
@@ -141,7 +147,11 @@ def _decision(entries: list, evidence: dict, *, baseline_gap: float, held_out: i
     lower confidence bound is above 0; and (b) it leads every credible alternative: an other
     effect whose own reduction has a lower bound above 0 (one that cannot itself be shown to
     remove χ² is no rival explanation), by the alternative's χ² minus its own over the
-    summaries either of them moves, with a lower bound above 0. Bounds are one-sided at 95 %,
+    summaries either of them moves, with a lower bound above 0; or, where it does not lead,
+    the alternative explains another part of the gap: on the best effect's own summaries the
+    alternative's refit leaves χ² that the best removes (lower bound above 0). Then both
+    are present (a transparent sphere's high band and a beam's envelope), the best is named
+    and the waterfall adds the other. Bounds are one-sided at 95 %,
     Bonferroni-corrected for the number of effects compared (the best of several is picked).
     The runner-up is the strongest credible alternative (else the second ranked).
     ``tiles_to_decide``: held-out tiles at which the weakest margin would reach its bound,
@@ -159,6 +169,9 @@ def _decision(entries: list, evidence: dict, *, baseline_gap: float, held_out: i
     credible = [e for e in ranked[1:] if lower(evidence[e["id"]]["draws"]) > 0]
     runner = credible[0] if credible else (ranked[1] if len(ranked) > 1 else None)
     leads = [(e, evidence["leads"][(best["id"], e["id"])]) for e in credible]
+    # an alternative the best does not lead, but which leaves on the best's own summaries what the best removes, explains another part of the gap
+    present = [e["id"] for e, (_, samples) in leads if lower(samples) <= 0 and lower(evidence["beyond"][(best["id"], e["id"])][1]) > 0]
+    leads = [(e, lead) for e, lead in leads if e["id"] not in present]
     margins = [(own["reduction"], own["draws"])] + [lead for _, lead in leads]
     ratios = [point / max(float(np.std(samples)), 1e-12) for point, samples in margins]
     tiles = [int(np.ceil(held_out * (z_needed / ratio) ** 2)) if ratio > 0 else None for ratio in ratios]
@@ -179,6 +192,7 @@ def _decision(entries: list, evidence: dict, *, baseline_gap: float, held_out: i
             )
             return verdict
     verdict.update({"id": best["id"], "shrink": best["shrink"], "residual": best["gap_after"], "interval": best["shrink_interval"]})
-    rivals = ", ".join(e["id"] for e in credible) or "no other effect with evidence of its own"
-    verdict["reason"] = f"{told} and leads {rivals}"
+    rivals = ", ".join(e["id"] for e in credible if e["id"] not in present) or "no other effect with evidence of its own"
+    also = f"; {', '.join(present)} also removes χ² but leaves what {best['id']} removes on its own summaries: another part of the gap (see the waterfall)" if present else ""
+    verdict["reason"] = f"{told} and leads {rivals}{also}"
     return verdict
