@@ -257,11 +257,16 @@ def _chi_square(real: np.ndarray, sim: np.ndarray, *, spread: np.ndarray) -> flo
 # Fitted on a log scale: a noise level matters by its order of magnitude, and a linear scale
 # would leave the small values a real camera has squeezed against the lower bound.
 _LOG_SCALED = {("baseline", "sigma"), ("noise", "total")}
+# Fitted on a square-root scale: an index contrast spans weak cells in water (0.01-0.05) to
+# polystyrene in air (0.59), and 0 (off) must stay reachable, which a log scale cannot.
+_SQUARE_SCALED = {("particle_phase", "index_contrast")}
 
 
 def _from_unit(key: tuple, unit: float, low: float, high: float) -> float:
     if key in _LOG_SCALED:
         return float(low * (high / low) ** unit)
+    if key in _SQUARE_SCALED:
+        return low + (high - low) * unit**2
     return low + (high - low) * unit
 
 
@@ -270,6 +275,8 @@ def _to_unit(key: tuple, value: float, low: float, high: float) -> float:
         return 0.5
     if key in _LOG_SCALED:
         return float(np.clip(np.log(max(value, low) / low) / np.log(high / low), 0.0, 1.0))
+    if key in _SQUARE_SCALED:
+        return float(np.sqrt(np.clip((value - low) / (high - low), 0.0, 1.0)))
     return float(np.clip((value - low) / (high - low), 0.0, 1.0))
 
 

@@ -192,7 +192,10 @@ def _decision(entries: list, evidence: dict, *, baseline_gap: float, held_out: i
             )
             return verdict
     verdict.update({"id": best["id"], "shrink": best["shrink"], "residual": best["gap_after"], "interval": best["shrink_interval"]})
-    rivals = ", ".join(e["id"] for e in credible if e["id"] not in present) or "no other effect with evidence of its own"
-    also = f"; {', '.join(present)} also removes χ² but leaves what {best['id']} removes on its own summaries: another part of the gap (see the waterfall)" if present else ""
-    verdict["reason"] = f"{told} and leads {rivals}{also}"
+    rivals = ", ".join(e["id"] for e in credible if e["id"] not in present)
+    if present:
+        also = f"; {', '.join(present)} also removes χ², but leaves what {best['id']} removes on its own summaries: another part of the gap (see the waterfall)"
+        verdict["reason"] = f"{told}{f' and leads {rivals}' if rivals else ''}{also}"
+    else:
+        verdict["reason"] = f"{told} and leads {rivals or 'no other effect with evidence of its own'}"
     return verdict
