@@ -100,8 +100,8 @@ EFFECTS: dict[str, Effect] = {e.id: e for e in (
     Effect("coherence", "partial spatial coherence (source size)", {"theta_mrad": (0.0, 3.0)}, {"theta_mrad": 0.0}, ({"theta_mrad": 1.2}, {"theta_mrad": 2.4})),
     # index contrast Δn = n_particle − n_medium; the fit range reaches polystyrene in water (0.26)
     # and in air (0.59): at 0 … 0.025 (the old 0 … 6 rad) the fit of a pseudo-real hologram of
-    # polystyrene in water ended at the bound with τ 0.33, and training on that lost half the
-    # detections (docs/diagnosis.md, seventh pass); fitted on a square-root scale (`_fitting`)
+    # polystyrene in water ended at the bound with τ 0.33, and training on that lost a third of
+    # the detections (docs/diagnosis.md, seventh pass); fitted on a square-root scale (`_fitting`)
     Effect("particle_phase", "transparent, refracting spheres", {"index_contrast": (0.0, 0.6), "transmission": (0.0, 1.0)}, {"index_contrast": 0.0, "transmission": 0.0}, ({"index_contrast": 0.0084, "transmission": 0.6}, {"index_contrast": 0.0168, "transmission": 0.9})),
     Effect("multiple_scattering", "shadowing between particle layers", {"on": (1.0, 1.0)}, {"on": 0.0}, ({"on": 1.0}, {"on": 1.0}), (6.0, 12.0)),
     # static fringes: an etalon's straight fringe, and dust grains on a window out of the volume

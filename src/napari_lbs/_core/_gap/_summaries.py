@@ -5,8 +5,9 @@ static-fringe frequency, `measured_fringe`), per depth (contrast and relative sh
 back-propagated planes, sharpness-weighted depth), per image region (illumination tilt and
 curvature within a tile, the field-wide envelope around it), intensity statistics (quantiles,
 moments, clipped fraction), noise character (residual std, variance against mean, distinct
-levels, how peaked the high band's spectrum is: noise is flat, aliased light a few chirps) and particle appearance through focus (brightest focal spots and darkest cores over
-all planes, dark-core area, autocorrelation of the fringes).
+levels, how peaked the high band's spectrum is: noise is flat, aliased light a few chirps)
+and particle appearance through focus (brightest focal spots and darkest cores over all
+planes, dark-core area, autocorrelation of the fringes).
 """
 
 from __future__ import annotations
@@ -163,7 +164,7 @@ def _high_band_peakedness(image: np.ndarray) -> float:
     band's power cannot: light a transparent sphere refracts beyond the sensor's bandwidth
     arrives aliased, as power at every high frequency like noise, but as chirps. Photon or
     doubled read noise lowers it by 4-11 tile-to-tile spreads, transparent spheres raise it
-    by 0.3-1 (docs/diagnosis.md, sixth pass).
+    by 0.3-1 (docs/diagnosis.md, seventh pass).
     """
     block = _PEAKEDNESS_BLOCK_PX
     rows, cols = (image.shape[0] // block) * block, (image.shape[1] // block) * block

@@ -11,7 +11,7 @@ __all__ = ["resampled_gaps", "effect_evidence"]
 # switched off) by at least one sampling error of the held-out difference of means (z = 1).
 _SUPPORT_Z = 1.0
 # A verdict needs the best effect to remove at least this much χ² per summary of the whole
-# vector (0.5 × 55 = 27.5, summed over its own summaries) on the held-out tiles: the
+# vector (0.5 × 56 = 28.0, summed over its own summaries) on the held-out tiles: the
 # Lorenz–Mie controls' largest was 14.7, the detected effects' 56–69 (docs/diagnosis.md).
 _VERDICT_MIN_REDUCTION = 0.5
 
