@@ -325,37 +325,58 @@ def test_a_field_wide_envelope_has_the_same_curvature_at_every_tile():
         assert np.allclose(values, expected, atol=0.01), values
 
 
-def test_cross_fitting_holds_every_tile_out_once_and_pools_both_halves_evidence():
-    # 16 tiles; the baseline misses z = 2.5 per half on 3 of 55 summaries: too little for a
-    # verdict on either half's 8 held-out tiles (27.5 of χ² needed, about 19 there), enough
-    # on all 16 pooled (z = 2.5·√2). The second half's summaries are in other units (its own
-    # fringe frequency): pooling is in each half's spreads.
+def _cross_fit_halves(missing_z: tuple, *, seed: int = 8) -> list:
+    """Two halves of 16 tiles, 55 summaries; the baseline misses z = ``missing_z[h]`` per half on
+    3 of them (which "effect" restores; "refit" only shifts the others). The second half's
+    summaries are in other units (its own fringe frequency): pooling is in each half's spreads."""
     from types import SimpleNamespace
 
-    from napari_lbs._core._gap._diagnose import _Half, _scored
+    from napari_lbs._core._gap._diagnose import _Half
 
-    rng = np.random.default_rng(8)
+    rng = np.random.default_rng(seed)
     tiles, summaries = 16, 55
     real = rng.standard_normal((tiles, summaries))
     halves = []
-    for fitting, units in ((np.arange(tiles) % 2 == 0, 1.0), (np.arange(tiles) % 2 == 1, 3.0)):
+    for (fitting, units), z in zip(((np.arange(tiles) % 2 == 0, 1.0), (np.arange(tiles) % 2 == 1, 3.0)), missing_z, strict=True):
         spread = real_spread(units * real)
         held = units * real[~fitting]
         common = units * rng.standard_normal(held.shape)
         sim = common - common.mean(axis=0) + held.mean(axis=0)  # as good as the real mean allows
-        missing = np.where(np.arange(summaries) < 3, 2.5 * spread * np.sqrt(2 / len(held)), 0.0)
+        missing = np.where(np.arange(summaries) < 3, z * spread * np.sqrt(2 / len(held)), 0.0)
         shift = rng.normal(0, 1.0, summaries) * spread * np.sqrt(2 / len(held)) * (np.arange(summaries) >= 3)
         sims = {"baseline": sim + missing, "effect": sim, "effect off": sim + missing, "refit": sim + missing + shift, "refit off": sim + missing + shift}
         entries = {e: {"gap_fit": 0.0, "params": {}} for e in ("effect", "refit")}
         halves.append(_Half(fitting, "fit", [], units * real, spread, SimpleNamespace(paired=True), {}, {}, 0.0, None, {e: {"t": 0.0} for e in entries}, list(entries), sims, {}, entries, {}))
+    return halves
+
+
+def test_cross_fitting_holds_every_tile_out_once_and_pools_both_halves_evidence():
+    from napari_lbs._core._gap._diagnose import _scored
+
+    halves = _cross_fit_halves((2.5, 2.5))
     settings = DiagnosisSettings(resamples=1000)
     alone = [_scored([half], ["effect", "refit"], settings=settings) for half in halves]
     pooled = _scored(halves, ["effect", "refit"], settings=settings)
-    assert [len(s["held_real"]) for s in alone] == [8, 8] and len(pooled["held_real"]) == tiles  # every tile held out once
+    assert [len(s["held_real"]) for s in alone] == [8, 8] and len(pooled["held_real"]) == 16  # every tile held out once
+    # z = 2.5 on 3 summaries is too little for a verdict on either half's 8 held-out tiles
+    # (28 of χ² needed, about 19 there); pooled over all 16 it is z = 2.5·√2 on each
     assert [s["verdict"]["id"] for s in alone] == [None, None], [s["verdict"]["reason"] for s in alone]
-    assert pooled["verdict"]["id"] == "effect", pooled["verdict"]["reason"]
     evidence = {s["id"]: s["evidence"]["reduction"] for s in pooled["effects"]}
     assert evidence["effect"] == pytest.approx(3 * 2 * 2.5**2, rel=0.01) and evidence["refit"] == 0.0
+
+
+def test_a_pooled_verdict_stands_only_where_one_half_names_the_effect_on_its_own():
+    # pooled, the evidence passes (37.5 of χ² > 28) but no single fit and its held-out tiles
+    # support it: not named, and the reason says so (the suite's 1024² control 18, eighth pass)
+    from napari_lbs._core._gap._diagnose import _scored
+
+    settings = DiagnosisSettings(resamples=1000)
+    verdict = _scored(_cross_fit_halves((2.5, 2.5)), ["effect", "refit"], settings=settings)["verdict"]
+    assert verdict["id"] is None and verdict["per_half"] == [None, None] and verdict["runner_up"] == "effect", verdict["reason"]
+    assert verdict["reason"].startswith("not replicated") and "effect removes" in verdict["reason"]
+    # where the second half's own tiles name it (z = 5 there), the pooled verdict stands
+    verdict = _scored(_cross_fit_halves((2.5, 5.0)), ["effect", "refit"], settings=settings)["verdict"]
+    assert verdict["id"] == "effect" and verdict["per_half"] == [None, "effect"], verdict["reason"]
 
 
 def test_a_cross_fits_resampling_keeps_each_halfs_share_of_the_tiles():

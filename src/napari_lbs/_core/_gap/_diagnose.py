@@ -27,7 +27,7 @@ from napari_lbs._core._gap._known import known_sensor
 from napari_lbs._core._gap._statistic import gap_statistic, real_spread, where_gap
 from napari_lbs._core._gap._summaries import MIN_TILE_PX, _fringe_parameters, measured_fringe, tile_summaries
 from napari_lbs._core._gap._tiling import TileLayout, adapted_tile_px, field_surroundings
-from napari_lbs._core._gap._verdict import _decision, effect_evidence, resampled_gaps
+from napari_lbs._core._gap._verdict import _decision, _replicated_in_a_half, effect_evidence, resampled_gaps
 from napari_lbs._core._io import InputError, as_hologram
 from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
 
@@ -118,9 +118,6 @@ def diagnose_tiles(
 
     scored = _scored(halves, candidates, settings=settings)
     effects_report, verdict, baseline_gap = scored["effects"], scored["verdict"], scored["baseline_gap"]
-    if cross_fitted:
-        # each half's verdict on its own held-out tiles: does the pooled verdict hold in both?
-        verdict["per_half"] = [_scored([h], candidates, settings=settings)["verdict"]["id"] for h in halves]
 
     # waterfall: baseline, + best, + best and the runner-up (greedy, refitted in every half)
     waterfall = [{"model": "baseline", "gap": float(baseline_gap)}]
@@ -170,9 +167,11 @@ def _scored(halves: list, candidates: list, *, settings: DiagnosisSettings) -> d
     """Every model scored on the held-out tiles of ``halves``, pooled: the effects' report entries (ranked), the verdict, the baseline gap.
 
     Each half's held-out tiles and simulations are put in its own spreads (its fringe
-    frequency, and so its summaries, are its own): z units, pooled over the halves. Returns
-    ``effects``, ``verdict``, ``baseline_gap``, ``baseline_interval`` and ``held_real`` (the
-    pooled held-out summaries, in z units).
+    frequency, and so its summaries, are its own): z units, pooled over the halves; with two
+    halves, the pooled verdict stands only where one half's own names it too (`_replicated_in_a_half`;
+    each half's in ``verdict["per_half"]``). Returns ``effects``, ``verdict``,
+    ``baseline_gap``, ``baseline_interval`` and ``held_real`` (the pooled held-out summaries,
+    in z units).
     """
     first = halves[0]
     held_real = np.vstack([h.real[~h.fitting] / h.spread for h in halves])
@@ -213,6 +212,9 @@ def _scored(halves: list, candidates: list, *, settings: DiagnosisSettings) -> d
     # ranked by the evidence the verdict is decided on (then the screened ones, by their scan)
     effects_report.sort(key=lambda e: (not e["confirmed"], -e["evidence"]["reduction"] if e["confirmed"] else e["gap_after"]))
     verdict = _decision([e for e in effects_report if e["confirmed"]], evidence, baseline_gap=baseline_gap, held_out=len(held_real), summaries=len(unit))
+    if len(halves) > 1:
+        # each half's verdict on its own held-out tiles: a pooled verdict neither supports is not given
+        verdict = _replicated_in_a_half(verdict, [_scored([h], candidates, settings=settings)["verdict"]["id"] for h in halves], baseline_gap=baseline_gap)
     return {
         "effects": effects_report, "verdict": verdict, "baseline_gap": baseline_gap, "held_real": held_real,
         "baseline_interval": [float(v) for v in np.quantile(draws["baseline"], (0.05, 0.95))],
