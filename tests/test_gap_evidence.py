@@ -389,3 +389,20 @@ def test_a_cross_fits_resampling_keeps_each_halfs_share_of_the_tiles():
     mixed = resampled_gaps(real, {"m": sim}, spread=spread, resamples=500)["m"]
     kept = resampled_gaps(real, {"m": sim}, spread=spread, resamples=500, strata=((8, 8), (6, 6)))["m"]
     assert np.quantile(kept, 0.95) < 3.0 and np.median(mixed) > 10.0  # measured: 1.9 and 14
+
+
+def test_tiles_are_summarised_on_threads_as_each_would_be_alone_also_after_a_fork():
+    import multiprocessing
+
+    from napari_lbs._core._gap._summaries import _tiles_summaries
+
+    rng = np.random.default_rng(4)
+    tiles = [1.0 + 0.1 * rng.standard_normal((64, 64)) for _ in range(5)]
+    means, around = [1.0, 1.1, None, 0.9, 1.0], [None, np.ones((128, 128)), None, None, np.full((128, 128), 1.2)]
+    alone = np.stack([tile_summaries(t, config=CONFIG, fringe_frequency=(0.1, 0.0), field_mean=m, surroundings=a)[0] for t, m, a in zip(tiles, means, around, strict=True)])
+    together, names = _tiles_summaries(tiles, config=CONFIG, fringe_frequency=(0.1, 0.0), field_means=means, surroundings=around)
+    assert np.array_equal(together, alone) and names == tile_summaries(tiles[0], config=CONFIG)[1]
+    # a child forked after the pool started gets threads of its own (else it would wait for ever)
+    with multiprocessing.get_context("fork").Pool(1) as pool:
+        child = pool.apply_async(_tiles_summaries, (tiles,), {"config": CONFIG, "fringe_frequency": (0.1, 0.0), "field_means": means, "surroundings": around}).get(timeout=60)
+    assert np.array_equal(child[0], alone)

@@ -25,7 +25,7 @@ from napari_lbs._core._effects import EFFECTS, check_effects
 from napari_lbs._core._gap._fitting import DiagnosisSettings, _fit, _Model, _with_measured
 from napari_lbs._core._gap._known import known_sensor
 from napari_lbs._core._gap._statistic import gap_statistic, real_spread, where_gap
-from napari_lbs._core._gap._summaries import MIN_TILE_PX, _fringe_parameters, measured_fringe, tile_summaries
+from napari_lbs._core._gap._summaries import MIN_TILE_PX, _fringe_parameters, _tiles_summaries, measured_fringe
 from napari_lbs._core._gap._tiling import TileLayout, adapted_tile_px, field_surroundings
 from napari_lbs._core._gap._verdict import _decision, _replicated_in_a_half, effect_evidence, resampled_gaps
 from napari_lbs._core._io import InputError, as_hologram
@@ -259,9 +259,7 @@ def _fit_half(tiles: list, fitting: np.ndarray, half: str, *, config: Experiment
     """
     fringe_frequency = measured_fringe([t for t, fit in zip(tiles, fitting, strict=True) if fit])  # from the fitting tiles only
     measured = _fringe_parameters(fringe_frequency)
-    summaries = [tile_summaries(t, config=config, fringe_frequency=fringe_frequency, field_mean=field_mean, surroundings=region) for t, region in zip(tiles, around, strict=True)]
-    names = summaries[0][1]
-    real = np.stack([s[0] for s in summaries])
+    real, names = _tiles_summaries(tiles, config=config, fringe_frequency=fringe_frequency, field_means=[field_mean] * len(tiles), surroundings=around)
     fit_real = real[fitting]
     spread = real_spread(real)  # the experiment's own tile-to-tile spread: the unit of every gap
     other = "held" if half == "fit" else "fit"

@@ -11,7 +11,7 @@ from scipy import optimize, stats
 from napari_lbs._core._config import ExperimentConfig
 from napari_lbs._core._effects import BASELINE, EFFECTS, OPTICAL_EFFECTS, optical_hologram, sensor_image
 from napari_lbs._core._gap._statistic import gap_statistic
-from napari_lbs._core._gap._summaries import tile_summaries
+from napari_lbs._core._gap._summaries import _tiles_summaries
 from napari_lbs._core._gap._tiling import TileLayout, field_surroundings
 from napari_lbs._core._io import InputError
 from napari_lbs._core._synthesis import random_particle_field
@@ -144,10 +144,7 @@ class _Model:
             set_means = {s: float(np.mean([t.mean() for t, t_set in zip(tiles, sets, strict=True) if t_set == s])) for s in set(sets)}
             field_means = {f: set_means[f // self.fields_per_set] for f in images}
             around = [None] * len(tiles)
-        return np.stack([
-            tile_summaries(t, config=self.config, fringe_frequency=self.fringe_frequency, field_mean=field_means[f], surroundings=region)[0]
-            for t, (f, _), region in zip(tiles, cuts, around, strict=True)
-        ])
+        return _tiles_summaries(tiles, config=self.config, fringe_frequency=self.fringe_frequency, field_means=[field_means[f] for f, _ in cuts], surroundings=around)[0]
 
 
 def _fit(model: _Model, real: np.ndarray, effect_ids: Sequence[str], *, start: dict, measured: dict, evaluations: int, spread: np.ndarray, half: str = "fit") -> tuple[dict, dict, float]:
