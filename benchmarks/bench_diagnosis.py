@@ -18,7 +18,7 @@ Sub-commands:
     the intensity averaged over S × S points per pixel (a pixel integrates over its area).
     The verdict should be ``particle_phase`` wherever the sphere's refracted light stays within
     the sensor's bandwidth.
-``mie [--cases I ...] [--seed S]``
+``mie [--cases I ...] [--seed S] [--keep DIR]``
     A second withheld-effect suite the diagnosis was not built on (issue 13): 512² holograms of
     Lorenz–Mie polystyrene spheres (`pseudoreal.mie_intensity`), an 8-bit camera and each
     withheld effect written here, independently of `_effects`, with other parameterisations
@@ -42,7 +42,7 @@ Sub-commands:
     tile-to-tile spread (what a held-out z divides by), beside the same for the baseline's
     own noise (read noise doubled), so that an effect the fitted noise can mimic shows.
 ``rescore DIR``
-    The verdicts of kept cases (``absorbing --keep DIR``) scored again with the current code.
+    The verdicts of kept cases (``absorbing`` or ``mie --keep DIR``) scored again with the current code.
 ``real``
     The seed's real 1024² hologram: the full diagnosis with default settings, timed (target
     <= 3 min on 2 idle cores), report written to docs/figures/diagnosis-real/.
@@ -267,7 +267,7 @@ def _single_split_line(rows: list[dict]) -> str:
             f"false alarms {alarms}/{len(rows) - len(injected)}; both halves right alone: {both}/{len(injected)}")
 
 
-def mie(cases: list[int] | None, seed: int = 2026) -> None:
+def mie(cases: list[int] | None, seed: int = 2026, keep: str | None = None) -> None:
     design = [*MIE_EFFECTS, *[None] * MIE_CONTROLS]
     rows = []
     for index in cases if cases is not None else range(len(design)):
@@ -277,10 +277,12 @@ def mie(cases: list[int] | None, seed: int = 2026) -> None:
         counts = mie_camera(_mie_scene(effect_id, rng), effect_id, rng)
         made = time.perf_counter() - made
         start, cpu = time.perf_counter(), time.process_time()
-        report = diagnose_hologram(counts, CONFIG).report
-        row = _row(index, effect_id, report, {"seconds": round(time.perf_counter() - start, 1), "cpu_seconds": round(time.process_time() - cpu, 1), "hologram_seconds": round(made, 1)})
+        diagnosis = diagnose_hologram(counts, CONFIG)
+        row = _row(index, effect_id, diagnosis.report, {"seconds": round(time.perf_counter() - start, 1), "cpu_seconds": round(time.process_time() - cpu, 1), "hologram_seconds": round(made, 1)})
         rows.append(row)
         print(json.dumps(row), flush=True)
+        if keep:
+            _keep(Path(keep), index, row, diagnosis)
     print(_score_line(rows) + f"; mean {np.mean([r['seconds'] for r in rows]):.0f} s per diagnosis")
     print(_single_split_line(rows))
 
@@ -391,11 +393,19 @@ def _score_line(rows: list[dict]) -> str:
             f"false alarms {alarms}/{len(controls)} (95 % interval {_wilson(alarms, len(controls))[0]:.2f}-{_wilson(alarms, len(controls))[1]:.2f})")
 
 
-def absorbing(cases: list[int] | None, seed: int = 2027, keep: str | None = None) -> None:
+def _keep(folder: Path, index: int, row: dict, diagnosis) -> None:
+    """Pickle what `_scored` needs of one case (its halves, without the simulator's kernels and fields), for `rescore`."""
     import dataclasses
     import pickle
     from types import SimpleNamespace
 
+    halves = [dataclasses.replace(h, model=SimpleNamespace(paired=h.model.paired)) for h in diagnosis.halves]
+    folder.mkdir(parents=True, exist_ok=True)
+    with open(folder / f"case_{index:02d}.pkl", "wb") as file:
+        pickle.dump({"row": row, "halves": halves, "candidates": [e["id"] for e in diagnosis.report["effects"]]}, file)
+
+
+def absorbing(cases: list[int] | None, seed: int = 2027, keep: str | None = None) -> None:
     rows = []
     for index in cases if cases is not None else range(len(ABSORBING_DESIGN)):
         case, effect_id, size = ABSORBING_DESIGN[index]
@@ -410,12 +420,7 @@ def absorbing(cases: list[int] | None, seed: int = 2027, keep: str | None = None
         rows.append(row)
         print(json.dumps(row), flush=True)
         if keep:
-            # what `_scored` needs, without the simulator (its kernels and fields)
-            halves = [dataclasses.replace(h, model=SimpleNamespace(paired=h.model.paired)) for h in diagnosis.halves]
-            candidates = [e["id"] for e in diagnosis.report["effects"]]
-            Path(keep).mkdir(parents=True, exist_ok=True)
-            with open(Path(keep) / f"case_{index:02d}.pkl", "wb") as file:
-                pickle.dump({"row": row, "halves": halves, "candidates": candidates}, file)
+            _keep(Path(keep), index, row, diagnosis)
     print(_score_line(rows) + f"; mean {np.mean([r['seconds'] for r in rows]):.0f} s per diagnosis")
     print(_single_split_line(rows))
 
@@ -502,6 +507,7 @@ def main() -> None:
     p = sub.add_parser("mie")
     p.add_argument("--cases", type=int, nargs="+", help="case indices to run (default all: the effects, then the controls)")
     p.add_argument("--seed", type=int, default=2026, help="scene seed (2026: the suite; others: scenes of the same design)")
+    p.add_argument("--keep", help="pickle each case's fits here, for `rescore`")
     p = sub.add_parser("absorbing")
     p.add_argument("--cases", type=int, nargs="+", help="case indices to run (default all, `ABSORBING_DESIGN`)")
     p.add_argument("--seed", type=int, default=2027, help="scene seed (2027: the suite; 8: development scenes)")
@@ -520,7 +526,7 @@ def main() -> None:
     elif args.command == "independent":
         independent(args.tile, args.tiles, args.particles, args.evaluations, args.index, args.supersample)
     elif args.command == "mie":
-        mie(args.cases, args.seed)
+        mie(args.cases, args.seed, args.keep)
     elif args.command == "absorbing":
         absorbing(args.cases, args.seed, args.keep)
     elif args.command == "rescore":
