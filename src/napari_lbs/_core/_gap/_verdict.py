@@ -215,7 +215,7 @@ def _replicated_in_a_half(verdict: dict, per_half: list, *, baseline_gap: float)
     """
     if verdict["id"] is None or verdict["id"] in per_half:
         return {**verdict, "per_half": list(per_half)}
-    halves = ", ".join(str(v) for v in per_half)
+    halves = ", ".join(v or "nothing" for v in per_half)
     return {
         **verdict, "id": None, "shrink": 0.0, "residual": float(baseline_gap), "interval": [0.0, 0.0], "runner_up": verdict["id"], "per_half": list(per_half),
         "reason": f"not replicated: pooled over both halves {verdict['reason']}, but neither half names {verdict['id']} on its own held-out tiles (each half: {halves})",
