@@ -43,17 +43,21 @@ Sub-commands:
     own noise (read noise doubled), so that an effect the fitted noise can mimic shows.
 ``rescore DIR``
     The verdicts of kept cases (``absorbing`` or ``mie --keep DIR``) scored again with the current code.
+``threads [--repeats N]``
+    One fit evaluation's simulated summaries at 1024² (8 tiles of 256²) on the summary thread
+    pool against one thread, interleaved in one run: median seconds, speed-up, identical results.
 ``real``
     The seed's real 1024² hologram: the full diagnosis with default settings, timed (target
     <= 3 min on 2 idle cores), report written to docs/figures/diagnosis-real/.
 
-Run: python benchmarks/bench_diagnosis.py suite|independent|mie|absorbing|rescore|signature|real
+Run: python benchmarks/bench_diagnosis.py suite|independent|mie|absorbing|rescore|signature|threads|real
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -443,6 +447,35 @@ def rescore(folder: str) -> None:
     print(_score_line(rows))
 
 
+def threads(repeats: int) -> None:
+    """One fit evaluation's simulated summaries at 1024² (8 tiles of 256², whole fields), on the summary pool against one thread, interleaved in one run."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from napari_lbs._core._effects import BASELINE
+    from napari_lbs._core._gap import _summaries
+    from napari_lbs._core._gap._fitting import _Model
+    from napari_lbs._core._gap._tiling import TileLayout
+
+    config = load_config(None)
+    layout = TileLayout((1024, 1024), tuple((r, c) for r in range(0, 1024, 256) for c in range(0, 1024, 256)), 1.0)
+    model = _Model(config, shape=(256, 256), count=25, settings=DiagnosisSettings(), fringe_frequency=(0.1, 0.0), layout=layout, known={"quantization": {"bits": 8.0, "saturation": 1.7}})
+    baseline = {"contrast": 0.8, "sigma": 0.04, "gamma": 1.2}
+    pool = _summaries._summary_pool()
+    single = ThreadPoolExecutor(max_workers=1)
+    model.summaries(baseline, {}, half="fit")  # simulates and caches the light once
+    times = {"pool": [], "one thread": []}
+    results = {}
+    for _ in range(repeats):
+        for name, executor in (("pool", pool), ("one thread", single)):
+            _summaries._POOL[os.getpid()] = executor
+            start = time.perf_counter()
+            results[name] = model.summaries(baseline, {}, half="fit")
+            times[name].append(time.perf_counter() - start)
+    _summaries._POOL[os.getpid()] = pool
+    median = {name: float(np.median(t)) for name, t in times.items()}
+    print(json.dumps({"workers": pool._max_workers, "seconds per evaluation": median, "speed-up": round(median["one thread"] / median["pool"], 2), "identical": bool(np.array_equal(results["pool"], results["one thread"]))}))
+
+
 def signature(case: str, size: int, scenes: int, top: int) -> None:
     from napari_lbs._core._gap._summaries import tile_summaries
     from napari_lbs._core._gap._tiling import adapted_tile_px, field_surroundings
@@ -520,6 +553,8 @@ def main() -> None:
     p.add_argument("--scenes", type=int, default=4)
     p.add_argument("--top", type=int, default=12)
     sub.add_parser("real")
+    p = sub.add_parser("threads")
+    p.add_argument("--repeats", type=int, default=15)
     args = parser.parse_args()
     if args.command == "suite":
         suite(args.tile, args.tiles, args.particles, args.evaluations, args.controls, args.jobs, args.cases)
@@ -533,6 +568,8 @@ def main() -> None:
         rescore(args.folder)
     elif args.command == "signature":
         signature(args.case, args.size, args.scenes, args.top)
+    elif args.command == "threads":
+        threads(args.repeats)
     else:
         real()
 
