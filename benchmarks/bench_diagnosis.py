@@ -18,7 +18,7 @@ Sub-commands:
     the intensity averaged over S × S points per pixel (a pixel integrates over its area).
     The verdict should be ``particle_phase`` wherever the sphere's refracted light stays within
     the sensor's bandwidth.
-``mie [--cases I ...] [--seed S] [--keep DIR]``
+``mie [--cases I ...] [--seed S] [--keep DIR] [--known-effect ID:NAME=VALUE,...]``
     A second withheld-effect suite the diagnosis was not built on (issue 13): 512² holograms of
     Lorenz–Mie polystyrene spheres (`pseudoreal.mie_intensity`), an 8-bit camera and each
     withheld effect written here, independently of `_effects`, with other parameterisations
@@ -74,6 +74,7 @@ from napari_lbs._core import (
     diagnose_hologram,
     diagnose_tiles,
     load_config,
+    parse_effect,
     load_sample_hologram,
     optical_hologram,
     random_particle_field,
@@ -271,7 +272,7 @@ def _single_split_line(rows: list[dict]) -> str:
             f"false alarms {alarms}/{len(rows) - len(injected)}; both halves right alone: {both}/{len(injected)}")
 
 
-def mie(cases: list[int] | None, seed: int = 2026, keep: str | None = None) -> None:
+def mie(cases: list[int] | None, seed: int = 2026, keep: str | None = None, stated: dict | None = None) -> None:
     design = [*MIE_EFFECTS, *[None] * MIE_CONTROLS]
     rows = []
     for index in cases if cases is not None else range(len(design)):
@@ -281,7 +282,7 @@ def mie(cases: list[int] | None, seed: int = 2026, keep: str | None = None) -> N
         counts = mie_camera(_mie_scene(effect_id, rng), effect_id, rng)
         made = time.perf_counter() - made
         start, cpu = time.perf_counter(), time.process_time()
-        diagnosis = diagnose_hologram(counts, CONFIG)
+        diagnosis = diagnose_hologram(counts, CONFIG, stated=stated)
         row = _row(index, effect_id, diagnosis.report, {"seconds": round(time.perf_counter() - start, 1), "cpu_seconds": round(time.process_time() - cpu, 1), "hologram_seconds": round(made, 1)})
         rows.append(row)
         print(json.dumps(row), flush=True)
@@ -541,6 +542,8 @@ def main() -> None:
     p.add_argument("--cases", type=int, nargs="+", help="case indices to run (default all: the effects, then the controls)")
     p.add_argument("--seed", type=int, default=2026, help="scene seed (2026: the suite; others: scenes of the same design)")
     p.add_argument("--keep", help="pickle each case's fits here, for `rescore`")
+    p.add_argument("--known-effect", action="append", default=[], metavar="ID[:NAME=VALUE,...]",
+                   help="what a user of these scenes knows, as `diagnose --known-effect` (the spheres: particle_phase:index_contrast=0.26,transmission=1)")
     p = sub.add_parser("absorbing")
     p.add_argument("--cases", type=int, nargs="+", help="case indices to run (default all, `ABSORBING_DESIGN`)")
     p.add_argument("--seed", type=int, default=2027, help="scene seed (2027: the suite; 8: development scenes)")
@@ -561,7 +564,7 @@ def main() -> None:
     elif args.command == "independent":
         independent(args.tile, args.tiles, args.particles, args.evaluations, args.index, args.supersample)
     elif args.command == "mie":
-        mie(args.cases, args.seed, args.keep)
+        mie(args.cases, args.seed, args.keep, {k: v for text in args.known_effect for k, v in parse_effect(text, flag='--known-effect').items()})
     elif args.command == "absorbing":
         absorbing(args.cases, args.seed, args.keep)
     elif args.command == "rescore":

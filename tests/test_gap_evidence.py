@@ -267,6 +267,13 @@ def test_known_bit_depth_goes_into_every_model_and_can_be_switched_off():
     assert "quantization" not in {e["id"] for e in known["effects"]}  # known, not a candidate
     diagnosed = diagnose_hologram(counts, CONFIG, known=False, settings=fast).report
     assert diagnosed["known"] == {} and "quantization" in {e["id"] for e in diagnosed["effects"]}
+    # what the user states (transparent beads) joins the file's facts, with the stated parameters, and is not diagnosed
+    beads = {"particle_phase": {"index_contrast": 0.26, "transmission": 1.0}}
+    stated = diagnose_hologram(counts, CONFIG, stated=beads, settings=fast).report
+    assert stated["known"]["particle_phase"]["index_contrast"] == 0.26 and stated["known"]["quantization"]["bits"] == 8
+    assert not {"particle_phase", "quantization"} & {e["id"] for e in stated["effects"]}
+    with pytest.raises(InputError, match="unknown effect id 'beads'"):
+        diagnose_hologram(counts, CONFIG, stated={"beads": {}}, settings=fast)
 
 
 def test_tiles_adapt_to_the_hologram_and_split_as_a_checkerboard():
@@ -305,6 +312,7 @@ def test_the_cli_can_switch_the_known_facts_off():
     base = ["diagnose", "h.tif", "--config", "c.toml", "--out", "report"]
     assert _parser().parse_args(base).no_known is False
     assert _parser().parse_args([*base, "--no-known"]).no_known is True
+    assert _parser().parse_args([*base, "--known-effect", "particle_phase:index_contrast=0.26,transmission=1"]).known_effect == ["particle_phase:index_contrast=0.26,transmission=1"]
 
 
 def test_a_field_wide_envelope_has_the_same_curvature_at_every_tile():

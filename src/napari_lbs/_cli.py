@@ -436,9 +436,12 @@ def _cmd_track(args) -> None:
 
 
 def _cmd_diagnose(args) -> None:
-    from napari_lbs._core import MIN_TILE_PX, DiagnosisSettings, adapted_tile_px, diagnose_hologram, load_config, write_report
+    from napari_lbs._core import MIN_TILE_PX, DiagnosisSettings, adapted_tile_px, diagnose_hologram, load_config, parse_effect, write_report
 
     config = load_config(args.config)
+    stated = {}
+    for text in args.known_effect:
+        stated.update(parse_effect(text, flag="--known-effect"))
     out = check_output_path(args.out, flag="--out", folder=True, inputs=_inputs(args))
     for name in ("report.json", "report.md", "gap_where.png", "gap_effects.png"):
         check_output_path(out / name, flag="--out")
@@ -452,7 +455,7 @@ def _cmd_diagnose(args) -> None:
         size = adapted_tile_px(hologram.shape, size)  # what diagnose_hologram will cut
     if args.roi and not (args.roi[0] + size <= hologram.shape[1] and args.roi[1] + size <= hologram.shape[0]):
         raise InputError(f"--roi {args.roi[0]} {args.roi[1]}: a {size}-pixel tile there crosses the edge of the {hologram.shape[1]}x{hologram.shape[0]} (x by y) hologram {args.holo}")
-    diagnosis = diagnose_hologram(hologram, config, background=background, tile_px=args.tile, known=not args.no_known, settings=settings, progress=_ProgressBar("diagnose"))
+    diagnosis = diagnose_hologram(hologram, config, background=background, tile_px=args.tile, known=not args.no_known, stated=stated, settings=settings, progress=_ProgressBar("diagnose"))
     if args.roi:
         x, y = args.roi
         cut = int(diagnosis.report["tiles"]["shape"][0])  # the tiles the diagnosis cut (adapted to the hologram)
@@ -724,6 +727,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--calibration", metavar="CALIB.json", help="recorded as provenance (the baseline is refitted in the hologram domain)")
     p.add_argument("--tile", type=_integer(1), help="tile edge in pixels (default: tile.size)")
     p.add_argument("--no-known", action="store_true", help="diagnose the bit depth and saturation too, instead of taking them from the file's integer counts")
+    p.add_argument("--known-effect", action="append", default=[], metavar="ID[:NAME=VALUE,...]",
+                   help="an effect you know the experiment has, put into every model and not diagnosed, e.g. particle_phase:index_contrast=0.26,transmission=1 for polystyrene beads in water (repeatable)")
     p.add_argument("--sim-tiles", type=_integer(1), default=8)
     p.add_argument("--evaluations", type=_integer(1), default=40)
     p.add_argument("--seed", type=_SEED, default=0)

@@ -344,8 +344,8 @@ def check_effects(effects: dict) -> dict:
     return checked
 
 
-def parse_effect(text: str) -> dict:
-    """One effect from its command-line form ``ID`` or ``ID:NAME=VALUE[,NAME=VALUE...]``.
+def parse_effect(text: str, *, flag: str = "--effect") -> dict:
+    """One effect from its command-line form ``ID`` or ``ID:NAME=VALUE[,NAME=VALUE...]`` (``flag``: the option named in errors).
 
     Example: ``particle_phase:index_contrast=0.26,transmission=1`` → ``{"particle_phase": {...}}``.
     """
@@ -354,7 +354,7 @@ def parse_effect(text: str) -> dict:
     for item in filter(None, (part.strip() for part in rest.split(","))):
         name, sep, value = item.partition("=")
         if not sep:
-            raise InputError(f"--effect {text}: expected NAME=VALUE after the effect id, got {item!r}")
+            raise InputError(f"{flag} {text}: expected NAME=VALUE after the effect id, got {item!r}")
         params[name.strip()] = value.strip()
     return check_effects({effect_id: params})
 

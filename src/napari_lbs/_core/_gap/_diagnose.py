@@ -329,6 +329,7 @@ def diagnose_hologram(
     background: np.ndarray | None = None,
     tile_px: int | None = None,
     known: bool = True,
+    stated: dict | None = None,
     settings: DiagnosisSettings = DiagnosisSettings(),
     progress: ProgressCallback | None = None,
     should_stop: StopCallback | None = None,
@@ -348,6 +349,12 @@ def diagnose_hologram(
         counts (`known_sensor`), the bit depth and saturation as ``quantization``. Off, with
         a ``background`` (the division makes the levels uneven), or where the values use
         fewer levels than the format holds (a 6-bit image in a uint8 file), they are diagnosed.
+    stated : dict, optional
+        ``{effect_id: params}`` (`check_effects`): what the user knows of the experiment, e.g.
+        ``{"particle_phase": {"index_contrast": 0.26, "transmission": 1.0}}`` for polystyrene
+        beads in water, which the seed's opaque simulator lacks. Put into every model with
+        these parameters (over what the file states), shown as known, and not diagnosed: the
+        diagnosis then looks for what is still missing.
     """
     image = as_hologram(hologram)
     # the array as given keeps its dtype; an RGB one is read from its channel of integer counts
@@ -371,6 +378,7 @@ def diagnose_hologram(
     # (a pile-up below full scale, e.g. clipping at 200 of 255, is in `facts` but not simulated)
     # values coarser than the format (`known_sensor`'s ``coarse``): the file does not state the bit depth, diagnose it
     known_effects = {"quantization": {"bits": float(facts["bits"]), "saturation": facts["full_scale"] / field_mean}} if facts and not facts["coarse"] else {}
+    known_effects.update(check_effects(stated or {}))
     covered = ((rows // size) * size, (cols // size) * size)  # the field the tiles cover
     diagnosis = diagnose_tiles(tiles, config, layout=TileLayout(covered, origins, field_mean), known=known_effects, settings=settings, progress=progress, should_stop=should_stop)
     diagnosis.report["known_sensor"] = facts if facts else {"source": "none: not integer counts, a background was divided out, or switched off"}
