@@ -153,7 +153,6 @@ def tile_summaries(
     return np.asarray(values), names
 
 
-
 def _tiles_summaries(
     tiles: Sequence[np.ndarray],
     *,
@@ -193,6 +192,7 @@ def _summary_pool() -> ThreadPoolExecutor:
         _POOL.clear()
         _POOL[pid] = ThreadPoolExecutor(max_workers=min(cores, 8), thread_name_prefix="napari-lbs-summaries")
     return _POOL[pid]
+
 
 _PEAKEDNESS_BLOCK_PX = 32
 _PEAKEDNESS_BAND = (0.25, 0.5)  # cycles per pixel
