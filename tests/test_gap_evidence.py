@@ -272,6 +272,11 @@ def test_known_bit_depth_goes_into_every_model_and_can_be_switched_off():
     stated = diagnose_hologram(counts, CONFIG, stated=beads, settings=fast).report
     assert stated["known"]["particle_phase"]["index_contrast"] == 0.26 and stated["known"]["quantization"]["bits"] == 8
     assert not {"particle_phase", "quantization"} & {e["id"] for e in stated["effects"]}
+    from napari_lbs._core._gap._report import _known_text
+
+    assert stated["stated"] == beads and known["stated"] == {}
+    text = _known_text(stated)
+    assert "particle_phase" in text.split("(from the uint8 image)")[1] and text.endswith("(stated by you).")
     with pytest.raises(InputError, match="unknown effect id 'beads'"):
         diagnose_hologram(counts, CONFIG, stated={"beads": {}}, settings=fast)
 

@@ -378,8 +378,10 @@ def diagnose_hologram(
     # (a pile-up below full scale, e.g. clipping at 200 of 255, is in `facts` but not simulated)
     # values coarser than the format (`known_sensor`'s ``coarse``): the file does not state the bit depth, diagnose it
     known_effects = {"quantization": {"bits": float(facts["bits"]), "saturation": facts["full_scale"] / field_mean}} if facts and not facts["coarse"] else {}
-    known_effects.update(check_effects(stated or {}))
+    stated = check_effects(stated or {})
+    known_effects.update(stated)
     covered = ((rows // size) * size, (cols // size) * size)  # the field the tiles cover
     diagnosis = diagnose_tiles(tiles, config, layout=TileLayout(covered, origins, field_mean), known=known_effects, settings=settings, progress=progress, should_stop=should_stop)
     diagnosis.report["known_sensor"] = facts if facts else {"source": "none: not integer counts, a background was divided out, or switched off"}
+    diagnosis.report["stated"] = stated  # what the user stated (in ``known`` too), apart from what the file states
     return diagnosis

@@ -74,7 +74,7 @@ def write_report(diagnosis: Diagnosis, out_dir, *, provenance: dict | None = Non
         f"- Verdict: **{verdict['id'] or 'none named (null)'}**; shrink {100 * verdict['shrink']:.0f} % "
         f"(90 % interval {100 * verdict['interval'][0]:.0f} to {100 * verdict['interval'][1]:.0f} %), residual gap {verdict['residual']:.2f}. Why: {verdict['reason']}.",
         f"- Data that would decide: {_tiles_to_decide_text(verdict, report['tiles'])}",
-        f"- Known, not diagnosed (what the file states): {_known_text(report)}",
+        f"- Known, not diagnosed (what the file states and what you stated): {_known_text(report)}",
         f"- Time: {report['seconds']:.0f} s; tiles: {report['tiles']}.",
         "",
         "## Where the gap lies (1 = as different as two tiles of the experiment)",
@@ -131,4 +131,8 @@ def _known_text(report: dict) -> str:
             return (f"nothing: the {sensor['source']} uses {100 * sensor['levels_used']:.0f} % of the levels within its range "
                     f"(about {sensor['effective_bits']:.1f} bits of its {sensor['bits']}), so the bit depth is diagnosed, not taken from the format.")
         return "nothing."
-    return "; ".join(f"{effect_id} {params}" for effect_id, params in known.items()) + (f" (from the {sensor['source']})" if "source" in sensor else "") + "."
+    stated = report.get("stated") or {}
+    from_file = "; ".join(f"{effect_id} {params}" for effect_id, params in known.items() if effect_id not in stated)
+    parts = [from_file + (f" (from the {sensor['source']})" if "source" in sensor else "")] if from_file else []
+    parts += ["; ".join(f"{effect_id} {known[effect_id]}" for effect_id in stated) + " (stated by you)"] if stated else []
+    return "; ".join(parts) + "."
