@@ -144,6 +144,7 @@ def _suite_case(case: tuple) -> dict:
         "verdict": verdict["id"],
         "correct": verdict["id"] == effect_id,
         "per_half": verdict.get("per_half"),
+        "reason": verdict["reason"],
         "shrink_of_withheld": round(own["shrink"], 2) if own else None,
         "ablated_gap_of_withheld": round(own["gap_ablated"], 2) if own and "gap_ablated" in own else None,
         "confirmed": bool(own and own["confirmed"]),
