@@ -201,10 +201,14 @@ def test_diagnosis_widget_maps_the_gap_over_the_hologram_and_writes_the_report(m
     widget.tile.value = 128
     assert not widget._run.enabled and "fewer than 4 tiles" in widget._status.value
     widget.tile.value = 64
+    widget.known_effects.value = "particle_phase:index_contrst=0.26"
+    assert not widget._run.enabled and "index_contrst" in widget._status.value
+    widget.known_effects.value = "particle_phase:index_contrast=0.26,transmission=1"
     widget.sim_tiles.value, widget.evaluations.value = 3, 8
     widget.output.value = tmp_path / "report"
     run_to_end(qtbot, widget)
-    assert json.loads((tmp_path / "report" / "report.json").read_text())["verdict"].keys() >= {"id", "shrink", "residual"}
+    written = json.loads((tmp_path / "report" / "report.json").read_text())
+    assert written["verdict"].keys() >= {"id", "shrink", "residual"} and written["stated"] == {"particle_phase": {"index_contrast": 0.26, "transmission": 1.0}}
     layer = viewer.layers["gap by region"]
     assert layer.data.shape == (2, 2) and tuple(layer.scale) == pytest.approx((140.8, 140.8))
 

@@ -119,6 +119,27 @@ def model_problem(edit: FileEdit) -> str | None:
     return missing(edit, "model")
 
 
+def parsed_effects(edit: LineEdit) -> dict:
+    """The catalog effects typed into ``edit`` as on the command line (`parse_effect`), separated by ';'; raises `InputError` naming the culprit."""
+    from napari_lbs._core import parse_effect
+
+    effects = {}
+    for text in filter(None, (part.strip() for part in edit.value.split(";"))):
+        effects.update(parse_effect(text))
+    return effects
+
+
+def effects_problem(edit: LineEdit) -> str | None:
+    """What is wrong with the effects typed into ``edit`` (`parsed_effects`), else None."""
+    from napari_lbs._core import InputError
+
+    try:
+        parsed_effects(edit)
+    except InputError as error:
+        return str(error)
+    return None
+
+
 def config_problem(edit: FileEdit) -> str | None:
     problem = missing(edit, "config")
     if problem:

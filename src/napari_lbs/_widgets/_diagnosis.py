@@ -5,12 +5,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from magicgui.widgets import SpinBox, create_widget
+from magicgui.widgets import LineEdit, SpinBox, create_widget
 
 from napari_lbs._core import DiagnosisSettings
 from napari_lbs._layers import UNITS
 from napari_lbs._widgets._backprop import CONFIG_TOOLTIP, HOLOGRAM_TOOLTIP
-from napari_lbs._widgets._base import StepWidget, config_from, config_problem, hologram_data, hologram_problem, output_problem, path_edit
+from napari_lbs._widgets._base import StepWidget, config_from, config_problem, effects_problem, hologram_data, hologram_problem, output_problem, parsed_effects, path_edit
 
 __all__ = ["DiagnosisWidget"]
 
@@ -29,12 +29,15 @@ class DiagnosisWidget(StepWidget):
         self.sim_tiles = SpinBox(label="simulated tiles", name="sim_tiles", value=8, min=2, max=256, tooltip="Simulated tiles per model of the experiment (more: a steadier gap, slower)")
         self.evaluations = SpinBox(label="evaluations per fit", name="evaluations", value=40, min=8, max=10000, tooltip="Evaluations of each effect's fit (more: better fitted parameters, slower)")
         self.seed = SpinBox(label="seed", name="seed", value=0, min=0, max=2**31 - 1, tooltip="Seeds the simulated tiles and the fits")
+        self.known_effects = LineEdit(label="known effects", name="known_effects", value="",
+                                      tooltip="Effects you know the experiment has, put into every model and not diagnosed, as on the command line, separated by ';' "
+                                              "(polystyrene beads in water: particle_phase:index_contrast=0.26,transmission=1). Empty: only what the file states")
         self.output = path_edit(label="report folder", name="output", mode="d", value="lbs-diagnosis", tooltip="report.json (CONTRACT.md), report.md and figures are written here")
-        super().__init__(napari_viewer, [self.hologram, self.config, self.tile, self.sim_tiles, self.evaluations, self.seed, self.output])
+        super().__init__(napari_viewer, [self.hologram, self.config, self.tile, self.sim_tiles, self.evaluations, self.seed, self.known_effects, self.output])
         self.diagnosis = None
 
     def problem(self):
-        problem = hologram_problem(self.hologram.value) or config_problem(self.config)
+        problem = hologram_problem(self.hologram.value) or config_problem(self.config) or effects_problem(self.known_effects)
         if problem:
             return problem
         size = self.tile.value or config_from(self.config).tile.size
@@ -46,14 +49,14 @@ class DiagnosisWidget(StepWidget):
     def prepare(self):
         settings = DiagnosisSettings(sim_tiles=self.sim_tiles.value, evaluations=self.evaluations.value, seed=self.seed.value)
         layer = self.hologram.value
-        return hologram_data(layer), config_from(self.config), self.tile.value or None, settings, Path(self.output.value), layer
+        return hologram_data(layer), config_from(self.config), self.tile.value or None, parsed_effects(self.known_effects), settings, Path(self.output.value), layer
 
     def work(self, job, *, progress, should_stop, report):
         from napari_lbs._core import diagnose_hologram, write_report
 
-        hologram, config, tile, settings, output, layer = job
-        diagnosis = diagnose_hologram(hologram, config, tile_px=tile, settings=settings, progress=progress, should_stop=should_stop)
-        write_report(diagnosis, output, provenance={"source": layer.name, "config": config.to_dict(), "seed": settings.seed})
+        hologram, config, tile, stated, settings, output, layer = job
+        diagnosis = diagnose_hologram(hologram, config, tile_px=tile, stated=stated, settings=settings, progress=progress, should_stop=should_stop)
+        write_report(diagnosis, output, provenance={"source": layer.name, "config": config.to_dict(), "seed": settings.seed, "stated": stated})
         return diagnosis, output, layer
 
     def show(self, outcome):

@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 from magicgui.widgets import ComboBox, LineEdit, SpinBox
 
-from napari_lbs._core import DatasetLayout, Distractors, InputError, InputProcessing, generate_dataset, parse_effect
+from napari_lbs._core import DatasetLayout, Distractors, InputProcessing, generate_dataset
 from napari_lbs._layers import UNITS, PlaneGrid
 from napari_lbs._widgets._backprop import CONFIG_TOOLTIP
-from napari_lbs._widgets._base import StepWidget, config_from, config_problem, doc_of, missing, output_problem, path_edit
+from napari_lbs._widgets._base import StepWidget, config_from, config_problem, doc_of, effects_problem, missing, output_problem, parsed_effects, path_edit
 
 __all__ = ["GenerateWidget"]
 
@@ -38,7 +38,7 @@ class GenerateWidget(StepWidget):
         super().__init__(napari_viewer, [self.config, self.calibration, self.groups, self.layout_kind, self.effects, self.impurities, self.neighbours_margin, self.seed, self.output])
 
     def problem(self):
-        return (missing(self.calibration, "calibration") or config_problem(self.config) or self._effects_problem() or self._impurities_problem()
+        return (missing(self.calibration, "calibration") or config_problem(self.config) or effects_problem(self.effects) or self._impurities_problem()
                 or output_problem(self.output, "data set folder", folder=True))
 
     def _impurities_problem(self) -> str | None:
@@ -47,25 +47,12 @@ class GenerateWidget(StepWidget):
             return f"impurities: they are {Distractors().impurity_diameter_min_um:g}-{largest_impurity:g} um, not smaller than the config's particles ({smallest:g} um); use 0"
         return None
 
-    def _effects_problem(self) -> str | None:
-        try:
-            self._parsed_effects()
-        except InputError as error:
-            return str(error)
-        return None
-
-    def _parsed_effects(self) -> dict:
-        effects = {}
-        for text in filter(None, (part.strip() for part in self.effects.value.split(";"))):
-            effects.update(parse_effect(text))
-        return effects
-
     def prepare(self):
         path = self.calibration.value
         calibration = json.loads(Path(path).read_text()) if path is not None else None
         processing = InputProcessing.from_calibration(calibration) if calibration else InputProcessing()
         layout = DatasetLayout(kind=self.layout_kind.value)
-        effects = self._parsed_effects()
+        effects = parsed_effects(self.effects)
         source = {"explicit": [part.strip() for part in self.effects.value.split(";") if part.strip()]} if effects else None
         distractors = Distractors(impurities_per_tile=self.impurities.value, neighbours_margin_px=self.neighbours_margin.value)
         return config_from(self.config), processing, layout, calibration, effects, source, distractors, self.groups.value, self.seed.value, Path(self.output.value)
