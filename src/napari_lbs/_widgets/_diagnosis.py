@@ -56,7 +56,7 @@ class DiagnosisWidget(StepWidget):
 
         hologram, config, tile, stated, settings, output, layer = job
         diagnosis = diagnose_hologram(hologram, config, tile_px=tile, stated=stated, settings=settings, progress=progress, should_stop=should_stop)
-        write_report(diagnosis, output, provenance={"source": layer.name, "config": config.to_dict(), "seed": settings.seed, "stated": stated})
+        write_report(diagnosis, output, provenance={"source": layer.name, "config": config.to_dict(), "seed": settings.seed})  # the report holds `stated`
         return diagnosis, output, layer
 
     def show(self, outcome):

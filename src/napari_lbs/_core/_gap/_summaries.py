@@ -163,8 +163,8 @@ def _tiles_summaries(
 ) -> tuple[np.ndarray, list[tuple[str, str]]]:
     """`tile_summaries` of several tiles, each with its own field mean and surroundings: ((tiles, K) array, names).
 
-    The tiles are summarised on a pool of threads, one per core: a diagnosis spends four
-    fifths of its time in summaries of simulated tiles (the real 1024² hologram: 154 of 204 s,
+    The tiles are summarised on a pool of threads, one per core: a diagnosis spends three
+    quarters of its time in summaries of simulated tiles (the real 1024² hologram: 154 of 204 s,
     docs/diagnosis.md, eighth pass), and their FFTs, sorts, filters and array arithmetic run
     without Python's global lock. Each tile's summary is computed as alone, so the result
     does not depend on the threads.

@@ -208,9 +208,10 @@ def _replicated_in_a_half(verdict: dict, per_half: list, *, baseline_gap: float)
     over, and with it what a small systematic misfit of the simulator (one that every
     Lorenz–Mie control shows, and that a flexible effect partly absorbs) adds up to: the
     suite's second 1024² control reached 71.9 of χ² for ``particle_phase`` with neither half
-    naming it (docs/diagnosis.md, eighth pass), while every effect the suites named rightly
-    was named by at least one half. A verdict that no single fit and its held-out tiles
-    support is not reported. ``per_half``: each half's verdict id (`_decision` on its own);
+    naming it (docs/diagnosis.md, eighth pass), while every effect the eighth pass's runs
+    named rightly was named by at least one half (earlier passes had a few seen only pooled:
+    the cost is that an effect too weak for either half goes unnamed). A verdict that no
+    single fit and its held-out tiles support is not reported. ``per_half``: each half's verdict id (`_decision` on its own);
     ``baseline_gap``: the pooled baseline gap (the residual when nothing is named).
     """
     if verdict["id"] is None or verdict["id"] in per_half:
