@@ -217,6 +217,28 @@ def test_high_band_peakedness_is_log2_for_any_white_noise_and_larger_for_aliased
     assert mixed < faint - 0.3
 
 
+def elasticity(tile):
+    values, names = tile_summaries(tile.astype(np.float32), config=CONFIG)
+    return values[[name for name, _ in names].index("noise variance's elasticity to the local intensity")]
+
+
+def test_noise_elasticity_is_1_for_photon_noise_0_for_read_noise_and_the_photon_share_between():
+    # light varying smoothly by ±40 % across the tile (fringes 40 px wide), so the noise alone is seen
+    rng = np.random.default_rng(11)
+    y, x = np.mgrid[:256, :256]
+    light = 1 + 0.4 * np.sin(2 * np.pi * x / 40) * np.cos(2 * np.pi * y / 57)
+    photons = 400.0
+    poisson = rng.poisson(light * photons) / photons
+    gaussian = light + rng.normal(0, 1 / np.sqrt(photons), light.shape)
+    assert abs(elasticity(poisson) - 1.0) < 0.15
+    assert abs(elasticity(gaussian)) < 0.15
+    # read noise of the photon noise's variance at the mean: half of the variance scales with the light
+    both = rng.poisson(light * photons) / photons + rng.normal(0, 1 / np.sqrt(photons), light.shape)
+    assert abs(elasticity(both) - 0.5) < 0.15
+    # a noiseless or flat tile has no slope to measure, and gives 0, never NaN
+    assert elasticity(light) == pytest.approx(0.0, abs=0.05) and elasticity(np.ones((64, 64))) == 0.0
+
+
 def pseudo_tiles(effects, *, count=8, seed=7, baseline=None):
     rng = np.random.default_rng(seed)
     tiles = []
