@@ -109,6 +109,10 @@ def test_only_an_alternative_with_evidence_of_its_own_on_the_same_summaries_can_
     evidence["beyond"][("best", "rival")] = (118.0, draws(118.0, 12.0))
     verdict = _decision(entries, evidence, baseline_gap=3.0, held_out=16, summaries=55)
     assert verdict["id"] == "best" and "rival also removes" in verdict["reason"], verdict["reason"]
+    # it clears the verdict's bar (40 of χ² ≥ 27.5, lower bound above 0): the fallback if the best is not replicated
+    assert verdict["also_present"] == ["rival"]
+    evidence["rival"] = {"summaries": 1, "reduction": 20.0, "draws": draws(20.0, 2.0)}
+    assert _decision(entries, evidence, baseline_gap=3.0, held_out=16, summaries=55)["also_present"] == []
 
 
 def small_model(count=4):
@@ -390,6 +394,24 @@ def test_a_pooled_verdict_stands_only_where_one_half_names_the_effect_on_its_own
     # where the second half's own tiles name it (z = 5 there), the pooled verdict stands
     verdict = _scored(_cross_fit_halves((2.5, 5.0)), ["effect", "refit"], settings=settings)["verdict"]
     assert verdict["id"] == "effect" and verdict["per_half"] == [None, "effect"], verdict["reason"]
+
+
+def test_an_unreplicated_best_gives_way_to_another_part_of_the_gap_that_a_half_names():
+    # pooled: photon noise best, the envelope another part of the gap; only the second half names
+    # anything, the envelope: the verdict is the envelope (the real hologram, ninth pass)
+    from napari_lbs._core._gap._verdict import _replicated_in_a_half
+
+    pooled = {"id": "shot_noise", "shrink": 0.14, "residual": 14.0, "interval": [0.1, 0.2], "runner_up": "illumination", "reason": "shot_noise removes ...", "also_present": ["illumination"]}
+    entries = [{"id": "shot_noise", "shrink": 0.14, "gap_after": 14.0, "shrink_interval": [0.1, 0.2]}, {"id": "illumination", "shrink": 0.13, "gap_after": 14.2, "shrink_interval": [0.08, 0.19]}]
+    verdict = _replicated_in_a_half(pooled, [None, "illumination"], baseline_gap=16.3, entries=entries)
+    assert (verdict["id"], verdict["runner_up"], verdict["residual"], verdict["interval"]) == ("illumination", "shot_noise", 14.2, [0.08, 0.19])
+    assert "neither half names shot_noise" in verdict["reason"]
+    # a half naming an effect the pooled evidence did not find present is no support for it
+    for per_half in ([None, None], ["coherence", None]):
+        verdict = _replicated_in_a_half(pooled, per_half, baseline_gap=16.3, entries=entries)
+        assert verdict["id"] is None and verdict["residual"] == 16.3 and verdict["reason"].startswith("not replicated")
+    # a replicated best stands
+    assert _replicated_in_a_half(pooled, ["shot_noise", "illumination"], baseline_gap=16.3, entries=entries)["id"] == "shot_noise"
 
 
 def test_a_cross_fits_resampling_keeps_each_halfs_share_of_the_tiles():

@@ -214,7 +214,7 @@ def _scored(halves: list, candidates: list, *, settings: DiagnosisSettings) -> d
     verdict = _decision([e for e in effects_report if e["confirmed"]], evidence, baseline_gap=baseline_gap, held_out=len(held_real), summaries=len(unit))
     if len(halves) > 1:
         # each half's verdict on its own held-out tiles: a pooled verdict neither supports is not given
-        verdict = _replicated_in_a_half(verdict, [_scored([h], candidates, settings=settings)["verdict"]["id"] for h in halves], baseline_gap=baseline_gap)
+        verdict = _replicated_in_a_half(verdict, [_scored([h], candidates, settings=settings)["verdict"]["id"] for h in halves], baseline_gap=baseline_gap, entries=effects_report)
     return {
         "effects": effects_report, "verdict": verdict, "baseline_gap": baseline_gap, "held_real": held_real,
         "baseline_interval": [float(v) for v in np.quantile(draws["baseline"], (0.05, 0.95))],

@@ -192,6 +192,8 @@ def _decision(entries: list, evidence: dict, *, baseline_gap: float, held_out: i
             )
             return verdict
     verdict.update({"id": best["id"], "shrink": best["shrink"], "residual": best["gap_after"], "interval": best["shrink_interval"]})
+    # the other parts of the gap that clear the same bar as the best: the verdict's fallback where only they are replicated (`_replicated_in_a_half`)
+    verdict["also_present"] = [e for e in present if evidence[e]["reduction"] >= needed and lower(evidence[e]["draws"]) > 0]
     rivals = ", ".join(e["id"] for e in credible if e["id"] not in present)
     if present:
         also = f"; {', '.join(present)} also removes χ², but leaves what {best['id']} removes on its own summaries: another part of the gap (see the waterfall)"
@@ -201,7 +203,7 @@ def _decision(entries: list, evidence: dict, *, baseline_gap: float, held_out: i
     return verdict
 
 
-def _replicated_in_a_half(verdict: dict, per_half: list, *, baseline_gap: float) -> dict:
+def _replicated_in_a_half(verdict: dict, per_half: list, *, baseline_gap: float, entries: list) -> dict:
     """The pooled verdict of a cross-fit, kept only where at least one half names the same effect on its own.
 
     Pooling the two held-out halves doubles the tiles an effect's χ² reduction is summed
@@ -211,12 +213,29 @@ def _replicated_in_a_half(verdict: dict, per_half: list, *, baseline_gap: float)
     naming it (docs/diagnosis.md, eighth pass), while every effect the eighth pass's runs
     named rightly was named by at least one half (earlier passes had a few seen only pooled:
     the cost is that an effect too weak for either half goes unnamed). A verdict that no
-    single fit and its held-out tiles support is not reported. ``per_half``: each half's verdict id (`_decision` on its own);
-    ``baseline_gap``: the pooled baseline gap (the residual when nothing is named).
+    single fit and its held-out tiles support is not reported.
+
+    Where the pooled decision found another part of the gap besides its best effect (``also_present``:
+    an effect that clears the same bar and removes what the best's refit leaves), and a half
+    names that one, it is the verdict: both the pooled and a single fit's evidence support it
+    (the real hologram, ninth pass: photon noise pooled, unreplicated; the beam's envelope,
+    present pooled and named by the second half).
+
+    ``per_half``: each half's verdict id (`_decision` on its own); ``baseline_gap``: the
+    pooled baseline gap (the residual when nothing is named); ``entries``: the pooled report
+    entries of the effects (``shrink``, ``gap_after``, ``shrink_interval``).
     """
     if verdict["id"] is None or verdict["id"] in per_half:
         return {**verdict, "per_half": list(per_half)}
     halves = ", ".join(v or "nothing" for v in per_half)
+    replicated = next((e for e in entries if e["id"] in verdict.get("also_present", ()) and e["id"] in per_half), None)
+    if replicated is not None:
+        return {
+            **verdict, "id": replicated["id"], "shrink": replicated["shrink"], "residual": replicated["gap_after"], "interval": replicated["shrink_interval"],
+            "runner_up": verdict["id"], "per_half": list(per_half),
+            "reason": f"{replicated['id']}, named by a half on its own, is another part of the gap pooled over both halves: {verdict['reason']}; "
+                      f"but neither half names {verdict['id']} on its own held-out tiles (each half: {halves})",
+        }
     return {
         **verdict, "id": None, "shrink": 0.0, "residual": float(baseline_gap), "interval": [0.0, 0.0], "runner_up": verdict["id"], "per_half": list(per_half),
         "reason": f"not replicated: pooled over both halves {verdict['reason']}, but neither half names {verdict['id']} on its own held-out tiles (each half: {halves})",
