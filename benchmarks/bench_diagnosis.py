@@ -478,6 +478,27 @@ def threads(repeats: int) -> None:
     print(json.dumps({"workers": pool._max_workers, "seconds per evaluation": median, "speed-up": round(median["one thread"] / median["pool"], 2), "identical": bool(np.array_equal(results["pool"], results["one thread"]))}))
 
 
+def noise(scenes: int, photons: float) -> None:
+    """How far each noise summary tells photon noise from read noise of the same variance: the same 512² absorbing scenes, 16 tiles of 128², z of the difference of means."""
+    from napari_lbs._core._gap._summaries import tile_summaries
+    from napari_lbs._core._gap._tiling import field_surroundings
+
+    def summaries(counts: np.ndarray) -> tuple[np.ndarray, list]:
+        counts = counts.astype(np.float32)
+        rows = [tile_summaries(counts[r : r + 128, c : c + 128], config=CONFIG, field_mean=float(counts.mean()), surroundings=field_surroundings(counts, (r, c), (128, 128))) for r in range(0, 512, 128) for c in range(0, 512, 128)]
+        return np.array([values for values, _ in rows]), rows[0][1]
+
+    print(f"{photons:g} photons at the mean level against Gaussian read noise of the same variance, {scenes} scenes: z per noise summary")
+    for seed in range(scenes):
+        scene = _absorbing_scene(None, MIE_SIZE, np.random.default_rng([seed, 3]))
+        rng = np.random.default_rng([seed, 4])
+        poisson = np.clip(np.round(rng.poisson(scene * photons) / photons * ABSORBING_LEVEL + rng.normal(0.0, MIE_READ_NOISE, scene.shape)), 0, 255)
+        gaussian = absorbing_camera(scene, None, rng, read_noise=float(np.hypot(MIE_READ_NOISE, ABSORBING_LEVEL / np.sqrt(photons))))
+        (shot, names), (read, _) = summaries(poisson), summaries(gaussian)
+        z = (shot.mean(axis=0) - read.mean(axis=0)) / (shot.std(axis=0, ddof=1) * np.sqrt(2 / len(shot)) + 1e-12)
+        print(json.dumps({"scene": seed, **{name: round(float(value), 1) for value, (name, group) in zip(z, names, strict=True) if group == "noise"}}))
+
+
 def signature(case: str, size: int, scenes: int, top: int) -> None:
     from napari_lbs._core._gap._summaries import tile_summaries
     from napari_lbs._core._gap._tiling import adapted_tile_px, field_surroundings
@@ -557,6 +578,9 @@ def main() -> None:
     p.add_argument("--scenes", type=int, default=4)
     p.add_argument("--top", type=int, default=12)
     sub.add_parser("real")
+    p = sub.add_parser("noise", help="photon against read noise of the same variance: each noise summary's z")
+    p.add_argument("--scenes", type=int, default=4)
+    p.add_argument("--photons", type=float, default=120.0)
     p = sub.add_parser("threads")
     p.add_argument("--repeats", type=int, default=15)
     args = parser.parse_args()
@@ -572,6 +596,8 @@ def main() -> None:
         rescore(args.folder)
     elif args.command == "signature":
         signature(args.case, args.size, args.scenes, args.top)
+    elif args.command == "noise":
+        noise(args.scenes, args.photons)
     elif args.command == "threads":
         threads(args.repeats)
     else:

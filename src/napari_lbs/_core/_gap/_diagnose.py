@@ -215,6 +215,7 @@ def _scored(halves: list, candidates: list, *, settings: DiagnosisSettings) -> d
     if len(halves) > 1:
         # each half's verdict on its own held-out tiles: a pooled verdict neither supports is not given
         verdict = _replicated_in_a_half(verdict, [_scored([h], candidates, settings=settings)["verdict"]["id"] for h in halves], baseline_gap=baseline_gap, entries=effects_report)
+    verdict.pop("also_present", None)  # the replication's input; the reason and the waterfall tell the user the other parts
     return {
         "effects": effects_report, "verdict": verdict, "baseline_gap": baseline_gap, "held_real": held_real,
         "baseline_interval": [float(v) for v in np.quantile(draws["baseline"], (0.05, 0.95))],
