@@ -198,13 +198,13 @@ def _noise_elasticity(image: np.ndarray) -> float:
     """d ln(noise variance) / d ln(intensity) over a tile: 1 for photon noise, 0 for read noise.
 
     Every pixel's noise is measured by the second difference of its 2 × 2 block,
-    ``d = (x₀₀ − x₀₁ − x₁₀ + x₁₁) / 2`` (the variance of one pixel's white noise; smooth light,
-    up to a tilt, cancels), and regressed, ``d²`` on the block's local mean intensity ``m``
+    ``d = (x₀₀ − x₀₁ − x₁₀ + x₁₁) / 2`` (whose variance is one pixel's white-noise variance;
+    smooth light, up to a tilt, cancels), and regressed, ``d²`` on the block's local mean intensity ``m``
     (a 6-px window), by least squares over the whole tile: elasticity = slope · mean(m) /
     mean(d²). Every pixel's fringe-scale brightness is leverage, where 16-px block means
     (the summary this replaced) average the fringes away: on the absorbing suite's scenes
     at 120 photons, 16 tiles of 128² tell Poisson from Gaussian noise of the same variance
-    at z = 9–17, against 4–7 for the blocks (docs/diagnosis.md, ninth pass). Fine fringes
+    at z = 9–18, against 4–7 for the blocks (docs/diagnosis.md, ninth pass). Fine fringes
     leak into ``d`` alike in real and simulated tiles.
     """
     d = 0.5 * (image[:-1, :-1] - image[:-1, 1:] - image[1:, :-1] + image[1:, 1:])

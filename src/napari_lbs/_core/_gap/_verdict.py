@@ -151,7 +151,8 @@ def _decision(entries: list, evidence: dict, *, baseline_gap: float, held_out: i
     the alternative explains another part of the gap: on the best effect's own summaries the
     alternative's refit leaves χ² that the best removes (lower bound above 0). Then both
     are present (a transparent sphere's high band and a beam's envelope), the best is named
-    and the waterfall adds the other. Bounds are one-sided at 95 %,
+    and the waterfall adds the other (``also_present``: those of them that clear the bar (a),
+    for `_replicated_in_a_half`). Bounds are one-sided at 95 %,
     Bonferroni-corrected for the number of effects compared (the best of several is picked).
     The runner-up is the strongest credible alternative (else the second ranked).
     ``tiles_to_decide``: held-out tiles at which the weakest margin would reach its bound,
