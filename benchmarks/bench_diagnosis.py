@@ -481,11 +481,14 @@ def threads(repeats: int) -> None:
 def noise(scenes: int, photons: float) -> None:
     """How far each noise summary tells photon noise from read noise of the same variance: the same 512² absorbing scenes, 16 tiles of 128², z of the difference of means."""
     from napari_lbs._core._gap._summaries import tile_summaries
-    from napari_lbs._core._gap._tiling import field_surroundings
+    from napari_lbs._core._gap._tiling import adapted_tile_px, field_surroundings
+
+    tile = adapted_tile_px((MIE_SIZE, MIE_SIZE), CONFIG.tile.size)  # as `diagnose` cuts the hologram: 16 tiles
 
     def summaries(counts: np.ndarray) -> tuple[np.ndarray, list]:
         counts = counts.astype(np.float32)
-        rows = [tile_summaries(counts[r : r + 128, c : c + 128], config=CONFIG, field_mean=float(counts.mean()), surroundings=field_surroundings(counts, (r, c), (128, 128))) for r in range(0, 512, 128) for c in range(0, 512, 128)]
+        rows = [tile_summaries(counts[r : r + tile, c : c + tile], config=CONFIG, field_mean=float(counts.mean()), surroundings=field_surroundings(counts, (r, c), (tile, tile)))
+                for r in range(0, MIE_SIZE - tile + 1, tile) for c in range(0, MIE_SIZE - tile + 1, tile)]
         return np.array([values for values, _ in rows]), rows[0][1]
 
     print(f"{photons:g} photons at the mean level against Gaussian read noise of the same variance, {scenes} scenes: z per noise summary")

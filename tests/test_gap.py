@@ -235,8 +235,8 @@ def test_noise_elasticity_is_1_for_photon_noise_0_for_read_noise_and_the_photon_
     # read noise of the photon noise's variance at the mean: half of the variance scales with the light
     both = rng.poisson(light * photons) / photons + rng.normal(0, 1 / np.sqrt(photons), light.shape)
     assert abs(elasticity(both) - 0.5) < 0.15
-    # a noiseless or flat tile has no slope to measure, and gives 0, never NaN
-    assert elasticity(light) == pytest.approx(0.0, abs=0.05) and elasticity(np.ones((64, 64))) == 0.0
+    # a flat tile has no slope to measure: 0, never NaN
+    assert elasticity(np.ones((64, 64))) == 0.0
 
 
 def pseudo_tiles(effects, *, count=8, seed=7, baseline=None):

@@ -110,7 +110,18 @@ def test_only_an_alternative_with_evidence_of_its_own_on_the_same_summaries_can_
     verdict = _decision(entries, evidence, baseline_gap=3.0, held_out=16, summaries=55)
     assert verdict["id"] == "best" and "rival also removes" in verdict["reason"], verdict["reason"]
     # it clears the verdict's bar (40 of χ² ≥ 27.5, lower bound above 0): the fallback if the best is not replicated
-    assert verdict["also_present"] == ["rival"]
+    assert [o["id"] for o in verdict["also_present"]] == ["rival"] and verdict["also_present"][0]["tiles_to_decide"] >= 1
+    # not where a third credible effect is indistinguishable from it (neither leads, neither stands beside the other)
+    entries.append({"id": "third", "gap_after": 0.5, "shrink": 0.8, "shrink_interval": [0.5, 1.0]})
+    evidence["third"] = {"summaries": 2, "reduction": 35.0, "draws": draws(35.0, 5.0)}
+    for a, b, lead in (("best", "third", 85.0), ("rival", "third", 5.0)):
+        evidence["leads"][(a, b)], evidence["leads"][(b, a)] = (lead, draws(lead, 10.0)), (-lead, draws(-lead, 10.0))
+        evidence["beyond"][(a, b)], evidence["beyond"][(b, a)] = (0.0, draws(0.0, 5.0)), (0.0, draws(0.0, 5.0))
+    verdict = _decision(entries, evidence, baseline_gap=3.0, held_out=16, summaries=55)
+    assert verdict["id"] == "best" and verdict["also_present"] == [], verdict["reason"]
+    evidence["leads"][("rival", "third")] = (40.0, draws(40.0, 5.0))  # it leads the third: passes again
+    assert [o["id"] for o in _decision(entries, evidence, baseline_gap=3.0, held_out=16, summaries=55)["also_present"]] == ["rival"]
+    # nor where it removes less than the bar
     evidence["rival"] = {"summaries": 1, "reduction": 20.0, "draws": draws(20.0, 2.0)}
     assert _decision(entries, evidence, baseline_gap=3.0, held_out=16, summaries=55)["also_present"] == []
 
@@ -308,6 +319,7 @@ def test_report_json_never_holds_nan(tmp_path):
     # identical tiles: every spread is at its floor and the baseline gap can be 0 (shrinks 0/0)
     tile = sensor_image(np.ones((64, 64), np.float32), TRUTH, {}, noise=rng.standard_normal((64, 64)).astype(np.float32))
     diagnosis = diagnose_tiles([tile] * 4, CONFIG, settings=DiagnosisSettings(sim_tiles=2, evaluations=8, confirm=1, resamples=100), particles_per_tile=1)
+    assert "also_present" not in diagnosis.report["verdict"]  # the replication's input, not a report field
     diagnosis.report["effects"][0]["shrink"] = float("nan")  # whatever a computation leaves, the file stays strict JSON
     write_report(diagnosis, tmp_path / "r")
     text = (tmp_path / "r" / "report.json").read_text()
@@ -401,11 +413,12 @@ def test_an_unreplicated_best_gives_way_to_another_part_of_the_gap_that_a_half_n
     # anything, the envelope: the verdict is the envelope (the real hologram, ninth pass)
     from napari_lbs._core._gap._verdict import _replicated_in_a_half
 
-    pooled = {"id": "shot_noise", "shrink": 0.14, "residual": 14.0, "interval": [0.1, 0.2], "runner_up": "illumination", "reason": "shot_noise removes ...", "also_present": ["illumination"]}
+    pooled = {"id": "shot_noise", "shrink": 0.14, "residual": 14.0, "interval": [0.1, 0.2], "runner_up": "illumination", "reason": "shot_noise removes ...", "tiles_to_decide": 8,
+              "also_present": [{"id": "illumination", "reduction": 90.0, "lower": 40.0, "summaries": 9, "tiles_to_decide": 12}]}
     entries = [{"id": "shot_noise", "shrink": 0.14, "gap_after": 14.0, "shrink_interval": [0.1, 0.2]}, {"id": "illumination", "shrink": 0.13, "gap_after": 14.2, "shrink_interval": [0.08, 0.19]}]
     verdict = _replicated_in_a_half(pooled, [None, "illumination"], baseline_gap=16.3, entries=entries)
-    assert (verdict["id"], verdict["runner_up"], verdict["residual"], verdict["interval"]) == ("illumination", "shot_noise", 14.2, [0.08, 0.19])
-    assert "neither half names shot_noise" in verdict["reason"]
+    assert (verdict["id"], verdict["runner_up"], verdict["residual"], verdict["interval"], verdict["tiles_to_decide"]) == ("illumination", "shot_noise", 14.2, [0.08, 0.19], 12)
+    assert "illumination removes 90.0" in verdict["reason"] and "the second half names it" in verdict["reason"] and "neither half names it" in verdict["reason"]
     # a half naming an effect the pooled evidence did not find present is no support for it
     for per_half in ([None, None], ["coherence", None]):
         verdict = _replicated_in_a_half(pooled, per_half, baseline_gap=16.3, entries=entries)

@@ -168,8 +168,9 @@ def _scored(halves: list, candidates: list, *, settings: DiagnosisSettings) -> d
 
     Each half's held-out tiles and simulations are put in its own spreads (its fringe
     frequency, and so its summaries, are its own): z units, pooled over the halves; with two
-    halves, the pooled verdict stands only where one half's own names it too (`_replicated_in_a_half`;
-    each half's in ``verdict["per_half"]``). Returns ``effects``, ``verdict``,
+    halves, the pooled verdict stands only where one half's own names it too, else another part
+    of the gap that a half names, else none (`_replicated_in_a_half`; each half's in
+    ``verdict["per_half"]``). Returns ``effects``, ``verdict``,
     ``baseline_gap``, ``baseline_interval`` and ``held_real`` (the pooled held-out summaries,
     in z units).
     """
@@ -215,7 +216,7 @@ def _scored(halves: list, candidates: list, *, settings: DiagnosisSettings) -> d
     if len(halves) > 1:
         # each half's verdict on its own held-out tiles: a pooled verdict neither supports is not given
         verdict = _replicated_in_a_half(verdict, [_scored([h], candidates, settings=settings)["verdict"]["id"] for h in halves], baseline_gap=baseline_gap, entries=effects_report)
-    verdict.pop("also_present", None)  # the replication's input; the reason and the waterfall tell the user the other parts
+    verdict.pop("also_present", None)  # the replication's input; the reason tells the user the other parts
     return {
         "effects": effects_report, "verdict": verdict, "baseline_gap": baseline_gap, "held_real": held_real,
         "baseline_interval": [float(v) for v in np.quantile(draws["baseline"], (0.05, 0.95))],

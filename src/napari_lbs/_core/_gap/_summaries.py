@@ -191,32 +191,35 @@ def _summary_pool() -> ThreadPoolExecutor:
     return _POOL[pid]
 
 
-_ELASTICITY_WINDOW_PX = 6
+_ELASTICITY_WINDOW_PX = 6  # even: after the one-pixel shift below, the window is centred on a 2 × 2 block's centre
 
 
 def _noise_elasticity(image: np.ndarray) -> float:
-    """d ln(noise variance) / d ln(intensity) over a tile: 1 for photon noise, 0 for read noise.
+    """d ln(noise variance) / d ln(intensity) over a tile (dimensionless): 1 for photon noise, 0 for read noise.
+
+    ``image``: the 2-D tile divided by its mean (float32).
 
     Every pixel's noise is measured by the second difference of its 2 × 2 block,
     ``d = (x₀₀ − x₀₁ − x₁₀ + x₁₁) / 2`` (whose variance is one pixel's white-noise variance;
-    smooth light, up to a tilt, cancels), and regressed, ``d²`` on the block's local mean intensity ``m``
-    (a 6-px window), by least squares over the whole tile: elasticity = slope · mean(m) /
-    mean(d²). Every pixel's fringe-scale brightness is leverage, where 16-px block means
-    (the summary this replaced) average the fringes away: on the absorbing suite's scenes
-    at 120 photons, 16 tiles of 128² tell Poisson from Gaussian noise of the same variance
-    at z = 9–18, against 4–7 for the blocks (docs/diagnosis.md, ninth pass). Where the noise
-    is small against fine fringes, their leak into ``d`` sets the value (0.9–1.2 in that
-    suite's controls, read noise 1 % of the light), alike in real and simulated tiles of
-    the same fringes: the summary tells the noises apart where noise dominates ``d``.
+    smooth light, up to a tilt, cancels), and ``d²`` is regressed on the block's local mean
+    intensity ``m`` (a 6-px window) by least squares over the whole tile: elasticity =
+    slope · mean(m) / mean(d²). Every pixel's fringe-scale brightness is leverage, where the
+    16-px block means of the summary this replaced averaged the fringes away: on the
+    absorbing suite's scenes at 120 photons, 16 tiles of 128² tell Poisson from Gaussian
+    noise of the same variance at z = 10–18 (`bench_diagnosis.py noise`), where the blocks
+    gave 4–7 (docs/diagnosis.md, ninth pass). Where the noise is small against fine
+    fringes, their leak into ``d`` sets the value (0.9–1.2 in that suite's controls, read
+    noise 1 % of the light), alike in real and simulated tiles of the same fringes: the
+    summary tells the noises apart where noise dominates ``d``.
     """
     d = 0.5 * (image[:-1, :-1] - image[:-1, 1:] - image[1:, :-1] + image[1:, 1:])
     squared = (d * d).astype(np.float64)
-    local = ndimage.uniform_filter(image, _ELASTICITY_WINDOW_PX)[1:, 1:].astype(np.float64)  # centred half a pixel from the block, as d
+    local = ndimage.uniform_filter(image, _ELASTICITY_WINDOW_PX)[1:, 1:].astype(np.float64)  # pixels j-2 … j+3: centred on the block's centre, as d
     centred = local - local.mean()
-    leverage = float(np.sum(centred * centred))
-    if leverage <= 0.0 or squared.mean() <= 0.0:  # a flat or noiseless tile: no slope to measure
+    local_sum_of_squares = float(np.sum(centred * centred))
+    if local_sum_of_squares <= 0.0 or squared.mean() <= 0.0:  # a flat tile, or one whose 2 × 2 differences all vanish: no slope to measure
         return 0.0
-    return float(np.sum(centred * squared) / leverage * local.mean() / squared.mean())
+    return float(np.sum(centred * squared) / local_sum_of_squares * local.mean() / squared.mean())
 
 
 _PEAKEDNESS_BLOCK_PX = 32

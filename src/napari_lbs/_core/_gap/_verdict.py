@@ -173,10 +173,7 @@ def _decision(entries: list, evidence: dict, *, baseline_gap: float, held_out: i
     # an alternative the best does not lead, but which leaves on the best's own summaries what the best removes, explains another part of the gap
     present = [e["id"] for e, (_, samples) in leads if lower(samples) <= 0 and lower(evidence["beyond"][(best["id"], e["id"])][1]) > 0]
     leads = [(e, lead) for e, lead in leads if e["id"] not in present]
-    margins = [(own["reduction"], own["draws"])] + [lead for _, lead in leads]
-    ratios = [point / max(float(np.std(samples)), 1e-12) for point, samples in margins]
-    tiles = [int(np.ceil(held_out * (z_needed / ratio) ** 2)) if ratio > 0 else None for ratio in ratios]
-    tiles_to_decide = None if None in tiles else max(tiles)
+    tiles_to_decide = _tiles_to_decide([(own["reduction"], own["draws"])] + [lead for _, lead in leads], held_out=held_out, z_needed=z_needed)
     verdict.update({"runner_up": runner["id"] if runner else None, "tiles_to_decide": tiles_to_decide})
     needed = _VERDICT_MIN_REDUCTION * summaries
     low_reduction = lower(own["draws"])
@@ -193,8 +190,17 @@ def _decision(entries: list, evidence: dict, *, baseline_gap: float, held_out: i
             )
             return verdict
     verdict.update({"id": best["id"], "shrink": best["shrink"], "residual": best["gap_after"], "interval": best["shrink_interval"]})
-    # the other parts of the gap that clear the same bar as the best: the verdict's fallback where only they are replicated (`_replicated_in_a_half`)
-    verdict["also_present"] = [e for e in present if evidence[e]["reduction"] >= needed and lower(evidence[e]["draws"]) > 0]
+    # the other parts of the gap that pass the best's own tests (the bar; a lead over, or presence beside, every other credible
+    # effect): the verdict's fallback where only they are replicated (`_replicated_in_a_half`)
+    verdict["also_present"] = []
+    for other in present:
+        rivals_of_other = [e["id"] for e in credible if e["id"] != other]
+        margins_of_other = [evidence["leads"][(other, e)] for e in rivals_of_other if lower(evidence["beyond"][(other, e)][1]) <= 0]
+        if evidence[other]["reduction"] >= needed and all(lower(samples) > 0 for _, samples in margins_of_other):
+            verdict["also_present"].append({
+                "id": other, "reduction": evidence[other]["reduction"], "lower": lower(evidence[other]["draws"]), "summaries": evidence[other]["summaries"],
+                "tiles_to_decide": _tiles_to_decide([(evidence[other]["reduction"], evidence[other]["draws"])] + margins_of_other, held_out=held_out, z_needed=z_needed),
+            })
     rivals = ", ".join(e["id"] for e in credible if e["id"] not in present)
     if present:
         also = f"; {', '.join(present)} also removes χ², but leaves what {best['id']} removes on its own summaries: another part of the gap (see the waterfall)"
@@ -204,8 +210,15 @@ def _decision(entries: list, evidence: dict, *, baseline_gap: float, held_out: i
     return verdict
 
 
+def _tiles_to_decide(margins: list, *, held_out: int, z_needed: float) -> int | None:
+    """Held-out tiles at which the weakest of the margins ((point, bootstrap draws) pairs) would reach ``z_needed``, if margin / error grows as sqrt(tiles); None where one is not positive."""
+    ratios = [point / max(float(np.std(samples)), 1e-12) for point, samples in margins]
+    tiles = [int(np.ceil(held_out * (z_needed / ratio) ** 2)) if ratio > 0 else None for ratio in ratios]
+    return None if None in tiles else max(tiles)
+
+
 def _replicated_in_a_half(verdict: dict, per_half: list, *, baseline_gap: float, entries: list) -> dict:
-    """The pooled verdict of a cross-fit, kept only where at least one half names the same effect on its own.
+    """The pooled verdict of a cross-fit, kept only where at least one half names it (or, failing that, another part of the gap) on its own.
 
     Pooling the two held-out halves doubles the tiles an effect's χ² reduction is summed
     over, and with it what a small systematic misfit of the simulator (one that every
@@ -216,11 +229,12 @@ def _replicated_in_a_half(verdict: dict, per_half: list, *, baseline_gap: float,
     the cost is that an effect too weak for either half goes unnamed). A verdict that no
     single fit and its held-out tiles support is not reported.
 
-    Where the pooled decision found another part of the gap besides its best effect (``also_present``:
-    an effect that clears the same bar and removes what the best's refit leaves), and a half
-    names that one, it is the verdict: both the pooled and a single fit's evidence support it
-    (the real hologram, ninth pass: photon noise pooled, unreplicated; the beam's envelope,
-    present pooled and named by the second half).
+    Where the pooled decision found another part of the gap besides its best effect
+    (``also_present``: an effect that removes what the best's refit leaves, clears the same
+    bar, and leads or stands beside every other credible effect), and a half names that one,
+    it is the verdict: both the pooled and a single fit's evidence support it (the real
+    hologram, ninth pass: photon noise pooled, unreplicated; the beam's envelope, present
+    pooled and named by the second half). Its ``tiles_to_decide`` is its own.
 
     ``per_half``: each half's verdict id (`_decision` on its own); ``baseline_gap``: the
     pooled baseline gap (the residual when nothing is named); ``entries``: the pooled report
@@ -229,13 +243,16 @@ def _replicated_in_a_half(verdict: dict, per_half: list, *, baseline_gap: float,
     if verdict["id"] is None or verdict["id"] in per_half:
         return {**verdict, "per_half": list(per_half)}
     halves = ", ".join(v or "nothing" for v in per_half)
-    replicated = next((e for e in entries if e["id"] in verdict.get("also_present", ()) and e["id"] in per_half), None)
-    if replicated is not None:
+    other = next((o for o in verdict.get("also_present", ()) if o["id"] in per_half), None)
+    if other is not None:
+        entry = next(e for e in entries if e["id"] == other["id"])
+        which = " and ".join(("first", "second")[i] for i, v in enumerate(per_half) if v == other["id"])
         return {
-            **verdict, "id": replicated["id"], "shrink": replicated["shrink"], "residual": replicated["gap_after"], "interval": replicated["shrink_interval"],
-            "runner_up": verdict["id"], "per_half": list(per_half),
-            "reason": f"{replicated['id']}, named by a half on its own, is another part of the gap pooled over both halves: {verdict['reason']}; "
-                      f"but neither half names {verdict['id']} on its own held-out tiles (each half: {halves})",
+            **verdict, "id": other["id"], "shrink": entry["shrink"], "residual": entry["gap_after"], "interval": entry["shrink_interval"],
+            "runner_up": verdict["id"], "per_half": list(per_half), "tiles_to_decide": other["tiles_to_decide"],
+            "reason": f"{other['id']} removes {other['reduction']:.1f} of χ² on its {other['summaries']} summaries (lower bound {other['lower']:.1f}) pooled over both halves, "
+                      f"another part of the gap than {verdict['id']}, and the {which} half names it on its own; {verdict['id']} removes more pooled, "
+                      f"but neither half names it on its own held-out tiles (each half: {halves}). Pooled: {verdict['reason']}",
         }
     return {
         **verdict, "id": None, "shrink": 0.0, "residual": float(baseline_gap), "interval": [0.0, 0.0], "runner_up": verdict["id"], "per_half": list(per_half),
