@@ -74,7 +74,7 @@ from napari_lbs._core import (
     diagnose_hologram,
     diagnose_tiles,
     load_config,
-    parse_effect,
+    parse_effects,
     load_sample_hologram,
     optical_hologram,
     random_particle_field,
@@ -358,8 +358,8 @@ def _absorbing_scene(case: str | None, size: int, rng: np.random.Generator) -> n
     return pseudoreal.mie_intensity(shape, x, y, z, d, index)
 
 
-def absorbing_camera(intensity: np.ndarray, case: str | None, rng: np.random.Generator, *, read_noise: float = MIE_READ_NOISE) -> np.ndarray:
-    """The third suite's camera, with its sensor-side withheld effect (the design comment above `ABSORBING_DESIGN`)."""
+def absorbing_camera(intensity: np.ndarray, case: str | None, rng: np.random.Generator, *, read_noise: float = MIE_READ_NOISE, photons: float = 120.0) -> np.ndarray:
+    """The third suite's camera, with its sensor-side withheld effect (the design comment above `ABSORBING_DESIGN`; ``photons``: at the mean level for ``shot_noise``)."""
     rows, cols = intensity.shape
     image = intensity.astype(np.float64)
     yy, xx = np.mgrid[0:rows, 0:cols] / max(rows, cols)
@@ -372,7 +372,7 @@ def absorbing_camera(intensity: np.ndarray, case: str | None, rng: np.random.Gen
         kernel = np.array([[0.02, 0.08, 0.02], [0.08, 0.6, 0.08], [0.02, 0.08, 0.02]])
         image = ndimage.convolve(image, kernel, mode="reflect")
     if case == "shot_noise":
-        image = rng.poisson(image * 120.0) / 120.0
+        image = rng.poisson(image * photons) / photons
     counts = image * ABSORBING_LEVEL + rng.normal(0.0, read_noise, image.shape)
     if case == "quantization":
         return (np.clip(np.round(counts / 4.0), 0, 63) * 4).astype(np.uint8)
@@ -478,45 +478,41 @@ def threads(repeats: int) -> None:
     print(json.dumps({"workers": pool._max_workers, "seconds per evaluation": median, "speed-up": round(median["one thread"] / median["pool"], 2), "identical": bool(np.array_equal(results["pool"], results["one thread"]))}))
 
 
-def noise(scenes: int, photons: float) -> None:
-    """How far each noise summary tells photon noise from read noise of the same variance: the same 512² absorbing scenes, 16 tiles of 128², z of the difference of means."""
+def _field_summaries(counts: np.ndarray) -> tuple[np.ndarray, list]:
+    """Each tile's `tile_summaries` of a hologram cut as `diagnose` cuts it (its field mean and surroundings): ((tiles, K) array, names)."""
     from napari_lbs._core._gap._summaries import tile_summaries
     from napari_lbs._core._gap._tiling import adapted_tile_px, field_surroundings
 
-    tile = adapted_tile_px((MIE_SIZE, MIE_SIZE), CONFIG.tile.size)  # as `diagnose` cuts the hologram: 16 tiles
+    counts = counts.astype(np.float32)
+    tile = adapted_tile_px(counts.shape, CONFIG.tile.size)
+    rows = [tile_summaries(counts[r : r + tile, c : c + tile], config=CONFIG, field_mean=float(counts.mean()), surroundings=field_surroundings(counts, (r, c), (tile, tile)))
+            for r in range(0, counts.shape[0] - tile + 1, tile) for c in range(0, counts.shape[1] - tile + 1, tile)]
+    return np.array([values for values, _ in rows]), rows[0][1]
 
-    def summaries(counts: np.ndarray) -> tuple[np.ndarray, list]:
-        counts = counts.astype(np.float32)
-        rows = [tile_summaries(counts[r : r + tile, c : c + tile], config=CONFIG, field_mean=float(counts.mean()), surroundings=field_surroundings(counts, (r, c), (tile, tile)))
-                for r in range(0, MIE_SIZE - tile + 1, tile) for c in range(0, MIE_SIZE - tile + 1, tile)]
-        return np.array([values for values, _ in rows]), rows[0][1]
 
+def noise(scenes: int, photons: float) -> None:
+    """How far each noise summary tells photon noise from read noise of the same variance: the same 512² absorbing scenes, 16 tiles of 128², z of the difference of means."""
     print(f"{photons:g} photons at the mean level against Gaussian read noise of the same variance, {scenes} scenes: z per noise summary")
     for seed in range(scenes):
         scene = _absorbing_scene(None, MIE_SIZE, np.random.default_rng([seed, 3]))
         rng = np.random.default_rng([seed, 4])
-        poisson = np.clip(np.round(rng.poisson(scene * photons) / photons * ABSORBING_LEVEL + rng.normal(0.0, MIE_READ_NOISE, scene.shape)), 0, 255)
+        poisson = absorbing_camera(scene, "shot_noise", rng, photons=photons)
         gaussian = absorbing_camera(scene, None, rng, read_noise=float(np.hypot(MIE_READ_NOISE, ABSORBING_LEVEL / np.sqrt(photons))))
-        (shot, names), (read, _) = summaries(poisson), summaries(gaussian)
+        (shot, names), (read, _) = _field_summaries(poisson), _field_summaries(gaussian)
         z = (shot.mean(axis=0) - read.mean(axis=0)) / (shot.std(axis=0, ddof=1) * np.sqrt(2 / len(shot)) + 1e-12)
         print(json.dumps({"scene": seed, **{name: round(float(value), 1) for value, (name, group) in zip(z, names, strict=True) if group == "noise"}}))
 
 
 def signature(case: str, size: int, scenes: int, top: int) -> None:
-    from napari_lbs._core._gap._summaries import tile_summaries
-    from napari_lbs._core._gap._tiling import adapted_tile_px, field_surroundings
+    from napari_lbs._core._gap._tiling import adapted_tile_px
 
     if case not in {c for c, _, _ in ABSORBING_DESIGN if c}:
         raise SystemExit(f"signature: unknown case {case!r}")
     tile = adapted_tile_px((size, size), CONFIG.tile.size)
-    origins = [(r, c) for r in range(0, size - tile + 1, tile) for c in range(0, size - tile + 1, tile)]
 
     def summaries(withheld: str | None, seed: int, read_noise: float) -> tuple[np.ndarray, list]:
         scene = _absorbing_scene(withheld, size, np.random.default_rng([seed, 1]))  # the same spheres with and without
-        counts = absorbing_camera(scene, withheld, np.random.default_rng([seed, 2]), read_noise=read_noise).astype(np.float32)  # the same noise
-        field_mean = float(counts.mean())
-        rows = [tile_summaries(counts[r : r + tile, c : c + tile], config=CONFIG, field_mean=field_mean, surroundings=field_surroundings(counts, (r, c), (tile, tile))) for r, c in origins]
-        return np.array([values for values, _ in rows]), rows[0][1]
+        return _field_summaries(absorbing_camera(scene, withheld, np.random.default_rng([seed, 2]), read_noise=read_noise))  # the same noise
 
     def tiles(withheld: str | None, read_noise: float) -> tuple[np.ndarray, list]:
         made = [summaries(withheld, seed, read_noise) for seed in range(scenes)]
@@ -526,7 +522,7 @@ def signature(case: str, size: int, scenes: int, top: int) -> None:
     spread = plain.std(axis=0) + 1e-12
     noisier = (tiles(None, 2 * MIE_READ_NOISE)[0] - plain).mean(axis=0) / spread
     withheld = (tiles(case, MIE_READ_NOISE)[0] - plain).mean(axis=0) / spread
-    print(f"{case} at {size}², {scenes} scenes x {len(origins)} tiles of {tile}²: paired mean change / tile-to-tile spread (read noise x2 beside it)")
+    print(f"{case} at {size}², {scenes} scenes x {(size // tile) ** 2} tiles of {tile}²: paired mean change / tile-to-tile spread (read noise x2 beside it)")
     for i in np.argsort(-np.abs(withheld))[:top]:
         name, group = names[i]
         print(f"{withheld[i]:+7.2f}   noise x2 {noisier[i]:+7.2f}   {group:10s} {name}")
@@ -592,7 +588,7 @@ def main() -> None:
     elif args.command == "independent":
         independent(args.tile, args.tiles, args.particles, args.evaluations, args.index, args.supersample)
     elif args.command == "mie":
-        mie(args.cases, args.seed, args.keep, {k: v for text in args.known_effect for k, v in parse_effect(text, flag='--known-effect').items()})
+        mie(args.cases, args.seed, args.keep, parse_effects(args.known_effect, flag="--known-effect"))
     elif args.command == "absorbing":
         absorbing(args.cases, args.seed, args.keep)
     elif args.command == "rescore":

@@ -264,7 +264,7 @@ def _read_calibration(path) -> dict:
 
 
 def _cmd_generate(args) -> None:
-    from napari_lbs._core import DatasetLayout, Distractors, InputProcessing, effects_from_report, generate_dataset, load_config, parse_effect
+    from napari_lbs._core import DatasetLayout, Distractors, InputProcessing, effects_from_report, generate_dataset, load_config, parse_effects
 
     config = load_config(args.config)
     check_output_path(args.out, flag="--out", folder=True, inputs=_inputs(args))
@@ -278,8 +278,7 @@ def _cmd_generate(args) -> None:
         report = read_json_object(args.effects_from, what="diagnosis report")
         effects = effects_from_report(report, name=args.effects_from)
         source = {"report": str(args.effects_from), "verdict": report["verdict"]["id"]}
-    for text in args.effect:  # explicit effects are added to (or override) the report's
-        effects.update(parse_effect(text))
+    effects.update(parse_effects(args.effect))  # explicit effects are added to (or override) the report's
     if args.effect:
         source = {**(source or {}), "explicit": list(args.effect)}
     start = time.perf_counter()
@@ -436,12 +435,10 @@ def _cmd_track(args) -> None:
 
 
 def _cmd_diagnose(args) -> None:
-    from napari_lbs._core import MIN_TILE_PX, DiagnosisSettings, adapted_tile_px, diagnose_hologram, load_config, parse_effect, write_report
+    from napari_lbs._core import MIN_TILE_PX, DiagnosisSettings, adapted_tile_px, diagnose_hologram, load_config, parse_effects, write_report
 
     config = load_config(args.config)
-    stated = {}
-    for text in args.known_effect:
-        stated.update(parse_effect(text, flag="--known-effect"))
+    stated = parse_effects(args.known_effect, flag="--known-effect")
     out = check_output_path(args.out, flag="--out", folder=True, inputs=_inputs(args))
     for name in ("report.json", "report.md", "gap_where.png", "gap_effects.png"):
         check_output_path(out / name, flag="--out")

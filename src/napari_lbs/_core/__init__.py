@@ -28,7 +28,7 @@ _NAMES = {
     "_flow": ("FLOWS", "SimulatedSequence", "flow_positions", "simulate_sequence"),
     "_effects": (
         "BASELINE", "EFFECTS", "OPTICAL_EFFECTS", "Effect", "check_effects", "effect_hologram", "effects_from_report", "optical_hologram",
-        "parse_effect", "sensor_image",
+        "parse_effect", "parse_effects", "sensor_image",
     ),
     "_gap": (
         "SUMMARY_GROUPS", "Diagnosis", "DiagnosisSettings", "diagnose_hologram", "diagnose_tiles", "gap_statistic", "measured_fringe", "real_spread",

@@ -53,6 +53,7 @@ __all__ = [
     "OPTICAL_EFFECTS",
     "check_effects",
     "parse_effect",
+    "parse_effects",
     "effects_from_report",
     "effect_hologram",
 ]
@@ -357,6 +358,15 @@ def parse_effect(text: str, *, flag: str = "--effect") -> dict:
             raise InputError(f"{flag} {text}: expected NAME=VALUE after the effect id, got {item!r}")
         params[name.strip()] = value.strip()
     return check_effects({effect_id: params})
+
+
+def parse_effects(texts, *, flag: str = "--effect") -> dict:
+    """The effects of several command-line forms (`parse_effect`; blank ones skipped), a later one overriding an earlier one of the same id."""
+    effects = {}
+    for text in texts:
+        if text.strip():
+            effects.update(parse_effect(text, flag=flag))
+    return effects
 
 
 def effects_from_report(report: dict, *, name: str = "report") -> dict:

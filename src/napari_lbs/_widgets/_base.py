@@ -120,13 +120,10 @@ def model_problem(edit: FileEdit) -> str | None:
 
 
 def parsed_effects(edit: LineEdit) -> dict:
-    """The catalog effects typed into ``edit`` as on the command line (`parse_effect`), separated by ';'; raises `InputError` naming the culprit."""
-    from napari_lbs._core import parse_effect
+    """The catalog effects typed into ``edit`` as on the command line (`parse_effects`), separated by ';'; raises `InputError` naming the field and the culprit."""
+    from napari_lbs._core import parse_effects
 
-    effects = {}
-    for text in filter(None, (part.strip() for part in edit.value.split(";"))):
-        effects.update(parse_effect(text))
-    return effects
+    return parse_effects(edit.value.split(";"), flag=f"{edit.label}:")
 
 
 def effects_problem(edit: LineEdit) -> str | None:
