@@ -22,7 +22,8 @@ import traceback
 from pathlib import Path
 
 from napari_lbs import __version__
-from napari_lbs._core._validation import InputError, check_output_path, read_json_object
+from napari_lbs._core._files import read_json_object
+from napari_lbs._core._validation import InputError, check_output_path
 
 # Failures that are the input's or the machine's, not the program's: exit 2 with one line.
 _EXPECTED_ERRORS = (ValueError, OSError, MemoryError)
@@ -118,7 +119,7 @@ _SIMULATION_BYTES_PER_PX = 160
 
 def _cmd_simulate(args) -> None:
     from napari_lbs._core import check_memory, load_config, padded_shape, random_particle_field, simulate_hologram, write_particles
-    from napari_lbs._core._io import atomic_path
+    from napari_lbs._core._files import atomic_path
 
     import tifffile
 
@@ -160,7 +161,7 @@ def _simulate_sequence(args, config, out: Path, *, size: int, count: int) -> Non
     import tifffile
 
     from napari_lbs._core import check_disk, simulate_sequence, write_particles
-    from napari_lbs._core._io import atomic_path
+    from napari_lbs._core._files import atomic_path
 
     check_disk(args.frames * size * size * np.dtype(np.float32).itemsize, out, what=f"{args.frames} frames of {size}x{size} pixels", remedy="use fewer --frames or a smaller --size")
     out.mkdir(parents=True, exist_ok=True)
@@ -207,7 +208,7 @@ def _cmd_backprop(args) -> None:
     import tifffile
 
     from napari_lbs._core import backpropagate, check_disk, load_config
-    from napari_lbs._core._io import atomic_path
+    from napari_lbs._core._files import atomic_path
 
     config = load_config(args.config)
     out = check_output_path(args.out, flag="--out", inputs=_inputs(args))

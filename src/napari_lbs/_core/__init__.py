@@ -34,10 +34,11 @@ _NAMES = {
         "SUMMARY_GROUPS", "Diagnosis", "DiagnosisSettings", "diagnose_hologram", "diagnose_tiles", "gap_statistic", "measured_fringe", "real_spread",
         "tile_summaries", "where_gap", "write_report", "MIN_TILE_PX", "TileLayout", "field_surroundings", "known_sensor", "adapted_tile_px", "resampled_gaps",
     ),
+    "_files": ("write_json", "json_safe", "read_text", "read_json_object"),
     "_heatmaps": ("FocusSpec", "FocusTargets", "context_indices", "focus_targets"),
     "_io": (
-        "PARTICLE_COLUMNS", "InputError", "as_hologram", "check_table_name", "read_hologram", "read_particles", "read_stack", "write_json", "write_particles",
-        "write_stack", "json_safe",
+        "PARTICLE_COLUMNS", "InputError", "as_hologram", "check_table_name", "read_hologram", "read_particles", "read_stack", "write_particles",
+        "write_stack",
     ),
     "_metrics": ("AXIAL_TOL_UM", "LATERAL_TOL_UM", "depth_errors_um", "diameter_errors_um", "match_particles", "score_particles", "seed_scores"),
     "_network": (
@@ -56,8 +57,7 @@ _NAMES = {
     "_tracking": ("DISPLACEMENT_COLUMNS", "link_tracks"),
     "_training": ("THRESHOLD_FRACTIONS", "FOCUS_THRESHOLDS", "TrainingResult", "TrainingSettings", "train_model"),
     "_validation": (
-        "HOLO_PARAM_RANGES", "check_intensity_image", "check_holo_params", "check_calibration", "check_memory", "check_disk", "read_text",
-        "read_json_object", "check_output_path", "check_dataset_manifest", "check_model_payload", "check_prediction_meta", "load_resume_state",
+        "HOLO_PARAM_RANGES", "check_intensity_image", "check_holo_params", "check_calibration", "check_memory", "check_disk", "check_output_path", "check_dataset_manifest", "check_model_payload", "check_prediction_meta", "load_resume_state",
         "check_resume_matches",
     ),
 }

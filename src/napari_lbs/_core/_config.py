@@ -12,7 +12,8 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from napari_lbs._core._validation import read_text
+from napari_lbs._core._errors import ConfigError
+from napari_lbs._core._files import atomic_write_bytes, read_text
 
 __all__ = [
     "ConfigError",
@@ -29,10 +30,6 @@ __all__ = [
 # The most reconstruction planes (or particle layers) a config may ask for: 100 times the
 # seed's 61. A 1024² stack of this depth is 24 GiB; commands also check the memory they need.
 MAX_PLANES = 6100
-
-
-class ConfigError(ValueError):
-    """An experiment config that cannot describe a real setup; the message names the key."""
 
 
 def _require(condition: bool, key: str, message: str, value: object) -> None:
@@ -250,7 +247,5 @@ def config_to_toml(config: ExperimentConfig) -> str:
 
 def write_config(path: str | Path, config: ExperimentConfig | None = None) -> Path:
     """Write ``config`` (default: the contract's defaults) as TOML, atomically."""
-    from napari_lbs._core._io import atomic_write_bytes
-
     text = config_to_toml(ExperimentConfig() if config is None else config)
     return atomic_write_bytes(Path(path), text.encode("utf-8"))

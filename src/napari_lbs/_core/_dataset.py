@@ -38,10 +38,11 @@ from napari_lbs import __version__
 from napari_lbs._core._calibration import HoloParams, holo_processing
 from napari_lbs._core._config import ExperimentConfig
 from napari_lbs._core._effects import check_effects, effect_hologram
-from napari_lbs._core._io import InputError, atomic_path, write_json
+from napari_lbs._core._files import atomic_path, read_json_object, write_json
+from napari_lbs._core._io import InputError
 from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
 from napari_lbs._core._synthesis import Distractors, ParticleField, distractor_scene, label_planes, random_particle_field, simulate_hologram
-from napari_lbs._core._validation import check_dataset_manifest, read_json_object
+from napari_lbs._core._validation import check_dataset_manifest
 
 __all__ = ["DatasetLayout", "InputProcessing", "SyntheticDataset", "synthetic_group", "generate_dataset", "open_dataset", "dataset_summary", "DATASET_FORMAT"]
 

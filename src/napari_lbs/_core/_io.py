@@ -1,33 +1,26 @@
-"""Reading holograms and writing stacks, particle tables and JSON — atomically.
+"""Reading holograms; reading and writing stacks and particle tables.
 
-Every writer goes to a temporary name beside the target and renames it into place, so an
-interrupted write never leaves a half-written file where a good one was.
+Every writer goes through `napari_lbs._core._files.atomic_path`, so an interrupted write
+never leaves a half-written file where a good one was.
 """
 
 from __future__ import annotations
 
 import csv
-import glob
 import importlib.util
 import io
 import json
-import math
-import os
-import re
-import tempfile
-import time
 from collections.abc import Callable, Sequence
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 
-from napari_lbs._core._validation import InputError, check_intensity_image, read_text
+from napari_lbs._core._errors import InputError
+from napari_lbs._core._files import atomic_path, atomic_write_bytes, json_safe, read_text
+from napari_lbs._core._validation import check_intensity_image
 
 __all__ = [
     "InputError",
-    "atomic_write_bytes",
-    "atomic_path",
     "read_hologram",
     "as_hologram",
     "read_stack",
@@ -35,94 +28,11 @@ __all__ = [
     "read_particles",
     "write_particles",
     "check_table_name",
-    "write_json",
-    "json_safe",
     "PARTICLE_COLUMNS",
 ]
 
 PARTICLE_COLUMNS = ("x_um", "y_um", "z_um", "diameter_um")
 _MIN_HOLOGRAM_PX = 16
-_RUN_STARTED = time.time()  # temporaries older than this are a killed run's leftovers
-
-
-def _new_file_mode() -> int:
-    """The mode a newly created file gets under the process's umask (0666 & ~umask)."""
-    try:  # Linux reports the umask without changing it (os.umask would, racing other threads)
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("Umask:"):
-                return 0o666 & ~int(line.split()[1], 8)
-    except (OSError, ValueError):
-        pass
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return 0o666 & ~mask
-
-
-def _remove_stale_temporaries(path: Path) -> None:
-    """Remove temporary files of ``path`` that a killed run (SIGKILL, power cut) left behind.
-
-    Only names `atomic_path` makes (``.NAME.XXXXXXXX.partSUFFIX``) last modified before this
-    process started using this module, so another process writing ``path`` now keeps its own.
-    """
-    pattern = re.compile(re.escape(f".{path.name}.") + r"[a-z0-9_]{8}" + re.escape(".part" + path.suffix))
-    for candidate in path.parent.glob(f".{glob.escape(path.name)}.*"):
-        try:
-            if pattern.fullmatch(candidate.name) and candidate.is_file() and candidate.stat().st_mtime < _RUN_STARTED:
-                candidate.unlink()
-        except OSError:  # gone already, or not ours to remove: leave it
-            pass
-
-
-@contextmanager
-def atomic_path(path: Path):
-    """Yield a temporary path beside ``path``; rename it onto ``path`` only if the block succeeds.
-
-    The result has the mode an ordinary write would give it: an existing file's own mode, else
-    0666 less the umask (a temporary file is created 0600, which would hide results from the
-    lab members sharing a folder). A folder at ``path`` is refused. Temporaries of ``path``
-    that a killed earlier run left are removed first.
-    """
-    path = Path(path)
-    if path.is_dir():
-        raise InputError(f"{path}: is a folder; expected a file name")
-    if path.parent and not path.parent.exists():
-        path.parent.mkdir(parents=True, exist_ok=True)
-    _remove_stale_temporaries(path)
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part" + path.suffix, dir=path.parent)
-    os.close(handle)
-    temporary = Path(temporary)
-    try:
-        yield temporary
-        mode = path.stat().st_mode & 0o7777 if path.is_file() else _new_file_mode()
-        os.chmod(temporary, mode)
-        os.replace(temporary, path)
-    finally:
-        if temporary.exists():
-            temporary.unlink()
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> Path:
-    """Write ``data`` to ``path`` atomically; return ``path``."""
-    with atomic_path(path) as temporary:
-        temporary.write_bytes(data)
-    return Path(path)
-
-
-def json_safe(value: object) -> object:
-    """``value`` with every NaN or infinite float replaced by ``None``: strict JSON (``null``), never ``NaN``."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {key: json_safe(item) for key, item in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [json_safe(item) for item in value]
-    return value
-
-
-def write_json(path: str | Path, payload: dict) -> Path:
-    """Write ``payload`` as indented strict JSON, atomically; non-finite numbers become ``null`` (`json_safe`)."""
-    text = json.dumps(json_safe(payload), indent=2, sort_keys=False, allow_nan=False)
-    return atomic_write_bytes(Path(path), (text + "\n").encode("utf-8"))
 
 
 def as_hologram(image: np.ndarray, *, name: str = "hologram", channel: int | None = None, log: Callable[[str], None] | None = None) -> np.ndarray:

@@ -51,7 +51,8 @@ from torch import nn
 
 from napari_lbs._core._config import ExperimentConfig
 from napari_lbs._core._heatmaps import context_indices
-from napari_lbs._core._io import InputError, atomic_write_bytes
+from napari_lbs._core._files import atomic_write_bytes
+from napari_lbs._core._io import InputError
 from napari_lbs._core._validation import check_model_payload
 
 __all__ = ["PRESETS", "FORMULATIONS", "UNet", "build_network", "save_model", "load_model", "LoadedModel", "resolve_device", "check_model_matches", "network_outputs", "focus_maps", "inference_network", "MODEL_FORMAT"]

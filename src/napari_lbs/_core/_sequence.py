@@ -45,9 +45,10 @@ import numpy as np
 
 from napari_lbs import __version__
 from napari_lbs._core._config import ExperimentConfig
-from napari_lbs._core._io import atomic_path, as_hologram, write_json
+from napari_lbs._core._files import atomic_path, read_json_object, write_json
+from napari_lbs._core._io import as_hologram
 from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback, Stopped
-from napari_lbs._core._validation import InputError, read_json_object
+from napari_lbs._core._validation import InputError
 
 __all__ = [
     "BACKGROUND_MODES",

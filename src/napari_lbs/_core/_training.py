@@ -51,7 +51,8 @@ from napari_lbs import __version__
 from napari_lbs._core._dataset import SyntheticDataset, dataset_summary, open_dataset
 from napari_lbs._core._detection import PeakDecoder, PlaneLinker, suppress
 from napari_lbs._core._heatmaps import FocusSpec, context_indices, focus_targets
-from napari_lbs._core._io import InputError, atomic_write_bytes, write_json
+from napari_lbs._core._files import atomic_write_bytes, write_json
+from napari_lbs._core._io import InputError
 from napari_lbs._core._metrics import depth_errors_um, diameter_errors_um, score_particles
 from napari_lbs._core._network import FORMULATIONS, PRESETS, build_network, focus_maps, network_outputs, resolve_device, save_model
 from napari_lbs._core._progress import ProgressCallback, ReportCallback, Steps, StopCallback

@@ -2,7 +2,7 @@
 
 One message per refusal, one line, naming the culprit (a file, a flag or a key): an
 `InputError`. The checks cover what users hand the tool (holograms, calibration JSON, data
-set manifests, model and resume files, text files in other encodings), the bounds on work
+set manifests, model and resume files), the bounds on work
 their inputs imply (memory and disk for a stack, widths of a network) and the outputs they
 name (a folder where a file goes, a file where a folder goes, an input about to be
 overwritten). docs/reliability.md lists every case and what the user gets.
@@ -20,6 +20,8 @@ import shutil
 from collections.abc import Collection, Iterable, Mapping
 from pathlib import Path
 
+from napari_lbs._core._errors import ConfigError, InputError
+
 __all__ = [
     "InputError",
     "HOLO_PARAM_RANGES",
@@ -28,8 +30,6 @@ __all__ = [
     "check_calibration",
     "check_memory",
     "check_disk",
-    "read_text",
-    "read_json_object",
     "check_output_path",
     "check_dataset_manifest",
     "check_model_payload",
@@ -46,10 +46,6 @@ HOLO_PARAM_RANGES = {"N_R": (-1.0, 1.0), "N_sigma": (0.0, 5.0), "gamma": (0.05, 
 # Dark-frame subtraction leaves small negative counts; an image far below zero is no intensity.
 _NEGATIVE_TOLERANCE = 0.1  # of the image's maximum
 _GIB = 1024.0**3
-
-
-class InputError(ValueError):
-    """Input that cannot be used; the message names the culprit in one line."""
 
 
 def check_intensity_image(image, *, name: str) -> None:
@@ -155,35 +151,6 @@ def check_disk(required_bytes: float, path: Path, *, what: str, remedy: str) -> 
     free = shutil.disk_usage(folder).free
     if required_bytes > free:
         raise InputError(f"{path}: {what}: {required_bytes / _GIB:.1f} GiB to write, {free / _GIB:.1f} GiB free there; {remedy}")
-
-
-def read_text(path: str | Path, *, what: str) -> str:
-    """The UTF-8 text of a file (a byte-order mark, as Excel writes, is dropped).
-
-    Raises
-    ------
-    InputError
-        Missing, a folder, or not UTF-8 (e.g. Latin-1 or UTF-16), naming the file.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: {what} file not found" + (" (it is a folder)" if path.is_dir() else ""))
-    try:
-        return path.read_text(encoding="utf-8-sig")
-    except UnicodeDecodeError as error:
-        raise InputError(f"{path}: not UTF-8 text (byte {error.start}); save the {what} file as UTF-8") from None
-
-
-def read_json_object(path: str | Path, *, what: str) -> dict:
-    """A JSON object from a UTF-8 file; anything else (a list, invalid JSON, other encodings) is refused naming the file."""
-    path = Path(path)
-    try:
-        payload = json.loads(read_text(path, what=what))
-    except json.JSONDecodeError as error:
-        raise InputError(f"{path}: not valid JSON ({error})") from None
-    if not isinstance(payload, dict):
-        raise InputError(f"{path}: expected a JSON object ({what}), got a {type(payload).__name__}")
-    return payload
 
 
 def check_output_path(path: str | Path, *, flag: str, folder: bool = False, inputs: Iterable[str | Path | None] = (), exists_ok: bool = True) -> Path:
@@ -312,7 +279,7 @@ def check_model_payload(
         ``widths`` not a preset's; channel counts not small positive integers; ``config``
         not a valid experiment config; an unknown formulation.
     """
-    from napari_lbs._core._config import ConfigError, ExperimentConfig
+    from napari_lbs._core._config import ExperimentConfig
 
     if not isinstance(payload, dict) or payload.get("format") not in formats or payload.get("version") not in formats[payload.get("format")]:
         expected = "; ".join(f"a {t} file of version {' or '.join(map(str, v))}" for t, v in formats.items())

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from napari_lbs._core._gap._diagnose import Diagnosis
-from napari_lbs._core._io import atomic_path, atomic_write_bytes, write_json
+from napari_lbs._core._files import atomic_path, atomic_write_bytes, write_json
 
 __all__ = ["write_report"]
 
