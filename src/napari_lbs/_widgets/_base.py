@@ -21,9 +21,10 @@ from magicgui.widgets import ComboBox, Container, FileEdit, FloatSpinBox, Label,
 from psygnal import Signal
 from qtpy.QtCore import QObject, QSettings, Qt
 from qtpy.QtCore import Signal as QtSignal
-from qtpy.QtWidgets import QSizePolicy
+from qtpy.QtWidgets import QFormLayout, QFrame, QLabel, QScrollArea, QSizePolicy, QVBoxLayout, QWidget
 
-from napari_lbs._core import Stopped, as_hologram, load_config
+from napari_lbs._core import Stopped, load_config
+from napari_lbs._core._io import as_hologram
 
 __all__ = [
     "StepWidget", "chosen", "config_from", "config_problem", "doc_of", "hologram_data", "hologram_problem", "missing", "model_config", "model_problem", "output_problem",
@@ -170,6 +171,42 @@ def _clock(seconds: float) -> str:
     return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}" if seconds >= 3600 else f"{seconds // 60}:{seconds % 60:02d}"
 
 
+def _scrolling_form(fields: list) -> QScrollArea:
+    """The layout rule of every step: its fields in a vertically scrolling form that never widens the dock.
+
+    A row's field moves under its label when the dock is too narrow for both (a path or a
+    text always does), and labels wrap, so the form is as narrow as its widest field (a path
+    field with its button);
+    plots added later (`StepWidget.add_view`) go below the fields.
+    """
+    form = QFormLayout()
+    form.setRowWrapPolicy(QFormLayout.RowWrapPolicy.WrapLongRows)
+    form.setFieldGrowthPolicy(QFormLayout.FieldGrowthPolicy.AllNonFixedFieldsGrow)
+    for field in fields:
+        if isinstance(field, PushButton) or not field.label:
+            form.addRow(field.native)
+            continue
+        label = QLabel(field.label)
+        label.setWordWrap(True)
+        label.setToolTip(field.tooltip or "")
+        if isinstance(field, (FileEdit, LineEdit)):  # a path or text needs the whole width to be read
+            form.addRow(label)
+            form.addRow(field.native)
+        else:
+            form.addRow(label, field.native)
+    content = QWidget()
+    column = QVBoxLayout(content)
+    column.setContentsMargins(4, 4, 4, 4)
+    column.addLayout(form)
+    column.addStretch(1)
+    area = QScrollArea()
+    area.setWidgetResizable(True)
+    area.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+    area.setFrameShape(QFrame.Shape.NoFrame)
+    area.setWidget(content)
+    return area
+
+
 class StepWidget(Container):
     """Shared plumbing of one workflow step (see the module docstring).
 
@@ -182,16 +219,17 @@ class StepWidget(Container):
     produced = Signal(object)  # the path this step just wrote (calibration JSON, data set, model)
 
     def __init__(self, viewer, fields: list) -> None:
-        super().__init__(labels=True, scrollable=True)
+        super().__init__(labels=False)
         self._viewer = viewer
         self._fields = fields
         self._run = PushButton(text="Run", tooltip=f"Run {self.title}")
         self._stop = PushButton(text="Stop", enabled=False, tooltip="Stop at the next step boundary (the partial result is kept where it is meaningful)")
         self._bar = ProgressBar(value=0, min=0, max=1, label="progress")
-        self._timing = Label(value="")
+        self._timing = wrapping_label()
         self._status = wrapping_label()
-        self.extend([*fields, Container(widgets=[self._run, self._stop], layout="horizontal", labels=False), self._bar, self._timing, self._status])
-        self.native.layout().setAlignment(Qt.AlignmentFlag.AlignTop)  # rows keep their height in a tall dock
+        self.extend([Container(widgets=[self._run, self._stop], layout="horizontal", labels=False), self._bar, self._timing, self._status])
+        self._scroll = _scrolling_form(fields)
+        self.native.layout().insertWidget(0, self._scroll, 1)  # above Run/Stop, which stay in view
         self._stop_requested = threading.Event()
         self._worker = None
         self._progress_bar = None
@@ -241,6 +279,17 @@ class StepWidget(Container):
         for widget in self._persisted():
             settings.setValue(widget.name, widget.line_edit.value if isinstance(widget, FileEdit) else str(widget.value))
         self._revalidate()
+
+    def add_view(self, widget) -> None:
+        """Show a Qt ``widget`` (a plot) below the fields, scrolling with them."""
+        column = self._scroll.widget().layout()
+        column.insertWidget(column.count() - 1, widget)  # above the closing stretch
+
+    def reset_choices(self, *_) -> None:
+        """Refresh the layer pickers (the fields live in the scrolling form, not in this container)."""
+        for field in self._fields:
+            if hasattr(field, "reset_choices"):
+                field.reset_choices()
 
     def _layers_changed(self, *_) -> None:
         self.reset_choices()

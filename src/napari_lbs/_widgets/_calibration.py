@@ -14,7 +14,9 @@ import numpy as np
 from magicgui.widgets import ComboBox, PushButton, SpinBox, create_widget
 from qtpy.QtCore import QTimer
 
-from napari_lbs._core import CalibrationSettings, calibrate_hologram, experimental_reference, reference_planes, write_json
+from napari_lbs._core import CalibrationSettings, calibrate_hologram
+from napari_lbs._core._calibration import experimental_reference, reference_planes
+from napari_lbs._core._files import write_json
 from napari_lbs._layers import UNITS
 from napari_lbs._widgets._backprop import CONFIG_TOOLTIP, HOLOGRAM_TOOLTIP
 from napari_lbs._widgets._base import StepWidget, config_from, config_problem, doc_of, hologram_data, hologram_problem, output_problem, path_edit
@@ -49,10 +51,9 @@ class CalibrationWidget(StepWidget):
         self.output = path_edit(label="save calibration", name="output", mode="w", filter="*.json", value="calibration.json",
                                 tooltip="The calibration JSON (CONTRACT.md): params, ssim, roi, history; Synthetic data reads it")
         self.add_roi = PushButton(text="Add reference ROI", tooltip="Put (or select) the one tile-sized rectangle on the hologram; drag it where the hologram is typical")
-        super().__init__(napari_viewer, [self.hologram, self.roi, self.config, self.generations, self.population, self.mode, self.seed, self.output])
-        self.insert(2, self.add_roi)
+        super().__init__(napari_viewer, [self.hologram, self.roi, self.add_roi, self.config, self.generations, self.population, self.mode, self.seed, self.output])
         self._plot = FitnessPlot()
-        self.native.layout().addWidget(self._plot.canvas)
+        self.add_view(self._plot.canvas)
         self.add_roi.changed.connect(self._add_roi)
         self.result = None
         self._live_history: list[dict] = []

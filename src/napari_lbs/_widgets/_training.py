@@ -36,7 +36,7 @@ class TrainingWidget(StepWidget):
         self.seed = SpinBox(label="seed", name="seed", value=0, min=0, max=2**31 - 1, tooltip=tip("seed"))
         super().__init__(napari_viewer, [self.data, self.output, self.formulation, self.preset, self.epochs, self.minutes, self.learning_rate, self.device, self.foreground_weight, self.patch, self.seed])
         self._plot = LossPlot()
-        self.native.layout().addWidget(self._plot.canvas)
+        self.add_view(self._plot.canvas)
         self.result = None
 
     def problem(self):
