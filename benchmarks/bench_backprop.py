@@ -17,7 +17,8 @@ import tracemalloc
 import numpy as np
 import scipy.fft
 
-from napari_lbs._core import backpropagate, load_config, load_sample_hologram, padded_shape, set_transfer_cache_limit
+from napari_lbs._core import backpropagate, load_config, load_sample_hologram
+from napari_lbs._core._optics import padded_shape, set_transfer_cache_limit
 
 CONFIG = load_config(None)
 OPTICS = {"wavelength_um": CONFIG.optics.wavelength_um, "pixel_um": CONFIG.optics.pixel_um}

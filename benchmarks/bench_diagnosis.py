@@ -68,19 +68,17 @@ from scipy import ndimage
 
 from napari_lbs._core import (
     EFFECTS,
-    OPTICAL_EFFECTS,
     DiagnosisSettings,
     ExperimentConfig,
     diagnose_hologram,
-    diagnose_tiles,
     load_config,
-    parse_effects,
     load_sample_hologram,
-    optical_hologram,
+    parse_effects,
     random_particle_field,
-    sensor_image,
     write_report,
 )
+from napari_lbs._core._effects import OPTICAL_EFFECTS, optical_hologram, sensor_image
+from napari_lbs._core._gap import diagnose_tiles
 
 CONFIG = ExperimentConfig()
 TRUE_BASELINE = {"contrast": 0.8, "sigma": 0.04, "gamma": 1.2}

@@ -44,18 +44,17 @@ from napari_lbs._core import (
     ExperimentConfig,
     InputProcessing,
     TrainingSettings,
-    count_for_ppp,
-    depth_errors_um,
     generate_dataset,
     load_config,
     load_sample_hologram,
     predict_particles,
     random_particle_field,
     score_particles,
-    seed_scores,
     simulate_hologram,
     train_model,
 )
+from napari_lbs._core._metrics import depth_errors_um, seed_scores
+from napari_lbs._core._synthesis import count_for_ppp
 
 SIM_CONFIG = ExperimentConfig.from_dict({
     "volume": {"z_min_um": 1800.0, "z_max_um": 3660.0, "z_step_um": 30.0},
@@ -67,7 +66,7 @@ SIM_CONFIG = ExperimentConfig.from_dict({
 def throughput() -> None:
     import torch
 
-    from napari_lbs._core import build_network
+    from napari_lbs._core._network import build_network
 
     for preset in ("small", "paper"):
         rates = {}

@@ -45,14 +45,13 @@ import pseudoreal  # noqa: E402
 
 from napari_lbs._cli import DEMO_SAMPLE_DISTRACTORS  # noqa: E402
 
-from napari_lbs._core import (  # noqa: E402
+from napari_lbs._core import (
     CalibrationSettings,
     DiagnosisSettings,
     Distractors,
     InputProcessing,
     TrainingSettings,
     calibrate_hologram,
-    depth_errors_um,
     diagnose_hologram,
     effects_from_report,
     generate_dataset,
@@ -63,10 +62,11 @@ from napari_lbs._core import (  # noqa: E402
     read_particles,
     score_particles,
     train_model,
-    write_json,
     write_particles,
     write_report,
 )
+from napari_lbs._core._files import write_json
+from napari_lbs._core._metrics import depth_errors_um
 
 DENSITIES = {"real density": 100, "4x density": 400}
 EDGE_BAND_UM = 200.0  # false positives this close to the window's edge are counted apart (neighbours' fringes)

@@ -44,7 +44,6 @@ from napari_lbs._core import (
     generate_dataset,
     link_tracks,
     load_config,
-    local_cluster,
     load_model,
     match_particles,
     open_frames,
@@ -55,6 +54,7 @@ from napari_lbs._core import (
     simulate_sequence,
     train_model,
 )
+from napari_lbs._core._sequence import local_cluster
 
 
 class PeakMemory:

@@ -34,7 +34,8 @@ def detector(tmp_path_factory, tiny_config):
     """A tiny focus model made eager: its centre logit raised so every frame gives a few dozen detections to compare."""
     import torch
 
-    from napari_lbs._core import DatasetLayout, TrainingSettings, generate_dataset, load_model, save_model, train_model
+    from napari_lbs._core import DatasetLayout, TrainingSettings, generate_dataset, load_model, train_model
+    from napari_lbs._core._network import save_model
 
     folder = tmp_path_factory.mktemp("model")
     data = generate_dataset(folder / "data", tiny_config, groups=3, layout=DatasetLayout(kind="stack", context_planes=2), seed=5)

@@ -10,17 +10,15 @@ import pytest
 from napari_lbs._core import (
     DatasetLayout,
     ExperimentConfig,
-    FocusSpec,
     HoloParams,
     InputError,
     InputProcessing,
-    PeakDecoder,
-    focus_targets,
     generate_dataset,
     random_particle_field,
     simulate_hologram,
-    suppress,
 )
+from napari_lbs._core._detection import PeakDecoder, suppress
+from napari_lbs._core._heatmaps import FocusSpec, focus_targets
 
 CONTEXT = (-2, -1, 0, 1, 2)
 
@@ -251,7 +249,7 @@ def test_model_files_load_without_code_and_old_files_keep_their_formulation(focu
     payload = torch.load(io.BytesIO(focus_model.model_path.read_bytes()), weights_only=True)  # plain tensors and strings
     assert payload["version"] == 2 and json.loads(payload["meta"])["formulation"] == "focus"
     # a version-1 file (before the focus formulation) has no formulation: it is the seed's, and loads as such
-    from napari_lbs._core import build_network
+    from napari_lbs._core._network import build_network
 
     network = build_network("small")
     meta = {"preset": "small", "widths": [8, 16, 32, 64, 64], "tile_size": 48, "config": tiny_config().to_dict()}
@@ -267,7 +265,8 @@ def test_model_files_load_without_code_and_old_files_keep_their_formulation(focu
 
 
 def test_tile_normalisation_is_each_tiles_own_at_its_centre_and_stays_in_range():
-    from napari_lbs._core import experimental_planes, tile_layout, tile_normalisation
+    from napari_lbs._core._calibration import experimental_planes
+    from napari_lbs._core._prediction import tile_layout, tile_normalisation
 
     rng = np.random.default_rng(4)
     raw = rng.gamma(4.0, 0.25, (3, 80, 70)).astype(np.float32)
@@ -291,7 +290,7 @@ def test_tile_normalisation_is_each_tiles_own_at_its_centre_and_stays_in_range()
 def test_the_inference_network_folds_batch_norm_without_changing_the_outputs():
     import torch
 
-    from napari_lbs._core import build_network, inference_network
+    from napari_lbs._core._network import build_network, inference_network
 
     torch.manual_seed(0)
     network = build_network("small", in_channels=9, out_channels=3).eval()

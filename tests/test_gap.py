@@ -6,22 +6,9 @@ import json
 import numpy as np
 import pytest
 
-from napari_lbs._core import (
-    BASELINE,
-    EFFECTS,
-    ExperimentConfig,
-    InputError,
-    SUMMARY_GROUPS,
-    DiagnosisSettings,
-    diagnose_tiles,
-    gap_statistic,
-    optical_hologram,
-    random_particle_field,
-    sensor_image,
-    simulate_hologram,
-    tile_summaries,
-    write_report,
-)
+from napari_lbs._core import EFFECTS, DiagnosisSettings, ExperimentConfig, InputError, random_particle_field, simulate_hologram, write_report
+from napari_lbs._core._effects import BASELINE, optical_hologram, sensor_image
+from napari_lbs._core._gap import SUMMARY_GROUPS, diagnose_tiles, gap_statistic, tile_summaries
 
 CONFIG = ExperimentConfig()
 NEUTRAL = dict(BASELINE.neutral)
@@ -89,7 +76,8 @@ def test_sensor_blur_acts_on_the_light_and_the_noise_added_after_it_stays_white(
 
 
 def test_transparent_spheres_conserve_light_where_opaque_discs_remove_it():
-    from napari_lbs._core import ParticleField, disc_coverage
+    from napari_lbs._core import ParticleField
+    from napari_lbs._core._synthesis import disc_coverage
 
     one = ParticleField(np.array([140.8]), np.array([140.8]), np.array([2000.0]), np.array([30.0]), (128, 128), 2.2)
     area = disc_coverage((128, 128), one.x_um, one.y_um, one.diameter_um, pixel_um=2.2).mean()
@@ -130,7 +118,7 @@ def test_shadowing_between_layers_grows_with_the_injection_density():
 
 
 def test_a_static_fringe_is_measured_at_its_period_and_angle_under_a_particle_scene():
-    from napari_lbs._core import measured_fringe
+    from napari_lbs._core._gap import measured_fringe
 
     rng = np.random.default_rng(4)
     period_px, angle_rad = 9.0, 2.0
@@ -171,7 +159,7 @@ def test_a_dust_grains_fresnel_shadow_has_the_arago_spot_and_conserves_light():
 
 
 def test_dust_on_a_window_is_part_of_the_static_fringes_and_optional_in_a_stated_setting():
-    from napari_lbs._core import parse_effect
+    from napari_lbs._core._effects import parse_effect
 
     etalon = parse_effect("parasitic_fringes:amplitude=0.05,period_px=10,angle_rad=0")["parasitic_fringes"]
     assert etalon["dust_per_mpx"] == 0.0  # left out: that part is off

@@ -5,7 +5,8 @@ import sys
 import numpy as np
 import pytest
 
-from napari_lbs._core import InputError, depth_errors_um, diameter_errors_um, match_particles, score_particles, seed_scores, write_particles
+from napari_lbs._core import InputError, match_particles, score_particles, write_particles
+from napari_lbs._core._metrics import depth_errors_um, diameter_errors_um, seed_scores
 
 
 def table(*rows):

@@ -207,7 +207,8 @@ def test_workflow_dock_drives_the_whole_workflow_on_the_synthetic_sample(make_na
 
 
 def test_the_roi_shows_its_tile_reference_image_before_any_run(make_napari_viewer, qtbot, tmp_path, monkeypatch):
-    from napari_lbs._core import experimental_reference, load_config, reference_planes
+    from napari_lbs._core import load_config
+    from napari_lbs._core._calibration import experimental_reference, reference_planes
     from napari_lbs._widgets import _calibration
 
     planes_made, references_made = [], []
@@ -271,7 +272,7 @@ def test_particle_tables_are_saved_and_opened_without_choosing_a_plugin(make_nap
     from napari.plugins import _npe2
     from qtpy.QtWidgets import QFileDialog
 
-    from napari_lbs._core import PARTICLE_COLUMNS
+    from napari_lbs._core._io import PARTICLE_COLUMNS
 
     monkeypatch.setattr(napari.settings, "_SETTINGS", napari.settings.NapariSettings(config_path=tmp_path / "napari-settings.yaml"))
     viewer = make_napari_viewer()

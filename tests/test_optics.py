@@ -4,7 +4,9 @@ import numpy as np
 import pytest
 import scipy.fft
 
-from napari_lbs._core import backpropagate, disc_coverage, propagate, transfer_function
+from napari_lbs._core import backpropagate, propagate
+from napari_lbs._core._optics import transfer_function
+from napari_lbs._core._synthesis import disc_coverage
 
 PIXEL_UM = 2.2
 WAVELENGTH_UM = 0.66

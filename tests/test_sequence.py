@@ -13,7 +13,6 @@ from napari_lbs._core import (
     InputError,
     ParticleField,
     Stopped,
-    flow_positions,
     link_tracks,
     open_frames,
     predict_sequence,
@@ -21,6 +20,7 @@ from napari_lbs._core import (
     simulate_hologram,
     simulate_sequence,
 )
+from napari_lbs._core._flow import flow_positions
 
 
 @pytest.fixture(scope="module")
@@ -324,7 +324,8 @@ def test_a_bad_frame_late_in_a_recording_is_refused_before_any_work(tmp_path, de
 
 
 def test_the_packaged_sample_hologram_webp_reads_as_one_frame_like_the_sample_loader():
-    from napari_lbs._core import load_sample_hologram, open_frames, sample_hologram_path
+    from napari_lbs._core import load_sample_hologram, open_frames
+    from napari_lbs._core._samples import sample_hologram_path
 
     frames = open_frames([sample_hologram_path()])  # what `predict` does with one file
     assert len(frames) == 1

@@ -12,15 +12,13 @@ from napari_lbs._core import (
     InputError,
     ParticleField,
     backpropagate,
-    check_effects,
-    effect_hologram,
     effects_from_report,
     generate_dataset,
     open_dataset,
-    parse_effect,
     random_particle_field,
     simulate_hologram,
 )
+from napari_lbs._core._effects import check_effects, effect_hologram, parse_effect
 
 CONFIG = ExperimentConfig.from_dict({"tile": {"size": 64}, "particles": {"per_tile": 3}, "volume": {"z_min_um": 1800.0, "z_max_um": 2000.0, "z_step_um": 50.0}})
 

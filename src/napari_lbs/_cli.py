@@ -118,7 +118,9 @@ _SIMULATION_BYTES_PER_PX = 160
 
 
 def _cmd_simulate(args) -> None:
-    from napari_lbs._core import check_memory, load_config, padded_shape, random_particle_field, simulate_hologram, write_particles
+    from napari_lbs._core import load_config, random_particle_field, simulate_hologram, write_particles
+    from napari_lbs._core._optics import padded_shape
+    from napari_lbs._core._validation import check_memory
     from napari_lbs._core._files import atomic_path
 
     import tifffile
@@ -160,7 +162,8 @@ def _simulate_sequence(args, config, out: Path, *, size: int, count: int) -> Non
     import numpy as np
     import tifffile
 
-    from napari_lbs._core import check_disk, simulate_sequence, write_particles
+    from napari_lbs._core import simulate_sequence, write_particles
+    from napari_lbs._core._validation import check_disk
     from napari_lbs._core._files import atomic_path
 
     check_disk(args.frames * size * size * np.dtype(np.float32).itemsize, out, what=f"{args.frames} frames of {size}x{size} pixels", remedy="use fewer --frames or a smaller --size")
@@ -207,7 +210,8 @@ def _cmd_backprop(args) -> None:
     import numpy as np
     import tifffile
 
-    from napari_lbs._core import backpropagate, check_disk, load_config
+    from napari_lbs._core import backpropagate, load_config
+    from napari_lbs._core._validation import check_disk
     from napari_lbs._core._files import atomic_path
 
     config = load_config(args.config)
@@ -237,7 +241,8 @@ def _cmd_backprop(args) -> None:
 
 
 def _cmd_calibrate(args) -> None:
-    from napari_lbs._core import CalibrationSettings, calibrate_hologram, load_config, write_json
+    from napari_lbs._core import CalibrationSettings, calibrate_hologram, load_config
+    from napari_lbs._core._files import write_json
 
     config = load_config(args.config)
     out = check_output_path(args.out, flag="--out", inputs=_inputs(args))
@@ -257,7 +262,7 @@ def _cmd_calibrate(args) -> None:
 
 
 def _read_calibration(path) -> dict:
-    from napari_lbs._core import check_calibration
+    from napari_lbs._core._validation import check_calibration
 
     calibration = read_json_object(path, what="calibration")
     check_calibration(calibration, name=str(path))
@@ -340,7 +345,7 @@ def _cmd_train(args) -> None:
 
 def _predict_outputs(args) -> tuple[Path, Path]:
     """The particle table and its provenance JSON, refused where they would overwrite something else (inputs: `check_output_path`)."""
-    from napari_lbs._core import check_table_name
+    from napari_lbs._core._io import check_table_name
 
     out = Path(args.out)
     if out.suffix.lower() == ".json":
@@ -373,7 +378,7 @@ def _cmd_predict(args) -> None:
         args.holo, hologram = frames.name(0), frames.read(0, log=_summary)
     background = _read_background(args, hologram.shape)
     model = load_model(args.model, device=args.device)
-    result = predict_particles(hologram, model, config, background=background, progress=_ProgressBar("predict"))
+    result = predict_particles(hologram, model, config, background=background, force=args.force, progress=_ProgressBar("predict"))
     _write_table(out, provenance, result.particles, {**result.provenance, "source": str(args.holo), "background_file": args.background, "particles": str(out)})
     count = len(result.particles["x_um"])
     _summary(f"found {count} particles in {args.holo} in {result.seconds:.1f} s -> {out} (provenance: {provenance})")
@@ -381,7 +386,8 @@ def _cmd_predict(args) -> None:
 
 def _write_table(out: Path, provenance: Path, particles: dict, record: dict) -> None:
     """The particle table (CSV, or Parquet with ``record`` in its key-value metadata too) and its provenance JSON beside it."""
-    from napari_lbs._core import write_json, write_particles
+    from napari_lbs._core import write_particles
+    from napari_lbs._core._files import write_json
 
     write_particles(out, particles, metadata=record)
     write_json(provenance, record)
@@ -396,7 +402,7 @@ def _predict_sequence(args, frames, config, out: Path, provenance: Path) -> None
     work_dir = check_output_path(out.with_name(out.name + ".parts"), flag="--out", folder=True)
     background = read_hologram(args.background, log=_summary) if args.background else args.sequence_background
     model = load_model(args.model, device="cpu")  # each worker moves it to --device
-    result = predict_sequence(frames, model, config, background=background, background_window=args.background_window, workers=args.workers, scheduler=args.scheduler,
+    result = predict_sequence(frames, model, config, background=background, background_window=args.background_window, workers=args.workers, scheduler=args.scheduler, force=args.force,
                               work_dir=work_dir, device=args.device, progress=_ProgressBar("predict"))
     _write_table(out, provenance, result.particles, {**result.provenance, "background_file": args.background, "particles": str(out)})
     shutil.rmtree(work_dir)
@@ -408,7 +414,10 @@ def _predict_sequence(args, frames, config, out: Path, provenance: Path) -> None
 def _cmd_track(args) -> None:
     import numpy as np
 
-    from napari_lbs._core import DISPLACEMENT_COLUMNS, check_table_name, link_tracks, read_particles, write_json, write_particles
+    from napari_lbs._core import link_tracks, read_particles, write_particles
+    from napari_lbs._core._files import write_json
+    from napari_lbs._core._io import check_table_name
+    from napari_lbs._core._tracking import DISPLACEMENT_COLUMNS
 
     prediction_json = Path(args.particles).with_suffix(".json")
     out = check_table_name(check_output_path(args.out, flag="--out", inputs=[args.particles, prediction_json]))
@@ -436,7 +445,8 @@ def _cmd_track(args) -> None:
 
 
 def _cmd_diagnose(args) -> None:
-    from napari_lbs._core import MIN_TILE_PX, DiagnosisSettings, adapted_tile_px, diagnose_hologram, load_config, parse_effects, write_report
+    from napari_lbs._core import DiagnosisSettings, diagnose_hologram, load_config, parse_effects, write_report
+    from napari_lbs._core._gap import MIN_TILE_PX, adapted_tile_px
 
     config = load_config(args.config)
     stated = parse_effects(args.known_effect, flag="--known-effect")
@@ -468,7 +478,9 @@ def _cmd_diagnose(args) -> None:
 
 
 def _cmd_evaluate(args) -> None:
-    from napari_lbs._core import AXIAL_TOL_UM, LATERAL_TOL_UM, json_safe, read_particles, score_particles, seed_scores
+    from napari_lbs._core import read_particles, score_particles
+    from napari_lbs._core._files import json_safe
+    from napari_lbs._core._metrics import AXIAL_TOL_UM, LATERAL_TOL_UM, seed_scores
 
     pred, truth = read_particles(args.pred), read_particles(args.truth)
     tolerances = {
@@ -489,7 +501,6 @@ def _cmd_demo(args) -> None:
     from dataclasses import replace
 
     from napari_lbs._core import (
-        SAMPLE_PROVENANCE,
         CalibrationSettings,
         Distractors,
         InputProcessing,
@@ -501,10 +512,11 @@ def _cmd_demo(args) -> None:
         load_sample_hologram,
         predict_particles,
         train_model,
-        write_json,
         write_particles,
         write_stack,
     )
+    from napari_lbs._core._files import write_json
+    from napari_lbs._core._samples import SAMPLE_PROVENANCE
 
     out = check_output_path(args.out, flag="--out", folder=True)
     out.mkdir(parents=True, exist_ok=True)
@@ -699,6 +711,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--config", help="optics and depths (default: the model's)")
     p.add_argument("--background", metavar="BG", help="a hologram taken without particles, divided out of every frame")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
+    p.add_argument("--force", action="store_true", help="run a model made for other optics or depths than the config's (without it such a run exits 2 naming both values)")
     p.add_argument("--sequence-background", choices=("global", "running", "none"), default="global",
                    help="recordings without --background: divide every frame by the median of the frames (global, default), of the frames around it (running), or nothing")
     p.add_argument("--background-window", type=_integer(1), default=21, help="frames of a running background (default 21)")

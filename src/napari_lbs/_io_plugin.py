@@ -18,7 +18,8 @@ from pathlib import Path
 
 import napari
 
-from napari_lbs._core import PARTICLE_COLUMNS, load_config, read_particles, write_particles
+from napari_lbs._core import load_config, read_particles, write_particles
+from napari_lbs._core._io import PARTICLE_COLUMNS
 from napari_lbs._layers import PlaneGrid, particle_points, points_table
 
 

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from napari_lbs._core import SAMPLE_PROVENANCE, load_config, load_sample_hologram, random_particle_field, simulate_hologram
+from napari_lbs._core import load_config, load_sample_hologram, random_particle_field, simulate_hologram
+from napari_lbs._core._samples import SAMPLE_PROVENANCE
 from napari_lbs._layers import UNITS, PlaneGrid, particle_points
 
 SYNTHETIC_SEED = 2024
