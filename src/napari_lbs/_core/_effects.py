@@ -98,11 +98,16 @@ EFFECTS: dict[str, Effect] = {e.id: e for e in (
     Effect("shot_noise", "Poisson photon noise", {"log10_photons": (0.5, 4.0)}, {"log10_photons": 9.0}, ({"log10_photons": 1.9}, {"log10_photons": 1.4})),
     Effect("quantization", "bit depth and saturation", {"bits": (3.0, 10.0), "saturation": (1.05, 3.0)}, {"bits": 16.0, "saturation": 1e3}, ({"bits": 5.0, "saturation": 1.6}, {"bits": 4.0, "saturation": 1.25})),
     Effect("sensor_blur", "pixel integration / sensor MTF", {"sigma_px": (0.0, 2.0)}, {"sigma_px": 0.0}, ({"sigma_px": 0.8}, {"sigma_px": 1.4})),
-    Effect("coherence", "partial spatial coherence (source size)", {"theta_mrad": (0.0, 3.0)}, {"theta_mrad": 0.0}, ({"theta_mrad": 1.2}, {"theta_mrad": 2.4})),
-    # index contrast Δn = n_particle − n_medium; the fit range reaches polystyrene in water (0.26)
-    # and in air (0.59): at 0 … 0.025 (the old 0 … 6 rad) the fit of a pseudo-real hologram of
-    # polystyrene in water ended at the bound with τ 0.33, and training on that lost a third of
-    # the detections (docs/diagnosis.md, seventh pass); fitted on a square-root scale (`_fitting`)
+    # spatial (a source of angular size θ) and temporal (a spectrum of full width Δλ at half
+    # maximum, e.g. an LED or a laser diode): the first washes fringes out with depth, the second
+    # with fringe order (far from the particle's axis), at every depth
+    Effect(
+        "coherence", "partial spatial (source size) and temporal (bandwidth) coherence", {"theta_mrad": (0.0, 3.0), "bandwidth_nm": (0.0, 60.0)}, {"theta_mrad": 0.0, "bandwidth_nm": 0.0},
+        ({"theta_mrad": 1.2}, {"theta_mrad": 2.4}), optional=("bandwidth_nm", "theta_mrad"),
+    ),
+    # index contrast Δn = n_particle − n_medium: the range reaches polystyrene in water (0.26) and
+    # in air (0.59); a range of 0 … 0.025 cannot hold polystyrene in water, and data made with
+    # such a Δn lost a third of the detections on a pseudo-real hologram of it
     Effect("particle_phase", "transparent, refracting spheres", {"index_contrast": (0.0, 0.6), "transmission": (0.0, 1.0)}, {"index_contrast": 0.0, "transmission": 0.0}, ({"index_contrast": 0.0084, "transmission": 0.6}, {"index_contrast": 0.0168, "transmission": 0.9})),
     Effect("multiple_scattering", "shadowing between particle layers", {"on": (1.0, 1.0)}, {"on": 0.0}, ({"on": 1.0}, {"on": 1.0}), (6.0, 12.0)),
     # static fringes: an etalon's straight fringe, and dust grains on a window out of the volume
@@ -110,10 +115,10 @@ EFFECTS: dict[str, Effect] = {e.id: e for e in (
     # sets the rings' spacing: 6 … 60 px is z ≈ 0.26 … 26 mm at 660 nm and 2.2 µm pixels)
     Effect(
         "parasitic_fringes", "static fringes: etalon, dust on a window",
-        {"amplitude": (0.0, 0.2), "period_px": (4.0, 24.0), "angle_rad": (0.0, 3.1416), "dust_per_mpx": (0.0, 300.0), "dust_zone_px": (6.0, 60.0)},
-        {"amplitude": 0.0, "period_px": 20.0, "angle_rad": 0.0, "dust_per_mpx": 0.0, "dust_zone_px": 30.0},
+        {"amplitude": (0.0, 0.2), "period_px": (4.0, 24.0), "angle_rad": (0.0, 3.1416), "dust_per_mpx": (0.0, 300.0), "dust_zone_px": (6.0, 60.0), "dust_grain_px": (1.0, 25.0)},
+        {"amplitude": 0.0, "period_px": 20.0, "angle_rad": 0.0, "dust_per_mpx": 0.0, "dust_zone_px": 30.0, "dust_grain_px": 5.0},
         ({"amplitude": 0.04, "period_px": 14.0, "angle_rad": 0.7}, {"amplitude": 0.1, "period_px": 14.0, "angle_rad": 0.7}),
-        optional=("dust_per_mpx", "dust_zone_px"),
+        optional=("dust_per_mpx", "dust_zone_px", "dust_grain_px", "amplitude", "period_px", "angle_rad"),
     ),
     Effect("spherical_wave", "diverging illumination (point source at L)", {"source_mm": (8.0, 200.0)}, {"source_mm": 1e9}, ({"source_mm": 40.0}, {"source_mm": 15.0})),
 )}
@@ -126,7 +131,6 @@ def _param(effects: dict, effect: str, name: str) -> float:
     return float({**{n: catalog.neutral[n] for n in catalog.optional}, **effects.get(effect, catalog.neutral)}[name])
 
 
-_DUST_GRAIN_PX = 5  # grain radius (px): 11 µm at 2.2 µm pixels
 _DUST_SEED = 2718  # static grains: the same places in every hologram of a shape
 
 
@@ -145,13 +149,13 @@ def _fresnel_intensity(opaque_spectrum: np.ndarray, zone_px: float) -> np.ndarra
     return (np.abs(1.0 + scattered) ** 2).astype(np.float32)
 
 
-def _dust_mask(grid: tuple[int, int], count: int) -> np.ndarray:
-    """(grid) bool: ``count`` opaque grains of radius `_DUST_GRAIN_PX` at fixed random places (seed `_DUST_SEED`), periodic.
+def _dust_mask(grid: tuple[int, int], count: int, grain_px: int) -> np.ndarray:
+    """(grid) bool: ``count`` opaque grains of radius ``grain_px`` at fixed random places (seed `_DUST_SEED`), periodic.
 
     The places are drawn in a fixed order, so the mask of fewer grains is part of the mask of more.
     """
     places = (np.random.default_rng(_DUST_SEED).random((count, 2)) * grid).astype(int)
-    r = _DUST_GRAIN_PX
+    r = grain_px
     yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
     disc = yy**2 + xx**2 <= r**2
     mask = np.zeros(grid, bool)
@@ -162,17 +166,18 @@ def _dust_mask(grid: tuple[int, int], count: int) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=4)
-def _dust_spectrum(grid: tuple[int, int], count: int) -> np.ndarray:
-    """FFT (complex64, read-only) of `_dust_mask`: a fit varies the grains' distance far more often than their number."""
-    spectrum = scipy.fft.fft2(_dust_mask(grid, count).astype(np.complex64))
+def _dust_spectrum(grid: tuple[int, int], count: int, grain_px: int) -> np.ndarray:
+    """FFT (complex64, read-only) of `_dust_mask`: data sets vary the grains' distance more often than their number and size."""
+    spectrum = scipy.fft.fft2(_dust_mask(grid, count, grain_px).astype(np.complex64))
     spectrum.flags.writeable = False
     return spectrum
 
 
-def _dust_pattern(shape: tuple[int, int], count_per_mpx: float, zone_px: float) -> np.ndarray:
+def _dust_pattern(shape: tuple[int, int], count_per_mpx: float, zone_px: float, grain_px: float = 5.0) -> np.ndarray:
     """Intensity (unobstructed = 1, float32) of dust grains on a window out of the volume.
 
-    Opaque grains (`_dust_mask`; ``count_per_mpx`` per megapixel, over the window and a border
+    Opaque grains (`_dust_mask`, radius ``grain_px``: 5 px is 11 µm at 2.2 µm pixels, real dust
+    on windows and cover glasses is 5–100 µm across; ``count_per_mpx`` per megapixel, over the window and a border
     of half its size, whose rings reach in), diffracted to the sensor (`_fresnel_intensity`)
     on a periodic grid twice the window's size: rings that spread further (a 5 px grain at
     ``zone_px`` 60 spreads over about 360 px) wrap around, as a window evenly covered with dust
@@ -181,7 +186,7 @@ def _dust_pattern(shape: tuple[int, int], count_per_mpx: float, zone_px: float) 
     rows, cols = shape
     grid = (2 * rows, 2 * cols)
     count = int(round(count_per_mpx * grid[0] * grid[1] / 1e6))
-    return _fresnel_intensity(_dust_spectrum(grid, count), zone_px)[rows // 2 : rows // 2 + rows, cols // 2 : cols // 2 + cols]
+    return _fresnel_intensity(_dust_spectrum(grid, count, max(1, int(round(grain_px)))), zone_px)[rows // 2 : rows // 2 + rows, cols // 2 : cols // 2 + cols]
 
 
 _SPHERE_SUPERSAMPLE = 4  # fine samples per pixel and axis for a sphere's transmission
@@ -232,11 +237,26 @@ def _sphere_fields(field: ParticleField, depth: float, *, transmission: float, i
     return out
 
 
-def optical_hologram(field: ParticleField, effects: dict, *, wavelength_um: float, medium_index: float = 1.0) -> np.ndarray:
-    """Sensor intensity of a particle field with the optical effects of ``effects`` (float32, unobstructed = 1)."""
+_SPECTRUM_NODES, _SPECTRUM_WEIGHTS = np.polynomial.hermite.hermgauss(5)  # a Gaussian spectrum's wavelengths and weights
+
+
+def optical_hologram(field: ParticleField, effects: dict, *, wavelength_um: float, medium_index: float = 1.0, periodic: bool = False) -> np.ndarray:
+    """Sensor intensity of a particle field with the optical effects of ``effects`` (float32, unobstructed = 1).
+
+    ``periodic``: the window is one period of an endless field (`superpose`); the shadowing
+    model (``multiple_scattering``) always pads.
+    A source of spectral width ``coherence.bandwidth_nm`` (FWHM of a Gaussian spectrum) gives the
+    incoherent mean of the holograms at 5 wavelengths (Gauss–Hermite nodes).
+    """
     unknown = set(effects) - set(EFFECTS)
     if unknown:
         raise InputError(f"effects: unknown effect id {sorted(unknown)[0]!r}; expected one of {', '.join(EFFECTS)}")
+    bandwidth_um = _param(effects, "coherence", "bandwidth_nm") * 1e-3
+    if bandwidth_um > 0:
+        narrow = {**effects, "coherence": {**effects["coherence"], "bandwidth_nm": 0.0}}
+        sigma_um = bandwidth_um / (2.0 * math.sqrt(2.0 * math.log(2.0)))
+        images = [optical_hologram(field, narrow, wavelength_um=wavelength_um + math.sqrt(2.0) * sigma_um * node, medium_index=medium_index, periodic=periodic) for node in _SPECTRUM_NODES]
+        return (np.tensordot(_SPECTRUM_WEIGHTS / math.sqrt(math.pi), np.stack(images), axes=1)).astype(np.float32)
     if _param(effects, "multiple_scattering", "on") >= 0.5:
         return simulate_hologram(field, wavelength_um=wavelength_um, medium_index=medium_index, shadowing=True)
     source_um = _param(effects, "spherical_wave", "source_mm") * 1000.0
@@ -256,7 +276,7 @@ def optical_hologram(field: ParticleField, effects: dict, *, wavelength_um: floa
     theta = _param(effects, "coherence", "theta_mrad") * 1e-3
     if theta > 0:
         fields = [_blur(f, theta * z / field.pixel_um) for f, z in zip(fields, depths, strict=True)]
-    scattered = superpose(fields, depths, wavelength_um=wavelength_um, pixel_um=field.pixel_um, medium_index=medium_index)
+    scattered = superpose(fields, depths, wavelength_um=wavelength_um, pixel_um=field.pixel_um, medium_index=medium_index, periodic=periodic)
     return (np.abs(1.0 + scattered) ** 2).astype(np.float32)
 
 
@@ -266,7 +286,7 @@ def _blur(image: np.ndarray, sigma_px: float) -> np.ndarray:
     return ndimage.gaussian_filter(image, sigma_px)
 
 
-def sensor_image(intensity: np.ndarray, baseline: dict, effects: dict, *, noise: np.ndarray) -> np.ndarray:
+def sensor_image(intensity: np.ndarray, baseline: dict, effects: dict, *, noise: np.ndarray, frame_px: tuple | None = None) -> np.ndarray:
     """What the camera records of ``intensity``, in the physical order: baseline contrast, envelope, fringes, blur, gamma, noise, quantisation.
 
     The optical terms (contrast, envelope, fringes) and the blur (pixel crosstalk / MTF) act
@@ -276,21 +296,28 @@ def sensor_image(intensity: np.ndarray, baseline: dict, effects: dict, *, noise:
 
     ``noise`` is a standard-normal array of the image's shape (fixed per tile: common random
     numbers make the fit deterministic).
+
+    ``frame_px``: ``(row_px, col_px, (frame_rows, frame_cols))``, where on the sensor each row
+    and column of ``intensity`` lies (pixels) and the sensor's shape: the envelope and the
+    etalon's fringe are then those of that place of the frame (a tile of a large sensor).
+    Default: ``intensity`` is the whole frame.
     """
     rows, cols = intensity.shape
+    row_px, col_px, (frame_rows, frame_cols) = frame_px if frame_px is not None else (np.arange(rows), np.arange(cols), (rows, cols))
     image = 1.0 + float(baseline["contrast"]) * (intensity.astype(np.float32) - 1.0)
     depth = _param(effects, "illumination", "depth")
     if depth > 0:
-        y, x = np.ogrid[-0.5 : 0.5 : rows * 1j, -0.5 : 0.5 : cols * 1j]
+        y = (np.asarray(row_px, np.float64) / max(frame_rows - 1, 1) - 0.5)[:, None]
+        x = (np.asarray(col_px, np.float64) / max(frame_cols - 1, 1) - 0.5)[None, :]
         r2 = (x - _param(effects, "illumination", "x0")) ** 2 + (y - _param(effects, "illumination", "y0")) ** 2
         image = image * (1.0 - depth * (1.0 - np.exp(-r2 / 0.18))).astype(np.float32)
     dust = _param(effects, "parasitic_fringes", "dust_per_mpx")
     if dust > 0:  # the grains' rings, formed by the light on its way to the sensor
-        image = image * _dust_pattern((rows, cols), dust, _param(effects, "parasitic_fringes", "dust_zone_px"))
+        image = image * _dust_pattern((rows, cols), dust, _param(effects, "parasitic_fringes", "dust_zone_px"), _param(effects, "parasitic_fringes", "dust_grain_px"))
     amplitude = _param(effects, "parasitic_fringes", "amplitude")
     if amplitude > 0:
         angle, period = _param(effects, "parasitic_fringes", "angle_rad"), _param(effects, "parasitic_fringes", "period_px")
-        y, x = np.ogrid[:rows, :cols]
+        y, x = np.asarray(row_px, np.float64)[:, None], np.asarray(col_px, np.float64)[None, :]
         image = image * (1.0 + amplitude * np.cos(2 * np.pi * (x * np.cos(angle) + y * np.sin(angle)) / period)).astype(np.float32)
     blur = _param(effects, "sensor_blur", "sigma_px")
     if blur > 0:  # crosstalk / MTF spreads the light over neighbouring pixels; the electronics' read noise comes later, unblurred

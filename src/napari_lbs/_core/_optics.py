@@ -267,12 +267,16 @@ def superpose(
     wavelength_um: float,
     pixel_um: float,
     medium_index: float = 1.0,
+    periodic: bool = False,
 ) -> np.ndarray:
     """Sum of several scattered fields, each propagated by its own distance, at one plane.
 
     ``sum_l propagate(scattered[l], z_um[l])`` computed with one inverse FFT: the spectra are
     accumulated. The fields are padded with zeros (a scattered field vanishes away from its
-    scatterers), so light leaving the window is lost rather than wrapped.
+    scatterers), so light leaving the window is lost rather than wrapped. With
+    ``periodic=True`` the window is one period of an endless field instead (no padding): light
+    leaving one side enters the other, so every part of the window has scatterers all around
+    it, as a crop of a large sensor does.
 
     Returns
     -------
@@ -283,7 +287,10 @@ def superpose(
     shape = np.shape(scattered[0])
     dtype = _complex_dtype(np.asarray(scattered[0]))
     distances = _distances(z_um)
-    grid, spread_limit_um = propagation_grid(shape, z_max_um=float(np.max(np.abs(distances))), wavelength_um=wavelength_um, pixel_um=pixel_um, medium_index=medium_index)
+    if periodic:
+        grid, spread_limit_um = tuple(shape), None
+    else:
+        grid, spread_limit_um = propagation_grid(shape, z_max_um=float(np.max(np.abs(distances))), wavelength_um=wavelength_um, pixel_um=pixel_um, medium_index=medium_index)
     total = np.zeros(grid, dtype=dtype)
     padded = np.zeros(grid, dtype=dtype)
     for layer, z in zip(scattered, distances, strict=True):

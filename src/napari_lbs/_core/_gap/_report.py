@@ -27,100 +27,86 @@ def write_report(diagnosis: Diagnosis, out_dir, *, provenance: dict | None = Non
 
     figure = Figure(figsize=(11, 3.4), tight_layout=True)
     axes = figure.subplots(1, 3)
-    groups = list(gap["by_group"])
-    axes[0].bar(groups, [gap["by_group"][g] for g in groups], color="tab:blue")
-    axes[0].axhline(1.0, color="k", lw=0.8, ls="--")
-    axes[0].set_ylabel("distance (1 = two real tiles)")
-    axes[0].set_title("where: by kind of statistic")
-    axes[0].tick_params(axis="x", rotation=45)
-    axes[1].plot([b["distance"] for b in gap["by_band"]], "o-", label="spatial-frequency band (low → high)")
-    axes[1].plot([d["distance"] for d in gap["by_depth"]], "s-", label="depth summaries (near → far)")
-    axes[1].axhline(1.0, color="k", lw=0.8, ls="--")
-    axes[1].legend(fontsize=7)
-    axes[1].set_title("where: by band and by depth")
-    tiles = np.asarray(gap["by_region"])
-    side = int(round(np.sqrt(tiles.size)))
-    if side * side == tiles.size:
-        image = axes[2].imshow(tiles.reshape(side, side), cmap="magma")
-        figure.colorbar(image, ax=axes[2])
-    else:
-        axes[2].bar(range(tiles.size), tiles)
-    axes[2].set_title("where: by region (each real tile)")
+    axes[0].plot([b["gap"] for b in gap["by_band"]], "o-", color="tab:blue")
+    axes[0].set_xticks(range(len(gap["by_band"])), [b["band"].split()[2].split("-")[0] for b in gap["by_band"]], rotation=45, fontsize=7)
+    axes[0].set_xlabel("spatial-frequency band from (cycles/px)")
+    axes[0].set_ylabel("gap (0 = indistinguishable, 1 = always told apart)")
+    axes[0].set_ylim(0, 1)
+    axes[0].set_title("where: by frequency band")
+    axes[1].plot([d["depth_um"] for d in gap["by_depth"]], [d["gap"] for d in gap["by_depth"]], "s-", color="tab:orange")
+    axes[1].set_xlabel("back-propagation depth (µm)")
+    axes[1].set_ylim(0, 1)
+    axes[1].set_title("where: by depth")
+    image = axes[2].imshow(diagnosis.tile_map, cmap="magma", vmin=0.0, vmax=1.0)
+    bar = figure.colorbar(image, ax=axes[2])
+    bar.set_label("P(tile is the experiment's), held out")
+    axes[2].set_title(f"where: by tile ({report['tiles']['tile_px']} px tiles)")
+    axes[2].set_xlabel("tile column")
+    axes[2].set_ylabel("tile row")
     with atomic_path(out / "gap_where.png") as temporary:
         figure.savefig(temporary, dpi=110, format="png")
     paths.append(out / "gap_where.png")
 
-    figure = Figure(figsize=(11, 3.4), tight_layout=True)
+    figure = Figure(figsize=(11, 3.6), tight_layout=True)
     axes = figure.subplots(1, 2)
+    posterior = list(report["posterior"].items())[:10]
+    axes[0].barh([k for k, _ in posterior][::-1], [v for _, v in posterior][::-1], color="tab:green")
+    axes[0].axvline(report["settings"]["level"], color="k", lw=0.8, ls="--")
+    axes[0].set_xlim(0, 1)
+    axes[0].set_xlabel("posterior probability of the model")
+    axes[0].set_title(f"which: verdict {report['verdict']['id'] or 'none named'}")
     effects = report["effects"]
-    axes[0].barh([e["id"] + ("" if e["confirmed"] else " (screened)") for e in effects][::-1], [max(e["shrink"], -1.0) for e in effects][::-1], color=["tab:green" if e["confirmed"] else "tab:gray" for e in effects][::-1])
-    axes[0].axvline(0.0, color="k", lw=0.8)
-    axes[0].set_xlabel("shrink of the gap on held-out tiles")
-    axes[0].set_title(f"effects ranked; verdict: {report['verdict']['id']}")
-    steps = report["waterfall"]
-    axes[1].bar([s["model"] for s in steps], [s["gap"] for s in steps], color="tab:purple")
-    axes[1].set_ylabel("gap (excess χ²)")
-    axes[1].set_title("waterfall: effects added greedily")
-    axes[1].tick_params(axis="x", rotation=20)
+    axes[1].barh([e["id"] for e in effects][::-1], [e["gap_after"] for e in effects][::-1], color="tab:purple")
+    axes[1].axvline(gap["baseline"], color="k", lw=0.8, ls="--", label="baseline (nothing added)")
+    axes[1].set_xlim(0, 1)
+    axes[1].set_xlabel("gap with the effect added (closest simulations)")
+    axes[1].legend(fontsize=7)
+    axes[1].set_title("how much: the gap with each effect")
     with atomic_path(out / "gap_effects.png") as temporary:
         figure.savefig(temporary, dpi=110, format="png")
     paths.append(out / "gap_effects.png")
 
     verdict = report["verdict"]
+    named = verdict["id"] or ("nothing missing" if not verdict["undecided"] else "undecided between " + " and ".join(verdict["undecided"]))
     lines = [
         "# Sim-to-real gap diagnosis",
         "",
-        f"- Gap between the experiment and the seed's simulator (baseline): **{gap['baseline']:.2f}** ({gap['metric']}).",
-        f"- Verdict: **{verdict['id'] or 'none named (null)'}**; shrink {100 * verdict['shrink']:.0f} % "
-        f"(90 % interval {100 * verdict['interval'][0]:.0f} to {100 * verdict['interval'][1]:.0f} %), residual gap {verdict['residual']:.2f}. Why: {verdict['reason']}.",
-        f"- Data that would decide: {_tiles_to_decide_text(verdict, report['tiles'])}",
+        f"- Verdict: **{named}** ({verdict['reason']}).",
+        f"- Gap between the experiment and the seed's simulator: **{gap['baseline']:.2f}** (90 % interval {gap['baseline_interval'][0]:.2f} to {gap['baseline_interval'][1]:.2f}; {gap['metric']}).",
+        f"- With the verdict added: {verdict['residual']:.2f} (shrink {100 * verdict['shrink']:.0f} %)." if verdict["id"] else "- Nothing added.",
+        f"- The catalog {'explains' if verdict['catalog_explains'] else 'does not explain'} the gap.",
         f"- Known, not diagnosed (what the file states and what you stated): {_known_text(report)}",
-        f"- Time: {report['seconds']:.0f} s; tiles: {report['tiles']}.",
+        f"- Data: {report['tiles']['frames']} frame(s), {report['tiles']['per_frame']} tiles of {report['tiles']['tile_px']} px each; "
+        f"diagnoser {report['diagnoser']['key']} ({report['diagnoser']['simulations']} simulations); {report['seconds']:.0f} s.",
         "",
-        "## Where the gap lies (1 = as different as two tiles of the experiment)",
+        "## Posterior (which model: nothing missing, one effect, or two)",
         "",
-        "| kind | distance |",
+        "| model | probability |",
         "|---|---|",
-        *[f"| {g} | {v:.2f} |" for g, v in gap["by_group"].items()],
-        "",
-        "Largest single differences:",
-        "",
-        *[f"- {s['name']} ({s['group']}): real {s['real']:.4g}, simulated {s['sim']:.4g}, distance {s['distance']:.1f}" for s in sorted(gap["summaries"], key=lambda s: -s["distance"])[:8]],
-        "",
-        "![where](gap_where.png)",
+        *[f"| {k} | {v:.3f} |" for k, v in report["posterior"].items() if v >= 0.005],
         "",
         "## Effects",
         "",
-        "Evidence: the χ² an effect removes on the held-out tiles, summed over its own summaries (those it moves by at least one sampling error).",
-        "",
-        "| effect | confirmed (refitted) | evidence: χ² removed on its summaries (90 % interval) | gap after | shrink (90 % interval) | gap with it switched off in its own fit | screening t |",
-        "|---|---|---|---|---|---|---|",
+        "| effect | P(present) | gap after | shrink | parameters (median; 90 % interval) |",
+        "|---|---|---|---|---|",
         *[
-            f"| {e['id']} | {'yes' if e['confirmed'] else 'no'} | "
-            f"{'{:.1f} on {} ({:.1f} to {:.1f})'.format(e['evidence']['reduction'], e['evidence']['summaries'], *e['evidence']['interval']) if 'evidence' in e else '—'} | "
-            f"{e['gap_after']:.2f} | {100 * e['shrink']:.0f} %"
-            f"{' ({:.0f} to {:.0f} %)'.format(*(100 * v for v in e['shrink_interval'])) if 'shrink_interval' in e else ''} | "
-            f"{format(e['gap_ablated'], '.2f') if 'gap_ablated' in e else '—'} | {e['screening']['t']:.1f} |"
+            f"| {e['id']} | {e['probability']:.2f} | {e['gap_after']:.2f} | {100 * e['shrink']:.0f} % | "
+            + ", ".join(f"{k} {v:.3g}" + (f" ({e['intervals'][k][0]:.3g} to {e['intervals'][k][1]:.3g})" if k in e["intervals"] else "") for k, v in e["params"].items()) + " |"
             for e in effects
         ],
         "",
         "![effects](gap_effects.png)",
         "",
+        "## Where the gap lies",
+        "",
+        "Most unlike the simulation: " + "; ".join(f"tile at x {t['x_px']} px, y {t['y_px']} px (P {t['probability']:.2f})" for t in gap["tiles"]["most_unlike"]) + ".",
+        "",
+        "![where](gap_where.png)",
+        "",
     ]
     paths.append(out / "report.md")
     atomic_write_bytes(out / "report.md", "\n".join(lines).encode("utf-8"))
     return paths
-
-
-def _tiles_to_decide_text(verdict: dict, tiles: dict) -> str:
-    needed = verdict.get("tiles_to_decide")
-    if needed is None:
-        return "no amount of data: the best effect does not improve on the baseline or on the runner-up."
-    if needed <= tiles["held_out"]:
-        return f"these {tiles['held_out']} held-out tiles suffice."
-    # cross-fitted, every tile is held out once; else half of them are
-    in_all = needed if tiles.get("cross_fitted") else 2 * needed
-    return f"about {needed} held-out tiles of {tiles['shape'][0]}x{tiles['shape'][1]} px (now {tiles['held_out']}), i.e. about {in_all} tiles in all, if the margins stay as measured."
 
 
 def _known_text(report: dict) -> str:

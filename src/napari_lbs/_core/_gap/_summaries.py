@@ -1,7 +1,7 @@
 """Tile summaries: one code path for real and simulated tiles, none needing the two scenes to be aligned.
 
 Per spatial-frequency band (radial power spectrum, and the power at the experiment's
-static-fringe frequency, `measured_fringe`), per depth (contrast and relative sharpness of 8
+strongest static-fringe frequency), per depth (contrast and relative sharpness of 8
 back-propagated planes, sharpness-weighted depth), per image region (illumination tilt and
 curvature within a tile, the field-wide envelope around it), intensity statistics (quantiles,
 moments, clipped fraction), noise character (residual std, the noise variance's elasticity
@@ -26,7 +26,7 @@ from napari_lbs._core._config import ExperimentConfig
 from napari_lbs._core._effects import EFFECTS
 from napari_lbs._core._optics import transfer_function
 
-__all__ = ["tile_summaries", "measured_fringe", "SUMMARY_GROUPS", "MIN_TILE_PX"]
+__all__ = ["tile_summaries", "SUMMARY_GROUPS", "MIN_TILE_PX"]
 
 SUMMARY_GROUPS = ("band", "depth", "region", "intensity", "noise", "appearance")
 _BANDS = np.geomspace(1 / 64, 0.5, 9)  # cycles per pixel: 8 bands
@@ -50,7 +50,7 @@ def tile_summaries(
     """Summary vector of one hologram tile and the (name, group) of each entry.
 
     ``fringe_frequency`` (cycles/px, (fy, fx)): where to measure the power of a static fringe,
-    normally the experiment's strongest spectral peak (`measured_fringe`); real and simulated
+    e.g. the experiment's strongest spectral peak; real and simulated
     tiles must be summarised with the same one. Default: this tile's own strongest peak.
 
     ``field_mean`` (the mean of the whole image the tile was cut from; default the tile's own)
@@ -160,10 +160,8 @@ def _tiles_summaries(
 ) -> tuple[np.ndarray, list[tuple[str, str]]]:
     """`tile_summaries` of several tiles, each with its own field mean and surroundings: ((tiles, K) array, names).
 
-    The tiles are summarised on a pool of threads, one per core: a diagnosis spends three
-    quarters of its time in summaries of simulated tiles (the real 1024² hologram: 154 of 204 s,
-    docs/diagnosis.md, eighth pass), and their FFTs, sorts, filters and array arithmetic run
-    without Python's global lock. Each tile's summary is computed as alone, so the result
+    The tiles are summarised on a pool of threads, one per core: their FFTs, sorts, filters
+    and array arithmetic run without Python's global lock. Each tile's summary is computed as alone, so the result
     does not depend on the threads.
     """
     done = list(_summary_pool().map(
@@ -204,10 +202,9 @@ def _noise_elasticity(image: np.ndarray) -> float:
     smooth light, up to a tilt, cancels), and ``d²`` is regressed on the block's local mean
     intensity ``m`` (a 6-px window) by least squares over the whole tile: elasticity =
     slope · mean(m) / mean(d²). Every pixel's fringe-scale brightness is leverage, where the
-    16-px block means of the summary this replaced averaged the fringes away: on the
-    absorbing suite's scenes at 120 photons, 16 tiles of 128² tell Poisson from Gaussian
-    noise of the same variance at z = 10–18 (`bench_diagnosis.py noise`), where the blocks
-    gave 4–7 (docs/diagnosis.md, ninth pass). Where the noise is small against fine
+    16-px block means of a coarser summary would average the fringes away: on absorbing
+    Lorenz–Mie scenes at 120 photons, 16 tiles of 128² tell Poisson from Gaussian noise of
+    the same variance at z = 10–18, where 16-px blocks gave 4–7. Where the noise is small against fine
     fringes, their leak into ``d`` sets the value (0.9–1.2 in that suite's controls, read
     noise 1 % of the light), alike in real and simulated tiles of the same fringes: the
     summary tells the noises apart where noise dominates ``d``.
@@ -235,7 +232,7 @@ def _high_band_peakedness(image: np.ndarray) -> float:
     band's power cannot: light a transparent sphere refracts beyond the sensor's bandwidth
     arrives aliased, as power at every high frequency like noise, but as chirps. Photon or
     doubled read noise lowers it by 4-11 tile-to-tile spreads, transparent spheres raise it
-    by 0.3-1 (docs/diagnosis.md, seventh pass).
+    by 0.3-1 (measured on 128² tiles of Lorenz–Mie scenes).
     """
     block = _PEAKEDNESS_BLOCK_PX
     rows, cols = (image.shape[0] // block) * block, (image.shape[1] // block) * block
@@ -355,20 +352,3 @@ def _peak_frequency(power: np.ndarray) -> tuple[float, float]:
     contrast = np.where((radius >= 1 / longest) & (radius <= 1 / shortest), power / (np.asarray(ring_median)[ring] + 1e-30), -np.inf)
     peak = np.unravel_index(np.argmax(contrast), power.shape)
     return float(fy[peak]), float(fx[peak])
-
-
-def measured_fringe(tiles: Sequence[np.ndarray]) -> tuple[float, float]:
-    """Frequency (fy, fx) in cycles/px of a static fringe: the peak of the tiles' mean power spectrum.
-
-    An etalon fringe has the same frequency in every tile, so it adds up in the mean spectrum
-    while the particles' rings (random positions) average into a smooth background. Only
-    frequencies within the `parasitic_fringes` period bounds are searched.
-    """
-    # geometric mean over tiles: a particle's speckle-like power fluctuates from tile to tile, a fringe's does not
-    return _peak_frequency(np.exp(np.mean([np.log(_power_spectrum(np.asarray(t, np.float64) / np.mean(t)) + 1e-30) for t in tiles], axis=0)))
-
-
-def _fringe_parameters(frequency: tuple[float, float]) -> dict:
-    """The `parasitic_fringes` period (px) and angle (rad) of a frequency (fy, fx)."""
-    fy, fx = frequency
-    return {("parasitic_fringes", "period_px"): float(1.0 / np.hypot(fy, fx)), ("parasitic_fringes", "angle_rad"): float(np.arctan2(fy, fx) % np.pi)}
