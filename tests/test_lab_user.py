@@ -57,3 +57,144 @@ def test_the_workflow_dock_keeps_stop_in_view_while_training_reports_a_long_eta(
     window = viewer.window._qt_window
     assert window.width() <= 1280 and window.height() <= 800
     assert in_view(step._run.native, dock) and in_view(step._stop.native, dock)
+
+
+TIMEOUT_MS = 180_000
+
+
+def run_to_end(qtbot, step):
+    assert step._run.enabled, step._status.value
+    step._run.clicked.emit()
+    qtbot.waitUntil(lambda: step._worker is None, timeout=TIMEOUT_MS)
+    assert step._run.enabled and not step._stop.enabled
+
+
+def write_config(path, config):
+    from napari_lbs._core._config import config_to_toml
+
+    path.write_text(config_to_toml(config))
+    return path
+
+
+def simulated_tiff(path, config, *, shape=(96, 96), count=6, seed=1):
+    """A hologram TIFF as a camera writes it (no scale in the file) and its true particles."""
+    import tifffile
+
+    from napari_lbs._core import random_particle_field, simulate_hologram
+
+    field = random_particle_field(shape, count=count, diameter_min_um=20, diameter_max_um=30, layers_um=config.layer_depths_um(), pixel_um=config.optics.pixel_um, seed=seed)
+    tifffile.imwrite(path, simulate_hologram(field, wavelength_um=config.optics.wavelength_um))
+    return field.table()
+
+
+def oracle(monkeypatch, truth):
+    """Prediction's detections replaced by the true particles, so what is measured is where the results land, not the network."""
+    import dataclasses
+
+    from napari_lbs._widgets import _prediction
+
+    real = _prediction.predict_particles
+
+    def predict(*args, **kwargs):
+        result = real(*args, **kwargs)
+        return dataclasses.replace(result, particles={**{k: np.asarray(v, float) for k, v in truth.items()}, "score": np.ones(len(truth["x_um"]))})
+
+    monkeypatch.setattr(_prediction, "predict_particles", predict)
+
+
+def test_a_hologram_opened_with_napari_s_reader_is_put_in_um_and_the_particles_sit_on_it(make_napari_viewer, qtbot, tmp_path, monkeypatch, detector, tiny_config):
+    from qtpy.QtWidgets import QInputDialog
+
+    truth = simulated_tiff(tmp_path / "holo.tif", tiny_config)
+    oracle(monkeypatch, truth)
+    asked = []
+    monkeypatch.setattr(QInputDialog, "getDouble", lambda *args, **kwargs: asked.append(args) or (2.2, True))
+    viewer = laptop_viewer(make_napari_viewer)
+    image = viewer.open(tmp_path / "holo.tif", plugin="napari")[0]
+    assert str(image.units[-1]) == "pixel"  # napari's reader knows no pixel size
+    _, step = viewer.window.add_plugin_dock_widget("napari-lbs", "5 Prediction")
+    step.hologram.value = image
+    step.model.value = detector.path
+    step.device.value = "cpu"
+    run_to_end(qtbot, step)
+    assert len(asked) == 1  # the pixel size was unknown (no config): asked once
+    assert all(str(unit) == "micrometer" for unit in image.units) and tuple(image.scale) == pytest.approx((2.2, 2.2))
+    points = viewer.layers["holo particles"]
+    on_points = np.array([points.data_to_world(p)[1:] for p in points.data])
+    pixels = np.column_stack([truth["y_um"], truth["x_um"]]) / tiny_config.optics.pixel_um  # (row, col) of each particle's centre in the file
+    on_image = np.array([image.data_to_world(p) for p in pixels])
+    assert np.median(np.linalg.norm(on_points - on_image, axis=1)) <= 5.0
+    # the file's pixel size is remembered: opened again, it is in µm at once
+    again = viewer.open(tmp_path / "holo.tif", plugin="napari")[0]
+    qtbot.waitUntil(lambda: str(again.units[-1]) == "micrometer", timeout=5000)
+    assert tuple(again.scale) == pytest.approx((2.2, 2.2)) and len(asked) == 1
+
+
+def test_a_recording_opened_with_napari_s_reader_runs_in_time_beside_its_particles(make_napari_viewer, qtbot, tmp_path, detector, tiny_config):
+    import tifffile
+
+    from napari_lbs._core import simulate_sequence
+
+    recording = simulate_sequence(tiny_config, frames=3, flow="uniform", size=96, count=4, speed_um=6.0, seed=2)
+    tifffile.imwrite(tmp_path / "run.tif", recording.frames, photometric="minisblack")
+    viewer = laptop_viewer(make_napari_viewer)
+    viewer.open(tmp_path / "run.tif", plugin="napari")
+    _, step = viewer.window.add_plugin_dock_widget("napari-lbs", "7 Batch")
+    step.frames.value = tmp_path / "run.tif"
+    step.model.value = detector.path
+    step.device.value = "cpu"
+    step.search_range.value = 10.0
+    run_to_end(qtbot, step)
+    frames, points = viewer.layers["run"], viewer.layers["run.tif particles"]
+    assert frames.ndim == 4 and viewer.dims.axis_labels[0] == "frame" and viewer.dims.nsteps[0] == 3
+    assert frames.data_to_world((2, 0, 10, 20))[0] == pytest.approx(2.0)  # frame 2 is time step 2, not a depth
+    np.testing.assert_allclose(frames.data_to_world((0, 0, 10, 20))[2:], (22.0, 44.0))  # in µm, as the particles
+    for z_um in (1800.0, 2200.0):  # the frame shows under the particles of every plane
+        assert round(frames.world_to_data((0, z_um, 0, 0))[1]) == 0
+    assert points.data_to_world(points.data[0])[0] == points.data[0, 0]
+
+
+def test_a_model_for_another_setup_is_a_warning_to_confirm_before_run(make_napari_viewer, qtbot, tmp_path, monkeypatch, detector):
+    from qtpy.QtWidgets import QMessageBox
+
+    answers, warnings = [QMessageBox.StandardButton.Cancel, QMessageBox.StandardButton.Yes], []
+
+    def warn(parent, title, text, *args):
+        warnings.append(text)
+        return answers.pop(0)
+
+    monkeypatch.setattr(QMessageBox, "warning", warn)
+    viewer = laptop_viewer(make_napari_viewer)
+    # a 3.45-µm camera's hologram, a model trained for 2.2-µm pixels, the config field empty ("the model's")
+    image = viewer.add_image(np.random.default_rng(0).normal(1.0, 0.05, (96, 96)).astype(np.float32), name="camera", scale=(3.45, 3.45), units="µm")
+    _, step = viewer.window.add_plugin_dock_widget("napari-lbs", "5 Prediction")
+    step.hologram.value = image
+    step.model.value = detector.path
+    step.device.value = "cpu"
+    run_to_end(qtbot, step)
+    assert len(warnings) == 1 and "optics.pixel_um=2.2" in warnings[0] and "3.45" in warnings[0]
+    assert "not run" in step._status.value and "camera particles" not in viewer.layers
+    run_to_end(qtbot, step)  # confirmed: it runs, on the hologram's pixel size
+    assert len(warnings) == 2 and viewer.layers["camera particles"].metadata["provenance"]["config"]["optics"]["pixel_um"] == 3.45
+
+
+def test_the_cli_refuses_a_model_for_other_optics_unless_forced(tmp_path, detector, tiny_config):
+    import subprocess
+    import sys
+
+    from napari_lbs._core import ExperimentConfig
+
+    simulated_tiff(tmp_path / "holo.tif", tiny_config)
+    other = tiny_config.to_dict()
+    other["optics"]["pixel_um"] = 3.45
+    config = write_config(tmp_path / "camera.toml", ExperimentConfig.from_dict(other))
+
+    def predict(*extra):
+        command = [sys.executable, "-m", "napari_lbs._cli", "predict", str(tmp_path / "holo.tif"), "--model", str(detector.path), "--config", str(config), "--device", "cpu", *extra]
+        return subprocess.run(command, capture_output=True, text=True)
+
+    refused = predict("--out", str(tmp_path / "a.csv"))
+    assert refused.returncode == 2 and len(refused.stderr.strip().splitlines()) == 1
+    assert "optics.pixel_um=2.2" in refused.stderr and "3.45" in refused.stderr and not (tmp_path / "a.csv").exists()
+    forced = predict("--out", str(tmp_path / "b.csv"), "--force")
+    assert forced.returncode == 0, forced.stderr and (tmp_path / "b.csv").is_file()

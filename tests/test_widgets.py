@@ -98,7 +98,7 @@ def test_calibration_widget_fits_on_the_roi_writes_json_and_stops(make_napari_vi
     assert "(stopped)" in widget._status.value
 
 
-def test_generate_train_predict_widgets_from_data_to_points(make_napari_viewer, qtbot, tmp_path):
+def test_generate_train_predict_widgets_from_data_to_points(make_napari_viewer, qtbot, tmp_path, monkeypatch):
     viewer = make_napari_viewer()
     config_path, config = tiny_config_file(tmp_path / "c.toml")
     generate = dock(viewer, "3 Synthetic data")
@@ -140,13 +140,16 @@ def test_generate_train_predict_widgets_from_data_to_points(make_napari_viewer, 
     points = viewer.layers["holo particles"]
     assert set(points.features.columns) >= {"diameter_um", "z_um", "score"}
     assert points.metadata["provenance"]["model_sha256"] and points.metadata["metrics"]["n_truth"] == 6
-    # a model for other optics is refused with a notification; the widget stays usable
+    # a model for other optics is a warning to confirm; declined, nothing runs and the widget stays usable
+    from qtpy.QtWidgets import QMessageBox
+
+    monkeypatch.setattr(QMessageBox, "warning", lambda *args: QMessageBox.StandardButton.Cancel)
     other = config.to_dict()
     other["optics"]["wavelength_um"] = 0.532
     (tmp_path / "other.toml").write_text(config_to_toml(ExperimentConfig.from_dict(other)))
     predict.config.value = tmp_path / "other.toml"
     run_to_end(qtbot, predict)
-    assert "optics.wavelength_um" in predict._status.value
+    assert "not run" in predict._status.value and "optics.wavelength_um" in predict._status.value
 
 
 def test_training_widget_stop_keeps_a_model(make_napari_viewer, qtbot, tmp_path):

@@ -8,7 +8,8 @@ table's ``(z_um, y_um, x_um)``, the z slider steps through the planes, and in 2-
 is drawn on its nearest plane (napari shows Points within half a data unit of the slice).
 A recording's layers put its frame axis in front, napari's time axis: one step per frame,
 labelled ``frame`` and dimensionless (frames are counted, not measured), so they sit beside
-the single-frame layers without a units conflict.
+the single-frame layers without a units conflict; the recording itself, opened by any reader
+as ``(frame, row, col)``, is put on the same axes (`recording_image`).
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["UNITS", "PlaneGrid", "frame_points", "particle_points", "points_table", "track_lines"]
+__all__ = ["UNITS", "PlaneGrid", "frame_points", "particle_points", "points_table", "recording_image", "track_lines"]
 
 UNITS = "µm"
 
@@ -101,6 +102,26 @@ def particle_points(table: dict, grid: PlaneGrid) -> tuple[np.ndarray, dict]:
 def _recording_keywords(grid: PlaneGrid) -> dict:
     """The ``(frame, plane, row, col)`` axes of a recording's layers: scale, translate, units, labels."""
     return {"scale": (1.0, *grid.scale), "translate": (0.0, *grid.translate), "units": ("", UNITS, UNITS, UNITS), "axis_labels": ("frame", "z", "y", "x")}
+
+
+def recording_image(frames, grid: PlaneGrid, *, planes: int) -> tuple[object, dict]:
+    """A recording's ``(frame, row, col)`` image on the axes of its results: frame as time.
+
+    The frames get a plane axis of length one whose one plane spans all ``planes`` depths
+    of ``grid``, so each frame shows under its particles at every plane.
+
+    Returns
+    -------
+    data : (frames, 1, rows, cols) array
+        A view of ``frames``.
+    keywords : dict
+        ``scale``, ``translate``, ``units`` and ``axis_labels``, as the recording's Points.
+    """
+    keywords = _recording_keywords(grid)
+    scale, translate = list(keywords["scale"]), list(keywords["translate"])
+    scale[1] = grid.z_step_um * planes
+    translate[1] = grid.z_min_um + grid.z_step_um * (planes - 1) / 2
+    return frames[:, None], {**keywords, "scale": tuple(scale), "translate": tuple(translate)}
 
 
 def frame_points(table: dict, grid: PlaneGrid) -> tuple[np.ndarray, dict]:

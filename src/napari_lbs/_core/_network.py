@@ -55,7 +55,7 @@ from napari_lbs._core._files import atomic_write_bytes
 from napari_lbs._core._io import InputError
 from napari_lbs._core._validation import check_model_payload
 
-__all__ = ["PRESETS", "FORMULATIONS", "UNet", "build_network", "save_model", "load_model", "LoadedModel", "resolve_device", "check_model_matches", "network_outputs", "focus_maps", "inference_network", "MODEL_FORMAT"]
+__all__ = ["PRESETS", "FORMULATIONS", "UNet", "build_network", "save_model", "load_model", "LoadedModel", "resolve_device", "check_model_matches", "model_mismatches", "network_outputs", "focus_maps", "inference_network", "MODEL_FORMAT"]
 
 MODEL_FORMAT = "napari-lbs-model"
 _MODEL_VERSION = 2
@@ -189,8 +189,41 @@ def inference_network(network: UNet) -> UNet:
     return fused
 
 
-def check_model_matches(meta: dict, config: ExperimentConfig, *, planes_um) -> None:
-    """Refuse a model trained for other optics, another tile size or depths outside its training range.
+def model_mismatches(meta: dict, config: ExperimentConfig, *, planes_um) -> list[str]:
+    """Where a model's setup differs from a hologram's: its optics (wavelength, pixel, medium) and depths outside its training range.
+
+    Parameters
+    ----------
+    meta : dict
+        The model's metadata (`LoadedModel.meta`).
+    config : ExperimentConfig
+        The hologram's setup.
+    planes_um : sequence of float
+        The depths to reconstruct (µm).
+
+    Returns
+    -------
+    list of str
+        One line per mismatch naming both values, e.g. ``model: trained for
+        optics.pixel_um=3.45, the config says 2.2``; empty when the model fits.
+    """
+    trained = ExperimentConfig.from_dict(meta["config"])
+    found = []
+    for key in ("wavelength_um", "pixel_um", "medium_index"):
+        a, b = getattr(trained.optics, key), getattr(config.optics, key)
+        if not math.isclose(a, b, rel_tol=1e-6):
+            found.append(f"model: trained for optics.{key}={a:g}, the config says {b:g}")
+    layers = meta["planes_um"]
+    step = (max(layers) - min(layers)) / max(len(layers) - 1, 1)
+    low, high = min(layers) - step, max(layers) + step
+    outside = [z for z in planes_um if not low <= z <= high]
+    if outside:
+        found.append(f"volume: depths {outside[0]:g} µm and beyond lie outside the model's training range {min(layers):g}-{max(layers):g} µm")
+    return found
+
+
+def check_model_matches(meta: dict, config: ExperimentConfig, *, planes_um, force: bool = False) -> None:
+    """Refuse a model for another tile size, and unless ``force``, one for other optics or depths (`model_mismatches`).
 
     Raises
     ------
@@ -198,18 +231,11 @@ def check_model_matches(meta: dict, config: ExperimentConfig, *, planes_um) -> N
         Naming the first mismatch, e.g. ``model: trained for optics.wavelength_um=0.532, the config says 0.66``.
     """
     trained = ExperimentConfig.from_dict(meta["config"])
-    for key in ("wavelength_um", "pixel_um", "medium_index"):
-        a, b = getattr(trained.optics, key), getattr(config.optics, key)
-        if not math.isclose(a, b, rel_tol=1e-6):
-            raise InputError(f"model: trained for optics.{key}={a:g}, the config says {b:g}; train a model for these optics")
     if trained.tile.size != config.tile.size:
         raise InputError(f"model: trained for tile.size={trained.tile.size}, the config says {config.tile.size}")
-    layers = meta["planes_um"]
-    step = (max(layers) - min(layers)) / max(len(layers) - 1, 1)
-    low, high = min(layers) - step, max(layers) + step
-    outside = [z for z in planes_um if not low <= z <= high]
-    if outside:
-        raise InputError(f"volume: depths {outside[0]:g} um and beyond lie outside the model's training range {min(layers):g}-{max(layers):g} um")
+    found = [] if force else model_mismatches(meta, config, planes_um=planes_um)
+    if found:
+        raise InputError(f"{found[0]}; train a model for this setup, or run it anyway (--force)")
 
 
 def network_outputs(network: UNet, planes: np.ndarray, *, output_scale: float, batch_size: int = 8) -> np.ndarray:

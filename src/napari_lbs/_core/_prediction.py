@@ -74,6 +74,7 @@ def predict_particles(
     margin_px: int = 32,
     window_px: int | None = None,
     device: str = "auto",
+    force: bool = False,
     progress: ProgressCallback | None = None,
     should_stop: StopCallback | None = None,
 ) -> PredictionResult:
@@ -86,8 +87,9 @@ def predict_particles(
     model : LoadedModel or path
         A model file from `train_model`.
     config : ExperimentConfig, optional
-        Optics and reconstruction depths; default the model's own. A config whose optics or
-        tile size differ from the model's, or whose depths leave its training range, is refused.
+        Optics and reconstruction depths; default the model's own. A config whose tile size
+        differs from the model's is refused; so is one whose optics differ or whose depths
+        leave the model's training range (`model_mismatches`), unless ``force``.
     background : (rows, cols) array, optional
         Hologram without particles (divided out before back-propagation).
     planes_um : sequence of float, optional
@@ -101,6 +103,8 @@ def predict_particles(
         30.4 s for the real 1024² hologram: a small window's activations stay in cache); they
         may pay off on a GPU (not measured).
     device : {"auto", "cpu", "cuda"}
+    force : bool
+        Run a model made for other optics or depths anyway (the config's optics are used).
     progress, should_stop
         One step per reconstruction plane (``focus``: also one per back-propagated plane,
         context included, first); a stop raises `Stopped`.
@@ -117,7 +121,7 @@ def predict_particles(
     loaded = replace(loaded, network=inference_network(loaded.network))  # the caller's model stays as it is
     config = config if config is not None else loaded.config
     planes = [float(z) for z in (planes_um if planes_um is not None else config.volume.planes_um())]
-    check_model_matches(meta, config, planes_um=planes)
+    check_model_matches(meta, config, planes_um=planes, force=force)
     size = int(meta["tile_size"])
     margin_px = min(int(margin_px), size // 4)
     layout = (tile_layout(hologram.shape[0], size=size, margin=margin_px), tile_layout(hologram.shape[1], size=size, margin=margin_px))

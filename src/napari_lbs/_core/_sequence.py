@@ -387,7 +387,8 @@ def _frame_particles(hologram: np.ndarray, model, config: ExperimentConfig, back
     target = resolve_device(device)
     if next(model.network.parameters()).device != target:
         model.network.to(target)
-    result = predict_particles(hologram, model, config, background=background)
+    # predict_sequence checked the model against the config once, before any frame
+    result = predict_particles(hologram, model, config, background=background, force=True)
     return result.particles, result.provenance
 
 
@@ -543,6 +544,7 @@ def predict_sequence(
     local_processes: bool = True,
     work_dir: str | Path | None = None,
     device: str = "auto",
+    force: bool = False,
     progress: ProgressCallback | None = None,
     should_stop: StopCallback | None = None,
 ) -> SequenceResult:
@@ -575,6 +577,8 @@ def predict_sequence(
         The folder is left in place (remove it once the table is written).
     device : {"auto", "cpu", "cuda"}
         Where each worker runs the network (``auto``: a worker's GPU when it has one).
+    force : bool
+        Run a model made for other optics or depths anyway (`predict_particles`).
     progress, should_stop
         One step per frame (resumed frames count as done at once). A stop raises `Stopped`
         when the next frame finishes (frames still in flight are cancelled); the finished
@@ -584,7 +588,7 @@ def predict_sequence(
     -------
     SequenceResult
     """
-    from napari_lbs._core._network import LoadedModel, load_model
+    from napari_lbs._core._network import LoadedModel, check_model_matches, load_model
 
     start_time = time.perf_counter()
     if workers is not None and scheduler is not None:
@@ -606,6 +610,7 @@ def predict_sequence(
         frames.check()  # every frame's shape, from the headers, before any set-up
         loaded = model if isinstance(model, LoadedModel) else load_model(model, device="cpu")
         config = config if config is not None else loaded.config
+        check_model_matches(loaded.meta, config, planes_um=config.volume.planes_um(), force=force)
         count = len(frames)
         if count == 1 and mode in ("global", "running"):
             mode = "none"  # the median of one frame is that frame: dividing by it would leave nothing

@@ -27,8 +27,8 @@ from napari_lbs._core import Stopped, load_config
 from napari_lbs._core._io import as_hologram
 
 __all__ = [
-    "StepWidget", "chosen", "config_from", "config_problem", "doc_of", "hologram_data", "hologram_problem", "missing", "model_config", "model_problem", "output_problem",
-    "path_edit", "wrapping_label",
+    "StepWidget", "chosen", "config_from", "config_problem", "doc_of", "file_of", "hologram_data", "hologram_problem", "in_micrometres", "missing", "model_config", "model_problem", "model_setup", "output_problem",
+    "path_edit", "place_hologram", "place_in_micrometres", "restore_pixel_size", "wrapping_label",
 ]
 
 
@@ -166,6 +166,123 @@ def hologram_data(layer) -> np.ndarray:
     return as_hologram(np.asarray(layer.data), name=layer.name, log=show_info)
 
 
+_PIXEL_SIZES = "pixel_um of files"  # QSettings group: the pixel size told for each file opened in pixels
+
+
+def file_of(layer) -> str | None:
+    """The absolute path of the file a layer was opened from, or None."""
+    path = getattr(layer.source, "path", None)
+    return str(Path(path).resolve()) if path else None
+
+
+def _put_in_micrometres(layer, pixel_um: float) -> None:
+    """Give a layer opened in pixels the µm scale of ``pixel_um`` pixels (its translate, in pixels, scaled alike)."""
+    from napari_lbs._layers import UNITS
+
+    lateral = np.ones(layer.ndim)
+    lateral[-2:] = pixel_um
+    layer.scale = np.asarray(layer.scale) * lateral
+    layer.translate = np.asarray(layer.translate) * lateral
+    layer.units = [UNITS] * layer.ndim
+
+
+def in_micrometres(layer) -> bool:
+    """Whether a layer's lateral axes are in µm (the plugin's layers are; napari's own readers give pixels)."""
+    return str(layer.units[-1]) == "micrometer"
+
+
+def restore_pixel_size(layer) -> None:
+    """Put an Image layer opened in pixels in µm when its file's pixel size was told before."""
+    from napari.layers import Image
+
+    file = file_of(layer)
+    if isinstance(layer, Image) and file is not None and not in_micrometres(layer):
+        told = QSettings("napari-lbs", _PIXEL_SIZES).value(file)
+        if told is not None:
+            _put_in_micrometres(layer, float(told))
+
+
+def place_in_micrometres(layer, *, pixel_um: float | None, proposed_um: float) -> float:
+    """Put a hologram layer in µm before a step uses it; return its pixel size (µm).
+
+    A layer in µm keeps its scale. One in pixels (opened by napari's own reader) takes the
+    pixel size told for its file before, else ``pixel_um`` (the step's config names one),
+    else the one the user gives when asked (``proposed_um`` offered); it is remembered for
+    the file, so the file opens in µm from then on.
+
+    Raises
+    ------
+    ValueError
+        When the user declines to give a pixel size.
+    """
+    from napari.utils.notifications import show_info
+    from qtpy.QtWidgets import QInputDialog
+
+    if in_micrometres(layer):
+        return float(layer.scale[-1])
+    file = file_of(layer)
+    settings = QSettings("napari-lbs", _PIXEL_SIZES)
+    told = settings.value(file) if file is not None else None
+    if told is not None:
+        pixel_um = float(told)
+    elif pixel_um is None:
+        pixel_um, ok = QInputDialog.getDouble(None, "Pixel size", f"{layer.name} is in pixels: its pixel size (µm)?", proposed_um, 0.001, 10000.0, 3)
+        if not ok:
+            raise ValueError(f"{layer.name}: in pixels and no pixel size given; give one, or a config")
+    if file is not None:
+        settings.setValue(file, float(pixel_um))
+    _put_in_micrometres(layer, float(pixel_um))
+    show_info(f"{layer.name}: put in µm ({pixel_um:g} µm pixels), as the plugin's results are")
+    return float(pixel_um)
+
+
+def place_hologram(layer, config_edit: FileEdit) -> float:
+    """`place_in_micrometres` for a step whose config field names the setup (empty: the defaults, whose pixel size is then offered, not assumed)."""
+    config = config_from(config_edit)
+    return place_in_micrometres(layer, pixel_um=config.optics.pixel_um if chosen(config_edit) is not None else None, proposed_um=config.optics.pixel_um)
+
+
+def model_setup(model_path: Path, config, layer=None):
+    """The setup a model is to run on and how it differs from the one the model was trained for.
+
+    Parameters
+    ----------
+    model_path : Path
+        A model file.
+    config : ExperimentConfig or None
+        The config field's; None: the model's own, with the hologram layer's pixel size.
+    layer : napari Image layer, optional
+        The hologram, put in µm first (`place_in_micrometres`).
+
+    Returns
+    -------
+    config : ExperimentConfig
+    warning : str or None
+        The mismatches (`model_mismatches`), one a line; None when the model fits.
+    """
+    from napari_lbs._core import ExperimentConfig, load_model
+    from napari_lbs._core._network import model_mismatches
+
+    model = load_model(model_path)
+    if layer is not None:
+        pixel_um = place_in_micrometres(layer, pixel_um=config.optics.pixel_um if config is not None else None, proposed_um=model.config.optics.pixel_um)
+        if config is None:
+            setup = model.config.to_dict()
+            setup["optics"]["pixel_um"] = pixel_um
+            config = ExperimentConfig.from_dict(setup)
+    config = config if config is not None else model.config
+    found = model_mismatches(model.meta, config, planes_um=config.volume.planes_um())
+    return config, "\n".join(found) if found else None
+
+
+def _confirmed(parent, title: str, warning: str) -> bool:
+    from qtpy.QtWidgets import QMessageBox
+
+    buttons = QMessageBox.StandardButton.Yes | QMessageBox.StandardButton.Cancel
+    answer = QMessageBox.warning(parent, f"{title}: check the setup", f"{warning}\n\nRun anyway?", buttons, QMessageBox.StandardButton.Cancel)
+    return answer == QMessageBox.StandardButton.Yes
+
+
 def _clock(seconds: float) -> str:
     seconds = int(round(seconds))
     return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}" if seconds >= 3600 else f"{seconds // 60}:{seconds % 60:02d}"
@@ -245,7 +362,7 @@ class StepWidget(Container):
         self._restore_settings()
         for widget in fields:
             widget.changed.connect(self._changed)
-        viewer.layers.events.inserted.connect(self._layers_changed)
+        viewer.layers.events.inserted.connect(self._layer_inserted)
         viewer.layers.events.removed.connect(self._layers_changed)
         self._revalidate()
 
@@ -291,6 +408,13 @@ class StepWidget(Container):
             if hasattr(field, "reset_choices"):
                 field.reset_choices()
 
+    def _layer_inserted(self, event) -> None:
+        from qtpy.QtCore import QTimer
+
+        layer = event.value
+        QTimer.singleShot(0, lambda: restore_pixel_size(layer))  # once napari has finished adding it (its canvas visual too)
+        self._layers_changed()
+
     def _layers_changed(self, *_) -> None:
         self.reset_choices()
         self._revalidate()
@@ -318,6 +442,10 @@ class StepWidget(Container):
     def work(self, job, *, progress, should_stop, report):
         """The `_core` call on `prepare`'s ``job``, run in the worker thread; returns what `show` receives."""
         raise NotImplementedError
+
+    def caution(self, job) -> str | None:
+        """A warning about `prepare`'s ``job`` the user must confirm before it runs (a model for another setup), or None."""
+        return None
 
     def show(self, result) -> None:
         """Show a finished result (GUI thread)."""
@@ -349,6 +477,11 @@ class StepWidget(Container):
             job = self.prepare()
         except (ValueError, OSError) as error:
             self._on_errored(error)
+            self._on_finished()
+            return
+        warning = self.caution(job)
+        if warning is not None and not _confirmed(self.native, self.title, warning):
+            self._outcome = f"not run: {warning}"
             self._on_finished()
             return
         # Made here, before the worker runs: creating it processes events, which must not

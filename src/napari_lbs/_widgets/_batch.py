@@ -4,14 +4,15 @@ from __future__ import annotations
 
 import glob
 import re
+from pathlib import Path
 
 import numpy as np
 from magicgui.widgets import ComboBox, FloatSpinBox, LineEdit, SpinBox
 
 from napari_lbs._core import Stopped, link_tracks, open_frames, predict_sequence, sequence_background
 from napari_lbs._core._sequence import BACKGROUND_MODES
-from napari_lbs._layers import PlaneGrid, frame_points, track_lines
-from napari_lbs._widgets._base import StepWidget, chosen, config_problem, doc_of, model_config, model_problem, path_edit
+from napari_lbs._layers import PlaneGrid, frame_points, recording_image, track_lines
+from napari_lbs._widgets._base import StepWidget, chosen, file_of, config_problem, doc_of, model_config, model_problem, model_setup, path_edit
 
 __all__ = ["BatchWidget"]
 
@@ -68,18 +69,21 @@ class BatchWidget(StepWidget):
         return f"work folder: {work_dir} is a file, expected a folder" if work_dir is not None and work_dir.is_file() else None
 
     def prepare(self):
-        config = model_config(self.config)
+        config, warning = model_setup(chosen(self.model), model_config(self.config))
         linking = {"search_range_um": self.search_range.value, "axial_search_range_um": self.axial_range.value or None, "memory": self.memory.value}
         work_dir = chosen(self.work_dir)
         engine = {"workers": self.workers.value or None, "scheduler": self.scheduler.value.strip() or None,
                   "work_dir": str(work_dir) if work_dir is not None else None}
         self._resumable = work_dir is not None
-        return str(chosen(self.frames)), chosen(self.model), config, self.background.value, self.window.value, self.device.value, engine, linking
+        return str(chosen(self.frames)), chosen(self.model), config, warning, self.background.value, self.window.value, self.device.value, engine, linking
+
+    def caution(self, job):
+        return job[3]
 
     def work(self, job, *, progress, should_stop, report):
-        frames, model, config, background, window, device, engine, linking = job
-        result = predict_sequence([frames], model, config, background=background, background_window=window, **engine, device=device, progress=progress,
-                                  should_stop=should_stop)
+        frames, model, config, warning, background, window, device, engine, linking = job
+        result = predict_sequence([frames], model, config, background=background, background_window=window, **engine, device=device, force=warning is not None,
+                                  progress=progress, should_stop=should_stop)
         return result, link_tracks(result.particles, **linking), frames, engine, linking
 
     def _on_errored(self, error: Exception) -> None:
@@ -98,9 +102,25 @@ class BatchWidget(StepWidget):
         if found:  # napari's Tracks cannot be empty
             data, keywords = track_lines(tracks, grid)
             self._viewer.add_tracks(data, **keywords, tail_length=frames, name=f"{_short(source)} tracks", metadata=metadata)
+        self._show_recording(source, grid, frames=frames, planes=int(result.provenance["planes_um"][2]))
         self._viewer.dims.set_point(self._viewer.dims.ndim - 4, 0)  # the first frame
         resumed = f"; {result.resumed} frames resumed from the work folder" if result.resumed else ""
         self.done(f"{particles} particles in {frames} frames → {found} tracks in {result.seconds:.1f} s; {result.provenance['scheduler']}{resumed}")
+
+
+    def _show_recording(self, source: str, grid: PlaneGrid, *, frames: int, planes: int) -> None:
+        """Put the recording, where a reader opened it as ``(frame, row, col)``, on the results' axes: its frames in time, not in depth."""
+        from napari.layers import Image
+
+        opened = [layer for layer in self._viewer.layers if isinstance(layer, Image) and not layer.rgb and layer.ndim == 3 and layer.data.shape[0] == frames
+                  and file_of(layer) is not None and Path(file_of(layer)) == Path(source).resolve()]
+        for layer in opened:  # a layer cannot gain an axis: it is replaced by one with the same look
+            index = self._viewer.layers.index(layer)
+            data, keywords = recording_image(layer.data, grid, planes=planes)
+            self._viewer.layers.remove(layer)
+            added = self._viewer.add_image(data, **keywords, name=layer.name, colormap=layer.colormap, contrast_limits=layer.contrast_limits, opacity=layer.opacity,
+                                           blending=layer.blending, metadata={**layer.metadata, "source": source})
+            self._viewer.layers.move(self._viewer.layers.index(added), index)
 
 
 def _short(source: str) -> str:

@@ -19,7 +19,7 @@ from napari_lbs._core._calibration import experimental_reference, reference_plan
 from napari_lbs._core._files import write_json
 from napari_lbs._layers import UNITS
 from napari_lbs._widgets._backprop import CONFIG_TOOLTIP, HOLOGRAM_TOOLTIP
-from napari_lbs._widgets._base import StepWidget, config_from, config_problem, doc_of, hologram_data, hologram_problem, output_problem, path_edit
+from napari_lbs._widgets._base import StepWidget, config_from, config_problem, doc_of, hologram_data, hologram_problem, output_problem, path_edit, place_hologram
 from napari_lbs._widgets._plots import FitnessPlot
 
 __all__ = ["CalibrationWidget"]
@@ -88,6 +88,14 @@ class CalibrationWidget(StepWidget):
             shapes = existing[0]
         else:
             layer = self.hologram.value
+            if layer is not None:
+                try:
+                    place_hologram(layer, self.config)
+                except ValueError as error:
+                    from napari.utils.notifications import show_info
+
+                    show_info(str(error))
+                    return
             scale = tuple(layer.scale[-2:]) if layer is not None else (1.0, 1.0)
             translate = tuple(layer.translate[-2:]) if layer is not None else (0.0, 0.0)
             shapes = self._viewer.add_shapes([np.array([[0, 0], [size, size]], float)], shape_type="rectangle", name=ROI_NAME, scale=scale, translate=translate, units=UNITS,
@@ -206,6 +214,7 @@ class CalibrationWidget(StepWidget):
         self._plot.show_history([])
         settings = CalibrationSettings(mode=self.mode.value, generations=self.generations.value, population=self.population.value, seed=self.seed.value)
         layer = self.hologram.value
+        place_hologram(layer, self.config)
         return hologram_data(layer), config_from(self.config), self._roi_origin(), settings, Path(self.output.value), layer
 
     def work(self, job, *, progress, should_stop, report):

@@ -10,7 +10,7 @@ from magicgui.widgets import LineEdit, SpinBox, create_widget
 from napari_lbs._core import DiagnosisSettings
 from napari_lbs._layers import UNITS
 from napari_lbs._widgets._backprop import CONFIG_TOOLTIP, HOLOGRAM_TOOLTIP
-from napari_lbs._widgets._base import StepWidget, config_from, config_problem, effects_problem, hologram_data, hologram_problem, output_problem, parsed_effects, path_edit
+from napari_lbs._widgets._base import StepWidget, config_from, config_problem, effects_problem, hologram_data, hologram_problem, output_problem, parsed_effects, path_edit, place_hologram
 
 __all__ = ["DiagnosisWidget"]
 
@@ -49,6 +49,7 @@ class DiagnosisWidget(StepWidget):
     def prepare(self):
         settings = DiagnosisSettings(sim_tiles=self.sim_tiles.value, evaluations=self.evaluations.value, seed=self.seed.value)
         layer = self.hologram.value
+        place_hologram(layer, self.config)
         return hologram_data(layer), config_from(self.config), self.tile.value or None, parsed_effects(self.known_effects), settings, Path(self.output.value), layer
 
     def work(self, job, *, progress, should_stop, report):

@@ -8,7 +8,7 @@ from magicgui.widgets import ComboBox, create_widget
 from napari_lbs._core import match_particles, predict_particles, read_particles, score_particles
 from napari_lbs._layers import PlaneGrid, particle_points
 from napari_lbs._widgets._backprop import HOLOGRAM_TOOLTIP
-from napari_lbs._widgets._base import StepWidget, chosen, config_problem, doc_of, hologram_data, hologram_problem, missing, model_config, model_problem, path_edit
+from napari_lbs._widgets._base import StepWidget, chosen, config_problem, doc_of, hologram_data, hologram_problem, missing, model_config, model_problem, model_setup, path_edit
 
 __all__ = ["PredictionWidget"]
 
@@ -37,14 +37,17 @@ class PredictionWidget(StepWidget):
         return model_problem(self.model) or hologram_problem(self.hologram.value) or missing(self.reference, "reference") or config_problem(self.config)
 
     def prepare(self):
-        config = model_config(self.config)
-        reference = read_particles(chosen(self.reference)) if chosen(self.reference) is not None else None
         layer = self.hologram.value
-        return hologram_data(layer), chosen(self.model), config, self.device.value, reference, layer.name, tuple(layer.translate[-2:])
+        config, warning = model_setup(chosen(self.model), model_config(self.config), layer)
+        reference = read_particles(chosen(self.reference)) if chosen(self.reference) is not None else None
+        return hologram_data(layer), chosen(self.model), config, warning, self.device.value, reference, layer.name, tuple(layer.translate[-2:])
+
+    def caution(self, job):
+        return job[3]
 
     def work(self, job, *, progress, should_stop, report):
-        hologram, model, config, device, reference, name, origin = job
-        result = predict_particles(hologram, model, config, device=device, progress=progress, should_stop=should_stop)
+        hologram, model, config, warning, device, reference, name, origin = job
+        result = predict_particles(hologram, model, config, device=device, force=warning is not None, progress=progress, should_stop=should_stop)
         return result, reference, name, origin
 
     def show(self, outcome):
