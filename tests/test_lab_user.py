@@ -198,3 +198,73 @@ def test_the_cli_refuses_a_model_for_other_optics_unless_forced(tmp_path, detect
     assert "optics.pixel_um=2.2" in refused.stderr and "3.45" in refused.stderr and not (tmp_path / "a.csv").exists()
     forced = predict("--out", str(tmp_path / "b.csv"), "--force")
     assert forced.returncode == 0, forced.stderr and (tmp_path / "b.csv").is_file()
+
+
+def left_on(timing: str) -> int:
+    """The seconds a timing line says are left."""
+    import re
+
+    minutes, seconds = re.search(r"(\d+):(\d\d) left", timing).groups()
+    return 60 * int(minutes) + int(seconds)
+
+
+def test_prediction_s_time_left_follows_the_measured_throughput(make_napari_viewer, qtbot, monkeypatch, detector):
+    import time
+
+    from napari_lbs._core import Stopped
+    from napari_lbs._widgets import _prediction
+
+    def predict(*args, progress, should_stop, **kwargs):  # quick back-propagated planes, then slow network planes
+        for done in range(1, 21):
+            time.sleep(0.01 if done <= 10 else 0.4)
+            progress(done, 20)
+        raise Stopped("stopped after 20 of 20 steps")
+
+    monkeypatch.setattr(_prediction, "predict_particles", predict)
+    viewer = laptop_viewer(make_napari_viewer)
+    _, step = viewer.window.add_plugin_dock_widget("napari-lbs", "5 Prediction")
+    step.hologram.value = viewer.add_image(np.random.default_rng(0).normal(1.0, 0.05, (96, 96)).astype(np.float32), name="holo", scale=(2.2, 2.2), units="µm")
+    step.model.value = detector.path
+    step._run.clicked.emit()
+    qtbot.waitUntil(lambda: step._counts == "13/20" or step._worker is None, timeout=30_000)
+    assert step._counts == "13/20", (step._status.value, step._timing.value)
+    assert left_on(step._timing.value) >= 2, step._timing.value  # 7 planes of 0.4 s are left, not a count's 0:01
+    qtbot.waitUntil(lambda: step._worker is None, timeout=30_000)
+
+
+def test_training_s_time_left_is_bounded_by_its_budget_and_its_end_named_right(make_napari_viewer, qtbot, tmp_path, monkeypatch, tiny_config):
+    import time
+
+    import napari_lbs._core as core
+    from napari_lbs._core import TrainingResult, generate_dataset
+
+    generate_dataset(tmp_path / "data", tiny_config, groups=2, seed=0)
+
+    def train(data, output, *, settings, progress, should_stop, report):  # 0.1 s a batch: 10 s for all 100
+        for done in range(1, 21):
+            time.sleep(0.1)
+            progress(done, 100)
+        return TrainingResult(output, {"best": {"epoch": 1, "score": [0.5, 0.6]}, "stop_reason": "time budget reached"}, True)
+
+    monkeypatch.setattr(core, "train_model", train)
+    viewer = laptop_viewer(make_napari_viewer)
+    _, step = viewer.window.add_plugin_dock_widget("napari-lbs", "4 Training")
+    step.data.value = tmp_path / "data"
+    step.output.value = tmp_path / "m.pt"
+    step.minutes.value = 0.05  # 3 s
+    step._run.clicked.emit()
+    qtbot.waitUntil(lambda: step._counts == "19/100" or step._worker is None, timeout=30_000)
+    assert step._counts == "19/100", (step._status.value, step._timing.value)
+    assert "time budget ends first" in step._timing.value and left_on(step._timing.value) <= 3, step._timing.value
+    qtbot.waitUntil(lambda: step._worker is None, timeout=30_000)
+    assert "time budget reached" in step._status.value and "(stopped)" not in step._status.value
+
+
+def test_training_names_why_it_ended(tmp_path, tiny_config):
+    from napari_lbs._core import TrainingSettings, generate_dataset, train_model
+
+    data = generate_dataset(tmp_path / "data", tiny_config, groups=3, seed=0)
+    settings = TrainingSettings(epochs=50, batch_size=2, device="cpu", validation_groups=1, minutes=0.002)
+    assert train_model(data, tmp_path / "a.pt", settings=settings).log["stop_reason"] == "time budget reached"
+    settings = TrainingSettings(epochs=50, batch_size=2, device="cpu", validation_groups=1)
+    assert train_model(data, tmp_path / "b.pt", settings=settings, should_stop=lambda: True).log["stop_reason"] == "stopped by you"

@@ -412,7 +412,8 @@ def train_model(
     progress, should_stop
         One step per batch. A stop (or the ``minutes`` budget) ends training after the current
         batch; the best model so far stays (if no epoch had finished, the current weights are
-        validated and saved).
+        validated and saved). The log's ``stop_reason`` says which ended it ("stopped by you",
+        "time budget reached"; None when training ran its epochs).
     report : callable, optional
         Called with a dict after every batch (``{"epoch", "batch", "loss"}``) and after every
         epoch (``{"epoch", "train_loss", "validation": {...}}``), for live plots.
@@ -485,6 +486,7 @@ def train_model(
     }
     best_score = tuple(log["best"]["score"]) if log["best"] else (-1.0, -1.0)
     stopped = False
+    log["stop_reason"] = None  # or why this run ended early: "stopped by you", "time budget reached"
     start = time.perf_counter()
     deadline = start + 60.0 * settings.minutes if settings.minutes else math.inf
     batch_seconds = 0.0  # training steps alone, for the throughput figure (validation excluded)
@@ -517,6 +519,7 @@ def train_model(
         for b in range(batches):
             if steps.stop_requested() or time.perf_counter() > deadline:
                 stopped = True
+                log["stop_reason"] = "stopped by you" if steps.stop_requested() else "time budget reached"
                 break
             x, targets = formulation.batch(order[b * settings.batch_size : (b + 1) * settings.batch_size], rng, device)
             batch_start = time.perf_counter()

@@ -283,6 +283,23 @@ def _confirmed(parent, title: str, warning: str) -> bool:
     return answer == QMessageBox.StandardButton.Yes
 
 
+_RECENT_STEPS = 5  # the ETA's throughput: the median time per step over this many latest steps
+
+
+def time_left(marks: list[tuple[float, int]], total: int) -> float | None:
+    """Seconds until ``total`` steps at the throughput measured last, or None before two progress reports.
+
+    ``marks`` are ``(time, done)`` at each report. The median over the latest steps follows a
+    job whose steps change speed (prediction's back-propagated planes, then the network's),
+    which an average since the start does not.
+    """
+    recent = marks[-_RECENT_STEPS - 1 :]
+    seconds_per_step = [(t1 - t0) / (d1 - d0) for (t0, d0), (t1, d1) in zip(recent[:-1], recent[1:], strict=True) if d1 > d0]
+    if not seconds_per_step:
+        return None
+    return float(np.median(seconds_per_step)) * max(total - marks[-1][1], 0)
+
+
 def _clock(seconds: float) -> str:
     seconds = int(round(seconds))
     return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}" if seconds >= 3600 else f"{seconds // 60}:{seconds % 60:02d}"
@@ -351,6 +368,8 @@ class StepWidget(Container):
         self._worker = None
         self._progress_bar = None
         self._started = 0.0
+        self._marks: list[tuple[float, int]] = []  # (time, done) of each progress report: the ETA's throughput
+        self._budget: float | None = None
         self._counts = ""  # the last "done/total" reported
         self._result_message: str | None = None
         self._outcome: str | None = None
@@ -443,6 +462,10 @@ class StepWidget(Container):
         """The `_core` call on `prepare`'s ``job``, run in the worker thread; returns what `show` receives."""
         raise NotImplementedError
 
+    def budget_seconds(self) -> float | None:
+        """The run's time budget, which bounds its time left (None: none)."""
+        return None
+
     def caution(self, job) -> str | None:
         """A warning about `prepare`'s ``job`` the user must confirm before it runs (a model for another setup), or None."""
         return None
@@ -473,6 +496,8 @@ class StepWidget(Container):
         self._bar.max, self._bar.value = 1, 0
         self._timing.value = self._counts = ""
         self._started = time.perf_counter()
+        self._marks = [(self._started, 0)]
+        self._budget = self.budget_seconds()
         try:
             job = self.prepare()
         except (ValueError, OSError) as error:
@@ -506,8 +531,13 @@ class StepWidget(Container):
         if self._worker is None or bar is None:  # a late signal from a finished job
             return
         self._bar.max, self._bar.value = max(total, 1), min(done, max(total, 1))
-        elapsed = time.perf_counter() - self._started
-        eta = f", about {_clock(elapsed * (total - done) / done)} left" if 0 < done < total else ""
+        now = time.perf_counter()
+        elapsed = now - self._started
+        self._marks.append((now, done))
+        left = time_left(self._marks, total) if done < total else None
+        eta = f", about {_clock(left)} left" if left is not None else ""
+        if self._budget is not None and (left is None or elapsed + left > self._budget):
+            eta = f", at most {_clock(max(self._budget - elapsed, 0.0))} left (the time budget ends first)"
         self._counts = f"{done}/{total}"
         self._timing.value = f"{self._counts}, {_clock(elapsed)} elapsed{eta}"
         if not self._stop_requested.is_set():

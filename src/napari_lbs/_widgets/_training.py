@@ -50,6 +50,9 @@ class TrainingWidget(StepWidget):
             return "data set: made with the layers layout; the focus formulation needs the stack layout (or choose the seed formulation)"
         return output_problem(self.output, "model file", suffix=".pt")
 
+    def budget_seconds(self):
+        return 60.0 * self.minutes.value or None
+
     def prepare(self):
         self._plot.clear()
         settings = TrainingSettings(
@@ -77,4 +80,5 @@ class TrainingWidget(StepWidget):
     def show(self, result):
         self.result = result
         best = result.log["best"]
-        self.done(f"best epoch {best['epoch']}: validation JI {best['score'][0]:.3f}, ER {100 * best['score'][1]:.1f} %{' (stopped)' if result.stopped else ''} → {result.model_path.name}", result.model_path)
+        ended = f" ({result.log['stop_reason']})" if result.stopped else ""
+        self.done(f"best epoch {best['epoch']}: validation JI {best['score'][0]:.3f}, ER {100 * best['score'][1]:.1f} %{ended} → {result.model_path.name}", result.model_path)
