@@ -27,15 +27,12 @@ def _field(seed=0, count=4):
     return random_particle_field((64, 64), count=count, diameter_min_um=20, diameter_max_um=30, layers_um=(1800.0, 2400.0), pixel_um=2.2, seed=seed)
 
 
-def _report(verdict="quantization", waterfall_gaps=(100.0, 5.0, 4.0), joint=True):
+def _report(verdict="quantization"):
     effects = [
         {"id": "quantization", "params": {"bits": 8.0, "saturation": 2.0, "baseline.gamma": 1.3}},
-        {"id": "particle_phase", "params": {"index_contrast": 0.008, "transmission": 0.5, "baseline.sigma": 0.02}},
+        {"id": "particle_phase", "params": {"index_contrast": 0.008, "transmission": 0.5}},
     ]
-    waterfall = [{"model": "baseline", "gap": waterfall_gaps[0]}, {"model": "+quantization", "gap": waterfall_gaps[1]}, {"model": "+quantization+particle_phase", "gap": waterfall_gaps[2]}]
-    if joint:
-        waterfall[2]["params"] = {"quantization": {"bits": 7.5, "saturation": 1.9}, "particle_phase": {"index_contrast": 0.016, "transmission": 0.7}}
-    return {"gap": {"baseline": waterfall_gaps[0]}, "effects": effects, "verdict": {"id": verdict, "shrink": 0.9, "residual": waterfall_gaps[1]}, "waterfall": waterfall}
+    return {"gap": {"baseline": 0.8}, "effects": effects, "verdict": {"id": verdict, "shrink": 0.9, "residual": 0.1}, "posterior": {}}
 
 
 def test_parse_effect_reads_the_command_line_form_and_names_the_culprit():
@@ -53,17 +50,17 @@ def test_parse_effect_reads_the_command_line_form_and_names_the_culprit():
         parse_effect("sensor_blur:1.0")
 
 
-def test_effects_from_report_takes_the_verdict_and_the_waterfall_while_the_gap_falls():
-    # gap falls at both steps: both effects, with the joint fit's parameters, baseline keys dropped
-    assert effects_from_report(_report()) == {"quantization": {"bits": 7.5, "saturation": 1.9}, "particle_phase": {"index_contrast": 0.016, "transmission": 0.7}}
-    # without joint parameters: each effect's own fit
-    assert effects_from_report(_report(joint=False))["particle_phase"] == {"index_contrast": 0.008, "transmission": 0.5}
-    # the second effect does not lower the gap: the verdict alone
-    assert effects_from_report(_report(waterfall_gaps=(100.0, 5.0, 6.0))) == {"quantization": {"bits": 8.0, "saturation": 2.0}}
-    # nothing missing: nothing added
+def test_effects_from_report_takes_the_verdicts_model_with_its_parameters():
+    # one effect: its parameters, an older report's baseline keys dropped
+    assert effects_from_report(_report()) == {"quantization": {"bits": 8.0, "saturation": 2.0}}
+    # two effects
+    assert effects_from_report(_report("quantization+particle_phase"))["particle_phase"] == {"index_contrast": 0.008, "transmission": 0.5}
+    # nothing missing, or undecided: nothing added
     assert effects_from_report(_report(verdict=None)) == {}
     with pytest.raises(InputError, match="not a diagnosis report"):
         effects_from_report({"params": {"gamma": 1.0}}, name="calib.json")
+    with pytest.raises(InputError, match="records no parameters"):
+        effects_from_report(_report("sensor_blur"))
 
 
 def test_effect_hologram_obeys_the_physics_of_each_effect():

@@ -1,4 +1,7 @@
-"""The ``napari-lbs`` console script: one sub-command per step, each a thin wrapper over `_core`.
+"""The ``napari-lbs`` console script: one sub-command per pipeline step (`napari_lbs._core._pipeline`).
+
+Each sub-command checks its flags and outputs, builds the step's request, runs it with a
+progress bar and prints the step's one-line summary.
 
 Bad input exits 2 with one line naming the culprit (a file or a flag); an unexpected error
 exits 1 with one line asking for a report (``--debug`` prints the traceback); success prints
@@ -22,8 +25,11 @@ import traceback
 from pathlib import Path
 
 from napari_lbs import __version__
-from napari_lbs._core._files import read_json_object
-from napari_lbs._core._validation import InputError, check_output_path
+from napari_lbs._core import InputError, load_config
+from napari_lbs._core import _pipeline as pipeline
+from napari_lbs._core._files import json_safe
+from napari_lbs._core._pipeline import DEMO_SAMPLE_DISTRACTORS
+from napari_lbs._core._validation import check_output_path
 
 # Failures that are the input's or the machine's, not the program's: exit 2 with one line.
 _EXPECTED_ERRORS = (ValueError, OSError, MemoryError)
@@ -51,10 +57,6 @@ class _ProgressBar:
 
 def _summary(text: str) -> None:
     print(text, file=sys.stderr)
-
-
-def _provenance(config, **extra) -> dict:
-    return {"napari_lbs": __version__, "config": config.to_dict(), **extra}
 
 
 def _settings(settings_class, **values):
@@ -99,6 +101,21 @@ def _number(low: float, high: float = math.inf, *, above: bool = False):
     return parse
 
 
+def _inputs(args) -> list:
+    """The files a command reads, which its outputs must never replace."""
+    names = [getattr(args, name, None) for name in ("holo", "background", "config", "calibration", "model", "effects_from", "data")]
+    return [name for entry in names for name in (entry if isinstance(entry, list) else [entry])]  # predict takes several HOLO
+
+
+def _run(step, request, label: str | None = None, **callbacks):
+    """Run a pipeline step with a terminal progress bar and print its one-line summary."""
+    if label is not None:
+        callbacks["progress"] = _ProgressBar(label)
+    result = step(request, **callbacks)
+    _summary(result.summary)
+    return result
+
+
 def _cmd_config(args) -> None:
     from napari_lbs._core import load_config, write_config
 
@@ -112,503 +129,105 @@ def _cmd_config(args) -> None:
     _summary(f"wrote the default experiment config to {path}")
 
 
-# Peak memory of a simulation per pixel of its padded FFT grid (bytes), with a margin: the
-# default config's 16 layers peak at 103 (256² window) to 141 (1024²) bytes (tracemalloc).
-_SIMULATION_BYTES_PER_PX = 160
-
-
 def _cmd_simulate(args) -> None:
-    from napari_lbs._core import load_config, random_particle_field, simulate_hologram, write_particles
-    from napari_lbs._core._optics import padded_shape
-    from napari_lbs._core._validation import check_memory
-    from napari_lbs._core._files import atomic_path
-
-    import tifffile
-
     config = load_config(args.config)
     out = check_output_path(args.out, flag="--out", folder=True, inputs=[args.config])
     for name in ("hologram.tif", "particles.csv") if args.frames is None else ("frames.tif", "particles.csv"):
         check_output_path(out / name, flag="--out")
-    size = args.size if args.size is not None else config.tile.size
-    count = args.particles if args.particles is not None else config.particles.per_tile
-    grid = padded_shape((size, size), z_max_um=config.volume.z_max_um, wavelength_um=config.optics.wavelength_um, pixel_um=config.optics.pixel_um, medium_index=config.optics.medium_index)
-    check_memory(_SIMULATION_BYTES_PER_PX * grid[0] * grid[1], what=f"a {size}x{size} simulation ({grid[0]}x{grid[1]} padded)", remedy="use a smaller --size")
-    if args.frames is not None:
-        _simulate_sequence(args, config, out, size=size, count=count)
-        return
-    for flag, value in (("--flow", args.flow), ("--speed-um", args.speed_um)):
-        if value is not None:
-            raise InputError(f"{flag}: describes a recording; add --frames N")
-    field = random_particle_field(
-        (size, size),
-        count=count,
-        diameter_min_um=config.particles.diameter_min_um,
-        diameter_max_um=config.particles.diameter_max_um,
-        layers_um=config.layer_depths_um(),
-        pixel_um=config.optics.pixel_um,
-        seed=args.seed,
-    )
-    hologram = simulate_hologram(field, wavelength_um=config.optics.wavelength_um, medium_index=config.optics.medium_index, shadowing=args.shadowing)
-    out.mkdir(parents=True, exist_ok=True)
-    description = json.dumps(_provenance(config, seed=args.seed, particles=len(field), shadowing=args.shadowing, pixel_um=config.optics.pixel_um))
-    with atomic_path(out / "hologram.tif") as temporary:
-        tifffile.imwrite(temporary, hologram, description=description, metadata=None)
-    write_particles(out / "particles.csv", field.table())
-    _summary(f"simulated a {size}x{size} hologram of {len(field)} particles -> {out / 'hologram.tif'}, {out / 'particles.csv'}")
-
-
-def _simulate_sequence(args, config, out: Path, *, size: int, count: int) -> None:
-    """``simulate --frames N``: DIR/frames.tif (one page per frame, written as it is simulated) and the truth with frame and track."""
-    import numpy as np
-    import tifffile
-
-    from napari_lbs._core import simulate_sequence, write_particles
-    from napari_lbs._core._validation import check_disk
-    from napari_lbs._core._files import atomic_path
-
-    check_disk(args.frames * size * size * np.dtype(np.float32).itemsize, out, what=f"{args.frames} frames of {size}x{size} pixels", remedy="use fewer --frames or a smaller --size")
-    out.mkdir(parents=True, exist_ok=True)
-    flow, speed_um = args.flow or "uniform", 8.0 if args.speed_um is None else args.speed_um
-    description = json.dumps(_provenance(config, seed=args.seed, particles=count, shadowing=args.shadowing, pixel_um=config.optics.pixel_um, flow=flow, speed_um=speed_um, frames=args.frames))
-    with atomic_path(out / "frames.tif") as temporary:
-        frames = tifffile.memmap(temporary, shape=(args.frames, size, size), dtype=np.float32, description=description, metadata=None, photometric="minisblack")
-        truth = simulate_sequence(config, frames=args.frames, flow=flow, size=size, count=count, speed_um=speed_um, seed=args.seed, shadowing=args.shadowing,
-                                  out=frames, progress=_ProgressBar("simulate")).truth
-        frames.flush()
-        del frames
-    write_particles(out / "particles.csv", truth)
-    tracks = len(np.unique(truth["track"]))
-    _summary(f"simulated {args.frames} frames of {size}x{size} pixels, {count} particles in a {flow} flow ({tracks} tracks) -> {out / 'frames.tif'}, {out / 'particles.csv'}")
-
-
-def _read_inputs(args):
-    from napari_lbs._core import read_hologram
-
-    hologram = read_hologram(args.holo, log=_summary)
-    return hologram, _read_background(args, hologram.shape)
-
-
-def _read_background(args, shape: tuple[int, int]):
-    """``--background`` (None when not given), refused unless it has the hologram's ``shape``."""
-    from napari_lbs._core import read_hologram
-
-    if not getattr(args, "background", None):
-        return None
-    background = read_hologram(args.background, log=_summary)
-    if background.shape != shape:
-        raise ValueError(f"{args.background}: expected the hologram's shape {shape}, got {background.shape}")
-    return background
-
-
-def _inputs(args) -> list:
-    """The files a command reads, which its outputs must never replace."""
-    names = [getattr(args, name, None) for name in ("holo", "background", "config", "calibration", "model", "effects_from", "data")]
-    return [name for entry in names for name in (entry if isinstance(entry, list) else [entry])]  # predict takes several HOLO
+    if args.frames is None:
+        for flag, value in (("--flow", args.flow), ("--speed-um", args.speed_um)):
+            if value is not None:
+                raise InputError(f"{flag}: describes a recording; add --frames N")
+    request = pipeline.SimulateRequest(out, config, size_px=args.size, particles=args.particles, seed=args.seed, shadowing=args.shadowing,
+                                       frames=args.frames, flow=args.flow or "uniform", speed_um=8.0 if args.speed_um is None else args.speed_um)
+    _run(pipeline.simulate, request, "simulate")
 
 
 def _cmd_backprop(args) -> None:
-    import numpy as np
-    import tifffile
-
-    from napari_lbs._core import backpropagate, load_config
-    from napari_lbs._core._validation import check_disk
-    from napari_lbs._core._files import atomic_path
-
     config = load_config(args.config)
     out = check_output_path(args.out, flag="--out", inputs=_inputs(args))
-    hologram, background = _read_inputs(args)
-    z_um = config.volume.planes_um()
-    check_disk(len(z_um) * hologram.size * np.dtype(np.float32).itemsize, out, what=f"{len(z_um)} planes of {hologram.shape[0]}x{hologram.shape[1]} pixels",
-               remedy="raise volume.z_step_um or write elsewhere")
-    description = json.dumps({"z_um": list(z_um), **_provenance(config, source=str(args.holo), background=args.background)})
-    start = time.perf_counter()
-    with atomic_path(out) as temporary:
-        # Written straight into a memory-mapped TIFF: a deep stack never has to fit in RAM.
-        stack = tifffile.memmap(temporary, shape=(len(z_um),) + hologram.shape, dtype=np.float32, description=description, metadata=None)
-        backpropagate(
-            hologram,
-            z_um,
-            wavelength_um=config.optics.wavelength_um,
-            pixel_um=config.optics.pixel_um,
-            medium_index=config.optics.medium_index,
-            background=background,
-            out=stack,
-            progress=_ProgressBar("backprop"),
-        )
-        stack.flush()
-        del stack
-    _summary(f"back-propagated {args.holo} to {len(z_um)} planes ({z_um[0]:g}-{z_um[-1]:g} um) in {time.perf_counter() - start:.1f} s -> {args.out}")
+    _run(pipeline.backprop, pipeline.BackpropRequest(args.holo, out, config, background_path=args.background), "backprop", log=_summary)
 
 
 def _cmd_calibrate(args) -> None:
-    from napari_lbs._core import CalibrationSettings, calibrate_hologram, load_config
-    from napari_lbs._core._files import write_json
+    from napari_lbs._core import CalibrationSettings
 
     config = load_config(args.config)
     out = check_output_path(args.out, flag="--out", inputs=_inputs(args))
     settings = _settings(CalibrationSettings, mode=args.mode, generations=args.generations, population=args.population, runs=args.runs, seed=args.seed)
-    hologram, background = _read_inputs(args)
-    result = calibrate_hologram(hologram, config, roi=args.roi, background=background, settings=settings, progress=_ProgressBar("calibrate"))
-    payload = result.to_json()
-    payload["provenance"] = _provenance(config, source=str(args.holo), background=args.background, seed=args.seed)
-    write_json(out, payload)
-    p = result.params
-    x, y, size = result.roi
-    chosen = "" if args.roi else f" (chosen: {result.roi_choice})"
-    _summary(
-        f"calibrated on the {size}² tile at x={x}, y={y}{chosen}: N_R={p.N_R:.4f}, N_sigma={p.N_sigma:.4f}, gamma={p.gamma:.4f}, "
-        f"SSIM={result.ssim:.4f}, {result.evaluations} evaluations in {result.seconds:.1f} s -> {args.out}"
-    )
-
-
-def _read_calibration(path) -> dict:
-    from napari_lbs._core._validation import check_calibration
-
-    calibration = read_json_object(path, what="calibration")
-    check_calibration(calibration, name=str(path))
-    return calibration
+    request = pipeline.CalibrateRequest(args.holo, out, config, settings=settings, roi=tuple(args.roi) if args.roi else None, background_path=args.background)
+    _run(pipeline.calibrate, request, "calibrate", log=_summary)
 
 
 def _cmd_generate(args) -> None:
-    from napari_lbs._core import DatasetLayout, Distractors, InputProcessing, effects_from_report, generate_dataset, load_config, parse_effects
+    from napari_lbs._core import DatasetLayout, Distractors
 
     config = load_config(args.config)
     check_output_path(args.out, flag="--out", folder=True, inputs=_inputs(args))
-    if args.calibration:
-        calibration = _read_calibration(args.calibration)
-        processing = InputProcessing.from_calibration(calibration)
-    else:
-        calibration, processing = None, InputProcessing()
-    effects, source = {}, None
-    if args.effects_from:
-        report = read_json_object(args.effects_from, what="diagnosis report")
-        effects = effects_from_report(report, name=args.effects_from)
-        source = {"report": str(args.effects_from), "verdict": report["verdict"]["id"]}
-    effects.update(parse_effects(args.effect))  # explicit effects are added to (or override) the report's
-    if args.effect:
-        source = {**(source or {}), "explicit": list(args.effect)}
-    start = time.perf_counter()
+    effects, source = pipeline.requested_effects(report_path=args.effects_from, explicit=args.effect)
     layout = _settings(DatasetLayout, kind=args.layout, depths=args.depths, context_planes=args.context_planes)
     low, high = args.impurity_diameter_um
     if low > high or (args.impurities and high >= config.particles.diameter_min_um):
         raise InputError(f"--impurity-diameter-um: expected MIN <= MAX below the particles' diameter_min_um={config.particles.diameter_min_um:g} of {args.config}, got {low:g} {high:g}")
-    distractors = _settings(Distractors, impurities_per_tile=args.impurities, impurity_diameter_min_um=args.impurity_diameter_um[0],
-                            impurity_diameter_max_um=args.impurity_diameter_um[1], neighbours_margin_px=args.neighbours_margin_px)
-    dataset = generate_dataset(args.out, config, groups=args.groups, processing=processing, layout=layout, calibration=calibration, effects=effects, effects_source=source,
-                               distractors=distractors, seed=args.seed, workers=args.workers, progress=_ProgressBar("generate"))
-    seconds = time.perf_counter() - start
-    planes = len(dataset.groups) * len(dataset.planes_um)
-    kind = f"calibrated ({args.calibration})" if calibration else "uncalibrated: Holo-processing (0, 0, 1)"
-    added = f", effects: {', '.join(effects)}" if effects else ""
-    if args.effects_from and not effects:
-        added = f", no effects: {args.effects_from} names none"
-    if distractors.active:
-        added += f", unlabelled distractors: {distractors.impurities_per_tile} impurities per tile, neighbours in a {distractors.neighbours_margin_px}-pixel margin"
-    _summary(f"wrote {len(dataset.groups)} groups ({planes} input planes, {kind}{added}) in {seconds:.1f} s -> {args.out}")
+    distractors = _settings(Distractors, impurities_per_tile=args.impurities, impurity_diameter_min_um=low, impurity_diameter_max_um=high,
+                            neighbours_margin_px=args.neighbours_margin_px)
+    request = pipeline.GenerateRequest(Path(args.out), config, groups=args.groups, calibration_path=args.calibration, effects=effects, effects_source=source, layout=layout,
+                                       distractors=distractors, seed=args.seed, workers=args.workers)
+    _run(pipeline.generate, request, "generate")
 
 
 def _cmd_train(args) -> None:
-    from napari_lbs._core import TrainingSettings, open_dataset, train_model
+    from napari_lbs._core import TrainingSettings
 
     out = check_output_path(args.out, flag="--out", inputs=_inputs(args))
     for companion in (out.with_suffix(".json"), out.with_suffix(".last.pt")):
         check_output_path(companion, flag="--out", inputs=_inputs(args))
-    settings = _settings(
-        TrainingSettings,
-        formulation=args.formulation,
-        preset=args.preset,
-        epochs=args.epochs,
-        minutes=args.minutes,
-        patience=args.patience,
-        augment=not args.no_augment,
-        batch_size=args.batch_size,
-        learning_rate=args.learning_rate,
-        device=args.device,
-        seed=args.seed,
-        validation_groups=args.validation_groups,
-        patch_size=args.patch_size,
-        foreground_weight=args.foreground_weight,
-    )
-    dataset = open_dataset(args.data)
-    expected = int(dataset.spec["groups"])
-    if len(dataset.groups) < expected:  # a stopped generate, or group files removed since
-        _summary(f"{args.data}: warning: {len(dataset.groups)} of {expected} groups present; training on those (run generate again to finish the set)")
-    result = train_model(dataset, out, settings=settings, resume=args.resume, progress=_ProgressBar("train"))
-    best = result.log["best"]
-    record = next(e for e in result.log["epochs"] if e["epoch"] == best["epoch"])["validation"]
-    stopped = " (stopped)" if result.stopped else ""
-    _summary(
-        f"trained {settings.preset} ({settings.formulation}) for {len(result.log['epochs'])} epochs in {result.log['seconds']:.0f} s{stopped}; best epoch {best['epoch']}: "
-        f"validation ER {100 * record['er']:.2f} %, JI {record['ji']:.3f} (one-to-one, held-out synthetic groups) -> {args.out}"
-    )
-
-
-def _predict_outputs(args) -> tuple[Path, Path]:
-    """The particle table and its provenance JSON, refused where they would overwrite something else (inputs: `check_output_path`)."""
-    from napari_lbs._core._io import check_table_name
-
-    out = Path(args.out)
-    if out.suffix.lower() == ".json":
-        raise ValueError(f"--out {out}: expected a particle table (.csv, or .parquet); its provenance is written beside it as .json")
-    check_table_name(out)  # a Parquet table without pyarrow is refused now, not after the work
-    provenance = out.with_suffix(".json")
-    if provenance.is_file():
-        try:
-            previous = json.loads(provenance.read_text(encoding="utf-8"))
-        except (json.JSONDecodeError, UnicodeDecodeError):
-            previous = None
-        # only a previous run's provenance of this same table may be replaced (never a model's training log)
-        if not (isinstance(previous, dict) and previous.get("particles") == str(out) and "model_sha256" in previous):
-            raise ValueError(f"--out {out}: {provenance} exists and is not this table's provenance; choose another name")
-    return out, provenance
+    settings = _settings(TrainingSettings, formulation=args.formulation, preset=args.preset, epochs=args.epochs, minutes=args.minutes, patience=args.patience,
+                         augment=not args.no_augment, batch_size=args.batch_size, learning_rate=args.learning_rate, device=args.device, seed=args.seed,
+                         validation_groups=args.validation_groups, patch_size=args.patch_size, foreground_weight=args.foreground_weight)
+    _run(pipeline.train, pipeline.TrainRequest(args.data, out, settings=settings, resume=args.resume), "train", log=_summary)
 
 
 def _cmd_predict(args) -> None:
-    from napari_lbs._core import load_config, load_model, open_frames, predict_particles
-
-    out, provenance = _predict_outputs(args)
-    for path in (out, provenance):
+    for path in pipeline.prediction_outputs(args.out):
         check_output_path(path, flag="--out", inputs=_inputs(args))
-    config = load_config(args.config) if args.config else None
-    with open_frames(args.holo) as frames:
-        if len(frames) > 1:
-            _predict_sequence(args, frames, config, out, provenance)
-            return
-        # one frame (an image, a one-page TIFF, a one-frame video): the single-hologram path
-        args.holo, hologram = frames.name(0), frames.read(0, log=_summary)
-    background = _read_background(args, hologram.shape)
-    model = load_model(args.model, device=args.device)
-    result = predict_particles(hologram, model, config, background=background, force=args.force, progress=_ProgressBar("predict"))
-    _write_table(out, provenance, result.particles, {**result.provenance, "source": str(args.holo), "background_file": args.background, "particles": str(out)})
-    count = len(result.particles["x_um"])
-    _summary(f"found {count} particles in {args.holo} in {result.seconds:.1f} s -> {out} (provenance: {provenance})")
-
-
-def _write_table(out: Path, provenance: Path, particles: dict, record: dict) -> None:
-    """The particle table (CSV, or Parquet with ``record`` in its key-value metadata too) and its provenance JSON beside it."""
-    from napari_lbs._core import write_particles
-    from napari_lbs._core._files import write_json
-
-    write_particles(out, particles, metadata=record)
-    write_json(provenance, record)
-
-
-def _predict_sequence(args, frames, config, out: Path, provenance: Path) -> None:
-    """``predict`` of a recording: one table with a ``frame`` column; finished frames kept in OUT.parts/ until the table is written."""
-    import shutil
-
-    from napari_lbs._core import load_model, predict_sequence, read_hologram
-
-    work_dir = check_output_path(out.with_name(out.name + ".parts"), flag="--out", folder=True)
-    background = read_hologram(args.background, log=_summary) if args.background else args.sequence_background
-    model = load_model(args.model, device="cpu")  # each worker moves it to --device
-    result = predict_sequence(frames, model, config, background=background, background_window=args.background_window, workers=args.workers, scheduler=args.scheduler, force=args.force,
-                              work_dir=work_dir, device=args.device, progress=_ProgressBar("predict"))
-    _write_table(out, provenance, result.particles, {**result.provenance, "background_file": args.background, "particles": str(out)})
-    shutil.rmtree(work_dir)
-    count, done = len(result.particles["x_um"]), result.provenance["frames"]
-    resumed = f"; {result.resumed} frames resumed from {work_dir}" if result.resumed else ""
-    _summary(f"found {count} particles in {done} frames in {result.seconds:.1f} s ({result.provenance['scheduler']}{resumed}) -> {out} (provenance: {provenance})")
+    request = pipeline.PredictRequest(args.holo, args.model, Path(args.out), load_config(args.config) if args.config else None, background_path=args.background,
+                                      device=args.device, force=args.force, sequence_background=args.sequence_background, background_window=args.background_window,
+                                      workers=args.workers, scheduler=args.scheduler)
+    _run(pipeline.predict, request, "predict", log=_summary)
 
 
 def _cmd_track(args) -> None:
-    import numpy as np
-
-    from napari_lbs._core import link_tracks, read_particles, write_particles
-    from napari_lbs._core._files import write_json
-    from napari_lbs._core._io import check_table_name
-    from napari_lbs._core._tracking import DISPLACEMENT_COLUMNS
-
-    prediction_json = Path(args.particles).with_suffix(".json")
-    out = check_table_name(check_output_path(args.out, flag="--out", inputs=[args.particles, prediction_json]))
-    # the tracks' provenance beside them, never over the prediction's own
-    provenance_json = check_output_path(out.with_suffix(".json"), flag="--out", inputs=[args.particles, prediction_json])
-    table = read_particles(args.particles)
-    if "frame" not in table:
-        raise InputError(f"{args.particles}: no frame column; tracks need the table of a recording (predict with several frames)")
-    tracks = link_tracks(table, search_range_um=args.search_range_um, axial_search_range_um=args.axial_search_range_um, memory=args.memory)
-    linking = {"particles": str(args.particles), "search_range_um": args.search_range_um, "axial_search_range_um": args.axial_search_range_um, "memory": args.memory}
-    if out.suffix.lower() != ".parquet":  # a track's last detection has no displacement: an empty CSV cell (Parquet keeps NaN)
-        for name in DISPLACEMENT_COLUMNS:
-            tracks[name] = np.array(["" if np.isnan(value) else f"{value:.9g}" for value in tracks[name]], dtype=object)
-    provenance = {"particles": str(out), "tracks": linking}
-    if prediction_json.is_file():  # what made the detections: model, settings, frames
-        try:
-            provenance["prediction"] = json.loads(prediction_json.read_text(encoding="utf-8"))
-        except (json.JSONDecodeError, UnicodeDecodeError):
-            provenance["prediction"] = None
-    write_particles(out, tracks, metadata=provenance)
-    write_json(provenance_json, provenance)
-    lengths = np.bincount(tracks["track"]) if tracks["track"].size else np.zeros(0, int)
-    frames = len(np.unique(tracks["frame"]))
-    _summary(f"linked {tracks['track'].size} particles of {frames} frames into {lengths.size} tracks (median length {np.median(lengths) if lengths.size else 0:g} frames) -> {out}")
+    request = pipeline.TrackRequest(args.particles, Path(args.out), search_range_um=args.search_range_um, axial_search_range_um=args.axial_search_range_um, memory=args.memory)
+    _run(pipeline.track, request)
 
 
 def _cmd_diagnose(args) -> None:
-    from napari_lbs._core import DiagnosisSettings, diagnose_hologram, load_config, parse_effects, write_report
-    from napari_lbs._core._gap import MIN_TILE_PX, adapted_tile_px
+    from napari_lbs._core import DiagnosisSettings, parse_effects
 
     config = load_config(args.config)
     stated = parse_effects(args.known_effect, flag="--known-effect")
     out = check_output_path(args.out, flag="--out", folder=True, inputs=_inputs(args))
     for name in ("report.json", "report.md", "gap_where.png", "gap_effects.png"):
         check_output_path(out / name, flag="--out")
-    settings = _settings(DiagnosisSettings, sim_tiles=args.sim_tiles, evaluations=args.evaluations, seed=args.seed)
-    size = args.tile or config.tile.size
-    if size < MIN_TILE_PX:
-        raise InputError(f"--tile: expected at least {MIN_TILE_PX} pixels (the lowest frequency band needs them), got {size}")
-    calibration = _read_calibration(args.calibration) if args.calibration else None
-    hologram, background = _read_inputs(args)
-    if not args.tile:
-        size = adapted_tile_px(hologram.shape, size)  # what diagnose_hologram will cut
-    if args.roi and not (args.roi[0] + size <= hologram.shape[1] and args.roi[1] + size <= hologram.shape[0]):
-        raise InputError(f"--roi {args.roi[0]} {args.roi[1]}: a {size}-pixel tile there crosses the edge of the {hologram.shape[1]}x{hologram.shape[0]} (x by y) hologram {args.holo}")
-    diagnosis = diagnose_hologram(hologram, config, background=background, tile_px=args.tile, known=not args.no_known, stated=stated, settings=settings, progress=_ProgressBar("diagnose"))
-    if args.roi:
-        x, y = args.roi
-        cut = int(diagnosis.report["tiles"]["shape"][0])  # the tiles the diagnosis cut (adapted to the hologram)
-        diagnosis.report["roi"] = {"x": x, "y": y, "tile_index": (y // cut) * (hologram.shape[1] // cut) + x // cut}
-    provenance = _provenance(config, source=str(args.holo), background=args.background, calibration=calibration, seed=args.seed)
-    paths = write_report(diagnosis, out, provenance=provenance)
-    verdict = diagnosis.report["verdict"]
-    _summary(
-        f"gap {diagnosis.report['gap']['baseline']:.2f} (baseline); verdict: {verdict['id'] or 'nothing missing'} (shrink {100 * verdict['shrink']:.0f} %, "
-        f"residual {verdict['residual']:.2f}) in {diagnosis.seconds:.0f} s -> {paths[0]}"
-    )
+    settings = _settings(DiagnosisSettings, simulations=args.simulations, level=args.level, seed=args.seed, cache_dir=args.cache)
+    request = pipeline.DiagnoseRequest(args.holo[0] if len(args.holo) == 1 else tuple(args.holo), out, config, settings=settings, background_path=args.background, calibration_path=args.calibration,
+                                       roi=tuple(args.roi) if args.roi else None, tile_px=args.tile, known=not args.no_known, stated=stated)
+    _run(pipeline.diagnose, request, "diagnose", log=_summary)
 
 
 def _cmd_evaluate(args) -> None:
-    from napari_lbs._core import read_particles, score_particles
-    from napari_lbs._core._files import json_safe
-    from napari_lbs._core._metrics import AXIAL_TOL_UM, LATERAL_TOL_UM, seed_scores
-
-    pred, truth = read_particles(args.pred), read_particles(args.truth)
-    tolerances = {
-        "lateral_tol_um": LATERAL_TOL_UM if args.lateral_tol_um is None else args.lateral_tol_um,
-        "axial_tol_um": AXIAL_TOL_UM if args.axial_tol_um is None else args.axial_tol_um,
-    }
-    metrics = score_particles(pred, truth, **tolerances)
-    seed = seed_scores(pred, truth, **tolerances)
+    result = pipeline.evaluate(pipeline.EvaluateRequest(args.pred, args.truth, lateral_tol_um=args.lateral_tol_um, axial_tol_um=args.axial_tol_um))
     if args.json:  # strict JSON: an empty reference gives er = null, never NaN
-        print(json.dumps(json_safe({**metrics, "seed_scoring": seed, **tolerances}), allow_nan=False))
-    _summary(
-        f"one-to-one: TP {metrics['tp']}, FP {metrics['fp']}, FN {metrics['fn']}, ER {100 * metrics['er']:.2f} %, JI {metrics['ji']:.3f} "
-        f"(seed's scoring, which counts repeats: ER {100 * seed['er']:.2f} %, JI {seed['ji']:.3f})"
-    )
+        print(json.dumps(json_safe(result.value), allow_nan=False))
+    _summary(result.summary)
 
 
 def _cmd_demo(args) -> None:
-    from dataclasses import replace
-
-    from napari_lbs._core import (
-        CalibrationSettings,
-        Distractors,
-        InputProcessing,
-        TrainingSettings,
-        backpropagate,
-        calibrate_hologram,
-        generate_dataset,
-        load_config,
-        load_sample_hologram,
-        predict_particles,
-        train_model,
-        write_particles,
-        write_stack,
-    )
-    from napari_lbs._core._files import write_json
-    from napari_lbs._core._samples import SAMPLE_PROVENANCE
-
     out = check_output_path(args.out, flag="--out", folder=True)
-    out.mkdir(parents=True, exist_ok=True)
-    config = load_config(None)
-    hologram = load_sample_hologram()
-    if args.quick:  # one tile, a token of each step: checks the plumbing in about a minute
-        hologram = hologram[:256, :256]
-        config = replace(config, particles=replace(config.particles, per_tile=6))
-        calibration_settings, groups = CalibrationSettings(generations=4, population=6, fields=1, seed=args.seed), 3
-        training = TrainingSettings(epochs=1, patch_size=64, validation_groups=1, minutes=0.3, seed=args.seed)
-    else:
-        # About 6.5 minutes of the focus formulation on 2 idle cores. 8 epochs, not 5: with the
-        # distractors the diameters need them (pseudo-real: correlation 0.02 after 5 epochs, 0.43 after 10).
-        calibration_settings, groups = CalibrationSettings(generations=40, seed=args.seed), 64
-        training = TrainingSettings(epochs=8, minutes=7.0, seed=args.seed)
-    timings = {}
-    start = time.perf_counter()
-    z_um = config.volume.planes_um()
-    stack = backpropagate(hologram, z_um, wavelength_um=config.optics.wavelength_um, pixel_um=config.optics.pixel_um, medium_index=config.optics.medium_index, progress=_ProgressBar("backprop"))
-    stack_path = write_stack(out / "zstack.tif", stack, z_um=z_um, metadata=_provenance(config, source=SAMPLE_PROVENANCE["source"]))
-    del stack
-    timings["backprop"] = time.perf_counter() - start
-
-    start = time.perf_counter()
-    calibration = calibrate_hologram(hologram, config, settings=calibration_settings, progress=_ProgressBar("calibrate")).to_json()
-    write_json(out / "calibration.json", calibration)
-    timings["calibrate"] = time.perf_counter() - start
-
-    start = time.perf_counter()
-    if args.calibrated:  # the seed's LBS: calibrated Holo-processing of opaque discs
-        processing, effects, distractors = InputProcessing.from_calibration(calibration), {}, Distractors()
-        data = f"{groups} better-synthetic groups of {config.tile.size}² (calibrated Holo-processing)"
-    else:
-        # What the sample is (polystyrene spheres in water) rather than the calibration: on the
-        # Lorenz-Mie pseudo-real benchmark, calibrated data scored JI 0.21 where the seed's plain
-        # simulation with these transparent spheres scored 0.86 (0.83 against 0.45 at 4x the density).
-        # Its distractors too (unlabelled): on the pseudo-real hologram with debris and spheres
-        # outside the crop, a model trained without them reported 20 false particles among 119.
-        processing, effects, distractors = InputProcessing(), dict(DEMO_SAMPLE_EFFECTS), Distractors(**DEMO_SAMPLE_DISTRACTORS)
-        data = (f"{groups} synthetic groups of {config.tile.size}² of transparent spheres (particle_phase: index contrast {effects['particle_phase']['index_contrast']:g}), "
-                f"uncalibrated, with unlabelled distractors ({distractors.impurities_per_tile} impurities of {distractors.impurity_diameter_min_um:g}-{distractors.impurity_diameter_max_um:g} um "
-                f"per tile, neighbours in a {distractors.neighbours_margin_px}-pixel margin)")
-    generate_dataset(out / "data", config, groups=groups, processing=processing, calibration=calibration, effects=effects,
-                     effects_source={"explicit": ["the built-in sample: polystyrene (n 1.59) spheres in water (n 1.33), 25 um, 660 nm"]} if effects else None,
-                     distractors=distractors, seed=args.seed, progress=_ProgressBar("generate"))
-    timings["generate"] = time.perf_counter() - start
-
-    start = time.perf_counter()
-    trained = train_model(out / "data", out / "model.pt", settings=training, progress=_ProgressBar("train"))
-    timings["train"] = time.perf_counter() - start
-
-    result = predict_particles(hologram, trained.model_path, config, device=training.device, progress=_ProgressBar("predict"))
-    particles_path = write_particles(out / "particles.csv", result.particles)
-    write_json(out / "particles.json", {**result.provenance, "source": SAMPLE_PROVENANCE["source"]})
-    timings["predict"] = result.seconds
-    best = trained.log["best"]
-    validation = next(e for e in trained.log["epochs"] if e["epoch"] == best["epoch"])["validation"]
-    summary = {
-        "hologram_shape": list(hologram.shape),
-        "planes": len(z_um),
-        "z_um": [z_um[0], z_um[-1]],
-        "zstack": str(stack_path),
-        "calibration": {"params": calibration["params"], "ssim": calibration["ssim"], "roi": calibration["roi"]},
-        "groups": groups,
-        "model": str(trained.model_path),
-        "model_sha256": best["sha256"],
-        "training": {"formulation": training.formulation, "preset": training.preset, "epochs_done": len(trained.log["epochs"]), "stopped_by_budget": trained.stopped,
-                     "data": f"{data}, the last {len(trained.log['validation_groups'])} held out", "effects": effects,
-                     "distractors": distractors.to_dict() if distractors.active else None, "calibrated": bool(args.calibrated)},
-        "validation": {key: validation.get(key) for key in ("er", "ji", "tp", "fp", "fn", "threshold", "axial_um", "median_abs_dz_um", "median_abs_dd_um")},
-        "particles": str(particles_path),
-        "particle_count": len(result.particles["x_um"]),
-        "seconds": {key: round(value, 2) for key, value in timings.items()},
-        "sample": SAMPLE_PROVENANCE,
-        "quick": bool(args.quick),
-    }
-    write_json(out / "summary.json", summary)
-    print(particles_path)
-    _summary(
-        f"demo: calibration SSIM {calibration['ssim']:.3f} ({'used' if args.calibrated else 'recorded; --calibrated trains on it'}), {data}, "
-        f"trained the {training.formulation} formulation ({training.preset}, {trained.log['seconds']:.0f} s; "
-        f"validated on {len(trained.log['validation_groups'])} held-out synthetic groups: ER {100 * validation['er']:.1f} %, JI {validation['ji']:.3f}), "
-        f"found {summary['particle_count']} particles in the built-in hologram -> {out}"
-    )
-
-
-# The built-in sample's spheres: polystyrene (n 1.59) in water (n 1.33), all light transmitted;
-# the phase delay through a sphere's centre is 2π · 0.26 · d / 0.66 µm (62 rad at 25 µm).
-DEMO_SAMPLE_EFFECTS = {"particle_phase": {"index_contrast": 0.26, "transmission": 1.0}}
-# Its unlabelled distractors (`Distractors`): small foci of debris in the water, and the
-# fringes of spheres outside the crop near its edges.
-DEMO_SAMPLE_DISTRACTORS = {"impurities_per_tile": 6, "impurity_diameter_min_um": 4.0, "impurity_diameter_max_um": 14.0, "neighbours_margin_px": 96}
+    result = pipeline.demo(pipeline.DemoRequest(out, quick=args.quick, calibrated=args.calibrated, seed=args.seed), progress_for=_ProgressBar, log=_summary)
+    print(result.paths[0])
+    _summary(result.summary)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -729,20 +348,22 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--memory", type=_integer(0), default=0, help="frames a particle may be missed and keep its track (default 0)")
     p.set_defaults(run=_cmd_track)
 
-    p = sub.add_parser("diagnose", help="diagnose the sim-to-real gap of a hologram: where, which effect, how much")
-    p.add_argument("holo", metavar="HOLO")
+    p = sub.add_parser("diagnose", help="diagnose the sim-to-real gap of one or more holograms of a setup: which effect, where, how much")
+    p.add_argument("holo", metavar="HOLO", nargs="+", help="holograms of one setup, pooled: files, folders of images or multi-page TIFFs")
     p.add_argument("--config", required=True)
     p.add_argument("--out", required=True, metavar="REPORT_DIR")
     p.add_argument("--roi", type=_integer(0), nargs=2, metavar=("X", "Y"), help="a reference tile to mark in the report (all tiles are used)")
     p.add_argument("--background", metavar="BG")
     p.add_argument("--calibration", metavar="CALIB.json", help="recorded as provenance (the baseline is refitted in the hologram domain)")
-    p.add_argument("--tile", type=_integer(1), help="tile edge in pixels (default: tile.size)")
+    p.add_argument("--tile", type=_integer(1), help="tile edge in pixels (default: 128, or a quarter of the sensor's shorter side where smaller)")
     p.add_argument("--no-known", action="store_true", help="diagnose the bit depth and saturation too, instead of taking them from the file's integer counts")
     p.add_argument("--known-effect", action="append", default=[], metavar="ID[:NAME=VALUE,...]",
                    help="an effect you know the experiment has, put into every model and not diagnosed, e.g. particle_phase:index_contrast=0.26,transmission=1 for polystyrene beads in water (repeatable)")
-    p.add_argument("--sim-tiles", type=_integer(1), default=8)
-    p.add_argument("--evaluations", type=_integer(1), default=40)
-    p.add_argument("--seed", type=_SEED, default=0)
+    p.add_argument("--simulations", type=_integer(20), default=2000,
+                   help="simulations the setup's diagnoser is trained on, once; it is cached and reused (default 2000: about 10 minutes on 2 cores)")
+    p.add_argument("--level", type=_number(0.0, 1.0, above=True), default=0.5, help="posterior probability a model needs to be named (default 0.5)")
+    p.add_argument("--cache", metavar="DIR", help="where trained diagnosers are kept (default: ~/.cache/napari-lbs/diagnosers)")
+    p.add_argument("--seed", type=_SEED, default=0, help="the two-sample tests' folds (the posterior does not depend on it)")
     p.set_defaults(run=_cmd_diagnose)
 
     p = sub.add_parser("evaluate", help="score a particle table against a reference, one-to-one")

@@ -397,34 +397,25 @@ def parse_effects(texts, *, flag: str = "--effect") -> dict:
 
 
 def effects_from_report(report: dict, *, name: str = "report") -> dict:
-    """The effects a diagnosis report names, with their fitted parameters.
+    """The effects a diagnosis report names, with their parameters (the posterior's medians).
 
-    The verdict's effect and every further effect the report's waterfall adds while the
-    held-out gap still falls. Parameters are the joint fit's where the waterfall step records
-    them, else the effect's own fit (its ``baseline.*`` parameters are the diagnosis's
-    hologram-domain baseline, which the calibrated Holo-processing replaces, so they are
-    left out). A report whose verdict is ``null`` names nothing: the result is empty.
+    The verdict's model: one effect, or two (``"a+b"``). Parameters are each effect's entry in
+    ``effects`` (keys ``baseline.*``, the hologram-domain baseline of an older report, are left
+    out: the calibrated Holo-processing replaces them). A report whose verdict is ``null``
+    (nothing missing, or undecided) names nothing: the result is empty.
     """
     try:
         verdict = report["verdict"]["id"]
         fits = {entry["id"]: entry["params"] for entry in report["effects"]}
-        waterfall = list(report.get("waterfall", []))
     except (KeyError, TypeError) as error:
         raise InputError(f"{name}: not a diagnosis report (missing {error})") from None
     if verdict is None:
         return {}
-    named, params = [verdict], {}
-    for previous, step in zip(waterfall, waterfall[1:]):
-        ids = [part for part in str(step.get("model", "")).split("+")[1:] if part]
-        if not ids or ids[0] != verdict or float(step["gap"]) >= float(previous["gap"]):
-            break
-        named = ids
-        params = step.get("params") or params
     chosen = {}
-    for effect_id in named:
-        source = params.get(effect_id) if effect_id in params else fits.get(effect_id)
+    for effect_id in str(verdict).split("+"):
+        source = fits.get(effect_id)
         if source is None:
-            raise InputError(f"{name}: the report names {effect_id!r} but records no fitted parameters for it")
+            raise InputError(f"{name}: the report names {effect_id!r} but records no parameters for it")
         chosen[effect_id] = {k: v for k, v in source.items() if not k.startswith("baseline.")}
     return check_effects(chosen)
 

@@ -58,7 +58,7 @@ class DiagnosisSettings:
         Where diagnosers are kept (default `default_cache_dir`).
     """
 
-    simulations: int = 3000
+    simulations: int = 2000
     trees: int = 300
     level: float = 0.5
     neighbours: int = 6
@@ -112,7 +112,7 @@ def default_cache_dir() -> Path:
 def _setup(config: ExperimentConfig, grid: TileGrid, prior: ScenarioPrior, settings: DiagnosisSettings) -> dict:
     return {
         "format": CACHE_FORMAT, "config": config.to_dict(), "grid": {"frame_shape": list(grid.frame_shape), "tile_px": grid.tile_px, "per_side": grid.per_side},
-        "prior": {"candidates": list(prior.candidates), "none": prior.none, "one": prior.one, "known": prior.known, "bits": prior.bits, "density": list(prior.density)},
+        "prior": {"candidates": list(prior.candidates), "none": prior.none, "one": prior.one, "known": prior.known, "bits": prior.bits, "density": list(prior.density), "strength": list(prior.strength)},
         "simulations": settings.simulations, "trees": settings.trees, "training_seed": settings.training_seed,
     }
 
@@ -121,7 +121,7 @@ def _simulate(task: tuple) -> tuple[int, np.ndarray, np.ndarray, tuple, dict]:
     """One training simulation: (index, set features, tile summaries, effects present, their parameters)."""
     index, config, grid, prior, seed = task
     rng = np.random.default_rng([seed, index])
-    scenario = draw_scenario(prior, rng, tile_px=grid.tile_px)
+    scenario = draw_scenario(prior, rng)
     tiles = simulate_tiles(scenario, config, grid, rng)
     summaries, _ = set_summaries(tiles, config=config)
     features = set_features(tiles, summaries, grid.centres())
@@ -195,7 +195,7 @@ def amortized_diagnoser(
     forest = train_forest(features, present, trees=settings.trees, seed=settings.training_seed, jobs=min(settings.jobs or _cores(), 4))
     leaves = forest.leaves(features).astype(np.int32)
     steps.advance()
-    _, names = set_summaries([np.ones((grid.tile_px, grid.tile_px), np.float32)] * 2, config=config)
+    _, names = set_summaries([np.random.default_rng(0).uniform(0.5, 1.5, (grid.tile_px, grid.tile_px)).astype(np.float32)], config=config)  # the names only
     meta = {**setup, "key": key, "summary_names": [list(n) for n in names], "candidates": list(candidates), "train_seconds": round(time.perf_counter() - start, 1)}
     diagnoser = Diagnoser(key, candidates, [tuple(n) for n in names], features, summaries, present, params, forest, leaves, meta)
     _save(diagnoser, path)

@@ -90,6 +90,9 @@ class ScenarioPrior:
         to the mean) drawn from `SATURATION` (it varies with the scene, not the setup).
     density : (float, float)
         Particle density relative to the config's, log-uniform between these.
+    strength : (float, float)
+        Where in each effect's range, from its weakest (0) to its strongest (1) setting, a
+        present effect's strength is drawn (uniformly; on a log scale for scale parameters).
     """
 
     candidates: tuple
@@ -98,6 +101,7 @@ class ScenarioPrior:
     known: dict = field(default_factory=dict)
     bits: float | None = None
     density: tuple = (0.3, 3.0)
+    strength: tuple = (0.0, 1.0)
 
 
 @dataclass(frozen=True)
@@ -115,34 +119,51 @@ def _log_uniform(rng: np.random.Generator, low: float, high: float) -> float:
     return float(math.exp(rng.uniform(math.log(low), math.log(high))))
 
 
-def _effect_params(effect_id: str, rng: np.random.Generator, *, tile_px: int) -> dict:
+# each effect's strength parameters: (weakest, strongest, log scale); the others are drawn over their whole range
+_STRENGTHS = {
+    "illumination": {"depth": (0.1, 0.7, False)},
+    "shot_noise": {"log10_photons": (2.8, 1.0, False)},
+    "quantization": {"bits": (6.49, 2.51, False), "saturation": (3.0, 1.3, False)},
+    "sensor_blur": {"sigma_px": (0.5, 1.6, False)},
+    "coherence": {"theta_mrad": (0.6, 3.0, False), "bandwidth_nm": (8.0, 60.0, True)},
+    "particle_phase": {"index_contrast": (0.003, 0.3, True), "transmission": (TRANSPARENT, 1.0, False)},
+    "parasitic_fringes": {"amplitude": (0.02, 0.12, False), "dust_per_mpx": (20.0, 300.0, True)},
+    "spherical_wave": {"source_mm": (80.0, 10.0, True)},
+}
+
+
+def _effect_params(effect_id: str, rng: np.random.Generator, strength: tuple) -> dict:
     """A present effect's parameters, drawn from a broad prior (strong enough to matter, not beyond physics)."""
+
+    def draw(name: str) -> float:
+        weak, strong, log = _STRENGTHS[effect_id][name]
+        t = rng.uniform(*strength)
+        return float(math.exp(math.log(weak) + t * (math.log(strong) - math.log(weak)))) if log else float(weak + t * (strong - weak))
+
     if effect_id == "illumination":
-        return {"depth": rng.uniform(0.1, 0.7), "x0": rng.uniform(-0.45, 0.45), "y0": rng.uniform(-0.45, 0.45)}
+        return {"depth": draw("depth"), "x0": rng.uniform(-0.45, 0.45), "y0": rng.uniform(-0.45, 0.45)}
     if effect_id == "shot_noise":
-        return {"log10_photons": rng.uniform(1.0, 2.8)}
+        return {"log10_photons": draw("log10_photons")}
     if effect_id == "quantization":
-        return {"bits": float(rng.integers(3, 7)), "saturation": rng.uniform(1.3, 3.0)}
+        return {"bits": float(round(draw("bits"))), "saturation": draw("saturation")}
     if effect_id == "sensor_blur":
-        return {"sigma_px": rng.uniform(0.5, 1.6)}
-    if effect_id == "coherence":
-        if rng.random() < 0.5:
-            return {"theta_mrad": rng.uniform(0.6, 3.0), "bandwidth_nm": 0.0}
-        return {"theta_mrad": 0.0, "bandwidth_nm": rng.uniform(8.0, 60.0)}
+        return {"sigma_px": draw("sigma_px")}
+    if effect_id == "coherence":  # spatial or temporal, as likely
+        return {"theta_mrad": draw("theta_mrad"), "bandwidth_nm": 0.0} if rng.random() < 0.5 else {"theta_mrad": 0.0, "bandwidth_nm": draw("bandwidth_nm")}
     if effect_id == "particle_phase":
-        return {"index_contrast": _log_uniform(rng, 0.003, 0.3), "transmission": rng.uniform(TRANSPARENT, 1.0)}
+        return {"index_contrast": draw("index_contrast"), "transmission": draw("transmission")}
     if effect_id == "multiple_scattering":
         return {"on": 1.0}
-    if effect_id == "parasitic_fringes":
+    if effect_id == "parasitic_fringes":  # an etalon's fringe or dust on a window, as likely
         if rng.random() < 0.5:
-            return {"amplitude": rng.uniform(0.02, 0.12), "period_px": rng.uniform(4.0, 24.0), "angle_rad": rng.uniform(0, math.pi), "dust_per_mpx": 0.0}
-        return {"amplitude": 0.0, "dust_per_mpx": _log_uniform(rng, 20.0, 300.0), "dust_zone_px": rng.uniform(8.0, 60.0), "dust_grain_px": _log_uniform(rng, 1.5, 20.0)}
+            return {"amplitude": draw("amplitude"), "period_px": rng.uniform(4.0, 24.0), "angle_rad": rng.uniform(0, math.pi), "dust_per_mpx": 0.0}
+        return {"amplitude": 0.0, "dust_per_mpx": draw("dust_per_mpx"), "dust_zone_px": rng.uniform(8.0, 60.0), "dust_grain_px": _log_uniform(rng, 1.5, 20.0)}
     if effect_id == "spherical_wave":
-        return {"source_mm": _log_uniform(rng, 10.0, 80.0)}
+        return {"source_mm": draw("source_mm")}
     raise KeyError(effect_id)
 
 
-def draw_scenario(prior: ScenarioPrior, rng: np.random.Generator, *, tile_px: int) -> Scenario:
+def draw_scenario(prior: ScenarioPrior, rng: np.random.Generator) -> Scenario:
     """One scenario from ``prior``: the effects present (none, one or two) and every nuisance."""
     u = rng.random()
     count = 0 if u < prior.none else 1 if u < prior.none + prior.one else 2
@@ -151,7 +172,7 @@ def draw_scenario(prior: ScenarioPrior, rng: np.random.Generator, *, tile_px: in
     if prior.bits:
         effects["quantization"] = {"bits": float(prior.bits), "saturation": rng.uniform(*SATURATION)}
     for effect_id in present:
-        effects[effect_id] = _effect_params(effect_id, rng, tile_px=tile_px)
+        effects[effect_id] = _effect_params(effect_id, rng, prior.strength)
     # the particles: discs, or spheres that absorb most of the light with any phase delay;
     # transparent spheres are the particle_phase effect itself
     if "particle_phase" not in effects:
@@ -162,7 +183,7 @@ def draw_scenario(prior: ScenarioPrior, rng: np.random.Generator, *, tile_px: in
         model = dict(effects["particle_phase"])
     density = _log_uniform(rng, *prior.density)
     if "multiple_scattering" in present:
-        density = max(density, 1.0) * rng.uniform(3.0, 8.0)  # shadowing needs particles overlapping in projection
+        density = min(max(density, 1.0) * rng.uniform(3.0, 8.0), 10.0)  # shadowing needs particles overlapping in projection
     baseline = {"contrast": rng.uniform(0.5, 1.2), "sigma": _log_uniform(rng, 0.004, 0.08), "gamma": rng.uniform(0.7, 1.4)}
     return Scenario(present, check_effects(effects), baseline, model, density)
 
