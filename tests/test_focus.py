@@ -218,7 +218,7 @@ def test_diameters_are_positive_and_scores_are_probabilities(focus_model):
     assert np.all((table["z_um"] >= 1800.0 - 100.0) & (table["z_um"] <= 2200.0 + 100.0))
     assert result.provenance["formulation"] == "focus" and result.provenance["context"] == list(CONTEXT)
     other = ExperimentConfig.from_dict({**config.to_dict(), "volume": {"z_min_um": 1800.0, "z_max_um": 2200.0, "z_step_um": 50.0}})
-    with pytest.raises(InputError, match="volume.z_step_um: the model was trained on planes 100 um apart"):
+    with pytest.raises(InputError, match="volume.z_step_um: the model was trained on planes 100 µm apart"):
         predict_particles(hologram, model, other)
 
 

@@ -268,3 +268,44 @@ def test_training_names_why_it_ended(tmp_path, tiny_config):
     assert train_model(data, tmp_path / "a.pt", settings=settings).log["stop_reason"] == "time budget reached"
     settings = TrainingSettings(epochs=50, batch_size=2, device="cpu", validation_groups=1)
     assert train_model(data, tmp_path / "b.pt", settings=settings, should_stop=lambda: True).log["stop_reason"] == "stopped by you"
+
+
+REFINED = ("index_contrast", "absorption", "z_err_um", "diameter_err_um", "index_err", "fit_residual", "refined")
+
+
+def test_a_refined_table_s_columns_become_features_to_colour_by_and_save(make_napari_viewer, qtbot, tmp_path, monkeypatch, detector, tiny_config):
+    from napari.plugins import _npe2
+
+    from napari_lbs._core import read_particles
+
+    truth = simulated_tiff(tmp_path / "holo.tif", tiny_config)
+    rng = np.random.default_rng(3)
+    count = len(truth["x_um"])
+    refined = {**truth, **{name: rng.uniform(0.1, 0.3, count) for name in REFINED[:-1]}, "refined": np.ones(count, bool)}
+    oracle(monkeypatch, refined)
+    viewer = laptop_viewer(make_napari_viewer)
+    _, step = viewer.window.add_plugin_dock_widget("napari-lbs", "5 Prediction")
+    step.hologram.value = viewer.add_image(np.random.default_rng(0).normal(1.0, 0.05, (96, 96)).astype(np.float32), name="holo", scale=(2.2, 2.2), units="µm")
+    step.model.value = detector.path
+    step.device.value = "cpu"
+    run_to_end(qtbot, step)
+    points = viewer.layers["holo particles"]
+    assert set(REFINED) <= set(points.features.columns)
+    assert "index_contrast" in step.colour_by.choices and "z_err_um" in step.colour_by.choices
+    step.colour_by.value = "index_contrast"
+    assert len({tuple(colour) for colour in np.round(points.border_color, 3)}) > 1  # rims from low to high
+    step.colour_by.value = "match"
+    assert len({tuple(colour) for colour in np.round(points.border_color, 3)}) == 1
+    # File → Save Selected Layers offers the particle table first, and it keeps the features
+    _, writers = _npe2.file_extensions_string_for_layers([points])
+    assert writers[0].command == "napari-lbs.write_points"
+    points.save(str(tmp_path / "saved.csv"), plugin="napari-lbs")
+    assert {"x_um", "index_contrast", "z_err_um"} <= set(read_particles(tmp_path / "saved.csv"))
+
+
+def test_points_that_are_not_particles_still_save_as_napari_writes_them(make_napari_viewer, tmp_path):
+    viewer = make_napari_viewer()
+    viewer.window.add_plugin_dock_widget("napari-lbs", "5 Prediction")
+    marks = viewer.add_points(np.array([[1.0, 2.0], [3.0, 4.0]]), name="marks")
+    marks.save(str(tmp_path / "marks.csv"), plugin="napari-lbs")
+    assert (tmp_path / "marks.csv").read_text().splitlines()[0].startswith("index,axis-0")

@@ -20,7 +20,7 @@ import napari
 
 from napari_lbs._core import load_config, read_particles, write_particles
 from napari_lbs._core._io import PARTICLE_COLUMNS
-from napari_lbs._layers import PlaneGrid, particle_points, points_table
+from napari_lbs._layers import PlaneGrid, particle_points, points_table, prefer_particle_writer
 
 
 def _is_particle_table(path: str) -> bool:
@@ -48,18 +48,25 @@ def _read_with_napari(path):
 
 
 def read_particle_csv(path):
-    """A particle CSV as a Points layer in (z, y, x) µm on the default plane grid; extra numeric columns become features."""
+    """A particle CSV as a Points layer in (z, y, x) µm on the default plane grid; further numeric or boolean columns become features."""
     config = load_config(None)
     table = read_particles(path)
     data, keywords = particle_points(table, PlaneGrid.of_planes(config.volume.planes_um(), pixel_um=config.optics.pixel_um))
-    for name, values in table.items():
-        if name not in PARTICLE_COLUMNS and values.dtype.kind == "f":
-            keywords["features"][name] = values
     return [(data, {"name": Path(path).stem, **keywords, "metadata": {"source": str(path)}}, "points")]
 
 
 def write_particle_csv(path: str, data, attributes: dict) -> list[str]:
-    """Points → particle CSV in world µm (data × scale + translate); ``diameter_um`` and other features after."""
+    """Points → particle CSV in world µm (data × scale + translate); ``diameter_um`` and other features after.
+
+    Points without a ``diameter_um`` feature (not particles: a user's own annotations) are
+    written by napari's own Points writer, as napari would have.
+    """
+    features = attributes.get("features")
+    if features is None or "diameter_um" not in features:
+        from napari_builtins.io import napari_write_points
+
+        written = napari_write_points(path, data, attributes)
+        return [written] if written else []
     table = points_table(data, scale=attributes.get("scale", (1.0, 1.0, 1.0)), translate=attributes.get("translate", (0.0, 0.0, 0.0)), features=attributes.get("features"), size=attributes.get("size"))
     write_particles(path, table)
     return [path]
@@ -86,3 +93,6 @@ def open_particle_table(viewer: napari.viewer.Viewer) -> list:
 
     paths, _ = QFileDialog.getOpenFileNames(None, "Open particle table", "", "Particle table (*.csv)")
     return [layer for path in paths for layer in viewer.open(path, plugin="napari-lbs")]
+
+
+prefer_particle_writer()  # the reader or writer is in use: particle layers save as particle tables

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["UNITS", "PlaneGrid", "frame_points", "particle_points", "points_table", "recording_image", "track_lines"]
+__all__ = ["UNITS", "PlaneGrid", "frame_points", "particle_points", "points_table", "prefer_particle_writer", "recording_image", "track_lines"]
 
 UNITS = "µm"
 
@@ -72,7 +72,8 @@ def particle_points(table: dict, grid: PlaneGrid) -> tuple[np.ndarray, dict]:
     Parameters
     ----------
     table : dict of arrays
-        A particle table (``x_um, y_um, z_um, diameter_um``; ``score`` optional).
+        A particle table (``x_um, y_um, z_um, diameter_um``; ``score`` optional; any further
+        numeric or boolean column becomes a feature too).
     grid : PlaneGrid
 
     Returns
@@ -81,13 +82,17 @@ def particle_points(table: dict, grid: PlaneGrid) -> tuple[np.ndarray, dict]:
         ``(plane index, row, col)``, fractional.
     keywords : dict
         ``scale``, ``translate``, ``units``, ``features`` (``diameter_um``, ``z_um``,
-        ``score``), ``size`` (the diameter in pixels) and ``face_color``.
+        ``score``, then the further columns), ``size`` (the diameter in pixels) and ``face_color``.
     """
     count = len(np.asarray(table["x_um"]))
     world = np.stack([np.asarray(table[c], float) for c in ("z_um", "y_um", "x_um")], axis=1) if count else np.zeros((0, 3))
     data = (world - np.asarray(grid.translate)) / np.asarray(grid.scale)
     diameter = np.asarray(table["diameter_um"], float)
     features = {"diameter_um": diameter, "z_um": world[:, 0], "score": np.asarray(table["score"], float) if "score" in table else np.ones(count)}
+    for name, values in table.items():  # further columns (a refined table's index, uncertainties, ...) ride along
+        values = np.asarray(values)
+        if name not in features and name not in ("x_um", "y_um") and values.dtype.kind in "biuf" and values.shape == (count,):
+            features[name] = values
     keywords = {
         "scale": grid.scale,
         "translate": grid.translate,
@@ -183,3 +188,19 @@ def points_table(data, *, scale, translate, features=None, size=None) -> dict[st
     table = {"x_um": world[:, 2], "y_um": world[:, 1], "z_um": world[:, 0], "diameter_um": np.asarray(diameter, float)}
     table.update({name: values for name, values in columns.items() if values.dtype.kind in "fiu"})
     return table
+
+
+def prefer_particle_writer() -> None:
+    """Put the particle-table writer first among the Points writers napari offers in *Save Selected Layers…*.
+
+    napari lists the writers npe2 finds for the layers, sorted by (no file extension, number of
+    layer types constrained) and then in the order plugins registered, napari's own first: its
+    CSV writer and ours tie, so ours goes to the front of npe2's writer index (a private list;
+    where npe2 keeps no such list, nothing changes). Points that are not a particle table are
+    still written as napari writes them (`napari_lbs._io_plugin.write_particle_csv`).
+    """
+    from npe2 import PluginManager
+
+    index = getattr(PluginManager.instance()._contrib, "_writers", None)
+    if isinstance(index, list):
+        index.sort(key=lambda entry: not entry[-1].command.startswith("napari-lbs."))  # stable: the rest keep their order

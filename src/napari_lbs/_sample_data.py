@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from napari_lbs._core import load_config, load_sample_hologram, random_particle_field, simulate_hologram
 from napari_lbs._core._samples import SAMPLE_PROVENANCE
-from napari_lbs._layers import UNITS, PlaneGrid, particle_points
+from napari_lbs._layers import UNITS, PlaneGrid, particle_points, prefer_particle_writer
 
 SYNTHETIC_SEED = 2024
 SYNTHETIC_SHAPE = (512, 512)
@@ -21,6 +21,7 @@ def real_hologram():
 
 def synthetic_hologram():
     """A seeded 512² hologram of 48 opaque particles (default config) and its ground-truth Points on the default planes."""
+    prefer_particle_writer()  # the truth saves as a particle table
     config = load_config(None)
     field = random_particle_field(
         SYNTHETIC_SHAPE,

@@ -95,7 +95,7 @@ class VolumeConfig:
         _require(
             _plane_count(self.z_max_um - self.z_min_um, self.z_step_um) <= MAX_PLANES,
             "volume.z_step_um",
-            f"a step of at least {(self.z_max_um - self.z_min_um) / (MAX_PLANES - 1):.3g} um (at most {MAX_PLANES} planes)",
+            f"a step of at least {(self.z_max_um - self.z_min_um) / (MAX_PLANES - 1):.3g} µm (at most {MAX_PLANES} planes)",
             self.z_step_um,
         )
 

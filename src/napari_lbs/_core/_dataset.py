@@ -352,7 +352,7 @@ def generate_dataset(
         raise InputError(f"{out}: expected a folder for the data set, got a file")
     effects = check_effects(effects or {})
     if distractors.impurities_per_tile and distractors.impurity_diameter_max_um >= config.particles.diameter_min_um:
-        raise InputError(f"impurity_diameter_max_um: expected a diameter below the particles' diameter_min_um={config.particles.diameter_min_um:g} um, got {distractors.impurity_diameter_max_um:g} um")
+        raise InputError(f"impurity_diameter_max_um: expected a diameter below the particles' diameter_min_um={config.particles.diameter_min_um:g} µm, got {distractors.impurity_diameter_max_um:g} µm")
     spec = _spec(config, processing, layout, seed, effects, distractors)
     manifest = out / "dataset.json"
     if manifest.is_file():

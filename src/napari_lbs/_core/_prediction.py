@@ -245,11 +245,11 @@ def _decode_focus(hologram, loaded: LoadedModel, planes, layout, *, background, 
     context = [int(o) for o in meta["context"]]
     reach = max(abs(o) for o in context)
     if len(planes) > 1 and not np.allclose(np.diff(planes), step, rtol=1e-6, atol=1e-6):
-        raise InputError(f"volume.z_step_um: the model was trained on planes {step:g} um apart; reconstruct at that step")
+        raise InputError(f"volume.z_step_um: the model was trained on planes {step:g} µm apart; reconstruct at that step")
     invert, mode = bool(meta["processing"]["invert_experiment"]), meta["processing"]["mode"]
     extended = [planes[0] + i * step for i in range(-reach, 0)] + list(planes) + [planes[-1] + i * step for i in range(1, reach + 1)]
     if extended[0] <= 0:
-        raise InputError(f"volume.z_min_um: the model's context needs planes {reach * step:g} um nearer the sensor than {planes[0]:g} um")
+        raise InputError(f"volume.z_min_um: the model's context needs planes {reach * step:g} µm nearer the sensor than {planes[0]:g} µm")
     # the back-propagation reports and stops too: on a 1024² hologram it is the first few seconds
     steps.total += len(extended)
     reported = 0

@@ -72,7 +72,7 @@ def link_tracks(particles: dict[str, np.ndarray], *, search_range_um: float, axi
         search_range = search_range_um if axial_search_range_um is None else (search_range_um, search_range_um, axial_search_range_um)  # per pos_columns
         linked = trackpy.link_df(positions, search_range, memory=memory, pos_columns=list(PARTICLE_COLUMNS[:3]), t_column="frame")
     except trackpy.SubnetOversizeException as error:
-        raise InputError(f"search_range_um: {search_range_um:g} um links too many candidates at once ({error}); use a smaller search range") from None
+        raise InputError(f"search_range_um: {search_range_um:g} µm links too many candidates at once ({error}); use a smaller search range") from None
     labels = linked.loc[positions.index, "particle"].to_numpy()
     _, first_seen = np.unique(labels, return_index=True)
     renumber = {labels[i]: track for track, i in enumerate(sorted(first_seen))}

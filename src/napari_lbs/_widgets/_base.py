@@ -25,6 +25,7 @@ from qtpy.QtWidgets import QFormLayout, QFrame, QLabel, QScrollArea, QSizePolicy
 
 from napari_lbs._core import Stopped, load_config
 from napari_lbs._core._io import as_hologram
+from napari_lbs._layers import prefer_particle_writer
 
 __all__ = [
     "StepWidget", "chosen", "config_from", "config_problem", "doc_of", "file_of", "hologram_data", "hologram_problem", "in_micrometres", "missing", "model_config", "model_problem", "model_setup", "output_problem",
@@ -379,6 +380,7 @@ class StepWidget(Container):
         self._run.changed.connect(self._start)
         self._stop.changed.connect(self._request_stop)
         self._restore_settings()
+        prefer_particle_writer()  # the particles this step shows save as particle tables
         for widget in fields:
             widget.changed.connect(self._changed)
         viewer.layers.events.inserted.connect(self._layer_inserted)

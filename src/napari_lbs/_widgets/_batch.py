@@ -27,7 +27,10 @@ class BatchWidget(StepWidget):
                                 tooltip=f"The recording (type a folder or a glob pattern; browse picks a file): {doc_of(open_frames, 'inputs')}")
         self.model = path_edit(label="model file", name="model", filter="*.pt", value="lbs-model.pt", tooltip=doc_of(predict_sequence, "model"))
         self.config = path_edit(label="config", name="config", placeholder="empty: the model's", filter="*.toml", tooltip=doc_of(predict_sequence, "config"))
-        self.background = ComboBox(label="background", name="background", choices=list(BACKGROUND_MODES), value="global", tooltip=doc_of(predict_sequence, "background"))
+        # none by default: a median over the frames holds a slow particle, and dividing by it erased
+        # such particles (ER 31 % against 78 % with none on a user's recording)
+        self.background = ComboBox(label="background", name="background", choices=list(BACKGROUND_MODES), value="none",
+                                   tooltip=f"{doc_of(predict_sequence, 'background')} Default none: a median erases particles that stay put longer than its frames")
         self.window = SpinBox(label="background window", name="window", value=21, min=1, max=10000, tooltip=f"running background: {doc_of(sequence_background, 'window')}")
         self.device = ComboBox(label="device", name="device", choices=["auto", "cpu", "cuda"], value="auto", tooltip=doc_of(predict_sequence, "device"))
         self.workers = SpinBox(label="workers (0: threads)", name="workers", value=0, min=0, max=1024,

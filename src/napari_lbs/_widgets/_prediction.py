@@ -12,6 +12,7 @@ from napari_lbs._widgets._base import StepWidget, chosen, config_problem, doc_of
 
 __all__ = ["PredictionWidget"]
 
+_MATCH = "match"
 _FOUND = (0.0, 0.9, 1.0, 1.0)  # cyan, without a reference
 _TRUE_POSITIVE = (0.2, 1.0, 0.2, 1.0)
 _FALSE_POSITIVE = (1.0, 0.2, 0.2, 1.0)
@@ -31,7 +32,12 @@ class PredictionWidget(StepWidget):
         self.device = ComboBox(label="device", name="device", choices=["auto", "cpu", "cuda"], value="auto", tooltip="auto: CUDA when available, else the CPU")
         self.reference = path_edit(label="truth CSV", name="reference", placeholder="optional", filter="*.csv",
                                    tooltip="A true particle table: predictions are then coloured true (green) / false (red) positives, misses shown, ER and JI reported")
-        super().__init__(napari_viewer, [self.hologram, self.model, self.config, self.device, self.reference])
+        self._points = None  # the last result's layer and its match colours
+        self._match_colours = None
+        self.colour_by = ComboBox(label="colour by", name="colour_by", choices=self._colour_choices, value=_MATCH,
+                                  tooltip="The particles' rims: match (found cyan; with a truth CSV true green, false red) or a feature of the table, low to high (viridis)")
+        super().__init__(napari_viewer, [self.hologram, self.model, self.config, self.device, self.reference, self.colour_by])
+        self.colour_by.changed.connect(self._recolour)
 
     def problem(self):
         return model_problem(self.model) or hologram_problem(self.hologram.value) or missing(self.reference, "reference") or config_problem(self.config)
@@ -69,5 +75,25 @@ class PredictionWidget(StepWidget):
                 self._viewer.add_points(missed_data, **missed_keywords, name="missed (FN)", border_color="yellow", border_width=0.15, metadata={"source": "reference"})
             metadata["metrics"] = metrics
             message += f"; ER {100 * metrics['er']:.1f} %, JI {metrics['ji']:.3f} (one-to-one)"
-        self._viewer.add_points(data, **keywords, border_color=colours if len(data) else "cyan", border_width=0.15, name=f"{name} particles", metadata=metadata)
+        self._points = self._viewer.add_points(data, **keywords, border_color=colours if len(data) else "cyan", border_width=0.15, name=f"{name} particles", metadata=metadata)
+        self._match_colours = colours
+        self.colour_by.reset_choices()
+        self._recolour()
         self.done(message)
+
+    def _colour_choices(self, *_) -> list[str]:
+        """match, then the last result's numeric features."""
+        layer = self._points
+        features = layer.features if layer is not None else {}
+        return [_MATCH, *[column for column in features if features[column].dtype.kind in "iuf"]]
+
+    def _recolour(self, *_) -> None:
+        """Colour the last result's rims as `colour_by` says."""
+        layer = self._points
+        if layer is None or layer not in self._viewer.layers or not len(layer.data):
+            return
+        if self.colour_by.value in layer.features.columns:
+            layer.border_colormap = "viridis"
+            layer.border_color = self.colour_by.value
+        else:
+            layer.border_color = self._match_colours
