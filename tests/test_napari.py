@@ -312,7 +312,7 @@ def test_particle_tables_are_saved_and_opened_without_choosing_a_plugin(make_nap
     # napari's own Points CSVs still open as before, handed on to napari's reader
     napari_csv = tmp_path / "napari-points.csv"
     viewer.layers.selection.active = truth
-    viewer.layers.save(str(napari_csv), selected=True)  # napari's writer: index,axis-0,...
+    viewer.layers.save(str(napari_csv), selected=True, plugin="napari.write_points")  # napari's writer by name (the plugin's is first): index,axis-0,...
     assert napari_csv.read_text().startswith("index,axis-0")
     viewer.window._qt_viewer._qt_open([str(napari_csv)], stack=False)
     assert len(asked) == 1 and viewer.layers[-1].name.startswith("napari-points")
