@@ -309,3 +309,41 @@ def test_points_that_are_not_particles_still_save_as_napari_writes_them(make_nap
     marks = viewer.add_points(np.array([[1.0, 2.0], [3.0, 4.0]]), name="marks")
     marks.save(str(tmp_path / "marks.csv"), plugin="napari-lbs")
     assert (tmp_path / "marks.csv").read_text().splitlines()[0].startswith("index,axis-0")
+
+
+def test_batch_stops_within_two_seconds_without_running_the_other_frames(make_napari_viewer, qtbot, tmp_path, monkeypatch, detector, tiny_config):
+    import threading
+    import time
+
+    import tifffile
+
+    from napari_lbs._core import Stopped, simulate_sequence
+    from napari_lbs._core import _sequence
+
+    recording = simulate_sequence(tiny_config, frames=8, flow="uniform", size=64, count=3, speed_um=6.0, seed=2)
+    tifffile.imwrite(tmp_path / "run.tif", recording.frames, photometric="minisblack")
+    started = []
+    lock = threading.Lock()
+
+    def slow_frame(hologram, model, config, background, device, should_stop=None):  # a large frame: 20 s of planes
+        with lock:
+            started.append(time.perf_counter())
+        for _ in range(400):
+            if should_stop is not None and should_stop():
+                raise Stopped("stopped between planes")
+            time.sleep(0.05)
+        raise AssertionError("a frame ran to its end after Stop")
+
+    monkeypatch.setattr(_sequence, "_frame_particles", slow_frame)
+    viewer = laptop_viewer(make_napari_viewer)
+    _, step = viewer.window.add_plugin_dock_widget("napari-lbs", "7 Batch")
+    step.frames.value = tmp_path / "run.tif"
+    step.model.value = detector.path
+    step.device.value = "cpu"
+    step._run.clicked.emit()
+    qtbot.waitUntil(lambda: bool(started), timeout=60_000)
+    clicked = time.perf_counter()
+    step._stop.clicked.emit()
+    qtbot.waitUntil(lambda: step._worker is None, timeout=60_000)
+    assert time.perf_counter() - clicked <= 2.0 and "stopped" in step._status.value
+    assert len(started) < 8  # the frames not yet begun never ran

@@ -376,8 +376,8 @@ class SequenceResult:
     resumed: int
 
 
-def _frame_particles(hologram: np.ndarray, model, config: ExperimentConfig, background: np.ndarray | None, device: str) -> tuple[dict, dict]:
-    """One frame's `predict_particles` (the dask task). ``model`` is the worker's copy, moved to ``device`` on first use."""
+def _frame_particles(hologram: np.ndarray, model, config: ExperimentConfig, background: np.ndarray | None, device: str, should_stop: StopCallback | None = None) -> tuple[dict, dict]:
+    """One frame's `predict_particles` (the dask task). ``model`` is the worker's copy, moved to ``device`` on first use; ``should_stop`` (threads of this process only) ends it between planes."""
     import torch
 
     from napari_lbs._core._network import resolve_device
@@ -388,7 +388,7 @@ def _frame_particles(hologram: np.ndarray, model, config: ExperimentConfig, back
     if next(model.network.parameters()).device != target:
         model.network.to(target)
     # predict_sequence checked the model against the config once, before any frame
-    result = predict_particles(hologram, model, config, background=background, force=True)
+    result = predict_particles(hologram, model, config, background=background, force=True, should_stop=should_stop)
     return result.particles, result.provenance
 
 
@@ -500,14 +500,14 @@ class _Scheduler:
         """``value`` as every task will receive it: sent once to each worker (distributed), else as it is."""
         return value if self.client is None or value is None else self.client.scatter(value, broadcast=True, hash=False)
 
-    def submit(self, index: int, hologram: np.ndarray, config: ExperimentConfig, background, device: str):
-        """Frame ``index``'s task: a future (distributed) or a delayed call (local)."""
+    def submit(self, index: int, hologram: np.ndarray, config: ExperimentConfig, background, device: str, should_stop: StopCallback | None = None):
+        """Frame ``index``'s task: a future (distributed) or a delayed call (local, which ``should_stop`` can end between planes)."""
         arguments = (hologram, self.model, config, background, device)
         if self.client is not None:
             return self.client.submit(_frame_particles, *arguments, key=f"napari-lbs-frame-{index}-{id(self)}", pure=False)
         import dask
 
-        return dask.delayed(_frame_particles, pure=False)(*arguments)
+        return dask.delayed(_frame_particles, pure=False)(*arguments, should_stop)
 
     def completed(self, pending: dict):
         """``(index, particles, provenance)`` of the next finished frame(s) among ``pending`` (futures or delayed)."""
@@ -580,9 +580,10 @@ def predict_sequence(
     force : bool
         Run a model made for other optics or depths anyway (`predict_particles`).
     progress, should_stop
-        One step per frame (resumed frames count as done at once). A stop raises `Stopped`
-        when the next frame finishes (frames still in flight are cancelled); the finished
-        frames stay in ``work_dir``.
+        One step per frame (resumed frames count as done at once). A stop raises `Stopped`:
+        on the local threaded scheduler within a plane of the frames in flight, on dask
+        workers when the next frame finishes (the others are cancelled); the finished frames
+        stay in ``work_dir``.
 
     Returns
     -------
@@ -652,18 +653,22 @@ def predict_sequence(
                     hologram, frame_background = buffer[index], _median(np.stack(list(buffer.values())))
                 else:
                     hologram, frame_background = frames.read(index), shared_background
-                pending[index] = runner.submit(index, hologram, config, frame_background, device)
+                pending[index] = runner.submit(index, hologram, config, frame_background, device, should_stop)
                 if len(pending) >= runner.slots:
                     break
             if not pending:
                 break
-            for index, particles, frame_provenance in runner.completed(pending):
+            kept = f"; the finished ones are kept in {work.folder}" if work.folder else ""
+            try:
+                finished_now = runner.completed(pending)
+            except Stopped:  # a frame in this process's threads stopped between its planes
+                raise Stopped(f"stopped after {steps.done} of {count} frames{kept}") from None
+            for index, particles, frame_provenance in finished_now:
                 del pending[index]
                 work.save(index, particles)
                 work.provenance(frame_provenance)
                 steps.advance()
             if steps.stop_requested():
-                kept = f"; the finished ones are kept in {work.folder}" if work.folder else ""
                 raise Stopped(f"stopped after {steps.done} of {count} frames{kept}")
         loop_seconds = time.perf_counter() - loop_start
     tables = [work.load(index) for index in range(count)]
