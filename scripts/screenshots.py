@@ -7,7 +7,8 @@ training, prediction, gap diagnosis), each step's output feeding the next. It sa
 after its run, the window with the particles in 2-D on their plane and in 3-D, into
 docs/figures/. About 12 minutes on 2 CPU cores (``--quick``: a token run of about 2 minutes
 that checks the script, not the figures). Work files go to ``--out`` (default a temporary folder).
-``--roi-preview`` makes only roi_preview.png (the reference ROI with its I_e before any run, seconds).
+``--roi-preview`` makes only roi_preview.png (the reference ROI with its I_e before any run, seconds);
+``--lab-user`` only the figures of what a new user meets (`lab_user`, seconds).
 """
 
 from __future__ import annotations
@@ -65,12 +66,93 @@ def place_roi(viewer, dock, hologram, figures: Path) -> None:
     viewer.window._qt_window.grab().save(str(figures / "roi_preview.png"))
 
 
+STEPS = ("1 Back-propagation", "2 Calibration", "3 Synthetic data", "4 Training", "5 Prediction", "6 Gap diagnosis", "7 Batch")
+
+
+def grab_dialog_then(figure: Path, answer) -> None:
+    """In 0.8 s, save the window with the dialog napari-lbs opened, then close the dialog with ``answer(dialog)``."""
+    from qtpy.QtCore import QTimer
+
+    def grab():
+        dialog = QApplication.activeModalWidget()
+        settle(0.3)
+        dialog.grab().save(str(figure))
+        answer(dialog)
+
+    QTimer.singleShot(800, grab)
+
+
+def lab_user(viewer, work: Path, figures: Path) -> None:
+    """Figures of what a new user meets, without any long run (seconds).
+
+    Each step widget alone in a 300-px dock; a camera TIFF opened with napari's own reader,
+    the pixel size asked once, and its particles (the truth CSV) on it in µm; a model trained
+    for 2.2-µm pixels about to run on a 3.45-µm camera's hologram: the setup warning.
+    """
+    import tifffile
+    from qtpy.QtCore import Qt
+    from qtpy.QtGui import QPainter, QPixmap
+
+    from napari_lbs._core import DatasetLayout, ExperimentConfig, TrainingSettings, generate_dataset, random_particle_field, simulate_hologram, train_model, write_particles
+
+    window = viewer.window._qt_window
+    docks = []
+    for name in STEPS:
+        dock, _ = viewer.window.add_plugin_dock_widget("napari-lbs", name)
+        window.resizeDocks([dock], [300], Qt.Orientation.Horizontal)
+        settle(0.5)
+        docks.append(dock.grab())
+        viewer.window.remove_dock_widget(dock)
+    sheet = QPixmap(sum(d.width() for d in docks) + 8 * (len(docks) - 1), max(d.height() for d in docks))
+    sheet.fill(Qt.GlobalColor.black)
+    painter = QPainter(sheet)
+    x = 0
+    for pixmap in docks:
+        painter.drawPixmap(x, 0, pixmap)
+        x += pixmap.width() + 8
+    painter.end()
+    sheet.save(str(figures / "widgets_alone.png"))
+
+    config = ExperimentConfig.from_dict({"volume": {"z_min_um": 1800.0, "z_max_um": 2200.0, "z_step_um": 100.0}, "particles": {"per_tile": 3, "layer_step_um": 200.0}, "tile": {"size": 64}})
+    field = random_particle_field((384, 384), count=14, diameter_min_um=20, diameter_max_um=30, layers_um=config.layer_depths_um(), pixel_um=2.2, seed=4)
+    tifffile.imwrite(work / "camera.tif", simulate_hologram(field, wavelength_um=0.66))
+    write_particles(work / "camera-particles.csv", field.table())
+    image = viewer.open(work / "camera.tif", plugin="napari")[0]
+    _, step = viewer.window.add_plugin_dock_widget("napari-lbs", "1 Back-propagation")
+    step.hologram.value = image
+    step.config.line_edit.value = ""
+    grab_dialog_then(figures / "pixel_size_dialog.png", lambda dialog: dialog.accept())
+    step._run.clicked.emit()  # napari's reader gave pixels: the step asks the pixel size (2.2 µm offered) and remembers it for the file
+    while step._worker is not None:
+        settle(0.2)
+    viewer.layers.remove(f"{image.name} z-stack")
+    particles = viewer.open(work / "camera-particles.csv", plugin="napari-lbs")[0]
+    particles.out_of_slice_display = True  # every particle, whatever its depth, over the 2-D hologram
+    particles.border_color, particles.border_width = "cyan", 0.12
+    viewer.dims.set_point(0, 2000.0)
+    viewer.reset_view()
+    settle(1.0)
+    window.grab().save(str(figures / "user_file_aligned.png"))
+
+    data = generate_dataset(work / "data", config, groups=2, layout=DatasetLayout(kind="stack", context_planes=2), seed=5)
+    model = train_model(data, work / "model.pt", settings=TrainingSettings(epochs=1, batch_size=4, device="cpu", validation_groups=1, patch_size=32, context=(-2, -1, 0, 1, 2))).model_path
+    camera = viewer.add_image(np.asarray(image.data), name="3.45-µm camera", scale=(3.45, 3.45), units="µm")
+    _, step = viewer.window.add_plugin_dock_widget("napari-lbs", "5 Prediction")
+    step.hologram.value = camera
+    step.model.value = model
+    step.config.line_edit.value = ""
+    grab_dialog_then(figures / "setup_check.png", lambda dialog: dialog.reject())
+    step._run.clicked.emit()
+    settle(0.5)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=None, help="work folder (calibration, data set, model, report)")
     parser.add_argument("--quick", action="store_true", help="a token run that checks the script")
     parser.add_argument("--figures", type=Path, default=FIGURES, help="where the PNGs go (default docs/figures)")
     parser.add_argument("--roi-preview", action="store_true", help="make only roi_preview.png")
+    parser.add_argument("--lab-user", action="store_true", help="make only the new-user figures (widgets alone, a user's file, the setup check; seconds)")
     args = parser.parse_args()
     figures = args.figures
     work = args.out or Path(tempfile.mkdtemp(prefix="lbs-screenshots-"))
@@ -80,6 +162,10 @@ def main() -> None:
     viewer = napari.Viewer()
     window = viewer.window._qt_window
     window.resize(1280, 800)
+    if args.lab_user:
+        lab_user(viewer, work, figures)
+        viewer.close()
+        return
     hologram = viewer.open_sample("napari-lbs", "real_hologram")[0]
     _, dock = viewer.window.add_plugin_dock_widget("napari-lbs", "LBS workflow")
     settle(1.0)

@@ -189,7 +189,7 @@ def inference_network(network: UNet) -> UNet:
     return fused
 
 
-def model_mismatches(meta: dict, config: ExperimentConfig, *, planes_um) -> list[str]:
+def model_mismatches(meta: dict, config: ExperimentConfig, *, planes_um, setup: str = "the config") -> list[str]:
     """Where a model's setup differs from a hologram's: its optics (wavelength, pixel, medium) and depths outside its training range.
 
     Parameters
@@ -200,6 +200,8 @@ def model_mismatches(meta: dict, config: ExperimentConfig, *, planes_um) -> list
         The hologram's setup.
     planes_um : sequence of float
         The depths to reconstruct (µm).
+    setup : str
+        What ``config`` is called in the lines (e.g. "the hologram" when its pixel size is the layer's).
 
     Returns
     -------
@@ -212,7 +214,7 @@ def model_mismatches(meta: dict, config: ExperimentConfig, *, planes_um) -> list
     for key in ("wavelength_um", "pixel_um", "medium_index"):
         a, b = getattr(trained.optics, key), getattr(config.optics, key)
         if not math.isclose(a, b, rel_tol=1e-6):
-            found.append(f"model: trained for optics.{key}={a:g}, the config says {b:g}")
+            found.append(f"model: trained for optics.{key}={a:g}, {setup} says {b:g}")
     layers = meta["planes_um"]
     step = (max(layers) - min(layers)) / max(len(layers) - 1, 1)
     low, high = min(layers) - step, max(layers) + step

@@ -265,15 +265,16 @@ def model_setup(model_path: Path, config, layer=None):
     from napari_lbs._core._network import model_mismatches
 
     model = load_model(model_path)
+    named = "the config"
     if layer is not None:
         pixel_um = place_in_micrometres(layer, pixel_um=config.optics.pixel_um if config is not None else None, proposed_um=model.config.optics.pixel_um)
         if config is None:
             setup = model.config.to_dict()
             setup["optics"]["pixel_um"] = pixel_um
-            config = ExperimentConfig.from_dict(setup)
+            config, named = ExperimentConfig.from_dict(setup), f"the hologram {layer.name!r}"
     config = config if config is not None else model.config
-    found = model_mismatches(model.meta, config, planes_um=config.volume.planes_um())
-    return config, "\n".join(found) if found else None
+    found = model_mismatches(model.meta, config, planes_um=config.volume.planes_um(), setup=named)
+    return config, "The model was made for another setup:\n" + "\n".join(found) if found else None
 
 
 def _confirmed(parent, title: str, warning: str) -> bool:
