@@ -294,7 +294,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--depths", choices=("uniform", "layers"), default="uniform", help="stack layout: particle depths uniform over the volume (default) or on the seed's layers")
     p.add_argument("--context-planes", type=_integer(0), default=8, help="stack layout: planes stored beyond each end of the volume (default 8)")
     p.add_argument("--workers", type=_integer(1), default=1, help="processes simulating groups at once (default 1)")
-    p.add_argument("--effects-from", metavar="REPORT.json", help="add the effects a diagnosis report names (its verdict and waterfall, with their fitted parameters)")
+    p.add_argument("--effects-from", metavar="REPORT.json", help="add the effects a diagnosis report names (its verdict: one effect or two, with their posterior parameters)")
     p.add_argument("--effect", action="append", default=[], metavar="ID[:NAME=VALUE,...]",
                    help="add an effect of the catalog, e.g. particle_phase:index_contrast=0.26,transmission=1 or quantization:bits=8,saturation=2 (repeatable)")
     p.add_argument("--impurities", type=_integer(0), default=0, metavar="N",

@@ -10,7 +10,8 @@ import csv
 import importlib.util
 import io
 import json
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +26,7 @@ __all__ = [
     "as_hologram",
     "read_stack",
     "write_stack",
+    "tiff_pages",
     "read_particles",
     "write_particles",
     "check_table_name",
@@ -98,16 +100,40 @@ def read_hologram(path: str | Path, *, channel: int | None = None, log: Callable
     return as_hologram(image, name=str(path), channel=channel, log=log)
 
 
-def write_stack(path: str | Path, stack: np.ndarray, *, z_um: Sequence[float], metadata: dict | None = None) -> Path:
-    """Write a float32 ``(z, y, x)`` stack as TIFF with ``{"z_um": [...], ...}`` as ImageDescription JSON."""
+@contextmanager
+def tiff_pages(path: str | Path, shape: tuple[int, ...], *, description: dict) -> Iterator[np.ndarray]:
+    """The one TIFF writer: a float32 TIFF of ``shape`` to fill in place, renamed onto ``path`` when the block succeeds.
+
+    Parameters
+    ----------
+    path : path
+        The TIFF; nothing is left there if the block fails or is interrupted (`atomic_path`).
+    shape : (rows, cols), or (pages, rows, cols)
+        One hologram, or a stack of planes or frames (one page each).
+    description : dict
+        Provenance (and a stack's ``z_um``), stored as the first page's ImageDescription JSON.
+
+    Yields
+    ------
+    numpy.memmap
+        The pages on disk: a deep stack or a long recording is written plane by plane and
+        never has to fit in memory.
+    """
     import tifffile
 
+    with atomic_path(Path(path)) as temporary:
+        pages = tifffile.memmap(temporary, shape=tuple(shape), dtype=np.float32, description=json.dumps(json_safe(description)), metadata=None, photometric="minisblack")
+        yield pages
+        pages.flush()
+
+
+def write_stack(path: str | Path, stack: np.ndarray, *, z_um: Sequence[float], metadata: dict | None = None) -> Path:
+    """Write a float32 ``(z, y, x)`` stack as TIFF with ``{"z_um": [...], ...}`` as ImageDescription JSON (`tiff_pages`)."""
     stack = np.asarray(stack)
     if stack.ndim != 3 or stack.shape[0] != len(z_um):
         raise InputError(f"stack: expected shape (len(z_um)={len(z_um)}, y, x), got {stack.shape}")
-    description = json.dumps({"z_um": [float(z) for z in z_um], **(metadata or {})})
-    with atomic_path(Path(path)) as temporary:
-        tifffile.imwrite(temporary, stack.astype(np.float32, copy=False), description=description, metadata=None, photometric="minisblack")
+    with tiff_pages(path, stack.shape, description={"z_um": [float(z) for z in z_um], **(metadata or {})}) as pages:
+        pages[:] = stack
     return Path(path)
 
 
