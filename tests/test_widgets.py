@@ -20,6 +20,14 @@ def isolated_settings(tmp_path_factory):
     QSettings.setPath(QSettings.Format.NativeFormat, QSettings.Scope.UserScope, str(tmp_path_factory.mktemp("qsettings")))
 
 
+@pytest.fixture(autouse=True)
+def offered_pixel_size(monkeypatch):
+    """An image added in code is in pixels: a step with an empty config asks its pixel size, answered here with the one offered."""
+    from qtpy.QtWidgets import QInputDialog
+
+    monkeypatch.setattr(QInputDialog, "getDouble", lambda parent, title, label, value, *args, **kwargs: (value, True))
+
+
 def tiny_config_file(path, size=48):
     config = ExperimentConfig.from_dict({
         "volume": {"z_min_um": 1800.0, "z_max_um": 2200.0, "z_step_um": 100.0},
@@ -267,8 +275,8 @@ def test_batch_widget_refuses_workers_with_a_scheduler_and_resumes_a_stopped_run
 
     from napari_lbs._core import simulate_sequence
 
-    # one frame more than the local scheduler runs at once, so a stop always leaves some to resume
-    frames = (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1) + 1
+    # two rounds of the frames the local scheduler runs at once and one more, so a stop in the second leaves some to resume
+    frames = 2 * (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1) + 1
     recording = simulate_sequence(tiny_config, frames=frames, flow="uniform", size=128, count=4, speed_um=6.0, seed=3)
     tifffile.imwrite(tmp_path / "run.tif", recording.frames, photometric="minisblack")
     viewer = make_napari_viewer()
@@ -289,7 +297,8 @@ def test_batch_widget_refuses_workers_with_a_scheduler_and_resumes_a_stopped_run
 
     widget.work_dir.value = tmp_path / "work"
     widget._run.clicked.emit()
-    widget._stop.clicked.emit()  # the frames in flight finish and stay in the work folder, the others are not predicted
+    qtbot.waitUntil(lambda: widget._bar.value >= 1, timeout=TIMEOUT_MS)
+    widget._stop.clicked.emit()  # the frames in flight stop between planes, the finished ones stay in the work folder, the others are not predicted
     qtbot.waitUntil(lambda: widget._worker is None, timeout=TIMEOUT_MS)
     kept = {path.name: path.stat().st_mtime_ns for path in (tmp_path / "work").glob("frame_*.npz")}
     assert 0 < len(kept) < frames and len(viewer.layers) == 0

@@ -2,16 +2,16 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 from magicgui.widgets import ComboBox, LineEdit, SpinBox
 
-from napari_lbs._core import DatasetLayout, Distractors, InputProcessing, generate_dataset
+from napari_lbs._core import DatasetLayout, Distractors, generate_dataset
+from napari_lbs._core._pipeline import GenerateRequest, generate, requested_effects
 from napari_lbs._layers import UNITS, PlaneGrid
 from napari_lbs._widgets._backprop import CONFIG_TOOLTIP
-from napari_lbs._widgets._base import StepWidget, config_from, config_problem, doc_of, effects_problem, missing, output_problem, parsed_effects, path_edit
+from napari_lbs._widgets._base import StepWidget, config_from, config_problem, doc_of, effects_problem, missing, output_problem, path_edit
 
 __all__ = ["GenerateWidget"]
 
@@ -48,19 +48,13 @@ class GenerateWidget(StepWidget):
         return None
 
     def prepare(self):
-        path = self.calibration.value
-        calibration = json.loads(Path(path).read_text()) if path is not None else None
-        processing = InputProcessing.from_calibration(calibration) if calibration else InputProcessing()
-        layout = DatasetLayout(kind=self.layout_kind.value)
-        effects = parsed_effects(self.effects)
-        source = {"explicit": [part.strip() for part in self.effects.value.split(";") if part.strip()]} if effects else None
+        effects, source = requested_effects(explicit=[part.strip() for part in self.effects.value.split(";")], flag=f"{self.effects.label}:")
         distractors = Distractors(impurities_per_tile=self.impurities.value, neighbours_margin_px=self.neighbours_margin.value)
-        return config_from(self.config), processing, layout, calibration, effects, source, distractors, self.groups.value, self.seed.value, Path(self.output.value)
+        return GenerateRequest(Path(self.output.value), config_from(self.config), groups=self.groups.value, calibration_path=self.calibration.value, effects=effects,
+                               effects_source=source, layout=DatasetLayout(kind=self.layout_kind.value), distractors=distractors, seed=self.seed.value)
 
-    def work(self, job, *, progress, should_stop, report):
-        config, processing, layout, calibration, effects, source, distractors, groups, seed, output = job
-        return generate_dataset(output, config, groups=groups, processing=processing, layout=layout, calibration=calibration, effects=effects, effects_source=source,
-                                distractors=distractors, seed=seed, progress=progress, should_stop=should_stop)
+    def work(self, request, *, progress, should_stop, report):
+        return generate(request, progress=progress, should_stop=should_stop).value
 
     def show(self, dataset):
         if dataset.groups:
