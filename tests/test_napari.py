@@ -21,6 +21,14 @@ def isolated_settings(tmp_path_factory):
     QSettings.setPath(QSettings.Format.NativeFormat, QSettings.Scope.UserScope, str(tmp_path_factory.mktemp("qsettings")))
 
 
+@pytest.fixture(autouse=True)
+def offered_pixel_size(monkeypatch):
+    """An image added in code is in pixels: a step with an empty config asks its pixel size, answered here with the one offered."""
+    from qtpy.QtWidgets import QInputDialog
+
+    monkeypatch.setattr(QInputDialog, "getDouble", lambda parent, title, label, value, *args, **kwargs: (value, True))
+
+
 @pytest.fixture
 def notifications():
     """Every napari notification message shown during the test."""

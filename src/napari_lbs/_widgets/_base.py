@@ -11,6 +11,7 @@ typed (an empty path stays empty; a stale value falls back to the default).
 from __future__ import annotations
 
 import inspect
+import itertools
 import re
 import threading
 import time
@@ -177,14 +178,14 @@ def file_of(layer) -> str | None:
 
 
 def _put_in_micrometres(layer, pixel_um: float) -> None:
-    """Give a layer opened in pixels the µm scale of ``pixel_um`` pixels (its translate, in pixels, scaled alike)."""
+    """Give a layer in pixels the µm scale of ``pixel_um`` pixels on its last two axes (its translate, in pixels, scaled alike)."""
     from napari_lbs._layers import UNITS
 
     lateral = np.ones(layer.ndim)
     lateral[-2:] = pixel_um
     layer.scale = np.asarray(layer.scale) * lateral
     layer.translate = np.asarray(layer.translate) * lateral
-    layer.units = [UNITS] * layer.ndim
+    layer.units = [*layer.units[:-2], UNITS, UNITS]
 
 
 def in_micrometres(layer) -> bool:
@@ -197,7 +198,7 @@ def restore_pixel_size(layer) -> None:
     from napari.layers import Image
 
     file = file_of(layer)
-    if isinstance(layer, Image) and file is not None and not in_micrometres(layer):
+    if isinstance(layer, Image) and file is not None and not in_micrometres(layer) and np.allclose(layer.scale[-2:], 1.0):
         told = QSettings("napari-lbs", _PIXEL_SIZES).value(file)
         if told is not None:
             _put_in_micrometres(layer, float(told))
@@ -206,7 +207,8 @@ def restore_pixel_size(layer) -> None:
 def place_in_micrometres(layer, *, pixel_um: float | None, proposed_um: float) -> float:
     """Put a hologram layer in µm before a step uses it; return its pixel size (µm).
 
-    A layer in µm keeps its scale. One in pixels (opened by napari's own reader) takes the
+    A layer in µm keeps its scale, and so does one whose scale was set (its units become µm).
+    One in pixels (opened by napari's own reader, scale 1) takes the
     pixel size told for its file before, else ``pixel_um`` (the step's config names one),
     else the one the user gives when asked (``proposed_um`` offered); it is remembered for
     the file, so the file opens in µm from then on.
@@ -219,7 +221,12 @@ def place_in_micrometres(layer, *, pixel_um: float | None, proposed_um: float) -
     from napari.utils.notifications import show_info
     from qtpy.QtWidgets import QInputDialog
 
+    from napari_lbs._layers import UNITS
+
     if in_micrometres(layer):
+        return float(layer.scale[-1])
+    if not np.allclose(layer.scale[-2:], 1.0):  # a scale set by hand is a pixel size in µm: only its units were missing
+        layer.units = [*layer.units[:-2], UNITS, UNITS]
         return float(layer.scale[-1])
     file = file_of(layer)
     settings = QSettings("napari-lbs", _PIXEL_SIZES)
@@ -295,8 +302,7 @@ def time_left(marks: list[tuple[float, int]], total: int) -> float | None:
     job whose steps change speed (prediction's back-propagated planes, then the network's),
     which an average since the start does not.
     """
-    recent = marks[-_RECENT_STEPS - 1 :]
-    seconds_per_step = [(t1 - t0) / (d1 - d0) for (t0, d0), (t1, d1) in zip(recent[:-1], recent[1:], strict=True) if d1 > d0]
+    seconds_per_step = [(t1 - t0) / (d1 - d0) for (t0, d0), (t1, d1) in itertools.pairwise(marks[-_RECENT_STEPS - 1 :]) if d1 > d0]
     if not seconds_per_step:
         return None
     return float(np.median(seconds_per_step)) * max(total - marks[-1][1], 0)
