@@ -202,26 +202,29 @@ def test_the_reader_knows_a_particle_table_saved_by_excel_and_hands_other_csvs_o
     assert get_reader(str(other)) is _read_with_napari and get_reader(str(tmp_path / "a.tif")) is None
 
 
-def test_diagnosis_widget_maps_the_gap_over_the_hologram_and_writes_the_report(make_napari_viewer, qtbot, tmp_path):
+def test_diagnosis_widget_pools_a_stack_shows_the_posterior_and_maps_the_gap_over_the_hologram(make_napari_viewer, qtbot, tmp_path, monkeypatch):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))  # the diagnoser this test trains is cached there
     viewer = make_napari_viewer()
     config_path, config = tiny_config_file(tmp_path / "c.toml")
-    hologram, _ = simulated(config, shape=(128, 128), count=8)
-    viewer.add_image(hologram, name="holo", scale=(2.2, 2.2))
+    frames = np.stack([simulated(config, shape=(256, 256), count=16, seed=seed)[0] for seed in (1, 2)])
+    viewer.add_image(frames, name="recording", scale=(1.0, 2.2, 2.2))
     widget = dock(viewer, "6 Gap diagnosis")
-    widget.hologram.value = viewer.layers["holo"]
+    widget.hologram.value = viewer.layers["recording"]
     widget.tile.value = 128
-    assert not widget._run.enabled and "fewer than 4 tiles" in widget._status.value
-    widget.tile.value = 64
+    assert not widget._run.enabled and "a tile must fit one" in widget._status.value
+    widget.tile.value = 0
     widget.known_effects.value = "particle_phase:index_contrst=0.26"
     assert not widget._run.enabled and "index_contrst" in widget._status.value
     widget.known_effects.value = "particle_phase:index_contrast=0.26,transmission=1"
-    widget.sim_tiles.value, widget.evaluations.value = 3, 8
+    widget.simulations.value = 24
     widget.output.value = tmp_path / "report"
     run_to_end(qtbot, widget)
     written = json.loads((tmp_path / "report" / "report.json").read_text())
-    assert written["verdict"].keys() >= {"id", "shrink", "residual"} and written["stated"] == {"particle_phase": {"index_contrast": 0.26, "transmission": 1.0}}
-    layer = viewer.layers["gap by region"]
-    assert layer.data.shape == (2, 2) and tuple(layer.scale) == pytest.approx((140.8, 140.8))
+    assert written["verdict"].keys() >= {"id", "shrink", "residual", "undecided"} and written["stated"] == {"particle_phase": {"index_contrast": 0.26, "transmission": 1.0}}
+    assert written["tiles"]["frames"] == 2 and sum(written["posterior"].values()) == pytest.approx(1.0)
+    assert len(widget._plot.axes.patches) >= 2  # the posterior's bars
+    layer = viewer.layers["gap: P(tile told apart from simulation)"]
+    assert layer.data.shape == (4, 4) and tuple(layer.scale) == pytest.approx((140.8, 140.8)) and layer.colorbar.visible
 
 
 def test_batch_widget_turns_a_recording_into_points_over_time_and_tracks_and_stops(make_napari_viewer, qtbot, tmp_path, detector, tiny_config):

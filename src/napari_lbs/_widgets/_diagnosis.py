@@ -1,76 +1,97 @@
-"""Step 6: where, which and how much the experiment differs from the simulation."""
+"""Step 6: which catalog effect the simulation lacks, where the experiment differs, how much adding it helps."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
-from magicgui.widgets import LineEdit, SpinBox, create_widget
+from magicgui.widgets import FloatSpinBox, LineEdit, SpinBox, create_widget
 
 from napari_lbs._core import DiagnosisSettings
 from napari_lbs._layers import UNITS
 from napari_lbs._widgets._backprop import CONFIG_TOOLTIP, HOLOGRAM_TOOLTIP
-from napari_lbs._widgets._base import StepWidget, config_from, config_problem, effects_problem, hologram_data, hologram_problem, output_problem, parsed_effects, path_edit, place_hologram
+from napari_lbs._widgets._base import StepWidget, chosen, config_from, config_problem, effects_problem, hologram_problem, output_problem, parsed_effects, path_edit
+from napari_lbs._widgets._plots import ColourBarPlot, PosteriorPlot
+from napari_lbs._widgets._setup import place_hologram
 
 __all__ = ["DiagnosisWidget"]
 
 
 class DiagnosisWidget(StepWidget):
-    """Sim-to-real gap diagnosis of a hologram: where it lies (map over the hologram), which effect, how much."""
+    """Gap diagnosis of a hologram or a recording: the posterior over the effect catalog (a bar chart), a map of where the experiment differs."""
 
     title = "gap diagnosis"
 
     def __init__(self, napari_viewer) -> None:
         import napari
 
-        self.hologram = create_widget(annotation=napari.layers.Image, label="hologram", name="hologram", options={"tooltip": HOLOGRAM_TOOLTIP})
+        self.hologram = create_widget(annotation=napari.layers.Image, label="hologram", name="hologram",
+                                      options={"tooltip": HOLOGRAM_TOOLTIP + " A stack (frames, rows, cols) is pooled: every frame is one more look at the same setup."})
         self.config = path_edit(label="config", name="config", placeholder="empty: the defaults", filter="*.toml", tooltip=CONFIG_TOOLTIP)
-        self.tile = SpinBox(label="tile px (0: tile.size)", name="tile", value=0, min=0, max=8192, tooltip="Edge of the non-overlapping tiles the hologram is cut into (pixels); at least 4 tiles")
-        self.sim_tiles = SpinBox(label="simulated tiles", name="sim_tiles", value=8, min=2, max=256, tooltip="Simulated tiles per model of the experiment (more: a steadier gap, slower)")
-        self.evaluations = SpinBox(label="evaluations per fit", name="evaluations", value=40, min=8, max=10000, tooltip="Evaluations of each effect's fit (more: better fitted parameters, slower)")
-        self.seed = SpinBox(label="seed", name="seed", value=0, min=0, max=2**31 - 1, tooltip="Seeds the simulated tiles and the fits")
+        self.tile = SpinBox(label="tile px (0: 128)", name="tile", value=0, min=0, max=8192, tooltip="Edge of the tiles read at the centre of each of 4 × 4 cells (pixels); 0: 128, or the cell where smaller")
+        self.simulations = SpinBox(label="simulations", name="simulations", value=DiagnosisSettings().simulations, min=20, max=100_000,
+                                   tooltip="Simulations the setup's diagnoser learns from, once per setup (cached and reused): 2000 take about 10 minutes on 2 cores")
+        self.level = FloatSpinBox(label="level", name="level", value=DiagnosisSettings().level, min=0.05, max=1.0, step=0.05,
+                                  tooltip="Posterior probability a model needs to be named; below it the verdict is undecided")
+        self.seed = SpinBox(label="seed", name="seed", value=0, min=0, max=2**31 - 1, tooltip="Seeds the two-sample tests' folds (the posterior does not depend on it)")
         self.known_effects = LineEdit(label="known effects", name="known_effects", value="",
-                                      tooltip="Effects you know the experiment has, put into every model and not diagnosed, as on the command line, separated by ';' "
+                                      tooltip="Effects you know the experiment has, put into every simulation and not diagnosed, as on the command line, separated by ';' "
                                               "(polystyrene beads in water: particle_phase:index_contrast=0.26,transmission=1). Empty: only what the file states")
         self.output = path_edit(label="report folder", name="output", mode="d", value="lbs-diagnosis", tooltip="report.json (CONTRACT.md), report.md and figures are written here")
-        super().__init__(napari_viewer, [self.hologram, self.config, self.tile, self.sim_tiles, self.evaluations, self.seed, self.known_effects, self.output])
+        super().__init__(napari_viewer, [self.hologram, self.config, self.tile, self.simulations, self.level, self.seed, self.known_effects, self.output])
+        self._plot = PosteriorPlot()
+        self.add_view(self._plot.canvas)
+        self._colour_bar = ColourBarPlot()  # the gap map's, labelled
+        self.add_view(self._colour_bar.canvas)
         self.diagnosis = None
 
     def problem(self):
-        problem = hologram_problem(self.hologram.value) or config_problem(self.config) or effects_problem(self.known_effects)
+        layer = self.hologram.value
+        stack = layer is not None and not layer.rgb and layer.ndim == 3  # a recording: its frames are pooled
+        problem = (None if stack else hologram_problem(layer)) or config_problem(self.config) or effects_problem(self.known_effects)
         if problem:
             return problem
-        size = self.tile.value or config_from(self.config).tile.size
-        rows, cols = self.hologram.value.data.shape[:2]
-        if (rows // size) * (cols // size) < 4:
-            return f"tile: {size}-pixel tiles give fewer than 4 tiles of the {rows}x{cols} hologram; choose a smaller tile"
+        rows, cols = _frame_shape(layer)
+        size = self.tile.value or min(128, min(rows, cols) // 4)
+        if size < 64 or size > min(rows, cols) // 4:
+            return f"tile: the {rows}x{cols} hologram holds 4 × 4 cells of {min(rows, cols) // 4} px; a tile must fit one and have at least 64 px (got {size})"
         return output_problem(self.output, "report folder", folder=True)
 
     def prepare(self):
-        settings = DiagnosisSettings(sim_tiles=self.sim_tiles.value, evaluations=self.evaluations.value, seed=self.seed.value)
+        from napari_lbs._core._pipeline import DiagnoseRequest
+
         layer = self.hologram.value
-        place_hologram(layer, self.config)
-        return hologram_data(layer), config_from(self.config), self.tile.value or None, parsed_effects(self.known_effects), settings, Path(self.output.value), layer
+        place_hologram(layer, chosen(self.config))
+        settings = DiagnosisSettings(simulations=self.simulations.value, level=float(self.level.value), seed=self.seed.value)
+        request = DiagnoseRequest(np.asarray(layer.data), Path(self.output.value), config_from(self.config), settings=settings, tile_px=self.tile.value or None,
+                                  stated=parsed_effects(self.known_effects), source=layer.name)
+        return request, layer
 
     def work(self, job, *, progress, should_stop, report):
-        from napari_lbs._core import diagnose_hologram, write_report
+        from napari_lbs._core._pipeline import diagnose
 
-        hologram, config, tile, stated, settings, output, layer = job
-        diagnosis = diagnose_hologram(hologram, config, tile_px=tile, stated=stated, settings=settings, progress=progress, should_stop=should_stop)
-        write_report(diagnosis, output, provenance={"source": layer.name, "config": config.to_dict(), "seed": settings.seed})  # the report holds `stated`
-        return diagnosis, output, layer
+        request, layer = job
+        return diagnose(request, progress=progress, should_stop=should_stop), request, layer
 
     def show(self, outcome):
-        diagnosis, output, layer = outcome
+        result, request, layer = outcome
+        diagnosis = result.value
         self.diagnosis = diagnosis
         report = diagnosis.report
-        size = int(report["tiles"]["shape"][0])  # the tiles the diagnosis cut (adapted to the hologram), not the config's
-        rows, cols = layer.data.shape[0] // size, layer.data.shape[1] // size
-        where = np.asarray(report["gap"]["by_region"], np.float32).reshape(rows, cols)
+        self._plot.show(report["posterior"], level=report["settings"]["level"])
+        size = int(report["tiles"]["tile_px"])
         pixel = np.asarray(layer.scale[-2:], float)
         scale = tuple(pixel * size)
         translate = tuple(np.asarray(layer.translate[-2:]) + (np.asarray(scale) - pixel) / 2)
-        gap_map = self._viewer.add_image(where, name="gap by region", scale=scale, translate=translate, units=UNITS, colormap="magma", opacity=0.45, blending="additive", metadata={"report": report, "folder": str(output)})
+        where = np.nan_to_num(diagnosis.tile_map, nan=0.0).astype(np.float32)
+        gap_map = self._viewer.add_image(where, name="gap: P(tile told apart from simulation)", scale=scale, translate=translate, units=UNITS, colormap="magma",
+                                         contrast_limits=(0.0, 1.0), opacity=0.45, blending="additive", metadata={"report": report, "folder": str(request.out_dir)})
         gap_map.colorbar.visible = True
-        verdict = report["verdict"]
-        self.done(f"gap {report['gap']['baseline']:.2f}; verdict {verdict['id'] or 'nothing missing'} (shrink {100 * verdict['shrink']:.0f} %) → {output / 'report.md'}")
+        self._colour_bar.show(label=gap_map.name, limits=tuple(gap_map.contrast_limits), colormap="magma")
+        self.done(result.summary)
+
+
+def _frame_shape(layer) -> tuple[int, int]:
+    """(rows, cols) of a hologram layer's frames (its last two axes; an RGB layer's two before the channels)."""
+    shape = np.shape(layer.data)
+    return tuple(shape[-3:-1]) if getattr(layer, "rgb", False) else tuple(shape[-2:])
