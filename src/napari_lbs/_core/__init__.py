@@ -31,7 +31,9 @@ _NAMES = {
     "_gap": ("DiagnosisSettings", "Diagnosis", "diagnose_hologram", "write_report"),
     "_effects": ("EFFECTS", "parse_effects", "effects_from_report"),
     "_flow": ("simulate_sequence", "SimulatedSequence"),
-    "_sequence": ("open_frames", "HologramFrames", "sequence_background", "predict_sequence", "SequenceResult"),
+    "_frames": ("open_frames", "HologramFrames"),
+    "_background": ("sequence_background",),
+    "_sequence": ("predict_sequence", "SequenceResult"),
     "_tracking": ("link_tracks",),
 }
 _MODULE_OF = {name: module for module, names in _NAMES.items() for name in names}

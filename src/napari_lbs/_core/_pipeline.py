@@ -535,7 +535,7 @@ def predict(request: PredictRequest, *, progress: ProgressCallback | None = None
     """Predict the particles of one hologram, or of every frame of a recording (one table with a ``frame`` column)."""
     from napari_lbs._core._network import load_model
     from napari_lbs._core._prediction import predict_particles
-    from napari_lbs._core._sequence import open_frames
+    from napari_lbs._core._frames import open_frames
 
     out, record_path = prediction_outputs(request.out_path)
     if isinstance(request.inputs, (str, Path, list, tuple)):
@@ -688,7 +688,7 @@ def _diagnosed_frames(source, *, log: Log) -> tuple[list, list[str]]:
     """The frames a diagnosis reads (at most `DIAGNOSED_FRAMES`, evenly spaced) and their names."""
     import numpy as np
 
-    from napari_lbs._core._sequence import open_frames
+    from napari_lbs._core._frames import open_frames
 
     if isinstance(source, np.ndarray):
         frames = [source] if source.ndim == 2 or (source.ndim == 3 and source.shape[-1] in (3, 4)) else list(source)
