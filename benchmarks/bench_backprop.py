@@ -1,4 +1,4 @@
-"""Back-propagation speed and memory on the seed's real 1024² hologram (issue: foundation).
+"""Back-propagation speed and memory on the seed's real 1024² hologram.
 
 Prints, measured in this run: wall time and peak memory of `backpropagate` for the whole
 hologram to 61 planes (1800–4800 µm) and for 16 tiles of 256² x 61 planes; the ratio to the

@@ -1,4 +1,4 @@
-"""Calibration speed and result on the seed's real hologram, top-left tile a1b1 (issue: OCE).
+"""Calibration speed and result on the seed's real hologram, top-left tile a1b1.
 
 Prints, measured in this run, for both modes: wall time of a full 100-generation calibration
 (target <= 60 s on 2 cores), evaluations per second, the ratio against a naive implementation

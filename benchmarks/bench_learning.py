@@ -1,4 +1,4 @@
-"""Learning benchmarks (issue 4): training throughput, prediction time, the seed's simulation experiment.
+"""Learning benchmarks: training throughput, prediction time, the seed's simulation experiment.
 
 Sub-commands (each prints ratios against a baseline measured in the same run):
 

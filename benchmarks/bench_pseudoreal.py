@@ -1,4 +1,4 @@
-"""Pseudo-real benchmark (issues 12 and 13): detection accuracy on Lorenz–Mie holograms with ground truth.
+"""Pseudo-real benchmark: detection accuracy on Lorenz–Mie holograms with ground truth.
 
 The holograms come from `pseudoreal.py` (transparent polystyrene spheres in water, Lorenz–Mie
 theory, pixel integration, a beam envelope, photon noise, 8 bits): a forward model the project

@@ -1,4 +1,4 @@
-"""Recordings (issue 16): throughput on dask, and tracks of a simulated vortex against its truth.
+"""Recordings: throughput on dask, and tracks of a simulated vortex against its truth.
 
 Simulates a vortex recording with the default config (`simulate_sequence`: particles turning
 about the window's centre at ``--speed-um`` per frame on the inscribed circle), then measures:
@@ -20,7 +20,7 @@ about the window's centre at ``--speed-um`` per frame on the inscribed circle), 
   absolute 3-D error in µm per frame).
 
 Run: python benchmarks/bench_sequence.py --model MODEL.pt [--frames 20] [--size 512] [--workers 1 2] [--json OUT.json]
-Throughput of a long recording (issue 16): ``--frames 200 --size 1024 --workers 2 --rate-frames 200
+Throughput of a long recording: ``--frames 200 --size 1024 --workers 2 --rate-frames 200
 --local-frames 20 --throughput-only`` times the cluster on all frames and the local scheduler on the first 20.
 MODEL.pt: a ``focus`` model for the default config (e.g. from ``napari-lbs demo`` or
 ``bench_learning.py``); without ``--model`` a ``small`` one is trained first for ``--train-minutes``.

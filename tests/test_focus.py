@@ -1,4 +1,4 @@
-"""The focus formulation (issue 12): stack data sets, heat/offset/diameter targets, 3-D peak decoding,
+"""The focus formulation: stack data sets, heat/offset/diameter targets, 3-D peak decoding,
 one particle per peak, the focal loss on a tiny set, model files old and new, prediction."""
 
 import io

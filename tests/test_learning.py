@@ -1,4 +1,4 @@
-"""Data sets, label decoding, the U-Net, training, model files and prediction of the seed formulation (issue 4), on tiny data.
+"""Data sets, label decoding, the U-Net, training, model files and prediction of the seed formulation, on tiny data.
 
 The focus formulation has its own tests (test_focus.py)."""
 

@@ -1,4 +1,4 @@
-"""Reliability (issue 15): bad input is a one-line refusal naming the culprit, with nothing written;
+"""Reliability: bad input is a one-line refusal naming the culprit, with nothing written;
 files users share keep the umask's mode; outputs never overwrite inputs; SIGTERM unwinds like
 Ctrl-C; the CLI starts fast. The property tests throw generated bad inputs at the readers and at
 each sub-command's flags (docs/reliability.md)."""
@@ -95,7 +95,7 @@ def test_the_cli_starts_without_numpy_scipy_or_torch():
     baseline = min(seconds("-c", "pass") for _ in range(3))
     version = min(seconds("-m", "napari_lbs._cli", "--version") for _ in range(3))
     print(f"napari-lbs --version: {version:.3f} s, bare python: {baseline:.3f} s")
-    assert version - baseline < 0.5  # the issue's bound, generous on a busy machine
+    assert version - baseline < 0.5  # half a second over bare Python, generous on a busy machine
 
 
 # --- one-line refusals: generated bad inputs --------------------------------------------------

@@ -1,4 +1,4 @@
-"""Recordings (issue 16): frames read one at a time, the background from the frames, prediction on dask
+"""Recordings: frames read one at a time, the background from the frames, prediction on dask
 (same table whatever the workers, resumed after a stop), ground-truth flows, tracks, and the CLI."""
 
 import csv
