@@ -93,7 +93,16 @@ def lab_user(viewer, work: Path, figures: Path) -> None:
     from qtpy.QtCore import Qt
     from qtpy.QtGui import QPainter, QPixmap
 
-    from napari_lbs._core import DatasetLayout, ExperimentConfig, TrainingSettings, generate_dataset, random_particle_field, simulate_hologram, train_model, write_particles
+    from napari_lbs._core import (
+        DatasetLayout,
+        ExperimentConfig,
+        TrainingSettings,
+        generate_dataset,
+        random_particle_field,
+        simulate_hologram,
+        train_model,
+        write_particles,
+    )
 
     window = viewer.window._qt_window
     docks = []

@@ -346,3 +346,19 @@ def test_batch_stops_within_two_seconds_without_running_the_other_frames(make_na
     qtbot.waitUntil(lambda: step._worker is None, timeout=60_000)
     assert time.perf_counter() - clicked <= 2.0 and "stopped" in step._status.value
     assert len(started) < 8  # the frames not yet begun never ran
+
+
+def test_the_gap_map_has_a_labelled_colour_bar(make_napari_viewer, qtbot):
+    from types import SimpleNamespace
+
+    viewer = laptop_viewer(make_napari_viewer)
+    layer = viewer.add_image(np.ones((256, 256), np.float32), name="holo", scale=(2.2, 2.2), units="µm")
+    _, step = viewer.window.add_plugin_dock_widget("napari-lbs", "6 Gap diagnosis")
+    report = {"posterior": {"null": 0.7, "illumination": 0.3}, "settings": {"level": 0.9}, "tiles": {"tile_px": 64}}
+    diagnosis = SimpleNamespace(report=report, tile_map=np.linspace(0, 1, 16).reshape(4, 4))
+    step.show((SimpleNamespace(value=diagnosis, summary="verdict: undecided"), SimpleNamespace(out_dir="report"), layer))
+    gap_map = next(layer for layer in viewer.layers if layer.name.startswith("gap"))
+    bar = step._colour_bar.axes
+    assert gap_map.colorbar.visible and bar.get_visible()
+    assert bar.get_xlabel() == gap_map.name and str(gap_map.units[0]) == "micrometer"
+    assert next(tick.get_text() for tick in bar.get_xticklabels()) != ""  # the values are written under the bar

@@ -7,7 +7,8 @@ from magicgui.widgets import create_widget
 
 from napari_lbs._core import backpropagate, load_config
 from napari_lbs._layers import UNITS, PlaneGrid
-from napari_lbs._widgets._base import StepWidget, config_from, config_problem, hologram_data, hologram_problem, path_edit, place_hologram
+from napari_lbs._widgets._base import StepWidget, chosen, config_from, config_problem, hologram_data, hologram_problem, path_edit
+from napari_lbs._widgets._setup import place_hologram
 
 __all__ = ["BackpropWidget", "CONFIG_TOOLTIP", "HOLOGRAM_TOOLTIP"]
 
@@ -33,7 +34,7 @@ class BackpropWidget(StepWidget):
 
     def prepare(self):
         layer = self.hologram.value
-        place_hologram(layer, self.config)
+        place_hologram(layer, chosen(self.config))
         return hologram_data(layer), config_from(self.config), layer.name, tuple(layer.translate[-2:])
 
     def work(self, job, *, progress, should_stop, report):

@@ -27,17 +27,18 @@ from qtpy.QtWidgets import QFormLayout, QFrame, QLabel, QScrollArea, QSizePolicy
 from napari_lbs._core import Stopped, load_config
 from napari_lbs._core._io import as_hologram
 from napari_lbs._layers import prefer_particle_writer
+from napari_lbs._widgets._setup import restore_pixel_size
 
 __all__ = [
-    "StepWidget", "chosen", "config_from", "config_problem", "doc_of", "file_of", "hologram_data", "hologram_problem", "in_micrometres", "missing", "model_config", "model_problem", "model_setup", "output_problem",
-    "path_edit", "place_hologram", "place_in_micrometres", "restore_pixel_size", "wrapping_label",
+    "StepWidget", "chosen", "config_from", "config_problem", "doc_of", "hologram_data", "hologram_problem", "missing", "model_config", "model_problem", "output_problem",
+    "path_edit", "wrapping_label",
 ]
 
 
 class _Relay(QObject):
     """Carries worker-thread callbacks to the GUI thread (queued signals)."""
 
-    progress = QtSignal(int, int)
+    progress = QtSignal(int, int, float)  # done, total, and when (the worker's clock: queued signals may arrive in bursts)
     report = QtSignal(object)
 
 
@@ -166,122 +167,6 @@ def hologram_data(layer) -> np.ndarray:
     from napari.utils.notifications import show_info
 
     return as_hologram(np.asarray(layer.data), name=layer.name, log=show_info)
-
-
-_PIXEL_SIZES = "pixel_um of files"  # QSettings group: the pixel size told for each file opened in pixels
-
-
-def file_of(layer) -> str | None:
-    """The absolute path of the file a layer was opened from, or None."""
-    path = getattr(layer.source, "path", None)
-    return str(Path(path).resolve()) if path else None
-
-
-def _put_in_micrometres(layer, pixel_um: float) -> None:
-    """Give a layer in pixels the µm scale of ``pixel_um`` pixels on its last two axes (its translate, in pixels, scaled alike)."""
-    from napari_lbs._layers import UNITS
-
-    lateral = np.ones(layer.ndim)
-    lateral[-2:] = pixel_um
-    layer.scale = np.asarray(layer.scale) * lateral
-    layer.translate = np.asarray(layer.translate) * lateral
-    layer.units = [*layer.units[:-2], UNITS, UNITS]
-
-
-def in_micrometres(layer) -> bool:
-    """Whether a layer's lateral axes are in µm (the plugin's layers are; napari's own readers give pixels)."""
-    return str(layer.units[-1]) == "micrometer"
-
-
-def restore_pixel_size(layer) -> None:
-    """Put an Image layer opened in pixels in µm when its file's pixel size was told before."""
-    from napari.layers import Image
-
-    file = file_of(layer)
-    if isinstance(layer, Image) and file is not None and not in_micrometres(layer) and np.allclose(layer.scale[-2:], 1.0):
-        told = QSettings("napari-lbs", _PIXEL_SIZES).value(file)
-        if told is not None:
-            _put_in_micrometres(layer, float(told))
-
-
-def place_in_micrometres(layer, *, pixel_um: float | None, proposed_um: float) -> float:
-    """Put a hologram layer in µm before a step uses it; return its pixel size (µm).
-
-    A layer in µm keeps its scale, and so does one whose scale was set (its units become µm).
-    One in pixels (opened by napari's own reader, scale 1) takes the
-    pixel size told for its file before, else ``pixel_um`` (the step's config names one),
-    else the one the user gives when asked (``proposed_um`` offered); it is remembered for
-    the file, so the file opens in µm from then on.
-
-    Raises
-    ------
-    ValueError
-        When the user declines to give a pixel size.
-    """
-    from napari.utils.notifications import show_info
-    from qtpy.QtWidgets import QInputDialog
-
-    from napari_lbs._layers import UNITS
-
-    if in_micrometres(layer):
-        return float(layer.scale[-1])
-    if not np.allclose(layer.scale[-2:], 1.0):  # a scale set by hand is a pixel size in µm: only its units were missing
-        layer.units = [*layer.units[:-2], UNITS, UNITS]
-        return float(layer.scale[-1])
-    file = file_of(layer)
-    settings = QSettings("napari-lbs", _PIXEL_SIZES)
-    told = settings.value(file) if file is not None else None
-    if told is not None:
-        pixel_um = float(told)
-    elif pixel_um is None:
-        pixel_um, ok = QInputDialog.getDouble(None, "Pixel size", f"{layer.name} is in pixels: its pixel size (µm)?", proposed_um, 0.001, 10000.0, 3)
-        if not ok:
-            raise ValueError(f"{layer.name}: in pixels and no pixel size given; give one, or a config")
-    if file is not None:
-        settings.setValue(file, float(pixel_um))
-    _put_in_micrometres(layer, float(pixel_um))
-    show_info(f"{layer.name}: put in µm ({pixel_um:g} µm pixels), as the plugin's results are")
-    return float(pixel_um)
-
-
-def place_hologram(layer, config_edit: FileEdit) -> float:
-    """`place_in_micrometres` for a step whose config field names the setup (empty: the defaults, whose pixel size is then offered, not assumed)."""
-    config = config_from(config_edit)
-    return place_in_micrometres(layer, pixel_um=config.optics.pixel_um if chosen(config_edit) is not None else None, proposed_um=config.optics.pixel_um)
-
-
-def model_setup(model_path: Path, config, layer=None):
-    """The setup a model is to run on and how it differs from the one the model was trained for.
-
-    Parameters
-    ----------
-    model_path : Path
-        A model file.
-    config : ExperimentConfig or None
-        The config field's; None: the model's own, with the hologram layer's pixel size.
-    layer : napari Image layer, optional
-        The hologram, put in µm first (`place_in_micrometres`).
-
-    Returns
-    -------
-    config : ExperimentConfig
-    warning : str or None
-        The mismatches (`model_mismatches`), one a line; None when the model fits.
-    """
-    from napari_lbs._core import ExperimentConfig, load_model
-    from napari_lbs._core._network import model_mismatches
-
-    model = load_model(model_path)
-    named = "the config"
-    if layer is not None:
-        pixel_um = place_in_micrometres(layer, pixel_um=config.optics.pixel_um if config is not None else None, proposed_um=model.config.optics.pixel_um)
-        if config is None:
-            setup = model.config.to_dict()
-            setup["optics"]["pixel_um"] = pixel_um
-            config, named = ExperimentConfig.from_dict(setup), f"the hologram {layer.name!r}"
-    config = config if config is not None else model.config
-    found = model_mismatches(model.meta, config, planes_um=config.volume.planes_um(), setup=named)
-    return config, "The model was made for another setup:\n" + "\n".join(found) if found else None
 
 
 def _confirmed(parent, title: str, warning: str) -> bool:
@@ -524,7 +409,10 @@ class StepWidget(Container):
 
         @thread_worker(connect={"returned": self.show, "errored": self._on_errored, "finished": self._on_finished}, start_thread=False)
         def run():
-            return self.work(job, progress=self._relay.progress.emit, should_stop=self._stop_requested.is_set, report=self._relay.report.emit)
+            def progress(done: int, total: int) -> None:
+                self._relay.progress.emit(done, total, time.perf_counter())
+
+            return self.work(job, progress=progress, should_stop=self._stop_requested.is_set, report=self._relay.report.emit)
 
         self._worker = run()
         self._worker.start()
@@ -535,14 +423,13 @@ class StepWidget(Container):
         if self._worker is not None:
             self._status.value = "stopping…"
 
-    def _on_progress(self, done: int, total: int) -> None:
+    def _on_progress(self, done: int, total: int, at: float) -> None:
         bar = self._progress_bar
         if self._worker is None or bar is None:  # a late signal from a finished job
             return
         self._bar.max, self._bar.value = max(total, 1), min(done, max(total, 1))
-        now = time.perf_counter()
-        elapsed = now - self._started
-        self._marks.append((now, done))
+        elapsed = time.perf_counter() - self._started
+        self._marks.append((at, done))
         left = time_left(self._marks, total) if done < total else None
         eta = f", about {_clock(left)} left" if left is not None else ""
         if self._budget is not None and (left is None or elapsed + left > self._budget):

@@ -19,8 +19,9 @@ from napari_lbs._core._calibration import experimental_reference, reference_plan
 from napari_lbs._core._files import write_json
 from napari_lbs._layers import UNITS
 from napari_lbs._widgets._backprop import CONFIG_TOOLTIP, HOLOGRAM_TOOLTIP
-from napari_lbs._widgets._base import StepWidget, config_from, config_problem, doc_of, hologram_data, hologram_problem, output_problem, path_edit, place_hologram
+from napari_lbs._widgets._base import StepWidget, chosen, config_from, config_problem, doc_of, hologram_data, hologram_problem, output_problem, path_edit
 from napari_lbs._widgets._plots import FitnessPlot
+from napari_lbs._widgets._setup import place_hologram
 
 __all__ = ["CalibrationWidget"]
 
@@ -90,7 +91,7 @@ class CalibrationWidget(StepWidget):
             layer = self.hologram.value
             if layer is not None:
                 try:
-                    place_hologram(layer, self.config)
+                    place_hologram(layer, chosen(self.config))
                 except ValueError as error:
                     from napari.utils.notifications import show_info
 
@@ -214,7 +215,7 @@ class CalibrationWidget(StepWidget):
         self._plot.show_history([])
         settings = CalibrationSettings(mode=self.mode.value, generations=self.generations.value, population=self.population.value, seed=self.seed.value)
         layer = self.hologram.value
-        place_hologram(layer, self.config)
+        place_hologram(layer, chosen(self.config))
         return hologram_data(layer), config_from(self.config), self._roi_origin(), settings, Path(self.output.value), layer
 
     def work(self, job, *, progress, should_stop, report):

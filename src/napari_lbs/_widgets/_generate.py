@@ -44,7 +44,7 @@ class GenerateWidget(StepWidget):
     def _impurities_problem(self) -> str | None:
         smallest, largest_impurity = config_from(self.config).particles.diameter_min_um, Distractors().impurity_diameter_max_um
         if self.impurities.value and largest_impurity >= smallest:
-            return f"impurities: they are {Distractors().impurity_diameter_min_um:g}-{largest_impurity:g} um, not smaller than the config's particles ({smallest:g} um); use 0"
+            return f"impurities: they are {Distractors().impurity_diameter_min_um:g}-{largest_impurity:g} µm, not smaller than the config's particles ({smallest:g} µm); use 0"
         return None
 
     def prepare(self):

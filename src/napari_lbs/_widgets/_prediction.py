@@ -8,7 +8,8 @@ from magicgui.widgets import ComboBox, create_widget
 from napari_lbs._core import match_particles, predict_particles, read_particles, score_particles
 from napari_lbs._layers import PlaneGrid, particle_points
 from napari_lbs._widgets._backprop import HOLOGRAM_TOOLTIP
-from napari_lbs._widgets._base import StepWidget, chosen, config_problem, doc_of, hologram_data, hologram_problem, missing, model_config, model_problem, model_setup, path_edit
+from napari_lbs._widgets._base import StepWidget, chosen, config_problem, doc_of, hologram_data, hologram_problem, missing, model_config, model_problem, path_edit
+from napari_lbs._widgets._setup import model_setup
 
 __all__ = ["PredictionWidget"]
 
