@@ -18,6 +18,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from napari_lbs import __version__
 from napari_lbs._core._config import ExperimentConfig
@@ -25,6 +26,16 @@ from napari_lbs._core._errors import InputError
 from napari_lbs._core._files import read_json_object, write_json
 from napari_lbs._core._progress import ProgressCallback, StopCallback
 from napari_lbs._core._validation import check_output_path
+
+if TYPE_CHECKING:  # for the annotations only: the steps import these modules when they run
+    import numpy as np
+
+    from napari_lbs._core._calibration import CalibrationSettings
+    from napari_lbs._core._dataset import DatasetLayout, InputProcessing
+    from napari_lbs._core._gap import DiagnosisSettings
+    from napari_lbs._core._network import LoadedModel
+    from napari_lbs._core._synthesis import Distractors
+    from napari_lbs._core._training import TrainingSettings
 
 __all__ = [
     "StepResult",
@@ -234,7 +245,7 @@ class BackpropRequest:
         The hologram's name in the provenance (default: its path).
     """
 
-    hologram: object
+    hologram: str | Path | np.ndarray
     out_path: Path
     config: ExperimentConfig = ExperimentConfig()
     background_path: str | Path | None = None
@@ -287,10 +298,10 @@ class CalibrateRequest:
         The hologram's name in the provenance (default: its path).
     """
 
-    hologram: object
+    hologram: str | Path | np.ndarray
     out_path: Path
     config: ExperimentConfig = ExperimentConfig()
-    settings: object = None
+    settings: CalibrationSettings | None = None
     roi: tuple[int, int] | None = None
     background_path: str | Path | None = None
     source: str | None = None
@@ -347,11 +358,11 @@ class GenerateRequest:
     config: ExperimentConfig = ExperimentConfig()
     groups: int = 256
     calibration_path: str | Path | None = None
-    processing: object = None
+    processing: InputProcessing | None = None
     effects: Mapping = field(default_factory=dict)
     effects_source: dict | None = None
-    layout: object = None
-    distractors: object = None
+    layout: DatasetLayout | None = None
+    distractors: Distractors | None = None
     seed: int = 0
     workers: int = 1
 
@@ -432,7 +443,7 @@ class TrainRequest:
 
     data: str | Path
     out_path: Path
-    settings: object = None
+    settings: TrainingSettings | None = None
     resume: bool = False
 
 
@@ -489,8 +500,8 @@ class PredictRequest:
         The hologram's name in the provenance when ``inputs`` is an array.
     """
 
-    inputs: object
-    model: object
+    inputs: Sequence[str | Path] | np.ndarray
+    model: str | Path | LoadedModel
     out_path: Path
     config: ExperimentConfig | None = None
     background_path: str | Path | None = None
@@ -668,10 +679,10 @@ class DiagnoseRequest:
         The hologram's name in the provenance (default: its path).
     """
 
-    hologram: object
+    hologram: str | Path | Sequence | np.ndarray
     out_dir: Path
     config: ExperimentConfig = ExperimentConfig()
-    settings: object = None
+    settings: DiagnosisSettings | None = None
     background_path: str | Path | None = None
     calibration_path: str | Path | None = None
     roi: tuple[int, int] | None = None
