@@ -38,3 +38,10 @@ def test_private_names_are_not_handed_out():
     code = "import napari_lbs._core as c\ntry:\n    c.write_json\nexcept AttributeError:\n    pass\nelse:\n    raise SystemExit('write_json is public')\n"
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert result.returncode == 0, result.stdout + result.stderr
+
+
+def test_api_page_examples_run_in_order(tmp_path, monkeypatch):
+    """Each section's example runs as it stands (the later ones use the files the earlier ones wrote)."""
+    monkeypatch.chdir(tmp_path)
+    for number, block in enumerate(re.findall(r"```python\n(.*?)```", API_DOC.read_text(), re.S)):
+        exec(compile(block, f"docs/api.md example {number}", "exec"), {})
