@@ -127,3 +127,105 @@ def test_forward_models_are_differentiable_in_every_parameter():
     disc = [torch.tensor([v], dtype=torch.float64, requires_grad=True) for v in (15.2, 16.7, 2000.0, 25.0)]
     disc_holograms(*disc, shape=(32, 32), wavelength_um=WAVELENGTH_UM, pixel_um=2.2).var().backward()
     assert all(torch.isfinite(p.grad).all() and p.grad.abs().sum() > 0 for p in disc)
+
+
+# --- the fit ------------------------------------------------------------------------------------
+
+PIXEL_UM = 2.2
+# small patches keep each test within seconds; the benchmark uses the defaults
+FAST = dict(patch_px=48, depth_window_um=120.0, iterations=8, depth_candidates=2)
+
+
+def _config():
+    from napari_lbs._core import ExperimentConfig
+
+    return ExperimentConfig.from_dict({})
+
+
+def _scene(particles, shape=(72, 72), *, noise=0.01, seed=0, contrast=0.26):
+    """A Lorenz–Mie hologram (water, pixel-integrated) of ``(x_um, y_um, z_um, d_um)`` particles, z air-equivalent as the config's."""
+    rows, cols = np.mgrid[0 : shape[0], 0 : shape[1]] * PIXEL_UM
+    hologram = np.ones(shape)
+    for x, y, z, d in particles:
+        h = sphere_holograms(torch.tensor(cols.ravel() - x)[None], torch.tensor(rows.ravel() - y)[None], torch.tensor([z * WATER]), torch.tensor([d]),
+                             torch.tensor([contrast]), torch.tensor([0.0]), wavelength_um=WAVELENGTH_UM, medium_index=WATER, pixel_um=PIXEL_UM)
+        hologram += h[0].numpy().reshape(shape) - 1.0
+    return hologram + np.random.default_rng(seed).normal(0.0, noise, shape)
+
+
+def _table(rows):
+    import pandas as pd
+
+    return pd.DataFrame(rows, columns=["x_um", "y_um", "z_um", "diameter_um"])
+
+
+def test_fit_recovers_depth_size_and_index_from_offset_starts():
+    from napari_lbs._core import RefineSettings, refine_particles
+
+    truth = (36.3 * PIXEL_UM, 35.6 * PIXEL_UM, 900.0, 18.0)
+    hologram = _scene([truth])
+    start = _table([(truth[0] + 1.2, truth[1] - 0.9, truth[2] + 60.0, truth[3] + 0.6)])
+    start["score"] = 0.7
+    out = refine_particles(hologram, start, _config(), fixed={"absorption": 0.0}, settings=RefineSettings(**FAST))
+    assert list(out.columns[:11]) == ["x_um", "y_um", "z_um", "diameter_um", "index_contrast", "absorption", "z_err_um", "diameter_err_um", "index_err",
+                                      "fit_residual", "refined"]
+    assert "score" in out.columns and len(out) == 1 and bool(out.refined[0])
+    assert abs(out.z_um[0] - truth[2]) < 2.0
+    assert abs(out.diameter_um[0] - truth[3]) < 0.3
+    assert abs(out.index_contrast[0] - 0.26) < 0.01
+    assert abs(out.x_um[0] - truth[0]) < 0.2 and abs(out.y_um[0] - truth[1]) < 0.2
+    assert out.z_err_um[0] > 0 and out.diameter_err_um[0] > 0 and out.index_err[0] > 0
+    assert bool(out.outside_training[0])  # 18 µm: below the config's 20-30 µm
+
+
+def test_fixed_parameters_stay_put():
+    from napari_lbs._core import RefineSettings, refine_particles
+
+    truth = (36.0 * PIXEL_UM, 36.0 * PIXEL_UM, 900.0, 18.0)
+    out = refine_particles(_scene([truth]), _table([(truth[0], truth[1], truth[2] + 20.0, 18.0)]), _config(), fixed={"index_contrast": 0.26, "diameter_um": 18.0},
+                           settings=RefineSettings(**{**FAST, "rounds": 1}))
+    assert out.index_contrast[0] == 0.26 and out.diameter_um[0] == 18.0 and out.index_err[0] == 0.0
+    assert abs(out.z_um[0] - truth[2]) < 2.0
+
+
+def test_two_overlapping_particles_are_both_recovered():
+    from napari_lbs._core import RefineSettings, refine_particles
+
+    truths = [(30.2 * PIXEL_UM, 33.7 * PIXEL_UM, 850.0, 17.0), (44.6 * PIXEL_UM, 39.1 * PIXEL_UM, 1000.0, 19.0)]
+    starts = _table([(x + 0.8, y - 0.6, z - 40.0, d - 0.5) for x, y, z, d in truths])
+    out = refine_particles(_scene(truths, (80, 80)), starts, _config(), fixed={"absorption": 0.0, "index_contrast": 0.26}, settings=RefineSettings(**FAST))
+    assert len(out) == 2
+    for row, (x, y, z, d) in zip(out.itertuples(), truths, strict=True):
+        assert abs(row.z_um - z) < 3.0 and abs(row.diameter_um - d) < 0.4 and abs(row.x_um - x) < 0.3
+
+
+def test_a_detection_on_an_empty_patch_is_dropped():
+    from napari_lbs._core import RefineSettings, refine_particles
+
+    truth = (20.0 * PIXEL_UM, 20.0 * PIXEL_UM, 900.0, 18.0)
+    hologram = _scene([truth], (64, 140))
+    starts = _table([truth, (110.0 * PIXEL_UM, 30.0 * PIXEL_UM, 1000.0, 20.0)])  # the second sees only noise
+    out = refine_particles(hologram, starts, _config(), fixed={"absorption": 0.0}, settings=RefineSettings(**{**FAST, "rounds": 1}))
+    assert len(out) == 1 and abs(out.x_um[0] - truth[0]) < 0.5
+
+
+@pytest.mark.parametrize(("hologram", "culprit"), [(np.zeros((40, 40)), "hologram"), (np.full((40, 40), np.nan), "hologram"), (np.ones(40), "hologram")])
+def test_bad_holograms_are_refused_in_one_line(hologram, culprit):
+    from napari_lbs._core import InputError, refine_particles
+
+    with pytest.raises(InputError) as error:
+        refine_particles(hologram, _table([(40.0, 40.0, 900.0, 18.0)]), _config())
+    assert str(error.value).startswith(culprit) and "\n" not in str(error.value)
+
+
+@pytest.mark.parametrize(("change", "culprit"), [({"z_um": [np.nan]}, "z_um"), ({"diameter_um": [-1.0]}, "diameter_um")])
+def test_bad_tables_and_fixed_names_are_refused_in_one_line(change, culprit):
+    from napari_lbs._core import InputError, refine_particles
+
+    table = _table([(40.0, 40.0, 900.0, 18.0)])
+    for name, values in change.items():
+        table[name] = values
+    with pytest.raises(InputError, match=culprit):
+        refine_particles(np.ones((40, 40)), table, _config())
+    with pytest.raises(InputError, match="radius"):
+        refine_particles(np.ones((40, 40)), _table([(40.0, 40.0, 900.0, 18.0)]), _config(), fixed={"radius": 1.0})

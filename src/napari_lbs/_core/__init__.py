@@ -27,6 +27,7 @@ _NAMES = {
     "_training": ("TrainingSettings", "TrainingResult", "train_model"),
     "_network": ("load_model", "LoadedModel"),
     "_prediction": ("predict_particles", "PredictionResult"),
+    "_refine": ("RefineSettings", "refine_particles"),
     "_metrics": ("match_particles", "score_particles"),
     "_gap": ("DiagnosisSettings", "Diagnosis", "diagnose_hologram", "write_report"),
     "_effects": ("EFFECTS", "parse_effects", "effects_from_report"),

@@ -41,7 +41,7 @@ import torch
 
 from napari_lbs._core._config import ExperimentConfig
 from napari_lbs._core._io import PARTICLE_COLUMNS, InputError
-from napari_lbs._core._lorenz_mie import fields_from_profiles, holograms_from_fields, radial_profiles, radial_step, sphere_holograms, term_count
+from napari_lbs._core._lorenz_mie import fields_from_profiles, holograms_from_fields, radial_profiles, radial_step, sphere_fields, term_count
 from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
 
 __all__ = ["FIT_PARAMETERS", "REFINE_COLUMNS", "RefineSettings", "refine_particles"]
@@ -225,9 +225,15 @@ _JACOBIAN_STEPS = (1e-4, 1e-4, 1e-3, 1e-5, 1e-7, 1e-7)
 
 
 class _Model:
-    """The patch model ``(c0 + c1 u + c2 v) · (I_mie(θ) + others)`` of a batch, and its Jacobian."""
+    """The patch model ``(c0 + c1 u + c2 v) · |x̂ + E(θ) + E_others|²`` of a batch, and its Jacobian.
 
-    def __init__(self, patches: _Patches, others: torch.Tensor, *, wavelength_um: float, medium_index: float, pixel_um: float | None, terms: int) -> None:
+    ``others``: None, or (4, B, P) complex: the neighbours' hologram minus 1 (real part of
+    row 0) and their summed fields ``E_x, E_y, E_z`` (rows 1-3), fixed; the particle's own
+    field adds to theirs (``2 Re(E · E_others*)``), so overlapping particles shadow and
+    interfere as fields do.
+    """
+
+    def __init__(self, patches: _Patches, others: torch.Tensor | None, *, wavelength_um: float, medium_index: float, pixel_um: float | None, terms: int) -> None:
         self.patches = patches
         self.others = others
         self.optics = {"wavelength_um": wavelength_um, "medium_index": medium_index}
@@ -250,14 +256,21 @@ class _Model:
             z = torch.cat([z, z[:n], z[:n]])
             profiles = torch.cat([profiles, profiles[:, :n], profiles[:, :n]], dim=1)
         fields = fields_from_profiles(profiles, step, dx, dy, z, **self.optics)
-        return holograms_from_fields(fields, dx, dy, z, pixel_um=self.pixel_um, **self.optics)
+        own = holograms_from_fields(fields, dx, dy, z, pixel_um=self.pixel_um, **self.optics)
+        if self.others is None:
+            return own
+        others = self.others.repeat(1, copies, 1)
+        if lateral:
+            others = torch.cat([others, others[:, :lateral_rows], others[:, :lateral_rows]], dim=1)
+        cross = sum(f * o.conj() for f, o in zip(fields, others[1:], strict=True))
+        return own + others[0].real + 2.0 * cross.real
 
     def illumination(self, params: torch.Tensor) -> torch.Tensor:
         c = params[:, _PHYSICAL:]
         return c[:, :1] + c[:, 1:2] * self.patches.u + c[:, 2:3] * self.patches.v
 
     def __call__(self, params: torch.Tensor) -> torch.Tensor:
-        return self.illumination(params) * (self.sphere(params) + self.others)
+        return self.illumination(params) * self.sphere(params)
 
     def jacobian(self, params: torch.Tensor, free: torch.Tensor, *, envelope: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
         """``(model, J)``: (B, P) and (B, P, 9); columns of parameters fixed everywhere are zero.
@@ -292,7 +305,7 @@ class _Model:
         holograms = self.sphere(stacked, lateral=lateral, lateral_rows=count)
         rows = 1 + len(signs)
         unshifted = holograms[: rows * count].reshape(rows, count, -1)
-        base = unshifted[0] + self.others
+        base = unshifted[0]
         gain = self.illumination(params)
         columns = [torch.zeros_like(base)] * _PHYSICAL
         for axis in (0, 1):
@@ -374,8 +387,9 @@ def _scan(model: _Model, trials: torch.Tensor, scale: torch.Tensor, *, settings:
         n = part.shape[1]
         params = torch.zeros((n * count, _PHYSICAL + _NUISANCE), dtype=torch.float64, device=trials.device)
         params[:, :_PHYSICAL] = part.transpose(0, 1).reshape(n * count, _PHYSICAL)
-        batch = _Model(_expand(patches, n, interleave=False), model.others.repeat(n, 1), pixel_um=model.pixel_um, terms=model.terms, **model.optics)
-        spheres = batch.sphere(params).reshape(n, count, -1) + model.others
+        others = None if model.others is None else model.others.repeat(1, n, 1)
+        batch = _Model(_expand(patches, n, interleave=False), others, pixel_um=model.pixel_um, terms=model.terms, **model.optics)
+        spheres = batch.sphere(params).reshape(n, count, -1)
         basis = torch.stack([spheres, spheres * patches.u, spheres * patches.v], dim=-1) * mask[:, :, None]
         solution = torch.linalg.lstsq(basis, (patches.data * mask)[None, :, :, None].expand(n, -1, -1, -1)).solution
         residual = (patches.data - (basis @ solution)[..., 0]).reshape(n * count, -1)
@@ -465,6 +479,34 @@ _VALLEY_PRIOR = 4.0  # robust-cost units (noise variances) per phase-delay perio
 _RIPPLE_SHIFTS = (-4, -3, -2, -1, 1, 2, 3, 4)  # starts along the size–index valley, in steps of Δ(k a) = 0.15
 
 
+_VALLEYS = (-2, -1, 1, 2)  # neighbouring size–index valleys, in phase-delay periods
+
+
+def _choose_valley(model: _Model, params: torch.Tensor, free: torch.Tensor, low: torch.Tensor, high: torch.Tensor, *, start_index: torch.Tensor,
+                   scale: torch.Tensor, settings: RefineSettings, steps: Steps) -> torch.Tensor:
+    """The converged fit in the best of the size–index valleys around ``params`` (Δn = j λ/d).
+
+    The phase delay through a transparent sphere, ``k0 d Δn``, is seen modulo 2π: valleys one
+    period apart differ only in light refracted beyond the patch. Each valley's fit is
+    converged before they are compared; where their costs are within a few noise
+    variances (`_VALLEY_PRIOR` per period²) the valley nearest the starting index wins.
+    """
+    count = params.shape[0]
+    period = model.optics["wavelength_um"] / params[:, 3]
+    shifts = torch.tensor((0,) + _VALLEYS, dtype=torch.float64, device=params.device)
+    k = shifts.numel()
+    candidates = params[:, None, :].repeat(1, k, 1)
+    candidates[:, :, 4] = params[:, 4:5] + torch.where(free[:, 4:5], period[:, None] * shifts, torch.zeros_like(period[:, None]))
+    grow = lambda t: t.repeat_interleave(k, dim=0)  # noqa: E731
+    wide = _Model(_expand(model.patches, k), _grow_others(model.others, k), pixel_um=model.pixel_um, terms=model.terms, **model.optics)
+    fitted, cost = _levenberg_marquardt(wide, candidates.reshape(count * k, -1), grow(free), grow(low), grow(high), scale=grow(scale), settings=settings,
+                                        iterations=max(3, settings.iterations // 2), steps=steps)
+    valleys = (fitted[:, 4] - grow(start_index)) / (model.optics["wavelength_um"] / fitted[:, 3])
+    cost = cost + _VALLEY_PRIOR * valleys**2
+    best = torch.argmin(cost.reshape(count, k), dim=1)
+    return fitted[torch.arange(count, device=params.device) * k + best]
+
+
 def _escape_ripple(model: _Model, params: torch.Tensor, free: torch.Tensor, low: torch.Tensor, high: torch.Tensor, *, scale: torch.Tensor,
                    settings: RefineSettings, steps: Steps) -> torch.Tensor:
     """The best of fits restarted along the valley of constant phase delay ``d (n_p - n_m)``.
@@ -485,10 +527,15 @@ def _escape_ripple(model: _Model, params: torch.Tensor, free: torch.Tensor, low:
     k = shifts.numel() + 1
     candidates = torch.cat([params[:, None, :], starts], dim=1).reshape(count * k, -1)
     grow = lambda t: t.repeat_interleave(k, dim=0)  # noqa: E731
-    wide = _Model(_expand(model.patches, k), grow(model.others), pixel_um=model.pixel_um, terms=model.terms, **model.optics)
+    wide = _Model(_expand(model.patches, k), _grow_others(model.others, k), pixel_um=model.pixel_um, terms=model.terms, **model.optics)
     fitted, cost = _levenberg_marquardt(wide, candidates, grow(free), grow(low), grow(high), scale=grow(scale), settings=settings, iterations=3, steps=steps)
     best = torch.argmin(cost.reshape(count, k), dim=1)
     return fitted[torch.arange(count, device=params.device) * k + best]
+
+
+def _grow_others(others: torch.Tensor | None, k: int) -> torch.Tensor | None:
+    """Neighbours' terms (4, B, P) repeated ``k`` times per patch, as `_expand` repeats the patches."""
+    return None if others is None else others.repeat_interleave(k, dim=1)
 
 
 def _expand(patches: _Patches, k: int, *, interleave: bool = True) -> _Patches:
@@ -519,7 +566,7 @@ def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of
     model_optics = {"wavelength_um": optics.wavelength_um, "medium_index": settings.medium_index,
                     "pixel_um": optics.pixel_um if settings.pixel_integration else None, "terms": terms}
     fine = _cut_patches(image, start[:, 0], start[:, 1], edges, pixel_um=optics.pixel_um, device=device)
-    model = _Model(fine, others_of(fine) if others_of is not None else torch.zeros_like(fine.data), **model_optics)
+    model = _Model(fine, others_of(fine) if others_of is not None else None, **model_optics)
     params = torch.zeros((count, _PHYSICAL + _NUISANCE), dtype=torch.float64, device=device)
     params[:, :_PHYSICAL] = torch.as_tensor(start, dtype=torch.float64, device=device)
     params[:, _PHYSICAL] = torch.sum(fine.data * fine.mask, dim=1) / torch.clamp(fine.mask.sum(dim=1), min=1.0)
@@ -539,12 +586,12 @@ def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of
     flat_residual, scale = _flat_model(fine)
     if search:
         coarse = _cut_patches(image, start[:, 0], start[:, 1], edges, pixel_um=optics.pixel_um, device=device, stride=2)
-        coarse_model = _Model(coarse, others_of(coarse) if others_of is not None else torch.zeros_like(coarse.data), **model_optics)
+        coarse_model = _Model(coarse, others_of(coarse) if others_of is not None else None, **model_optics)
         _, coarse_scale = _flat_model(coarse)
         candidates = _search_starts(coarse_model, params, free_t, coarse_scale, window_um=z_window, pixel_um=optics.pixel_um, settings=settings)
         steps.check()
         k = candidates.shape[1]
-        wide_model = _Model(_expand(coarse, k), coarse_model.others.repeat_interleave(k, dim=0), **model_optics)
+        wide_model = _Model(_expand(coarse, k), _grow_others(coarse_model.others, k), **model_optics)
         grow = lambda t: t.repeat_interleave(k, dim=0)  # noqa: E731
         # absorption stays at its start while the valley is chosen: free, it lets a wrong
         # size–index valley mimic the right one (measured on noise-free spheres)
@@ -563,6 +610,9 @@ def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of
     coarse_fit, _ = _levenberg_marquardt(model, params, free_t, low, high, scale=scale, settings=settings, iterations=2, steps=steps)
     fit_scale = _robust_scale(fine.data - model(coarse_fit), fine.mask)
     final, _ = _levenberg_marquardt(model, coarse_fit, free_t, low, high, scale=fit_scale, settings=settings, iterations=settings.iterations, steps=steps)
+    if search and bool(free_t[:, 4].any()):
+        final = _choose_valley(model, final, free_t, low, high, start_index=torch.as_tensor(start[:, 4], device=device), scale=fit_scale, settings=settings,
+                               steps=steps)
     if search and bool((free_t[:, 3] & free_t[:, 4]).any()):
         final = _escape_ripple(model, final, free_t, low, high, scale=fit_scale, settings=settings, steps=steps)
     prediction, jac = model.jacobian(final, free_t, envelope=True)
@@ -588,23 +638,32 @@ def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of
 
 
 def _neighbour_fields(all_params: np.ndarray, index: np.ndarray, *, settings: RefineSettings, config: ExperimentConfig, terms: int, device):
-    """A function giving, for the patches of particles ``index``, the holograms minus 1 of the other particles near them."""
+    """A function giving, for the patches of particles ``index``, the other particles' terms near them (`_Model`'s ``others``)."""
     optics = config.optics
+    pixel = optics.pixel_um if settings.pixel_integration else None
+    reach = 1.5 * settings.patch_px * optics.pixel_um
 
     def others(patches: _Patches) -> torch.Tensor:
-        out = torch.zeros_like(patches.data)
+        out = torch.zeros((4,) + tuple(patches.data.shape), dtype=torch.complex128, device=device)
         for row, i in enumerate(index):
-            reach = 1.5 * settings.patch_px * optics.pixel_um
             distance = np.hypot(all_params[:, 0] - all_params[i, 0], all_params[:, 1] - all_params[i, 1])
             near = np.flatnonzero((distance < reach) & (np.arange(len(all_params)) != i))
             if near.size == 0:
                 continue
             p = torch.as_tensor(all_params[near], dtype=torch.float64, device=device)
-            x = patches.x_um[row : row + 1].expand(near.size, -1)
-            y = patches.y_um[row : row + 1].expand(near.size, -1)
-            holograms = sphere_holograms(x - p[:, :1], y - p[:, 1:2], p[:, 2], p[:, 3], p[:, 4], p[:, 5], wavelength_um=optics.wavelength_um,
-                                         medium_index=settings.medium_index, pixel_um=optics.pixel_um if settings.pixel_integration else None, terms=terms)
-            out[row] = (holograms - 1.0).sum(dim=0) * patches.mask[row]
+            dx = patches.x_um[row : row + 1] - p[:, :1]
+            dy = patches.y_um[row : row + 1] - p[:, 1:2]
+            optics_kw = {"wavelength_um": optics.wavelength_um, "medium_index": settings.medium_index}
+            fields = sphere_fields(dx, dy, p[:, 2], p[:, 3], p[:, 4], p[:, 5], terms=terms, **optics_kw)
+            summed = tuple(f.sum(dim=0, keepdim=True) for f in fields)
+            # the neighbours' own hologram: each one's interference with the plane wave through
+            # its pixel transfer, plus the intensity of their summed field
+            single = holograms_from_fields(fields, dx, dy, p[:, 2], pixel_um=pixel, **optics_kw)
+            own_sq = sum(f.real**2 + f.imag**2 for f in fields)
+            total = (single - 1.0 - own_sq).sum(dim=0) + sum(f.real**2 + f.imag**2 for f in summed)[0]
+            out[0, row] = total * patches.mask[row]
+            for axis in range(3):
+                out[1 + axis, row] = summed[axis][0] * patches.mask[row]
         return out
 
     return others
