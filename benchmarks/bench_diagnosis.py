@@ -29,7 +29,7 @@ import numpy as np
 
 from napari_lbs._core import ExperimentConfig, read_hologram
 from napari_lbs._core._effects import EFFECTS
-from napari_lbs._core._gap import DiagnosisSettings, amortized_diagnoser, diagnose_hologram, model_posterior
+from napari_lbs._core._gap import DiagnosisSettings, amortized_diagnoser, diagnose_hologram, forest_posterior
 from napari_lbs._core._gap._amortized import _simulate
 from napari_lbs._core._gap._scenarios import ScenarioPrior, TileGrid, catalog_candidates
 
@@ -57,11 +57,13 @@ def _share(hits: int, trials: int) -> str:
     return f"{hits}/{trials} ({100 * hits / max(trials, 1):.0f} %, 95 % interval {100 * low:.0f}-{100 * high:.0f} %)"
 
 
-def suite(folder: str, *, level: float, cache: str | None) -> None:
+def suite(folder: str, *, level: float, cache: str | None, sizes: list[int] | None = None) -> None:
     design = json.loads((Path(folder) / "design.json").read_text())
     settings = DiagnosisSettings(level=level, cache_dir=cache)
     rows = []
     for case in design["cases"]:
+        if sizes and case["size"] not in sizes:
+            continue
         image = read_hologram(Path(folder) / case["file"])
         start = time.perf_counter()
         report = diagnose_hologram(image, CONFIG, settings=settings).report
@@ -104,7 +106,7 @@ def insim(size: int, fresh: int) -> None:
     confusion: dict[str, dict[str, int]] = {}
     for index in range(10**6, 10**6 + fresh):
         _, features, _, present, _ = _simulate((index, CONFIG, grid, prior, settings.training_seed))
-        posterior = model_posterior(dict(zip(diagnoser.candidates, diagnoser.forest.predict(features[None])[0], strict=True)))
+        _, posterior = forest_posterior(diagnoser, features)
         best = max(posterior, key=posterior.get)
         truth = _model_name(list(present))
         by_size[len(present)][0] += best == truth
@@ -147,6 +149,7 @@ def main() -> None:
     p.add_argument("folder")
     p.add_argument("--level", type=float, default=DiagnosisSettings().level)
     p.add_argument("--cache")
+    p.add_argument("--size", type=int, action="append", help="only the cases of this sensor size (repeatable)")
     p = sub.add_parser("insim")
     p.add_argument("--size", type=int, default=512)
     p.add_argument("--fresh", type=int, default=300)
@@ -155,7 +158,7 @@ def main() -> None:
     sub.add_parser("real")
     args = parser.parse_args()
     if args.command == "suite":
-        suite(args.folder, level=args.level, cache=args.cache)
+        suite(args.folder, level=args.level, cache=args.cache, sizes=args.size)
     elif args.command == "insim":
         insim(args.size, args.fresh)
     elif args.command == "seeds":

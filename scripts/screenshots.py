@@ -219,7 +219,7 @@ def main() -> None:
     step = dock.diagnosis
     step.hologram.value = hologram
     step.config.line_edit.value = ""
-    step.sim_tiles.value, step.evaluations.value = (2, 8) if args.quick else (4, 16)
+    step.simulations.value = 24 if args.quick else 2000  # the full one is cached after its first run
     step.output.value = work / "diagnosis"
     run_step(dock, step)
 
@@ -229,7 +229,7 @@ def main() -> None:
         dock.grab().save(str(figures / f"{name}.png"))
 
     # 2-D: the plane holding the most particles, the ROI and I_e/I_s beside it
-    viewer.layers["gap by region"].visible = False
+    viewer.layers["gap: P(tile told apart from simulation)"].visible = False
     plane = int(np.bincount(np.round(points.data[:, 0]).astype(int)).argmax()) if len(points.data) else 0
     viewer.layers.selection.active = points
     viewer.dims.set_point(0, stack.translate[0] + plane * stack.scale[0])

@@ -7,6 +7,15 @@ SHARED = REPO.parent / "shared"
 REAL_HOLOGRAM_BMP = SHARED / "reference" / "lbs-experiment" / "cropped_hologram.bmp"
 
 
+@pytest.fixture(autouse=True)
+def diagnoser_cache(tmp_path_factory, monkeypatch):
+    """Diagnosers trained by tests are cached in one folder of the test session's, never the user's."""
+    folder = tmp_path_factory.getbasetemp() / "cache"
+    folder.mkdir(exist_ok=True)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(folder))
+    return folder
+
+
 @pytest.fixture(scope="session")
 def real_hologram_bmp() -> Path:
     # CI runs with ../shared beside the clone; without it this is a failure, not a skip.

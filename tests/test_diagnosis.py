@@ -12,7 +12,8 @@ import tifffile
 
 from napari_lbs._core import ExperimentConfig, InputError, read_hologram
 from napari_lbs._core._effects import optical_hologram, sensor_image
-from napari_lbs._core._gap import DiagnosisSettings, amortized_diagnoser, c2st, diagnose_hologram, known_sensor, load_diagnoser, model_posterior, write_report
+from napari_lbs._core._gap import DiagnosisSettings, amortized_diagnoser, c2st, diagnose_hologram, forest_posterior, known_sensor, load_diagnoser, write_report
+from napari_lbs._core._gap._amortized import forest_answers
 from napari_lbs._core._gap._amortized import _simulate
 from napari_lbs._core._gap._forest import ForestArrays, train_forest
 from napari_lbs._core._gap._scenarios import ScenarioPrior, TileGrid, draw_scenario, simulate_tiles
@@ -58,13 +59,18 @@ def test_the_forest_as_arrays_answers_as_scikit_learn_does_and_refuses_inconsist
         ForestArrays.from_arrays(arrays)
 
 
-def test_the_model_posterior_sums_to_one_and_follows_the_effects_probabilities():
-    posterior = model_posterior({"a": 0.9, "b": 0.1, "c": 0.05})
-    assert sum(posterior.values()) == pytest.approx(1.0)
-    assert max(posterior, key=posterior.get) == "a" and posterior["a"] > posterior["a+b"] > posterior["b+c"]
-    assert max(model_posterior({"a": 0.05, "b": 0.1}), key=lambda k: model_posterior({"a": 0.05, "b": 0.1})[k]) == "null"
-    both = model_posterior({"a": 0.95, "b": 0.9, "c": 0.01})
-    assert max(both, key=both.get) == "a+b"
+def test_one_forest_learns_the_model_and_each_effect_and_the_posterior_sums_to_one():
+    from types import SimpleNamespace
+
+    present = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 1]], bool)
+    assert forest_answers(present).astype(int).tolist() == [[0, 0, 0, 1, 0, 0, 0, 0], [1, 0, 0, 0, 1, 0, 0, 0], [0, 1, 1, 0, 0, 0, 0, 1]]
+    # the forest says: two effects (0.7), most likely b and c
+    answers = np.array([[0.2, 0.9, 0.8, 0.1, 0.1, 0.1, 0.0, 0.7]])
+    fake = SimpleNamespace(candidates=("a", "b", "c"), forest=SimpleNamespace(predict=lambda x: answers))
+    presence, model = forest_posterior(fake, np.zeros(4))
+    assert presence == pytest.approx({"a": 0.2, "b": 0.9, "c": 0.8})
+    assert sum(model.values()) == pytest.approx(1.0) and max(model, key=model.get) == "b+c" and model["null"] == pytest.approx(0.1)
+    assert model["b+c"] > model["a+b"] > model["a+c"] * 0.99 and model["c"] == 0.0
 
 
 def test_c2st_is_chance_for_two_samples_of_one_distribution_and_near_one_for_different_ones():
@@ -105,8 +111,7 @@ def test_the_diagnoser_names_the_effect_of_fresh_simulations_from_its_own_prior(
     trials = 40
     for index in range(10_000, 10_000 + trials):  # simulations the forest never saw
         _, features, _, present, _ = _simulate((index, CONFIG, GRID, SMALL, 0))
-        marginals = dict(zip(diagnoser.candidates, diagnoser.forest.predict(features[None])[0], strict=True))
-        posterior = model_posterior(marginals)
+        _, posterior = forest_posterior(diagnoser, features)
         best = max(posterior, key=posterior.get)
         right += best == ("+".join(present) if present else "null")
     assert right / trials >= 0.95

@@ -194,12 +194,12 @@ def test_workflow_dock_drives_the_whole_workflow_on_the_synthetic_sample(make_na
     step = dock.diagnosis
     step.hologram.value = hologram
     step.config.value = config
-    step.tile.value, step.sim_tiles.value, step.evaluations.value = 128, 2, 8
+    step.tile.value, step.simulations.value = 128, 24
     step.output.line_edit.value = ""
     assert not step._run.enabled and "choose where to save" in step._status.value
     step.output.value = tmp_path / "gap"
     run_to_end(qtbot, step)
-    gap_map = viewer.layers["gap by region"]
+    gap_map = viewer.layers["gap: P(tile told apart from simulation)"]
     assert gap_map.colorbar.visible and gap_map.data.shape == (4, 4) and (tmp_path / "gap" / "report.json").is_file()
 
     # the z slider steps through planes and every layer is in µm (no napari units warning)

@@ -127,12 +127,12 @@ def test_cli_generate_effects_from_a_report_and_refusals(tmp_path, capsys):
     config = tmp_path / "c.toml"
     config.write_text('[tile]\nsize = 64\n[particles]\nper_tile = 2\nlayer_step_um = 50.0\n[volume]\nz_min_um = 1800.0\nz_max_um = 1900.0\n')
     report = tmp_path / "report.json"
-    report.write_text(json.dumps(_report()))
+    report.write_text(json.dumps(_report("quantization+particle_phase")))
     out = tmp_path / "data"
     assert main(["generate", "--config", str(config), "--groups", "1", "--out", str(out), "--context-planes", "1", "--effects-from", str(report), "--effect", "sensor_blur:sigma_px=0.5"]) == 0
     spec = json.loads((out / "dataset.json").read_text())
     assert set(spec["effects"]) == {"quantization", "particle_phase", "sensor_blur"}
-    assert spec["effects_source"]["verdict"] == "quantization"
+    assert spec["effects_source"]["verdict"] == "quantization+particle_phase"
     capsys.readouterr()
     not_a_report = tmp_path / "calib.json"
     not_a_report.write_text(json.dumps({"params": {}}))

@@ -11,25 +11,25 @@ One concern per module:
 `_forest`
     `ForestArrays`, `train_forest`: a random forest kept as plain arrays.
 `_amortized`
-    `amortized_diagnoser`, `DiagnosisSettings`: simulate, train, cache per setup.
+    `amortized_diagnoser`, `forest_posterior`, `DiagnosisSettings`: simulate, train, cache per setup; the posterior.
 `_twosample`
     `c2st`: classifier two-sample test.
 `_known`
     `known_sensor`: what a file of integer counts states (bit depth, saturation).
 `_diagnose`
-    `diagnose_hologram`, `model_posterior`: posterior, verdict, where and how much.
+    `diagnose_hologram`: posterior, verdict, where and how much.
 `_report`
     `write_report`: ``report.json`` (CONTRACT.md), ``report.md``, figures.
 """
 
-from napari_lbs._core._gap._amortized import Diagnoser, DiagnosisSettings, amortized_diagnoser, default_cache_dir, load_diagnoser
-from napari_lbs._core._gap._diagnose import Diagnosis, diagnose_hologram, model_posterior
+from napari_lbs._core._gap._amortized import Diagnoser, DiagnosisSettings, amortized_diagnoser, default_cache_dir, forest_posterior, load_diagnoser
+from napari_lbs._core._gap._diagnose import Diagnosis, diagnose_hologram
 from napari_lbs._core._gap._known import known_sensor
 from napari_lbs._core._gap._report import write_report
 from napari_lbs._core._gap._summaries import MIN_TILE_PX, SUMMARY_GROUPS, tile_summaries
 from napari_lbs._core._gap._twosample import c2st
 
 __all__ = [
-    "diagnose_hologram", "write_report", "Diagnosis", "DiagnosisSettings", "model_posterior", "amortized_diagnoser", "Diagnoser", "load_diagnoser",
+    "diagnose_hologram", "write_report", "Diagnosis", "DiagnosisSettings", "forest_posterior", "amortized_diagnoser", "Diagnoser", "load_diagnoser",
     "default_cache_dir", "known_sensor", "tile_summaries", "c2st", "SUMMARY_GROUPS", "MIN_TILE_PX",
 ]

@@ -1,4 +1,4 @@
-"""The amortized diagnoser: simulations from the prior, a forest that answers "which effects are present?", cached per setup.
+"""The amortized diagnoser: simulations from the prior, a forest that answers "which model, which effects?", cached per setup.
 
 Trained once per setup (config, the sensor's shape and tiles, what is known) from
 ``settings.simulations`` scenarios (`draw_scenario`, `simulate_tiles`, `set_features`), it
@@ -27,9 +27,9 @@ from napari_lbs._core._gap._forest import ForestArrays, train_forest
 from napari_lbs._core._gap._scenarios import ScenarioPrior, TileGrid, draw_scenario, simulate_tiles
 from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
 
-__all__ = ["DiagnosisSettings", "Diagnoser", "amortized_diagnoser", "default_cache_dir"]
+__all__ = ["DiagnosisSettings", "Diagnoser", "amortized_diagnoser", "default_cache_dir", "forest_posterior", "load_diagnoser"]
 
-CACHE_FORMAT = "napari-lbs diagnoser 1"
+CACHE_FORMAT = "napari-lbs diagnoser 2"
 
 
 @dataclass(frozen=True)
@@ -192,7 +192,7 @@ def amortized_diagnoser(
     present = np.array([[c in r[3] for c in candidates] for r in results], bool)
     param_names = sorted({name for r in results for name in r[4]})
     params = {name: np.array([r[4].get(name, np.nan) for r in results], np.float64) for name in param_names}
-    forest = train_forest(features, present, trees=settings.trees, seed=settings.training_seed, jobs=min(settings.jobs or _cores(), 4))
+    forest = train_forest(features, forest_answers(present), trees=settings.trees, seed=settings.training_seed, jobs=min(settings.jobs or _cores(), 4))
     leaves = forest.leaves(features).astype(np.int32)
     steps.advance()
     _, names = set_summaries([np.random.default_rng(0).uniform(0.5, 1.5, (grid.tile_px, grid.tile_px)).astype(np.float32)], config=config)  # the names only
@@ -200,6 +200,37 @@ def amortized_diagnoser(
     diagnoser = Diagnoser(key, candidates, [tuple(n) for n in names], features, summaries, present, params, forest, leaves, meta)
     _save(diagnoser, path)
     return diagnoser
+
+
+def forest_answers(present: np.ndarray) -> np.ndarray:
+    """(simulations, 2 C + 2) yes/no answers the forest learns: each of the C effects present, then the model as one-hot (nothing, each effect alone, two effects).
+
+    One forest learns both: its splits serve the model (is anything missing, which one, or two)
+    and each effect's presence, which tells the two effects of a pair apart.
+    """
+    count = present.sum(axis=1)
+    alone = present & (count == 1)[:, None]
+    return np.concatenate([present, (count == 0)[:, None], alone, (count >= 2)[:, None]], axis=1)
+
+
+def forest_posterior(diagnoser: Diagnoser, x: np.ndarray) -> tuple[dict, dict]:
+    """(each candidate's probability of being present, each model's probability) for one feature vector ``x``.
+
+    Models: ``"null"``, each effect alone, and each pair ``"a+b"`` (catalog order): the
+    forest's probability of two effects, shared among the pairs in proportion to the product
+    of their effects' probabilities of being present.
+    """
+    answers = diagnoser.forest.predict(np.asarray(x, np.float32)[None, :])[0].astype(np.float64)
+    c = len(diagnoser.candidates)
+    presence = dict(zip(diagnoser.candidates, answers[:c], strict=True))
+    model = {"null": answers[c], **dict(zip(diagnoser.candidates, answers[c + 1 : 2 * c + 1], strict=True))}
+    two = answers[2 * c + 1]
+    pairs = {f"{a}+{b}": presence[a] * presence[b] for i, a in enumerate(diagnoser.candidates) for b in diagnoser.candidates[i + 1 :]}
+    total = sum(pairs.values())
+    for name, weight in pairs.items():
+        model[name] = two * (weight / total if total > 0 else 1.0 / len(pairs))
+    norm = sum(model.values())
+    return presence, {k: v / norm for k, v in model.items()}
 
 
 def _save(diagnoser: Diagnoser, path: Path) -> None:

@@ -5,8 +5,8 @@
    frames, less noise.
 2. The setup's amortized diagnoser (`amortized_diagnoser`: simulations from a broad prior,
    a random forest, cached) gives each candidate effect's probability of being present; the
-   posterior over models — nothing missing, one effect, or two — follows from them
-   (`model_posterior`). The verdict is the most probable model where its probability reaches
+   posterior over models — nothing missing, one effect, or two — is the same forest's
+   (`forest_posterior`). The verdict is the most probable model where its probability reaches
    ``settings.level``; else the two most probable are named undecided.
 3. Where and how much: for every model, the simulations of that model closest to the
    experiment (forest proximity) are compared with the experiment's tiles by a classifier
@@ -17,7 +17,6 @@
 
 from __future__ import annotations
 
-import itertools
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -26,7 +25,7 @@ import numpy as np
 
 from napari_lbs._core._config import ExperimentConfig
 from napari_lbs._core._effects import check_effects
-from napari_lbs._core._gap._amortized import Diagnoser, DiagnosisSettings, amortized_diagnoser
+from napari_lbs._core._gap._amortized import Diagnoser, DiagnosisSettings, amortized_diagnoser, forest_posterior
 from napari_lbs._core._gap._features import set_features, set_summaries
 from napari_lbs._core._gap._known import known_sensor
 from napari_lbs._core._gap._scenarios import ScenarioPrior, TileGrid, catalog_candidates
@@ -35,7 +34,7 @@ from napari_lbs._core._gap._twosample import c2st
 from napari_lbs._core._io import InputError, as_hologram
 from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
 
-__all__ = ["Diagnosis", "diagnose_hologram", "model_posterior"]
+__all__ = ["Diagnosis", "diagnose_hologram"]
 
 _TILE_PX = 128  # tile edge (px) where the sensor's cells hold it
 _PAIR_SHOWN = 0.01  # pairs below this posterior probability are left out of the report's posterior
@@ -49,25 +48,6 @@ class Diagnosis:
     report: dict
     tile_map: np.ndarray = field(repr=False)
     seconds: float = 0.0
-
-
-def model_posterior(marginals: dict, *, pairs: bool = True) -> dict:
-    """Posterior of each model (``"null"``, an effect id, or ``"a+b"``) from each effect's probability of being present.
-
-    The effects are taken as independent given the data, restricted to at most two present
-    (the diagnoser's prior): P(model) ∝ Π p_e (e in the model) Π (1 − p_e) (the others). Sums to 1.
-    """
-    ids = list(marginals)
-    p = np.clip(np.array([marginals[e] for e in ids], np.float64), 1e-6, 1 - 1e-6)
-    absent = float(np.prod(1 - p))
-    weights = {"null": absent}
-    for i, e in enumerate(ids):
-        weights[e] = absent * p[i] / (1 - p[i])
-    if pairs:
-        for (i, a), (j, b) in itertools.combinations(enumerate(ids), 2):
-            weights[f"{a}+{b}"] = absent * p[i] / (1 - p[i]) * p[j] / (1 - p[j])
-    total = sum(weights.values())
-    return {k: v / total for k, v in weights.items()}
 
 
 def _frames(holograms) -> list[np.ndarray]:
@@ -220,8 +200,8 @@ def diagnose_hologram(
             places.extend(origins)
     x = np.mean(features, axis=0)[None, :]
     real = np.vstack(real_tiles)
-    marginals = dict(zip(candidates, (float(p) for p in diagnoser.forest.predict(x)[0]), strict=True))
-    posterior = model_posterior(marginals)
+    marginals, posterior = forest_posterior(diagnoser, x[0])
+    marginals = {k: float(v) for k, v in marginals.items()}
     leaves = diagnoser.forest.leaves(x)[0]
     proximity = (diagnoser.leaves == leaves[None, :]).mean(axis=1)
     steps.advance()
