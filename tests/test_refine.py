@@ -229,3 +229,34 @@ def test_bad_tables_and_fixed_names_are_refused_in_one_line(change, culprit):
         refine_particles(np.ones((40, 40)), table, _config())
     with pytest.raises(InputError, match="radius"):
         refine_particles(np.ones((40, 40)), _table([(40.0, 40.0, 900.0, 18.0)]), _config(), fixed={"radius": 1.0})
+
+
+def test_predict_refine_writes_the_refined_columns(tmp_path, monkeypatch):
+    """``napari-lbs predict --refine``: the network's table refined, the contract's columns after the first four (the network stubbed)."""
+    import tifffile
+
+    from napari_lbs import _cli
+    from napari_lbs._core import _network, _prediction
+    from napari_lbs._core._io import read_particles
+
+    truth = (36.3 * PIXEL_UM, 35.6 * PIXEL_UM, 900.0, 18.0)
+    tifffile.imwrite(tmp_path / "holo.tif", _scene([truth]).astype(np.float32))
+    guesses = {"x_um": np.array([truth[0] + 1.0]), "y_um": np.array([truth[1]]), "z_um": np.array([930.0]), "diameter_um": np.array([18.4]),
+               "score": np.array([0.8]), "planes": np.array([3.0])}
+
+    class Model:
+        config = _config()
+
+    monkeypatch.setattr(_network, "load_model", lambda *a, **k: Model())
+    monkeypatch.setattr(_prediction, "predict_particles", lambda *a, **k: _prediction.PredictionResult(guesses, {"model_sha256": "stub"}, 0.1))
+    from napari_lbs._core import _refine
+
+    fast = _refine.RefineSettings(**FAST)
+    monkeypatch.setattr(_refine, "RefineSettings", lambda: fast)
+    assert _cli.main(["predict", str(tmp_path / "holo.tif"), "--model", str(tmp_path / "model.pt"), "--out", str(tmp_path / "p.csv"), "--refine"]) == 0
+    header = (tmp_path / "p.csv").read_text().splitlines()[0].split(",")
+    assert header[:12] == ["x_um", "y_um", "z_um", "diameter_um", "index_contrast", "absorption", "z_err_um", "diameter_err_um", "index_err", "fit_residual",
+                           "refined", "outside_training"]
+    assert "score" in header
+    table = read_particles(tmp_path / "p.csv")
+    assert abs(table["z_um"][0] - truth[2]) < 3.0

@@ -193,7 +193,7 @@ def _cmd_predict(args) -> None:
         check_output_path(path, flag="--out", inputs=_inputs(args))
     request = pipeline.PredictRequest(args.holo, args.model, Path(args.out), load_config(args.config) if args.config else None, background_path=args.background,
                                       device=args.device, force=args.force, sequence_background=args.sequence_background, background_window=args.background_window,
-                                      workers=args.workers, scheduler=args.scheduler)
+                                      workers=args.workers, scheduler=args.scheduler, refine=args.refine)
     _run(pipeline.predict, request, "predict", log=_summary)
 
 
@@ -337,6 +337,8 @@ def _parser() -> argparse.ArgumentParser:
     engine = p.add_mutually_exclusive_group()
     engine.add_argument("--workers", type=_integer(1), help="recordings: run on a local dask cluster of N worker processes (default: the local threaded scheduler)")
     engine.add_argument("--scheduler", metavar="ADDRESS", help="recordings: run on an existing dask.distributed scheduler (tcp://host:8786)")
+    p.add_argument("--refine", action="store_true", help="refine every detection by a Lorenz-Mie fit (spheres in water): the table gains index_contrast, absorption, "
+                   "z_err_um, diameter_err_um, index_err, fit_residual, refined, outside_training (docs/refinement.md)")
     p.set_defaults(run=_cmd_predict)
 
     p = sub.add_parser("track", help="link the particles of a recording into 3-D tracks (trackpy)")

@@ -498,6 +498,8 @@ class PredictRequest:
         Recordings: an existing dask.distributed scheduler's address.
     source : str, optional
         The hologram's name in the provenance when ``inputs`` is an array.
+    refine : bool
+        Refine every detection by a Lorenz–Mie fit (`refine_particles`); the table gains its columns.
     """
 
     inputs: Sequence[str | Path] | np.ndarray
@@ -512,6 +514,7 @@ class PredictRequest:
     workers: int | None = None
     scheduler: str | None = None
     source: str | None = None
+    refine: bool = False
 
 
 def prediction_outputs(out_path) -> tuple[Path, Path]:
@@ -561,9 +564,51 @@ def predict(request: PredictRequest, *, progress: ProgressCallback | None = None
     background = _background(request.background_path, hologram.shape, log=log)
     model = request.model if not isinstance(request.model, (str, Path)) else load_model(request.model, device=request.device)
     result = predict_particles(hologram, model, request.config, background=background, device=request.device, force=request.force, progress=progress, should_stop=should_stop)
-    _write_table(out, record_path, result.particles, {**result.provenance, "source": str(source), "background_file": request.background_path, "particles": str(out)})
+    particles, provenance, refined = result.particles, result.provenance, ""
+    if request.refine:
+        import numpy as np
+
+        normalised = np.asarray(hologram, dtype=np.float64) / (background if background is not None else float(np.mean(hologram)))
+        particles, provenance["refine"] = _refined(normalised, particles, request.config or model.config, progress=progress, should_stop=should_stop)
+        refined = f", {len(particles['x_um'])} kept by the fit in {provenance['refine']['seconds']:.1f} s"
+    _write_table(out, record_path, particles, {**provenance, "source": str(source), "background_file": request.background_path, "particles": str(out)})
     count = len(result.particles["x_um"])
-    return StepResult(f"found {count} particles in {source} in {result.seconds:.1f} s -> {out} (provenance: {record_path})", result, (out, record_path))
+    return StepResult(f"found {count} particles in {source} in {result.seconds:.1f} s{refined} -> {out} (provenance: {record_path})", result, (out, record_path))
+
+
+def _refined_frames(frames, particles: dict, config: ExperimentConfig, *, background, log: Log, progress, should_stop) -> tuple[dict, dict]:
+    """Each frame's rows of a recording's table refined on that frame (divided by the background file, else by its mean)."""
+    import numpy as np
+
+    frame_of = np.asarray(particles["frame"]).astype(np.int64)
+    parts, records = [], []
+    for index in np.unique(frame_of):
+        rows = frame_of == index
+        hologram = np.asarray(frames.read(int(index), log=log), dtype=np.float64)
+        divisor = background if isinstance(background, np.ndarray) else float(hologram.mean())
+        table, record = _refined(hologram / divisor, {name: np.asarray(values)[rows] for name, values in particles.items()}, config, progress=progress,
+                                 should_stop=should_stop)
+        parts.append(table)
+        records.append(record)
+    merged = {name: np.concatenate([part[name] for part in parts]) for name in parts[0]} if parts else particles
+    summary = {"settings": records[0]["settings"] if records else None, "detections": sum(r["detections"] for r in records),
+               "kept": sum(r["kept"] for r in records), "seconds": sum(r["seconds"] for r in records)}
+    return merged, summary
+
+
+def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, *, progress, should_stop) -> tuple[dict, dict]:
+    """The particle table refined by `refine_particles` (as a dict of arrays) and its provenance."""
+    from dataclasses import asdict
+
+    import pandas as pd
+
+    from napari_lbs._core._refine import RefineSettings, refine_particles
+
+    settings = RefineSettings()
+    started = time.perf_counter()
+    table = refine_particles(hologram, pd.DataFrame(particles), config, settings=settings, progress=progress, should_stop=should_stop)
+    record = {"settings": asdict(settings), "detections": len(particles["x_um"]), "kept": len(table), "seconds": time.perf_counter() - started}
+    return {name: table[name].to_numpy() for name in table.columns}, record
 
 
 def _predict_recording(request: PredictRequest, frames, out: Path, record_path: Path, *, progress, should_stop, log: Log) -> StepResult:
@@ -577,7 +622,11 @@ def _predict_recording(request: PredictRequest, frames, out: Path, record_path: 
     model = load_model(request.model, device="cpu")  # each worker moves it to the device
     result = predict_sequence(frames, model, request.config, background=background, background_window=request.background_window, workers=request.workers,
                               scheduler=request.scheduler, force=request.force, work_dir=work_dir, device=request.device, progress=progress, should_stop=should_stop)
-    _write_table(out, record_path, result.particles, {**result.provenance, "background_file": request.background_path, "particles": str(out)})
+    particles, provenance = result.particles, dict(result.provenance)
+    if request.refine:
+        particles, provenance["refine"] = _refined_frames(frames, particles, request.config or model.config, background=background, log=log, progress=progress,
+                                                          should_stop=should_stop)
+    _write_table(out, record_path, particles, {**provenance, "background_file": request.background_path, "particles": str(out)})
     shutil.rmtree(work_dir)
     count, done = len(result.particles["x_um"]), result.provenance["frames"]
     resumed = f"; {result.resumed} frames resumed from {work_dir}" if result.resumed else ""
