@@ -98,7 +98,7 @@ class RefineSettings:
     depth_window_um: float = 400.0
     depth_candidates: int = 3
     patch_px: int = 128
-    iterations: int = 12
+    iterations: int = 8
     rounds: int = 2
     huber: float = 2.5
     min_gain: float = 50.0
@@ -281,8 +281,8 @@ class _Model:
         per parameter: measured 60 times slower), and the lateral shifts reuse the
         unshifted radial profiles.
 
-        With ``envelope`` the diameter and index columns are central differences over half a
-        size parameter (``Δ(k a) = ±0.25``, ``Δ(m x) = ±0.25``): a transparent sphere's
+        With ``envelope`` the diameter and index columns are central differences over a
+        size parameter (``Δ(k a) = ±0.5``, ``Δ(m x) = ±0.5``): a transparent sphere's
         hologram ripples with its size and index (morphology-dependent resonances, spaced
         ``Δ(k a) ≈ 0.2`` at k a ≈ 150, measured), so the local curvature promises a
         precision that only the ripple supports; the secant over the ripple measures the
@@ -294,9 +294,9 @@ class _Model:
         steps = {k: torch.full((count,), _JACOBIAN_STEPS[k], dtype=torch.float64, device=params.device) for k in depth_like}
         central = [k for k in (3, 4) if envelope and k in depth_like]
         if 3 in central:
-            steps[3] = torch.full_like(steps[3], 0.5 / k_m)  # Δ(k a) = 0.25 each way
+            steps[3] = torch.full_like(steps[3], 1.0 / k_m)  # Δ(k a) = 0.5 each way
         if 4 in central:
-            steps[4] = 0.25 * self.optics["medium_index"] / (k_m * params[:, 3] / 2.0)  # Δ(m x) = 0.25 each way
+            steps[4] = 0.5 * self.optics["medium_index"] / (k_m * params[:, 3] / 2.0)  # Δ(m x) = 0.5 each way
         signs = [(k, 1.0) for k in depth_like] + [(k, -1.0) for k in central]
         stacked = params.repeat(1 + len(signs), 1)
         for slot, (k, sign) in enumerate(signs, start=1):
@@ -418,10 +418,11 @@ def _depth_offsets(model: _Model, params: torch.Tensor, *, window_um: float, pix
 
 
 # The size-index scan: diameters around the start, and for each the index contrasts whose
-# phase delay k0 d Δn steps through two periods on each side of the start's in sixths.
-_SCAN_DIAMETER_STEPS = (-3, -2, -1, 0, 1, 2, 3)  # in units of _SCAN_DIAMETER_UM
+# phase delay k0 d Δn steps through one period on each side of the start's in thirds (the
+# valley itself is chosen after the fit, `_choose_valley`).
+_SCAN_DIAMETER_STEPS = (-2, -1, 0, 1, 2)  # in units of _SCAN_DIAMETER_UM
 _SCAN_DIAMETER_UM = 0.8
-_SCAN_DELAY_STEPS = tuple(j / 6 for j in range(-12, 13))
+_SCAN_DELAY_STEPS = tuple(j / 3 for j in range(-3, 4))
 
 
 def _search_starts(model: _Model, params: torch.Tensor, free: torch.Tensor, scale: torch.Tensor, *, window_um: float, pixel_um: float,
@@ -475,11 +476,11 @@ def _residual_inflation(residual: torch.Tensor, mask: torch.Tensor, shapes: list
     return torch.tensor(out, dtype=torch.float64, device=residual.device)
 
 
-_VALLEY_PRIOR = 4.0  # robust-cost units (noise variances) per phase-delay period from the starting index
-_RIPPLE_SHIFTS = (-4, -3, -2, -1, 1, 2, 3, 4)  # starts along the size–index valley, in steps of Δ(k a) = 0.15
+_VALLEY_PRIOR = 16.0  # robust-cost units (half noise variances) per squared phase-delay period from the starting index
+_RIPPLE_SHIFTS = (-2, -1, 1, 2)  # starts along the size–index valley, in steps of Δ(k a) = 0.25
 
 
-_VALLEYS = (-2, -1, 1, 2)  # neighbouring size–index valleys, in phase-delay periods
+_VALLEYS = (-1, 1)  # neighbouring size–index valleys, in phase-delay periods
 
 
 def _choose_valley(model: _Model, params: torch.Tensor, free: torch.Tensor, low: torch.Tensor, high: torch.Tensor, *, start_index: torch.Tensor,
@@ -518,7 +519,7 @@ def _escape_ripple(model: _Model, params: torch.Tensor, free: torch.Tensor, low:
     """
     count = params.shape[0]
     k_m = 2.0 * math.pi * model.optics["medium_index"] / model.optics["wavelength_um"]
-    shifts = torch.tensor(_RIPPLE_SHIFTS, dtype=torch.float64, device=params.device) * (0.3 / k_m)
+    shifts = torch.tensor(_RIPPLE_SHIFTS, dtype=torch.float64, device=params.device) * (0.5 / k_m)
     both = (free[:, 3] & free[:, 4]).to(torch.float64)
     starts = params[:, None, :].repeat(1, shifts.numel(), 1)
     diameters = params[:, 3:4] + shifts[None, :] * both[:, None]
@@ -740,25 +741,38 @@ def refine_particles(
         axis = FIT_PARAMETERS.index(name)
         start[:, axis] = value * to_physical if name == "z_um" else value
         free[:, axis] = False
-    batches = [np.arange(i, min(i + settings.batch, count)) for i in range(0, count, settings.batch)]
-    steps = Steps(len(batches) * settings.rounds, progress=progress, should_stop=should_stop)
+    chunks = max(1, -(-count // settings.batch))
+    steps = Steps(chunks * settings.rounds, progress=progress, should_stop=should_stop)
     current = start.copy()
     result: dict[str, np.ndarray] = {}
     size = 2.0 * math.pi * settings.medium_index / optics.wavelength_um * (np.max(start[:, 3]) if count else 1.0) / 2.0
     terms = term_count(size * 1.15, (settings.medium_index + 0.6) / settings.medium_index)
-    for round_index in range(settings.rounds):
-        outputs = []
+    reach = 1.5 * settings.patch_px * optics.pixel_um
+    for round_index in range(settings.rounds if count else 0):
+        if round_index == 0:
+            todo = np.arange(count)
+        else:  # only particles with a neighbour in reach change when neighbours join the model
+            distance = np.hypot(current[:, None, 0] - current[None, :, 0], current[:, None, 1] - current[None, :, 1])
+            todo = np.flatnonzero(((distance < reach).sum(axis=1) > 1) & result["ok"])
         snapshot = current.copy()
-        for index in batches:
+        outputs = []
+        for first in range(0, todo.size, settings.batch):
+            index = todo[first : first + settings.batch]
             steps.check()
-            others = _neighbour_fields(snapshot, index, settings=settings, config=config, terms=terms, device=device) if round_index > 0 and count > 1 else None
+            others = _neighbour_fields(snapshot, index, settings=settings, config=config, terms=terms, device=device) if round_index > 0 else None
             begin = snapshot[index] if round_index > 0 else start[index]
             outputs.append(_fit_batch(image, begin, free[index], others, search=round_index == 0, settings=settings, config=config, terms=terms,
                                       device=device, steps=steps))
             steps.advance()
-        result = {key: np.concatenate([o[key] for o in outputs]) for key in outputs[0]} if outputs else {}
         if outputs:
+            part = {key: np.concatenate([o[key] for o in outputs]) for key in outputs[0]}
+            if round_index == 0:
+                result = part
+            else:
+                for key, values in part.items():
+                    result[key][todo] = values
             current = np.where(result["ok"][:, None], result["params"], start)
+        steps.advance(chunks - len(outputs))
     out = frame.copy()
     if count:
         keep = np.where(result["ok"], result["gain"] >= settings.min_gain, True)
