@@ -78,7 +78,7 @@ def suite(folder: str, *, level: float, cache: str | None, sizes: list[int] | No
             "right": named == expected,  # a control is right when nothing is named (nothing missing, or undecided)
             "names_one": bool(verdict["id"]) and any(e in named.split("+") for e in case["expected"]),
             "posterior": {k: round(v, 3) for k, v in list(report["posterior"].items())[:4]}, "gap": round(report["gap"]["baseline"], 3),
-            "residual": round(verdict["residual"], 3), "catalog_explains": verdict["catalog_explains"], "seconds": round(seconds, 1),
+            "residual": round(verdict["residual"], 3), "residual_low": round(verdict["residual_interval"][0], 3), "catalog_explains": verdict["catalog_explains"], "seconds": round(seconds, 1),
         }
         rows.append(row)
         print(json.dumps(row), flush=True)

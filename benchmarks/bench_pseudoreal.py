@@ -43,7 +43,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import pseudoreal  # noqa: E402
 
-from napari_lbs._cli import DEMO_SAMPLE_DISTRACTORS  # noqa: E402
+from napari_lbs._core._pipeline import DEMO_SAMPLE_DISTRACTORS  # noqa: E402
 
 from napari_lbs._core import (
     CalibrationSettings,
@@ -106,7 +106,7 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None) -> d
         diagnosis = diagnose_hologram(experiment, config, settings=DiagnosisSettings())
         write_report(diagnosis, out / "diagnosis", provenance={"source": "pseudo-real hologram, real density"})
         print(f"diagnosis: {time.perf_counter() - start:.0f} s, verdict {diagnosis.report['verdict']}", flush=True)
-    report = json.loads(report_path.read_text()) if needs_report else {"verdict": None, "waterfall": None}
+    report = json.loads(report_path.read_text()) if needs_report else {"verdict": None, "posterior": None}
     effects = effects_from_report(report, name=str(report_path)) if needs_report else {}
 
     lbs = InputProcessing.from_calibration(calibration)
@@ -119,7 +119,7 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None) -> d
         "plain_effects": (InputProcessing(), effects, Distractors()),
         "distractors": (InputProcessing(), TRANSPARENT, DEMO_DISTRACTORS),
     }
-    results = {"calibration": calibration["params"], "ssim": calibration["ssim"], "verdict": report["verdict"], "waterfall": report["waterfall"], "effects": effects, "stages": {}}
+    results = {"calibration": calibration["params"], "ssim": calibration["ssim"], "verdict": report["verdict"], "posterior": report.get("posterior"), "effects": effects, "stages": {}}
     for stage, (processing, stage_effects, distractors) in stages.items():
         if only and stage not in only:
             continue

@@ -13,7 +13,7 @@ One concern per module:
 `_amortized`
     `amortized_diagnoser`, `forest_posterior`, `DiagnosisSettings`: simulate, train, cache per setup; the posterior.
 `_twosample`
-    `c2st`: classifier two-sample test.
+    `c2st`, `mmd`: two-sample tests (told apart? how far apart?).
 `_known`
     `known_sensor`: what a file of integer counts states (bit depth, saturation).
 `_diagnose`
@@ -27,9 +27,9 @@ from napari_lbs._core._gap._diagnose import Diagnosis, diagnose_hologram
 from napari_lbs._core._gap._known import known_sensor
 from napari_lbs._core._gap._report import write_report
 from napari_lbs._core._gap._summaries import MIN_TILE_PX, SUMMARY_GROUPS, tile_summaries
-from napari_lbs._core._gap._twosample import c2st
+from napari_lbs._core._gap._twosample import c2st, mmd
 
 __all__ = [
     "diagnose_hologram", "write_report", "Diagnosis", "DiagnosisSettings", "forest_posterior", "amortized_diagnoser", "Diagnoser", "load_diagnoser",
-    "default_cache_dir", "known_sensor", "tile_summaries", "c2st", "SUMMARY_GROUPS", "MIN_TILE_PX",
+    "default_cache_dir", "known_sensor", "tile_summaries", "c2st", "mmd", "SUMMARY_GROUPS", "MIN_TILE_PX",
 ]

@@ -6,13 +6,15 @@
 2. The setup's amortized diagnoser (`amortized_diagnoser`: simulations from a broad prior,
    a random forest, cached) gives each candidate effect's probability of being present; the
    posterior over models — nothing missing, one effect, or two — is the same forest's
-   (`forest_posterior`). The verdict is the most probable model where its probability reaches
-   ``settings.level``; else the two most probable are named undecided.
+   (`forest_posterior`). The verdict names the effects present with at least
+   ``settings.level`` probability (two at most); with none, nothing is missing where that is
+   the most probable model and clears the level, else the two most probable models are
+   named undecided.
 3. Where and how much: for every model, the simulations of that model closest to the
-   experiment (forest proximity) are compared with the experiment's tiles by a classifier
-   two-sample test (`c2st`): the gap is its accuracy above chance, 2 (accuracy − 0.5), 0 =
-   indistinguishable, 1 = always told apart. The baseline's test is also run per frequency
-   band, per depth and per tile (the map of where the experiment is most unlike the simulation).
+   experiment in every feature (ABC rejection) are compared with the experiment's tiles: the
+   gap is their squared maximum mean discrepancy (`mmd`), and a classifier two-sample test
+   (`c2st`) says whether they can be told apart at all, per frequency band, per depth and per
+   tile (the map of where the experiment is most unlike the simulation).
 """
 
 from __future__ import annotations
@@ -30,15 +32,14 @@ from napari_lbs._core._gap._features import set_features, set_summaries
 from napari_lbs._core._gap._known import known_sensor
 from napari_lbs._core._gap._scenarios import ScenarioPrior, TileGrid, catalog_candidates
 from napari_lbs._core._gap._summaries import MIN_TILE_PX
-from napari_lbs._core._gap._twosample import c2st
+from napari_lbs._core._gap._twosample import c2st, mmd
 from napari_lbs._core._io import InputError, as_hologram
 from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
 
 __all__ = ["Diagnosis", "diagnose_hologram"]
 
 _TILE_PX = 128  # tile edge (px) where the sensor's cells hold it
-_PAIR_SHOWN = 0.01  # pairs below this posterior probability are left out of the report's posterior
-_UNEXPLAINED = 0.5  # gap (2 (accuracy - 0.5)) whose lower bound, after the best model, says the catalog does not explain the data
+_UNEXPLAINED = 0.9  # C2ST accuracy whose lower bound, with the best model, says the catalog does not explain the data
 
 
 @dataclass
@@ -80,21 +81,24 @@ def _grid(shape: tuple[int, int], tile_px: int | None) -> TileGrid:
     return TileGrid((int(shape[0]), int(shape[1])), size)
 
 
-def _nearest(diagnoser: Diagnoser, proximity: np.ndarray, model: tuple, count: int) -> np.ndarray:
-    """Indices of the ``count`` simulations of exactly ``model`` (effects present) closest to the experiment."""
+def _nearest(diagnoser: Diagnoser, distance: np.ndarray, model: tuple, count: int) -> np.ndarray:
+    """Indices of the ``count`` simulations of exactly ``model`` (effects present) closest to the experiment (smallest ``distance``)."""
     wanted = np.array([c in model for c in diagnoser.candidates])
     members = np.flatnonzero((diagnoser.present == wanted).all(axis=1))
     if members.size == 0:
         return members
-    return members[np.argsort(-proximity[members], kind="stable")[:count]]
+    return members[np.argsort(distance[members], kind="stable")[:count]]
+
+
+def _separation(real: np.ndarray, simulated: np.ndarray, *, seed: int) -> float:
+    """How often a classifier tells the two samples apart: 2 (C2ST accuracy − 0.5), 0 … 1."""
+    return max(0.0, 2 * (c2st(real, simulated, seed=seed)["accuracy"] - 0.5))
 
 
 def _gap(real: np.ndarray, simulated: np.ndarray, *, seed: int) -> dict:
-    test = c2st(real, simulated, seed=seed)
-    return {
-        "gap": max(0.0, 2 * (test["accuracy"] - 0.5)), "interval": [max(0.0, 2 * (v - 0.5)) for v in test["interval"]], "accuracy": test["accuracy"],
-        "real_probability": test["real_probability"],
-    }
+    """The gap (squared MMD, with its interval) and the C2ST (accuracy, interval, each real tile's held-out probability)."""
+    test, distance = c2st(real, simulated, seed=seed), mmd(real, simulated, seed=seed)
+    return {"gap": distance["value"], "interval": distance["interval"], "accuracy": test["accuracy"], "accuracy_interval": test["interval"], "real_probability": test["real_probability"]}
 
 
 def _params(diagnoser: Diagnoser, proximity: np.ndarray, effect_id: str) -> dict:
@@ -176,6 +180,8 @@ def diagnose_hologram(
     stated = check_effects(stated or {})
     known_effects = ({"quantization": {"bits": bits}} if bits else {}) | stated
     candidates = catalog_candidates(known_effects)
+    if not candidates:
+        raise InputError("stated: every catalog effect is known or stated; nothing is left to diagnose")
     prior = ScenarioPrior(candidates=candidates, known=stated, bits=bits)
     training = {"done": 0}
 
@@ -204,18 +210,23 @@ def diagnose_hologram(
     marginals = {k: float(v) for k, v in marginals.items()}
     leaves = diagnoser.forest.leaves(x)[0]
     proximity = (diagnoser.leaves == leaves[None, :]).mean(axis=1)
+    # the simulations most like the experiment in every feature, nuisances included (ABC rejection):
+    # what the two-sample tests compare it with
+    scale = diagnoser.features.std(axis=0)
+    scale[scale == 0] = 1.0
+    distance = np.sqrt((((diagnoser.features - x) / scale) ** 2).sum(axis=1))
     steps.advance()
 
     # how far each model's closest simulations are from the experiment
     def gap_of(model: tuple) -> dict:
-        chosen = _nearest(diagnoser, proximity, model, settings.neighbours)
+        chosen = _nearest(diagnoser, distance, model, settings.neighbours)
         if chosen.size == 0:
-            return {"gap": float("nan"), "interval": [float("nan")] * 2, "accuracy": float("nan"), "real_probability": np.full(len(real), np.nan), "simulations": 0}
+            return {"gap": float("nan"), "interval": [float("nan")] * 2, "accuracy": float("nan"), "accuracy_interval": [float("nan")] * 2, "real_probability": np.full(len(real), np.nan), "simulations": 0}
         return {**_gap(real, diagnoser.summaries[chosen].reshape(-1, real.shape[1]), seed=settings.seed), "simulations": int(chosen.size)}
 
     steps.check()
     baseline = gap_of(())
-    neighbours_null = _nearest(diagnoser, proximity, (), settings.neighbours)
+    neighbours_null = _nearest(diagnoser, distance, (), settings.neighbours)
     null_sim = diagnoser.summaries[neighbours_null].reshape(-1, real.shape[1]) if neighbours_null.size else real
     steps.advance()
     effects = []
@@ -224,50 +235,59 @@ def diagnose_hologram(
         after = gap_of((effect_id,))
         shrink = 1.0 - after["gap"] / baseline["gap"] if baseline["gap"] > 0 else 0.0
         effects.append({
-            "id": effect_id, "probability": marginals[effect_id], "gap_after": after["gap"], "gap_after_interval": after["interval"], "shrink": float(shrink),
+            "id": effect_id, "probability": marginals[effect_id], "gap_after": after["gap"], "gap_after_interval": after["interval"], "shrink": float(shrink), "c2st_accuracy": after["accuracy"],
             **_params(diagnoser, proximity, effect_id),
         })
         steps.advance()
     effects.sort(key=lambda e: -e["probability"])
 
+    # the verdict: the effects present with at least ``level`` probability (the two most probable
+    # where more clear it); else nothing missing where that is the most probable model and clears the level;
+    # else undecided between the two most probable models
     ranked = sorted(posterior.items(), key=lambda item: -item[1])
-    best, best_p = ranked[0]
-    named_effects = () if best == "null" else tuple(best.split("+"))
-    named_gap = gap_of(named_effects) if named_effects else baseline
-    if best_p >= settings.level:
-        verdict_id, undecided = (None if best == "null" else best), []
-        reason = f"{best}: posterior probability {best_p:.2f} (level {settings.level:.2f})"
+    present = sorted((e for e in candidates if marginals[e] >= settings.level), key=lambda e: -marginals[e])[:2]
+    named_effects = tuple(e for e in candidates if e in present)
+    undecided = []
+    if named_effects:
+        verdict_id, probability = "+".join(named_effects), min(marginals[e] for e in named_effects)
+        reason = " and ".join(f"{e} present with probability {marginals[e]:.2f}" for e in named_effects) + f" (level {settings.level:.2f})"
+    elif ranked[0][0] == "null" and ranked[0][1] >= settings.level:
+        verdict_id, probability = None, ranked[0][1]
+        reason = f"nothing missing: posterior probability {ranked[0][1]:.2f} (level {settings.level:.2f}); most probable effect {effects[0]['id']} ({effects[0]['probability']:.2f})"
     else:
-        verdict_id, undecided = None, [ranked[0][0], ranked[1][0]]
-        reason = f"undecided between {ranked[0][0]} ({ranked[0][1]:.2f}) and {ranked[1][0]} ({ranked[1][1]:.2f}): neither reaches {settings.level:.2f}"
+        verdict_id, probability, undecided = None, ranked[0][1], [ranked[0][0], ranked[1][0]]
+        reason = f"undecided between {ranked[0][0]} ({ranked[0][1]:.2f}) and {ranked[1][0]} ({ranked[1][1]:.2f}): no effect is present with probability {settings.level:.2f}"
+    named_gap = gap_of(named_effects) if named_effects else baseline
     explained = named_gap if verdict_id else min([baseline, gap_of((effects[0]["id"],))] if effects else [baseline], key=lambda g: g["gap"])
-    catalog_explains = not (np.isfinite(explained["interval"][0]) and explained["interval"][0] >= _UNEXPLAINED)
+    catalog_explains = not (np.isfinite(explained["accuracy_interval"][0]) and explained["accuracy_interval"][0] >= _UNEXPLAINED)
     verdict = {
-        "id": verdict_id, "effects": list(named_effects) if verdict_id else [], "probability": float(best_p) if verdict_id or best == "null" else float(ranked[0][1]),
+        "id": verdict_id, "effects": list(named_effects), "probability": float(probability),
         "shrink": float(1.0 - named_gap["gap"] / baseline["gap"]) if verdict_id and baseline["gap"] > 0 else 0.0,
-        "residual": float(named_gap["gap"]), "undecided": undecided, "catalog_explains": bool(catalog_explains), "reason": reason,
-        "runner_up": ranked[1][0],
+        "residual": float(named_gap["gap"]), "residual_interval": [float(v) for v in named_gap["interval"]], "undecided": undecided, "catalog_explains": bool(catalog_explains), "reason": reason,
+        "runner_up": next((k for k, _ in ranked if k != (verdict_id or "null")), None),
     }
     if not catalog_explains:
-        verdict["reason"] += f"; the catalog does not explain this gap: after the best model the experiment's tiles are still told apart from its closest simulations (gap {explained['gap']:.2f}, lower bound {explained['interval'][0]:.2f})"
+        verdict["reason"] += (f"; the catalog does not explain this gap: with the best model the experiment's tiles are still told apart from its closest simulations "
+                              f"(C2ST accuracy {explained['accuracy']:.2f}, lower bound {explained['accuracy_interval'][0]:.2f})")
 
     # where the baseline's gap lies: per frequency band, per depth, per tile
     steps.check()
     names = diagnoser.summary_names
-    by_band = [{"band": n, "gap": _gap(real[:, [i]], null_sim[:, [i]], seed=settings.seed)["gap"]} for i, (n, g) in enumerate(names) if g == "band" and n.startswith("log power ") and "cyc/px" in n]
+    by_band = [{"band": n, "gap": _separation(real[:, [i]], null_sim[:, [i]], seed=settings.seed)} for i, (n, g) in enumerate(names) if g == "band" and n.startswith("log power ") and "cyc/px" in n]
     depths = sorted({n.split(" at ")[1] for n, g in names if g == "depth" and " at " in n}, key=lambda s: float(s.split()[0]))
-    by_depth = [{"depth_um": float(d.split()[0]), "gap": _gap(real[:, [i for i, (n, _) in enumerate(names) if n.endswith(f" at {d}")]], null_sim[:, [i for i, (n, _) in enumerate(names) if n.endswith(f" at {d}")]], seed=settings.seed)["gap"]} for d in depths]
+    at_depth = {d: [i for i, (n, _) in enumerate(names) if n.endswith(f" at {d}")] for d in depths}
+    by_depth = [{"depth_um": float(d.split()[0]), "gap": _separation(real[:, at_depth[d]], null_sim[:, at_depth[d]], seed=settings.seed)} for d in depths]
     tile_map = _tile_map(grid, places, baseline["real_probability"])
     steps.advance()
 
-    shown = {k: float(v) for k, v in posterior.items() if "+" not in k or v >= _PAIR_SHOWN}
-    total = sum(shown.values())
     report = {
-        "posterior": {k: v / total for k, v in sorted(shown.items(), key=lambda item: -item[1])},
+        "posterior": {k: float(v) for k, v in sorted(posterior.items(), key=lambda item: -item[1])},
         "marginals": marginals,
         "gap": {
-            "metric": "classifier two-sample test of the experiment's tiles against the closest simulations: 2 (held-out accuracy - 0.5); 0 = indistinguishable, 1 = always told apart",
-            "baseline": float(baseline["gap"]), "baseline_interval": baseline["interval"], "by_band": by_band, "by_depth": by_depth,
+            "metric": "squared maximum mean discrepancy (Gaussian kernel, standardised tile summaries) between the experiment's tiles and the closest simulations' (0 = one distribution)",
+            "baseline": float(baseline["gap"]), "baseline_interval": baseline["interval"], "baseline_c2st_accuracy": baseline["accuracy"],
+            "where_metric": "2 (C2ST held-out accuracy - 0.5) on one band's or one depth's summaries: 0 = indistinguishable, 1 = always told apart",
+            "by_band": by_band, "by_depth": by_depth,
             "tiles": {"shape": list(tile_map.shape), "most_unlike": _most_unlike(tile_map, grid)},
         },
         "known": known_effects,

@@ -30,7 +30,7 @@ def write_report(diagnosis: Diagnosis, out_dir, *, provenance: dict | None = Non
     axes[0].plot([b["gap"] for b in gap["by_band"]], "o-", color="tab:blue")
     axes[0].set_xticks(range(len(gap["by_band"])), [b["band"].split()[2].split("-")[0] for b in gap["by_band"]], rotation=45, fontsize=7)
     axes[0].set_xlabel("spatial-frequency band from (cycles/px)")
-    axes[0].set_ylabel("gap (0 = indistinguishable, 1 = always told apart)")
+    axes[0].set_ylabel("told apart: 2 (C2ST accuracy − 0.5)")
     axes[0].set_ylim(0, 1)
     axes[0].set_title("where: by frequency band")
     axes[1].plot([d["depth_um"] for d in gap["by_depth"]], [d["gap"] for d in gap["by_depth"]], "s-", color="tab:orange")
@@ -58,8 +58,7 @@ def write_report(diagnosis: Diagnosis, out_dir, *, provenance: dict | None = Non
     effects = report["effects"]
     axes[1].barh([e["id"] for e in effects][::-1], [e["gap_after"] for e in effects][::-1], color="tab:purple")
     axes[1].axvline(gap["baseline"], color="k", lw=0.8, ls="--", label="baseline (nothing added)")
-    axes[1].set_xlim(0, 1)
-    axes[1].set_xlabel("gap with the effect added (closest simulations)")
+    axes[1].set_xlabel("gap with the effect added (MMD² to the closest simulations)")
     axes[1].legend(fontsize=7)
     axes[1].set_title("how much: the gap with each effect")
     with atomic_path(out / "gap_effects.png") as temporary:

@@ -164,10 +164,11 @@ def _tiles_summaries(
     and array arithmetic run without Python's global lock. Each tile's summary is computed as alone, so the result
     does not depend on the threads.
     """
-    done = list(_summary_pool().map(
-        lambda args: tile_summaries(args[0], config=config, fringe_frequency=fringe_frequency, field_mean=args[1], surroundings=args[2]),
-        zip(tiles, field_means, surroundings, strict=True),
-    ))
+    def one(args):
+        with np.errstate(all="ignore"):  # a flat (e.g. fully saturated) tile has no moments: NaN, which the caller handles
+            return tile_summaries(args[0], config=config, fringe_frequency=fringe_frequency, field_mean=args[1], surroundings=args[2])
+
+    done = list(_summary_pool().map(one, zip(tiles, field_means, surroundings, strict=True)))
     return np.stack([values for values, _ in done]), done[0][1]
 
 
