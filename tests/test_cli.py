@@ -5,6 +5,7 @@ import sys
 import numpy as np
 import pytest
 import tifffile
+import torch
 
 from napari_lbs._cli import main
 from napari_lbs._core import read_particles
@@ -59,7 +60,7 @@ def test_bad_input_exits_2_with_one_line_naming_the_culprit(tmp_path, args, culp
     assert not (tmp_path / "s.tif").exists()
 
 
-def test_demo_quick_runs_the_whole_pipeline(tmp_path):
+def test_demo_quick_runs_the_whole_pipeline_and_gives_the_same_result_under_load(tmp_path):
     assert main(["demo", "--out", str(tmp_path), "--quick"]) == 0
     summary = json.loads((tmp_path / "summary.json").read_text())
     stack = tifffile.imread(summary["zstack"])
@@ -69,6 +70,20 @@ def test_demo_quick_runs_the_whole_pipeline(tmp_path):
     table = read_particles(summary["particles"])
     assert len(table["x_um"]) == summary["particle_count"]
     assert json.loads((tmp_path / "particles.json").read_text())["model_sha256"] == summary["model_sha256"]
+    assert summary["training"]["stop_reason"] is None and summary["training"]["epochs_done"] == summary["training"]["epochs_planned"]
+
+    # again with another process spinning on a core: a fixed amount of work, so the same model
+    busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        assert main(["demo", "--out", str(tmp_path / "loaded"), "--quick"]) == 0
+    finally:
+        busy.kill()
+        busy.wait()
+    assert (tmp_path / "loaded" / "particles.csv").read_bytes() == (tmp_path / "particles.csv").read_bytes()
+    weights = [torch.load(folder / "model.pt", weights_only=True)["state_dict"] for folder in (tmp_path, tmp_path / "loaded")]  # the files differ in the data's path
+    assert weights[0].keys() == weights[1].keys() and all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])
+    logs = [json.loads((folder / "model.json").read_text()) for folder in (tmp_path, tmp_path / "loaded")]
+    assert [e["train_loss"] for e in logs[0]["epochs"]] == [e["train_loss"] for e in logs[1]["epochs"]]
 
 
 def test_generate_train_predict_evaluate_end_to_end(tmp_path):

@@ -31,8 +31,13 @@ Files written (all atomically, so a stop or a crash never leaves a broken one):
 ``MODEL.last.pt``
     the last finished epoch with optimizer and random states, for ``resume=True``.
 
-Same seed, same data, same device → the same weights on CPU (a ``minutes`` budget stops at a
-time, not a step, so it is the one setting that can end two runs at different epochs).
+Same seed, same data, same device → the same weights on CPU, under any load: the work is a
+fixed number of epochs, the batch order and crops come from the seed, and the CPU kernels the
+network uses are deterministic. Their float summation order depends on the thread count, so
+bit-identical weights on another machine need the same count (the log's ``threads``) and the
+same torch build and instruction set. A ``minutes`` budget stops at a time, not a
+step: it is a safety stop, the one setting that can end two runs at different epochs, and the
+log's ``stop_reason`` says when it did.
 """
 
 from __future__ import annotations
@@ -449,6 +454,7 @@ def train_model(
         "settings": asdict(settings),
         "learning_rate": settings.rate,
         "device": str(device),
+        "threads": torch.get_num_threads(),
         "dataset": dataset_summary(dataset),
         "training_groups": training,
         "validation_groups": validation,
