@@ -14,7 +14,8 @@ error is within twice the reported uncertainty, and seconds per particle; beside
 pylorenzmie's own fit (`Feature.optimize`, Levenberg–Marquardt, the same patches, started
 at the same guesses) on a few particles, its seconds per particle measured in the same run.
 
-    python benchmarks/bench_refine.py --particles 16 --threads 2 --out benchmarks/results/refine/run.json
+    python benchmarks/bench_refine.py --particles 8 --size 512 --threads 2 --out benchmarks/results/refine/fit.json
+    python benchmarks/bench_refine.py --forward --out benchmarks/results/refine/forward.json
 """
 
 from __future__ import annotations
@@ -88,6 +89,39 @@ def pylorenzmie_fit(hologram: np.ndarray, start, *, pixel_um: float, wavelength_
     return seconds, {"z_um": float(result["z_p"]) * pixel_um / WATER, "diameter_um": 2 * float(result["a_p"]), "index_contrast": float(result["n_p"]) - WATER}
 
 
+def forward_check(size: int = 160) -> list[dict]:
+    """Our Lorenz–Mie hologram against pylorenzmie's (point-sampled, the same sphere) over the size and depth range, with both timings."""
+    import torch
+    from pylorenzmie.theory import LorenzMie, Sphere
+    from pylorenzmie.theory.Instrument import Instrument
+
+    from napari_lbs._core._lorenz_mie import sphere_holograms
+
+    rows = []
+    pixel, wavelength = 2.2, 0.66
+    for diameter in (16.0, 26.0, 36.0):
+        for z_air in (1900.0, 3300.0, 4700.0):
+            z = z_air * WATER
+            centre = (size / 2 + 0.3, size / 2 - 0.2)
+            instrument = Instrument(wavelength=wavelength, magnification=pixel, n_m=WATER)
+            sphere = Sphere(a_p=diameter / 2, n_p=WATER + CONTRAST, k_p=0.0, x_p=centre[0], y_p=centre[1], z_p=z / pixel)
+            model = LorenzMie(coordinates=LorenzMie.meshgrid((size, size)), particle=sphere, instrument=instrument)
+            model.hologram()  # compile
+            began = time.perf_counter()
+            reference = model.hologram()
+            theirs = time.perf_counter() - began
+            grid_rows, grid_cols = np.mgrid[0:size, 0:size].astype(float)
+            dx = torch.tensor(((grid_cols - centre[0]) * pixel).ravel())[None]
+            dy = torch.tensor(((grid_rows - centre[1]) * pixel).ravel())[None]
+            began = time.perf_counter()
+            ours = sphere_holograms(dx, dy, *(torch.tensor([v]) for v in (z, diameter, CONTRAST, 0.0)), wavelength_um=wavelength, medium_index=WATER)[0].numpy()
+            mine = time.perf_counter() - began
+            relative = float(np.sqrt(np.mean((ours - reference) ** 2)) / np.sqrt(np.mean((reference - 1.0) ** 2)))
+            rows.append({"diameter_um": diameter, "z_air_um": z_air, "relative_rms": relative, "seconds_ours": mine, "seconds_pylorenzmie": theirs})
+            print(f"  d {diameter:.0f} µm, z {z_air:.0f} µm: relative rms {relative:.1e}; {mine:.3f} s vs pylorenzmie {theirs:.3f} s", flush=True)
+    return rows
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--particles", type=int, default=16)
@@ -96,6 +130,7 @@ def main(argv=None) -> int:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--pylorenzmie", type=int, default=3, help="particles also fitted by pylorenzmie (0: none)")
     parser.add_argument("--out", type=Path)
+    parser.add_argument("--forward", action="store_true", help="only compare the forward model with pylorenzmie (160² holograms over the size and depth range)")
     args = parser.parse_args(argv)
 
     import torch
@@ -104,6 +139,14 @@ def main(argv=None) -> int:
 
     torch.set_num_threads(args.threads)
     converge_pylorenzmie()
+    if args.forward:
+        rows = forward_check()
+        text = json.dumps({"threads": args.threads, "forward": rows, "max_relative_rms": max(r["relative_rms"] for r in rows)}, indent=1)
+        print(text)
+        if args.out:
+            args.out.parent.mkdir(parents=True, exist_ok=True)
+            args.out.write_text(text + "\n")
+        return 0
     config = load_config()
     began = time.perf_counter()
     hologram, truth, start = scene(args.particles, args.size, args.seed)
