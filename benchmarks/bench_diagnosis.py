@@ -1,10 +1,12 @@
 """Gap diagnosis benchmarks: the withheld-effect suites, in-simulation recovery, the seed check, the real hologram.
 
-    python benchmarks/bench_diagnosis.py suite DIR [--level P] [--cache DIR]
+    python benchmarks/bench_diagnosis.py suite DIR [--level P] [--cache DIR] [--keep KEPT]
         Score a suite written by ``withheld_suite.py make`` (DIR/design.json and its holograms):
         top-1 and top-2 (the expected model first, or among the two most probable), false
         alarms among the controls, each with a 95 % Wilson interval, and the calibration of the
         reported probabilities (of the verdicts given at P >= 0.8, the share right).
+    python benchmarks/bench_diagnosis.py rescore KEPT --level P [--level Q ...]
+        The kept reports' verdicts at other levels (the posterior does not change with the level).
     python benchmarks/bench_diagnosis.py insim [--size PX] [--fresh N]
         The setup's diagnoser (trained and cached on first use) on N fresh simulations from its
         own prior: the share whose most probable model is the true one, per model size.
@@ -30,6 +32,7 @@ import numpy as np
 from napari_lbs._core import ExperimentConfig, read_hologram
 from napari_lbs._core._effects import EFFECTS
 from napari_lbs._core._gap import DiagnosisSettings, amortized_diagnoser, diagnose_hologram, forest_posterior
+from napari_lbs._core._gap._diagnose import decide
 from napari_lbs._core._gap._amortized import _simulate
 from napari_lbs._core._gap._scenarios import ScenarioPrior, TileGrid, catalog_candidates
 
@@ -57,7 +60,41 @@ def _share(hits: int, trials: int) -> str:
     return f"{hits}/{trials} ({100 * hits / max(trials, 1):.0f} %, 95 % interval {100 * low:.0f}-{100 * high:.0f} %)"
 
 
-def suite(folder: str, *, level: float, cache: str | None, sizes: list[int] | None = None) -> None:
+def _row(case: dict, report: dict, seconds: float) -> dict:
+    """One case's result line: what was expected, what was said, how sure, and the gaps."""
+    expected = _model_name(case["expected"])
+    ranked = list(report["posterior"])
+    verdict = report["verdict"]
+    named = verdict["id"] or "null"
+    top = sorted(report["marginals"].items(), key=lambda kv: -kv[1])[:3]
+    return {
+        "case": case["name"], "size": case["size"], "expected": expected, "verdict": verdict["id"], "undecided": verdict["undecided"],
+        "probability": round(verdict["probability"], 3), "p_expected": round(report["posterior"].get(expected, 0.0), 3), "top2": expected in ranked[:2],
+        "right": named == expected,  # a control is right when nothing is named (nothing missing, or undecided)
+        "names_one": bool(verdict["id"]) and any(e in named.split("+") for e in case["expected"]),
+        "presence": {k: round(v, 3) for k, v in top}, "posterior": {k: round(v, 3) for k, v in list(report["posterior"].items())[:4]},
+        "gap": round(report["gap"]["baseline"], 3), "residual": round(verdict["residual"], 3), "residual_interval": [round(v, 3) for v in verdict["residual_interval"]],
+        "c2st_accuracy": round(report["gap"]["baseline_c2st_accuracy"], 3), "catalog_explains": verdict["catalog_explains"], "seconds": round(seconds, 1),
+    }
+
+
+def _score(rows: list[dict], title: str) -> None:
+    effects = [r for r in rows if r["expected"] != "null"]
+    controls = [r for r in rows if r["expected"] == "null"]
+    pairs = [r for r in effects if "+" in r["expected"]]
+    alarms = sum(r["verdict"] is not None for r in controls)
+    confident = [r for r in rows if (r["verdict"] is not None or not r["undecided"]) and r["probability"] >= 0.8]
+    print(title)
+    print(f"  top-1 {_share(sum(r['right'] for r in effects), len(effects))} of the cases with a withheld effect")
+    print(f"  top-2 {_share(sum(r['top2'] for r in effects), len(effects))}")
+    print(f"  false alarms {_share(alarms, len(controls))} of the controls")
+    print(f"  two-effect cases: both named {sum(r['right'] for r in pairs)}/{len(pairs)}, at least one {sum(r['names_one'] for r in pairs)}/{len(pairs)}")
+    print(f"  calibration: of {len(confident)} answers at P >= 0.8, {sum(r['right'] for r in confident)} right")
+    print(f"  undecided: {sum(bool(r['undecided']) for r in rows)}; the catalog said not to explain the data: {sum(not r['catalog_explains'] for r in rows)}")
+    print(f"  time per diagnosis: median {np.median([r['seconds'] for r in rows]):.1f} s (diagnosers cached)")
+
+
+def suite(folder: str, *, level: float, cache: str | None, keep: str | None, sizes: list[int] | None = None) -> None:
     design = json.loads((Path(folder) / "design.json").read_text())
     settings = DiagnosisSettings(level=level, cache_dir=cache)
     rows = []
@@ -67,33 +104,25 @@ def suite(folder: str, *, level: float, cache: str | None, sizes: list[int] | No
         image = read_hologram(Path(folder) / case["file"])
         start = time.perf_counter()
         report = diagnose_hologram(image, CONFIG, settings=settings).report
-        seconds = time.perf_counter() - start
-        expected = _model_name(case["expected"])
-        ranked = list(report["posterior"])
-        verdict = report["verdict"]
-        named = verdict["id"] or "null"
-        row = {
-            "case": case["name"], "size": case["size"], "expected": expected, "verdict": verdict["id"], "undecided": verdict["undecided"],
-            "probability": round(verdict["probability"], 3), "p_expected": round(report["posterior"].get(expected, 0.0), 3), "top2": expected in ranked[:2],
-            "right": named == expected,  # a control is right when nothing is named (nothing missing, or undecided)
-            "names_one": bool(verdict["id"]) and any(e in named.split("+") for e in case["expected"]),
-            "posterior": {k: round(v, 3) for k, v in list(report["posterior"].items())[:4]}, "gap": round(report["gap"]["baseline"], 3),
-            "residual": round(verdict["residual"], 3), "residual_low": round(verdict["residual_interval"][0], 3), "catalog_explains": verdict["catalog_explains"], "seconds": round(seconds, 1),
-        }
-        rows.append(row)
-        print(json.dumps(row), flush=True)
-    effects = [r for r in rows if r["expected"] != "null"]
-    controls = [r for r in rows if r["expected"] == "null"]
-    pairs = [r for r in effects if "+" in r["expected"]]
-    alarms = sum(r["verdict"] is not None for r in controls)
-    confident = [r for r in rows if (r["verdict"] is not None or not r["undecided"]) and r["probability"] >= 0.8]
-    print(f"suite {design['suite']} (seed {design['seed']}, {len(rows)} cases), level {level}:")
-    print(f"  top-1 {_share(sum(r['right'] for r in effects), len(effects))} of the cases with a withheld effect")
-    print(f"  top-2 {_share(sum(r['top2'] for r in effects), len(effects))}")
-    print(f"  false alarms {_share(alarms, len(controls))} of the controls")
-    print(f"  two-effect cases: both named {sum(r['right'] for r in pairs)}/{len(pairs)}, at least one {sum(r['names_one'] for r in pairs)}/{len(pairs)}")
-    print(f"  calibration: of {len(confident)} answers at P >= 0.8, {sum(r['right'] for r in confident)} right")
-    print(f"  time per diagnosis: median {np.median([r['seconds'] for r in rows]):.1f} s (diagnosers cached)")
+        rows.append(_row(case, report, time.perf_counter() - start))
+        print(json.dumps(rows[-1]), flush=True)
+        if keep:
+            Path(keep).mkdir(parents=True, exist_ok=True)
+            (Path(keep) / f"{case['name']}.json").write_text(json.dumps({"case": case, "report": report, "seconds": rows[-1]["seconds"]}))
+    _score(rows, f"suite {design['suite']} (seed {design['seed']}, {len(rows)} cases), level {level}:")
+
+
+def rescore(folder: str, levels: list[float]) -> None:
+    """The kept reports' verdicts again at other levels (`decide`: no simulation, no new diagnosis)."""
+    kept = [json.loads(p.read_text()) for p in sorted(Path(folder).glob("*.json"))]
+    for level in levels:
+        rows = []
+        for item in kept:
+            report = item["report"]
+            verdict_id, _, probability, undecided, reason = decide(report["marginals"], report["posterior"], level=level)
+            report = {**report, "verdict": {**report["verdict"], "id": verdict_id, "probability": probability, "undecided": undecided, "reason": reason}}
+            rows.append(_row(item["case"], report, item["seconds"]))
+        _score(rows, f"{folder}: {len(rows)} kept reports at level {level}:")
 
 
 def insim(size: int, fresh: int) -> None:
@@ -150,6 +179,10 @@ def main() -> None:
     p.add_argument("--level", type=float, default=DiagnosisSettings().level)
     p.add_argument("--cache")
     p.add_argument("--size", type=int, action="append", help="only the cases of this sensor size (repeatable)")
+    p.add_argument("--keep", help="folder to keep every case's report in (for rescore)")
+    p = sub.add_parser("rescore")
+    p.add_argument("folder")
+    p.add_argument("--level", type=float, action="append", required=True)
     p = sub.add_parser("insim")
     p.add_argument("--size", type=int, default=512)
     p.add_argument("--fresh", type=int, default=300)
@@ -158,7 +191,9 @@ def main() -> None:
     sub.add_parser("real")
     args = parser.parse_args()
     if args.command == "suite":
-        suite(args.folder, level=args.level, cache=args.cache, sizes=args.size)
+        suite(args.folder, level=args.level, cache=args.cache, keep=args.keep, sizes=args.size)
+    elif args.command == "rescore":
+        rescore(args.folder, args.level)
     elif args.command == "insim":
         insim(args.size, args.fresh)
     elif args.command == "seeds":

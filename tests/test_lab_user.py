@@ -354,7 +354,7 @@ def test_the_gap_map_has_a_labelled_colour_bar(make_napari_viewer, qtbot):
     viewer = laptop_viewer(make_napari_viewer)
     layer = viewer.add_image(np.ones((256, 256), np.float32), name="holo", scale=(2.2, 2.2), units="µm")
     _, step = viewer.window.add_plugin_dock_widget("napari-lbs", "6 Gap diagnosis")
-    report = {"posterior": {"null": 0.7, "illumination": 0.3}, "settings": {"level": 0.9}, "tiles": {"tile_px": 64}}
+    report = {"posterior": {"null": 0.7, "illumination": 0.3}, "marginals": {"illumination": 0.3}, "settings": {"level": 0.9}, "tiles": {"tile_px": 64}}
     diagnosis = SimpleNamespace(report=report, tile_map=np.linspace(0, 1, 16).reshape(4, 4))
     step.show((SimpleNamespace(value=diagnosis, summary="verdict: undecided"), SimpleNamespace(out_dir="report"), layer))
     gap_map = next(layer for layer in viewer.layers if layer.name.startswith("gap"))

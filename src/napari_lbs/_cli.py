@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import signal
 import sys
 import threading
@@ -28,7 +29,7 @@ from napari_lbs import __version__
 from napari_lbs._core import InputError, load_config
 from napari_lbs._core import _pipeline as pipeline
 from napari_lbs._core._files import json_safe
-from napari_lbs._core._pipeline import DEMO_SAMPLE_DISTRACTORS
+from napari_lbs._core._threads import size_threads
 from napari_lbs._core._validation import check_output_path
 
 # Failures that are the input's or the machine's, not the program's: exit 2 with one line.
@@ -298,10 +299,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--effect", action="append", default=[], metavar="ID[:NAME=VALUE,...]",
                    help="add an effect of the catalog, e.g. particle_phase:index_contrast=0.26,transmission=1 or quantization:bits=8,saturation=2 (repeatable)")
     p.add_argument("--impurities", type=_integer(0), default=0, metavar="N",
-                   help="unlabelled small scatterers per tile, smaller than the particles (default 0; the demo uses %d)" % DEMO_SAMPLE_DISTRACTORS["impurities_per_tile"])
+                   help="unlabelled small scatterers per tile, smaller than the particles (default 0; the demo uses %d)" % pipeline.DEMO_SAMPLE_DISTRACTORS["impurities_per_tile"])
     p.add_argument("--impurity-diameter-um", type=_number(0.0, above=True), nargs=2, default=(4.0, 14.0), metavar=("MIN", "MAX"), help="their diameter range in um (default 4 14)")
     p.add_argument("--neighbours-margin-px", type=_integer(0, 4096), default=0, metavar="PX",
-                   help="simulate each group with unlabelled particles in a margin of PX pixels around it and keep the window, as a crop of a real hologram is (default 0; the demo uses %d)" % DEMO_SAMPLE_DISTRACTORS["neighbours_margin_px"])
+                   help="simulate each group with unlabelled particles in a margin of PX pixels around it and keep the window, as a crop of a real hologram is (default 0; the demo uses %d)" % pipeline.DEMO_SAMPLE_DISTRACTORS["neighbours_margin_px"])
     p.set_defaults(run=_cmd_generate)
 
     p = sub.add_parser("train", help="train the U-Net on a synthetic training set")
@@ -363,7 +364,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="an effect you know the experiment has, put into every simulation and not diagnosed, e.g. particle_phase:index_contrast=0.26,transmission=1 for polystyrene beads in water (repeatable)")
     p.add_argument("--simulations", type=_integer(20), default=2000,
                    help="simulations the setup's diagnoser is trained on, once; it is cached and reused (default 2000: about 10 minutes on 2 cores)")
-    p.add_argument("--level", type=_number(0.0, 1.0, above=True), default=0.5, help="probability an effect needs to be named present (default 0.5)")
+    p.add_argument("--level", type=_number(0.0, 1.0, above=True), default=0.35, help="probability an effect needs to be named present (default 0.35, chosen on the development suite)")
     p.add_argument("--cache", metavar="DIR", help="where trained diagnosers are kept (default: ~/.cache/napari-lbs/diagnosers)")
     p.add_argument("--seed", type=_SEED, default=0, help="the two-sample tests' folds (the posterior does not depend on it)")
     p.set_defaults(run=_cmd_diagnose)
@@ -409,6 +410,7 @@ def main(argv: list[str] | None = None) -> int:
         # SIGTERM unwinds like Ctrl-C, so every temporary file is removed on the way out
         previous = signal.signal(signal.SIGTERM, _terminate)
     try:
+        size_threads()  # torch, BLAS and the FFTs on the cores this process may run on, or NAPARI_LBS_THREADS
         args.run(args)
     except KeyboardInterrupt:
         print(f"napari-lbs {args.command}: interrupted; no partial file was left (finished files, such as generated groups, are kept)", file=sys.stderr)
@@ -435,8 +437,6 @@ def console_main() -> None:
     a SIGTERM that lands inside an import (numpy loads submodules lazily) makes CPython end
     the process with SIGINT at shutdown, although `main` caught it (exit -2 instead of 130).
     """
-    import os
-
     status = main()
     if status == 130:
         sys.stdout.flush()

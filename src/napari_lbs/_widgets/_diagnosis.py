@@ -32,7 +32,7 @@ class DiagnosisWidget(StepWidget):
         self.simulations = SpinBox(label="simulations", name="simulations", value=DiagnosisSettings().simulations, min=20, max=100_000,
                                    tooltip="Simulations the setup's diagnoser learns from, once per setup (cached and reused): 2000 take about 10 minutes on 2 cores")
         self.level = FloatSpinBox(label="level", name="level", value=DiagnosisSettings().level, min=0.05, max=1.0, step=0.05,
-                                  tooltip="Posterior probability a model needs to be named; below it the verdict is undecided")
+                                  tooltip="Probability an effect needs to be named present; below it the verdict is nothing missing or undecided")
         self.seed = SpinBox(label="seed", name="seed", value=0, min=0, max=2**31 - 1, tooltip="Seeds the two-sample tests' folds (the posterior does not depend on it)")
         self.known_effects = LineEdit(label="known effects", name="known_effects", value="",
                                       tooltip="Effects you know the experiment has, put into every simulation and not diagnosed, as on the command line, separated by ';' "
@@ -78,7 +78,7 @@ class DiagnosisWidget(StepWidget):
         diagnosis = result.value
         self.diagnosis = diagnosis
         report = diagnosis.report
-        self._plot.show(report["posterior"], level=report["settings"]["level"])
+        self._plot.show(report["marginals"], nothing_missing=report["posterior"]["null"], level=report["settings"]["level"])
         size = int(report["tiles"]["tile_px"])
         pixel = np.asarray(layer.scale[-2:], float)
         scale = tuple(pixel * size)

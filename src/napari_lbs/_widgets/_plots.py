@@ -107,42 +107,21 @@ class FitnessPlot:
 
 
 class PosteriorPlot:
-    """A diagnosis's posterior: each model's probability (nothing missing, one effect, or two), the level a verdict needs."""
+    """A diagnosis's answer: each effect's probability of being present and of nothing missing, and the level a verdict needs."""
 
     def __init__(self) -> None:
         self.canvas, self.axes = _dark_canvas(height_px=190)
-        self.show({}, level=0.5)
+        self.show({}, nothing_missing=0.0, level=0.5)
 
-    def show(self, posterior: dict, *, level: float, top: int = 6) -> None:
-        """Bars for the ``top`` most probable models of ``posterior`` (``{model: probability}``)."""
+    def show(self, presence: dict, *, nothing_missing: float, level: float, top: int = 6) -> None:
+        """Bars for the ``top`` most probable effects of ``presence`` (``{effect: probability}``) and for nothing missing."""
         self.axes.clear()
         _style(self.axes)
-        ranked = sorted(posterior.items(), key=lambda item: -item[1])[:top][::-1]
+        ranked = sorted(presence.items(), key=lambda item: -item[1])[:top][::-1]
         if ranked:
-            self.axes.barh([k for k, _ in ranked], [v for _, v in ranked], color=_LOSS_COLOUR)
-            self.axes.axvline(level, color=_SCORE_COLOUR, lw=1, ls="--")
+            names = ["nothing missing"] + [k for k, _ in ranked]
+            self.axes.barh(names, [nothing_missing] + [v for _, v in ranked], color=[_SCORE_COLOUR] + [_LOSS_COLOUR] * len(ranked))
+            self.axes.axvline(level, color=_FOREGROUND, lw=1, ls="--")
         self.axes.set_xlim(0, 1)
-        self.axes.set_xlabel(f"posterior probability (a verdict needs {level:.2f})", fontsize=8)
-        self.canvas.draw_idle()
-
-
-class ColourBarPlot:
-    """The labelled colour bar of a map drawn over the hologram (napari's own colour bar has no label)."""
-
-    def __init__(self) -> None:
-        self.canvas, self.axes = _dark_canvas(height_px=70)
-        self.canvas.figure.set_size_inches(3.5, 0.7)
-        self.axes.set_visible(False)
-
-    def show(self, *, label: str, limits: tuple[float, float], colormap: str) -> None:
-        """Draw the bar of ``colormap`` over ``limits`` with ``label`` under it."""
-        from matplotlib.cm import ScalarMappable
-        from matplotlib.colors import Normalize
-
-        self.axes.clear()
-        self.axes.set_visible(True)
-        bar = self.canvas.figure.colorbar(ScalarMappable(Normalize(*limits), colormap), cax=self.axes, orientation="horizontal")
-        bar.set_label(label, fontsize=8, color=_FOREGROUND)
-        bar.outline.set_edgecolor(_FOREGROUND)
-        self.axes.tick_params(colors=_FOREGROUND, labelsize=8)
+        self.axes.set_xlabel(f"probability (an effect is named from {level:.2f})", fontsize=8)
         self.canvas.draw_idle()
