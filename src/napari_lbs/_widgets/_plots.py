@@ -125,3 +125,25 @@ class PosteriorPlot:
         self.axes.set_xlim(0, 1)
         self.axes.set_xlabel(f"probability (an effect is named from {level:.2f})", fontsize=8)
         self.canvas.draw_idle()
+
+
+class ColourBarPlot:
+    """The labelled colour bar of a map drawn over the hologram (napari's own colour bar has no label)."""
+
+    def __init__(self) -> None:
+        self.canvas, self.axes = _dark_canvas(height_px=70)
+        self.canvas.figure.set_size_inches(3.5, 0.7)
+        self.axes.set_visible(False)
+
+    def show(self, *, label: str, limits: tuple[float, float], colormap: str) -> None:
+        """Draw the bar of ``colormap`` over ``limits`` with ``label`` under it."""
+        from matplotlib.cm import ScalarMappable
+        from matplotlib.colors import Normalize
+
+        self.axes.clear()
+        self.axes.set_visible(True)
+        bar = self.canvas.figure.colorbar(ScalarMappable(Normalize(*limits), colormap), cax=self.axes, orientation="horizontal")
+        bar.set_label(label, fontsize=8, color=_FOREGROUND)
+        bar.outline.set_edgecolor(_FOREGROUND)
+        self.axes.tick_params(colors=_FOREGROUND, labelsize=8)
+        self.canvas.draw_idle()
