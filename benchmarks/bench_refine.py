@@ -70,7 +70,7 @@ def pylorenzmie_fit(hologram: np.ndarray, start, *, pixel_um: float, wavelength_
     from pylorenzmie.analysis import Feature
     from pylorenzmie.analysis.Hologram import Hologram
 
-    col, row = int(round(start.x_um / pixel_um)), int(round(start.y_um / pixel_um))
+    col, row = round(start.x_um / pixel_um), round(start.y_um / pixel_um)
     half = patch_px // 2
     top, left = max(row - half, 0), max(col - half, 0)
     crop = hologram[top : top + patch_px, left : left + patch_px]

@@ -72,8 +72,12 @@ def test_mie_coefficients_match_the_textbook_formula():
     x, m = 2 * np.pi * WATER / WAVELENGTH_UM * 8.0, 1.59 / WATER  # d = 16 µm polystyrene in water
     a, b = mie_coefficients(torch.tensor([x]), torch.tensor([complex(m)]), terms=term_count(x, m))
     for n in (1, 2, 40, 110):
-        psi = lambda z: z * spherical_jn(n, z)  # noqa: E731
-        dpsi = lambda z: spherical_jn(n, z) + z * spherical_jn(n, z, derivative=True)  # noqa: E731
+        def psi(z, n=n):
+            return z * spherical_jn(n, z)
+
+        def dpsi(z, n=n):
+            return spherical_jn(n, z) + z * spherical_jn(n, z, derivative=True)
+
         h = spherical_jn(n, x) + 1j * spherical_yn(n, x)
         xi, dxi = x * h, h + x * (spherical_jn(n, x, derivative=True) + 1j * spherical_yn(n, x, derivative=True))
         a_exact = (m * psi(m * x) * dpsi(x) - psi(x) * dpsi(m * x)) / (m * psi(m * x) * dxi - xi * dpsi(m * x))
@@ -133,7 +137,7 @@ def test_forward_models_are_differentiable_in_every_parameter():
 
 PIXEL_UM = 2.2
 # small patches keep each test within seconds; the benchmark uses the defaults
-FAST = dict(patch_px=48, depth_window_um=120.0, iterations=8, depth_candidates=2)
+FAST = {"patch_px": 48, "depth_window_um": 120.0, "iterations": 8, "depth_candidates": 2}
 
 
 def _config():

@@ -48,8 +48,15 @@ import math
 import torch
 
 __all__ = [
-    "term_count", "radial_step", "mie_coefficients", "radial_profiles", "fields_from_profiles", "sphere_fields", "holograms_from_fields", "sphere_holograms",
     "disc_holograms",
+    "fields_from_profiles",
+    "holograms_from_fields",
+    "mie_coefficients",
+    "radial_profiles",
+    "radial_step",
+    "sphere_fields",
+    "sphere_holograms",
+    "term_count",
 ]
 
 
@@ -58,7 +65,7 @@ def term_count(size_parameter: float, relative_index: complex) -> int:
     """Partial waves to keep (Wiscombe 1980; at least ``|m x|``, Yang 2003)."""
     x = abs(float(size_parameter))
     stop = x + 4.0 * x ** (1 / 3) + 1 if x <= 8 else x + 4.05 * x ** (1 / 3) + 2
-    return max(int(math.floor(stop)), int(abs(x * complex(relative_index))), 1)
+    return max(math.floor(stop), int(abs(x * complex(relative_index))), 1)
 
 
 def mie_coefficients(size_parameter: torch.Tensor, relative_index: torch.Tensor, *, terms: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -211,7 +218,7 @@ def radial_profiles(
         terms = term_count(float(size[largest].detach()), complex(relative[largest].detach()))
     a, b = mie_coefficients(size, relative, terms=terms)
     step = radial_step(z_um, diameter_um, wavelength_um=wavelength_um, medium_index=medium_index) if radial_step_um is None else radial_step_um
-    samples = int(math.ceil(rho_max_um / step)) + 4
+    samples = math.ceil(rho_max_um / step) + 4
     grid = ((torch.arange(samples, dtype=torch.float64, device=z_um.device) - 1.0) * step).abs()
     z = z_um.to(torch.float64)
     return _radial_profiles(a, b, k, z, grid.expand(z.shape[0], -1)), step
@@ -381,8 +388,8 @@ def disc_holograms(
     """
     rows, cols = shape
     grid = (2 * rows, 2 * cols)
-    fy = torch.fft.fftfreq(grid[0], d=pixel_um, dtype=torch.float64)[:, None]
-    fx = torch.fft.fftfreq(grid[1], d=pixel_um, dtype=torch.float64)[None, :]
+    fy = torch.fft.fftfreq(grid[0], d=pixel_um, dtype=torch.float64, device=x_px.device)[:, None]
+    fx = torch.fft.fftfreq(grid[1], d=pixel_um, dtype=torch.float64, device=x_px.device)[None, :]
     f = torch.sqrt(fx**2 + fy**2)
     lam = wavelength_um / medium_index
     q = lam**2 * f**2

@@ -195,7 +195,7 @@ def _cut_patches(image: np.ndarray, x_um: np.ndarray, y_um: np.ndarray, edges: n
     shapes = []
     for i, (x, y, edge) in enumerate(zip(x_um, y_um, edges, strict=True)):
         half = edge // 2
-        c0, r0 = int(round(x / pixel_um)) - half, int(round(y / pixel_um)) - half
+        c0, r0 = round(x / pixel_um) - half, round(y / pixel_um) - half
         r_lo, r_hi = max(r0, 0), min(r0 + edge, rows)
         c_lo, c_hi = max(c0, 0), min(c0 + edge, cols)
         if r_lo >= r_hi or c_lo >= c_hi:
@@ -214,7 +214,7 @@ def _cut_patches(image: np.ndarray, x_um: np.ndarray, y_um: np.ndarray, edges: n
         us[i, :n] = (cc.ravel() - (c0 + half)) / max(half, 1)
         vs[i, :n] = (rr.ravel() - (r0 + half)) / max(half, 1)
         shapes.append(block.shape)
-    as_tensor = lambda a: torch.as_tensor(a, dtype=torch.float64, device=device)  # noqa: E731
+    as_tensor = lambda a: torch.as_tensor(a, dtype=torch.float64, device=device)
     return _Patches(as_tensor(data), as_tensor(mask), as_tensor(xs), as_tensor(ys), as_tensor(us), as_tensor(vs), shapes)
 
 
@@ -498,7 +498,7 @@ def _choose_valley(model: _Model, params: torch.Tensor, free: torch.Tensor, low:
     k = shifts.numel()
     candidates = params[:, None, :].repeat(1, k, 1)
     candidates[:, :, 4] = params[:, 4:5] + torch.where(free[:, 4:5], period[:, None] * shifts, torch.zeros_like(period[:, None]))
-    grow = lambda t: t.repeat_interleave(k, dim=0)  # noqa: E731
+    grow = lambda t: t.repeat_interleave(k, dim=0)
     wide = _Model(_expand(model.patches, k), _grow_others(model.others, k), pixel_um=model.pixel_um, terms=model.terms, **model.optics)
     fitted, cost = _levenberg_marquardt(wide, candidates.reshape(count * k, -1), grow(free), grow(low), grow(high), scale=grow(scale), settings=settings,
                                         iterations=max(3, settings.iterations // 2), steps=steps)
@@ -527,7 +527,7 @@ def _escape_ripple(model: _Model, params: torch.Tensor, free: torch.Tensor, low:
     starts[:, :, 3] = diameters
     k = shifts.numel() + 1
     candidates = torch.cat([params[:, None, :], starts], dim=1).reshape(count * k, -1)
-    grow = lambda t: t.repeat_interleave(k, dim=0)  # noqa: E731
+    grow = lambda t: t.repeat_interleave(k, dim=0)
     wide = _Model(_expand(model.patches, k), _grow_others(model.others, k), pixel_um=model.pixel_um, terms=model.terms, **model.optics)
     fitted, cost = _levenberg_marquardt(wide, candidates, grow(free), grow(low), grow(high), scale=grow(scale), settings=settings, iterations=3, steps=steps)
     best = torch.argmin(cost.reshape(count, k), dim=1)
@@ -541,7 +541,7 @@ def _grow_others(others: torch.Tensor | None, k: int) -> torch.Tensor | None:
 
 def _expand(patches: _Patches, k: int, *, interleave: bool = True) -> _Patches:
     """Each patch repeated ``k`` times in a row (one per candidate start), or the whole batch ``k`` times."""
-    grow = (lambda t: t.repeat_interleave(k, dim=0)) if interleave else (lambda t: t.repeat(k, 1))  # noqa: E731
+    grow = (lambda t: t.repeat_interleave(k, dim=0)) if interleave else (lambda t: t.repeat(k, 1))
     shapes = [s for s in patches.shape for _ in range(k)] if interleave else patches.shape * k
     return _Patches(*(grow(getattr(patches, f.name)) for f in fields(_Patches) if f.name != "shape"), shape=shapes)
 
@@ -593,7 +593,7 @@ def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of
         steps.check()
         k = candidates.shape[1]
         wide_model = _Model(_expand(coarse, k), _grow_others(coarse_model.others, k), **model_optics)
-        grow = lambda t: t.repeat_interleave(k, dim=0)  # noqa: E731
+        grow = lambda t: t.repeat_interleave(k, dim=0)
         # absorption stays at its start while the valley is chosen: free, it lets a wrong
         # size–index valley mimic the right one (measured on noise-free spheres)
         searching = free_t.clone()
