@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from napari_lbs import __version__
 from napari_lbs._core._config import ExperimentConfig
 from napari_lbs._core._errors import InputError
 from napari_lbs._core._gap._features import feature_names, set_features, set_summaries
@@ -114,7 +115,7 @@ def default_cache_dir() -> Path:
 
 def _setup(config: ExperimentConfig, grid: TileGrid, prior: ScenarioPrior, settings: DiagnosisSettings) -> dict:
     return {
-        "format": CACHE_FORMAT, "config": config.to_dict(), "grid": {"frame_shape": list(grid.frame_shape), "tile_px": grid.tile_px, "per_side": grid.per_side},
+        "format": CACHE_FORMAT, "napari_lbs": __version__, "config": config.to_dict(), "grid": {"frame_shape": list(grid.frame_shape), "tile_px": grid.tile_px, "per_side": grid.per_side},
         "prior": {"candidates": list(prior.candidates), "none": prior.none, "one": prior.one, "known": prior.known, "bits": prior.bits, "density": list(prior.density), "strength": list(prior.strength)},
         "simulations": settings.simulations, "trees": settings.trees, "training_seed": settings.training_seed,
     }

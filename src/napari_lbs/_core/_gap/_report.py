@@ -58,7 +58,7 @@ def write_report(diagnosis: Diagnosis, out_dir, *, provenance: dict | None = Non
     effects = report["effects"]
     axes[1].barh([e["id"] for e in effects][::-1], [e["gap_after"] for e in effects][::-1], color="tab:purple")
     axes[1].axvline(gap["baseline"], color="k", lw=0.8, ls="--", label="baseline (nothing added)")
-    axes[1].set_xlabel("gap with the effect added (MMD² to the closest simulations)")
+    axes[1].set_xlabel("gap with the effect added (MMD²)")
     axes[1].legend(fontsize=7)
     axes[1].set_title("how much: the gap with each effect")
     with atomic_path(out / "gap_effects.png") as temporary:
