@@ -30,7 +30,7 @@ from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
 
 __all__ = ["DiagnosisSettings", "Diagnoser", "amortized_diagnoser", "default_cache_dir", "forest_posterior", "load_diagnoser"]
 
-CACHE_FORMAT = "napari-lbs diagnoser 2"
+CACHE_FORMAT = "napari-lbs diagnoser 3"
 
 
 @dataclass(frozen=True)
@@ -50,7 +50,7 @@ class DiagnosisSettings:
         a margin of 0.1 over the largest probability any effect got in its controls (0.23)
         and names 5 of its 11 effects (0.5: 4; 0.25: 8, with a margin of 0.02).
     neighbours : int
-        Simulations of each model closest to the experiment (forest proximity) that the
+        Simulations of each model closest to the experiment (in every feature) that the
         two-sample tests compare it with.
     seed : int
         The two-sample tests' folds. The diagnoser itself is trained with ``training_seed``,
@@ -88,8 +88,7 @@ class Diagnoser:
 
     ``features`` (simulations, F) the set features, ``summaries`` (simulations, tiles, S) each
     simulated tile's summaries, ``present`` (simulations, candidates) which effects each
-    scenario had, ``params`` ``{"effect.param": (simulations,)}`` (NaN where absent),
-    ``leaves`` (simulations, trees) where each simulation ends in the forest.
+    scenario had, ``params`` ``{"effect.param": (simulations,)}`` (NaN where absent).
     """
 
     key: str
@@ -100,7 +99,6 @@ class Diagnoser:
     present: np.ndarray
     params: dict
     forest: ForestArrays
-    leaves: np.ndarray
     meta: dict
 
     @property
@@ -197,11 +195,10 @@ def amortized_diagnoser(
     param_names = sorted({name for r in results for name in r[4]})
     params = {name: np.array([r[4].get(name, np.nan) for r in results], np.float64) for name in param_names}
     forest = train_forest(features, forest_answers(present), trees=settings.trees, seed=settings.training_seed, jobs=min(settings.jobs or _cores(), 4))
-    leaves = forest.leaves(features).astype(np.int32)
     steps.advance()
     _, names = set_summaries([np.random.default_rng(0).uniform(0.5, 1.5, (grid.tile_px, grid.tile_px)).astype(np.float32)], config=config)  # the names only
     meta = {**setup, "key": key, "summary_names": [list(n) for n in names], "candidates": list(candidates), "train_seconds": round(time.perf_counter() - start, 1)}
-    diagnoser = Diagnoser(key, candidates, [tuple(n) for n in names], features, summaries, present, params, forest, leaves, meta)
+    diagnoser = Diagnoser(key, candidates, [tuple(n) for n in names], features, summaries, present, params, forest, meta)
     _save(diagnoser, path)
     return diagnoser
 
@@ -242,7 +239,7 @@ def _save(diagnoser: Diagnoser, path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     arrays = {
         "meta": np.array(json.dumps(diagnoser.meta)), "features": diagnoser.features, "summaries": diagnoser.summaries, "present": diagnoser.present,
-        "leaves": diagnoser.leaves, "param_names": np.array(list(diagnoser.params), dtype=str), **diagnoser.forest.arrays(),
+        "param_names": np.array(list(diagnoser.params), dtype=str), **diagnoser.forest.arrays(),
     }
     for i, values in enumerate(diagnoser.params.values()):
         arrays[f"param_{i}"] = values
@@ -264,12 +261,12 @@ def load_diagnoser(path) -> Diagnoser:
             diagnoser = Diagnoser(
                 str(meta["key"]), tuple(meta["candidates"]), [tuple(n) for n in meta["summary_names"]], np.asarray(data["features"], np.float32),
                 np.asarray(data["summaries"], np.float32), np.asarray(data["present"], bool), {n: np.asarray(data[f"param_{i}"], np.float64) for i, n in enumerate(names)},
-                ForestArrays.from_arrays(data), np.asarray(data["leaves"], np.int64), meta,
+                ForestArrays.from_arrays(data), meta,
             )
     except (OSError, ValueError, KeyError, TypeError, json.JSONDecodeError) as error:
         raise InputError(f"{path}: not a napari-lbs diagnoser cache ({error})") from None
     n = diagnoser.features.shape[0]
-    if not (diagnoser.present.shape == (n, len(diagnoser.candidates)) and diagnoser.leaves.shape == (n, diagnoser.forest.roots.size) and diagnoser.summaries.shape[0] == n):
+    if not (diagnoser.present.shape == (n, len(diagnoser.candidates)) and diagnoser.forest.value.shape[1] == 2 * len(diagnoser.candidates) + 2 and diagnoser.summaries.shape[0] == n):
         raise InputError(f"{path}: not a napari-lbs diagnoser cache (arrays of inconsistent shapes)")
     return diagnoser
 

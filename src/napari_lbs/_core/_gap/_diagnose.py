@@ -125,26 +125,23 @@ def _gap(real: np.ndarray, simulated: np.ndarray, *, seed: int) -> dict:
     return {"gap": distance["value"], "interval": distance["interval"], "accuracy": test["accuracy"], "accuracy_interval": test["interval"], "real_probability": test["real_probability"]}
 
 
-def _params(diagnoser: Diagnoser, proximity: np.ndarray, effect_id: str) -> dict:
-    """The effect's parameters: proximity-weighted median and 90 % interval over the simulations that have it (ABC)."""
+def _params(diagnoser: Diagnoser, distance: np.ndarray, effect_id: str) -> dict:
+    """The effect's parameters by ABC rejection: median and 90 % interval over the simulations with it closest to the experiment in every feature.
+
+    The closest tenth of the simulations that have the effect (at least 20) are kept.
+    """
     column = diagnoser.candidates.index(effect_id)
     members = np.flatnonzero(diagnoser.present[:, column])
-    weights = proximity[members]
-    if weights.sum() <= 0:
-        weights = np.ones_like(weights)
+    kept = members[np.argsort(distance[members], kind="stable")[: max(20, members.size // 10)]]
     out, intervals = {}, {}
     for name, values in diagnoser.params.items():
         effect, _, param = name.partition(".")
-        if effect != effect_id:
+        v = values[kept]
+        v = v[np.isfinite(v)]
+        if effect != effect_id or v.size == 0:
             continue
-        v = values[members]
-        ok = np.isfinite(v)
-        if not ok.any():
-            continue
-        order = np.argsort(v[ok])
-        cumulative = np.cumsum(weights[ok][order]) / weights[ok].sum()
-        q = [float(v[ok][order][min(np.searchsorted(cumulative, level), ok.sum() - 1)]) for level in (0.05, 0.5, 0.95)]
-        out[param], intervals[param] = q[1], [q[0], q[2]]
+        low, median, high = np.quantile(v, (0.05, 0.5, 0.95))
+        out[param], intervals[param] = float(median), [float(low), float(high)]
     return {"params": check_effects({effect_id: out})[effect_id] if out else {}, "intervals": intervals}
 
 
@@ -232,8 +229,6 @@ def diagnose_hologram(
     real = np.vstack(real_tiles)
     marginals, posterior = forest_posterior(diagnoser, x[0])
     marginals = {k: float(v) for k, v in marginals.items()}
-    leaves = diagnoser.forest.leaves(x)[0]
-    proximity = (diagnoser.leaves == leaves[None, :]).mean(axis=1)
     # the simulations most like the experiment in every feature, nuisances included (ABC rejection):
     # what the two-sample tests compare it with
     scale = diagnoser.features.std(axis=0)
@@ -260,7 +255,7 @@ def diagnose_hologram(
         shrink = 1.0 - after["gap"] / baseline["gap"] if baseline["gap"] > 0 else 0.0
         effects.append({
             "id": effect_id, "probability": marginals[effect_id], "gap_after": after["gap"], "gap_after_interval": after["interval"], "shrink": float(shrink), "c2st_accuracy": after["accuracy"],
-            **_params(diagnoser, proximity, effect_id),
+            **_params(diagnoser, distance, effect_id),
         })
         steps.advance()
     effects.sort(key=lambda e: -e["probability"])

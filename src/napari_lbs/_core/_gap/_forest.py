@@ -4,9 +4,7 @@ The forest answers several yes/no questions at once (one output per catalog effe
 present?). Its trees are flattened into arrays (children, split feature, threshold, each
 output's share of "yes" in the leaf), so a cached forest is read with
 ``numpy.load(allow_pickle=False)`` and evaluated in numpy: nothing a file holds is executed.
-The leaves each example falls in (`ForestArrays.leaves`) give the forest's proximity between
-two examples — the share of trees in which they share a leaf — which picks the simulations
-closest to an experiment (Breiman 2001; ABC random forests, Pudlo et al. 2016, Raynal et al. 2019).
+(Breiman 2001; ABC model choice with random forests: Pudlo et al. 2016.)
 """
 
 from __future__ import annotations
