@@ -119,14 +119,15 @@ def mie_coefficients(size_parameter: torch.Tensor, relative_index: torch.Tensor,
     return torch.stack(a_terms, dim=-1), torch.stack(b_terms, dim=-1)
 
 
-def radial_step(z_um: torch.Tensor, diameter_um: torch.Tensor, *, wavelength_um: float, medium_index: float, samples_per_lobe: int = 12) -> float:
-    """Radial sample spacing (µm): the narrowest scattering lobe ``λ_m z / d`` of a batch over ``samples_per_lobe``.
+def radial_step(z_um: torch.Tensor, diameter_um: torch.Tensor, *, wavelength_um: float, medium_index: float, samples_per_lobe: int = 12) -> torch.Tensor:
+    """Radial sample spacing (µm) per sphere: its narrowest scattering lobe ``λ_m z / d`` over ``samples_per_lobe``.
 
     Twelve keep the interpolation error near 1e-4 of the fringes' amplitude (the comparison
-    with pylorenzmie); six, 16 times that, still far below a camera's noise.
+    with pylorenzmie); six, 16 times that, still far below a camera's noise. Each sphere
+    gets its own spacing, so its hologram does not depend on the batch it is computed in.
     """
-    lobe_um = (wavelength_um / medium_index) * float(torch.min(z_um.detach().to(torch.float64) / diameter_um.detach().to(torch.float64)))
-    return max(lobe_um / samples_per_lobe, 1e-3)
+    lobe_um = (wavelength_um / medium_index) * z_um.detach().to(torch.float64) / diameter_um.detach().to(torch.float64)
+    return torch.clamp(lobe_um / samples_per_lobe, min=1e-3)
 
 
 def _radial_profiles(a: torch.Tensor, b: torch.Tensor, k: float, z_um: torch.Tensor, rho_um: torch.Tensor) -> torch.Tensor:
@@ -203,12 +204,12 @@ def radial_profiles(
     wavelength_um: float,
     medium_index: float,
     terms: int | None = None,
-    radial_step_um: float | None = None,
-) -> tuple[torch.Tensor, float]:
+    radial_step_um: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """The spheres' ``A, B, C`` profiles (module docstring) from ρ = 0 to ``rho_max_um``.
 
     Arguments as `sphere_fields`. Returns ``(profiles, step)``: (3, B, R) complex128 samples
-    ``step`` µm apart (the first one at ρ = -step, mirrored), for `fields_from_profiles`.
+    ``step`` (B,) µm apart (the first one at ρ = -step, mirrored), for `fields_from_profiles`.
     """
     k = 2.0 * math.pi * medium_index / wavelength_um
     size = k * diameter_um.to(torch.float64) / 2.0
@@ -218,21 +219,21 @@ def radial_profiles(
         terms = term_count(float(size[largest].detach()), complex(relative[largest].detach()))
     a, b = mie_coefficients(size, relative, terms=terms)
     step = radial_step(z_um, diameter_um, wavelength_um=wavelength_um, medium_index=medium_index) if radial_step_um is None else radial_step_um
-    samples = math.ceil(rho_max_um / step) + 4
-    grid = ((torch.arange(samples, dtype=torch.float64, device=z_um.device) - 1.0) * step).abs()
-    z = z_um.to(torch.float64)
-    return _radial_profiles(a, b, k, z, grid.expand(z.shape[0], -1)), step
+    step = torch.as_tensor(step, dtype=torch.float64, device=z_um.device).expand(z_um.shape[0])
+    samples = math.ceil(rho_max_um / float(step.min())) + 4
+    grid = ((torch.arange(samples, dtype=torch.float64, device=z_um.device) - 1.0)[None, :] * step[:, None]).abs()
+    return _radial_profiles(a, b, k, z_um.to(torch.float64), grid), step
 
 
 def fields_from_profiles(
-    profiles: torch.Tensor, step: float, dx_um: torch.Tensor, dy_um: torch.Tensor, z_um: torch.Tensor, *, wavelength_um: float, medium_index: float
+    profiles: torch.Tensor, step: torch.Tensor, dx_um: torch.Tensor, dy_um: torch.Tensor, z_um: torch.Tensor, *, wavelength_um: float, medium_index: float
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``(E_x, E_y, E_z)`` at sensor points (B, P) from `radial_profiles` (B rows, or 1 row per several point sets)."""
     k = 2.0 * math.pi * medium_index / wavelength_um
     z = z_um.to(torch.float64)
     rho2 = dx_um.to(torch.float64) ** 2 + dy_um.to(torch.float64) ** 2
     rho = torch.sqrt(rho2 + 1e-300)
-    along_x, along_y, axial = _catmull_rom(profiles, rho / step + 1.0)
+    along_x, along_y, axial = _catmull_rom(profiles, rho / step[:, None] + 1.0)
     phase = k * rho2 / (torch.sqrt(rho2 + z[:, None] ** 2) + z[:, None])  # k (r - z) without cancellation
     carrier = torch.cos(phase) + 1j * torch.sin(phase)
     inv = 1.0 / (rho2 + 1e-300)
@@ -253,7 +254,7 @@ def sphere_fields(
     wavelength_um: float,
     medium_index: float,
     terms: int | None = None,
-    radial_step_um: float | None = None,
+    radial_step_um: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Scattered field ``(E_x, E_y, E_z)`` of spheres at sensor points, relative to the incident wave.
 
@@ -269,8 +270,8 @@ def sphere_fields(
         Vacuum wavelength (µm) and the medium's index ``n_m``.
     terms : int, optional
         Partial waves (default: `term_count` of the largest sphere).
-    radial_step_um : float, optional
-        Spacing of the radial samples (default: `radial_step` of the batch).
+    radial_step_um : (B,) tensor, optional
+        Spacing of each sphere's radial samples (default: `radial_step`).
 
     Returns
     -------
@@ -307,7 +308,7 @@ def sphere_holograms(
     medium_index: float,
     pixel_um: float | None = None,
     terms: int | None = None,
-    radial_step_um: float | None = None,
+    radial_step_um: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Lorenz–Mie holograms ``|x̂ + E_s|²`` (unobstructed light = 1) of spheres at sensor points.
 
