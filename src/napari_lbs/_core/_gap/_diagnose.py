@@ -204,15 +204,16 @@ def diagnose_hologram(
     if not candidates:
         raise InputError("stated: every catalog effect is known or stated; nothing is left to diagnose")
     prior = ScenarioPrior(candidates=candidates, known=stated, bits=bits)
-    training = {"done": 0}
+    trained = []  # the training's steps, where the setup's diagnoser is not cached yet: one progress bar for both
 
-    def trained(done, total):
-        training["done"] = done
+    def training(done, total):
+        trained[:] = [total]
         if progress is not None:
             progress(done, total + len(candidates) + 2)
 
-    diagnoser = amortized_diagnoser(config, grid, prior, settings=settings, progress=trained, should_stop=should_stop)
-    steps = Steps(len(candidates) + 2, progress=(lambda d, t: progress(settings.simulations + 1 + d, settings.simulations + 1 + t)) if progress else None, should_stop=should_stop)
+    diagnoser = amortized_diagnoser(config, grid, prior, settings=settings, progress=training, should_stop=should_stop)
+    offset = trained[0] if trained else 0
+    steps = Steps(len(candidates) + 2, progress=(lambda d, t: progress(offset + d, offset + t)) if progress else None, should_stop=should_stop)
 
     # the experiment: every frame, every shift of the grid
     steps.check()
