@@ -25,9 +25,7 @@ an evaluation is then elementwise work plus one SSIM.
 from __future__ import annotations
 
 import math
-import os
 import time
-from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 
@@ -38,6 +36,7 @@ from napari_lbs._core._io import InputError
 from napari_lbs._core._optics import backpropagate, propagate
 from napari_lbs._core._progress import ProgressCallback, ReportCallback, Steps, StopCallback
 from napari_lbs._core._synthesis import random_particle_field, simulate_hologram
+from napari_lbs._core._threads import thread_pool
 from napari_lbs._core._validation import check_holo_params, check_memory
 
 __all__ = [
@@ -59,7 +58,6 @@ PARAM_BOUNDS = {"N_R": (-1.0, 0.0), "N_sigma": (0.2, 0.6), "gamma": (0.6, 1.4)} 
 _NOISE_POOL = 16  # independent noise realisations per simulated field
 _RESCORE_DRAWS = 8  # fresh noise draws per field when re-scoring the finalists
 _FINALISTS = 5
-_POOL = ThreadPoolExecutor(max_workers=os.cpu_count() or 1, thread_name_prefix="napari-lbs-fitness")
 
 
 @dataclass(frozen=True)
@@ -279,7 +277,7 @@ class _Fitness:
     def loss(self, params: HoloParams, draws: Sequence[int]) -> float:
         """Mean ``1 - SSIM`` over the simulated fields, each with its noise draw (fields in parallel)."""
         self.evaluations += 1
-        scores = _POOL.map(lambda pair: 1.0 - self.ssim(self.image(params, *pair)), zip(range(len(self.signal)), draws, strict=False))
+        scores = thread_pool("fitness").map(lambda pair: 1.0 - self.ssim(self.image(params, *pair)), zip(range(len(self.signal)), draws, strict=False))
         return float(np.mean(list(scores)))
 
 

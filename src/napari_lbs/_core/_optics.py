@@ -30,11 +30,9 @@ J. W. Goodman, *Introduction to Fourier Optics*, 3rd ed., Sec. 3.10.
 
 from __future__ import annotations
 
-import os
 import threading
 from collections import OrderedDict
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
 from functools import lru_cache
 
 import numpy as np
@@ -42,6 +40,7 @@ import scipy.fft
 
 from napari_lbs._core._io import InputError
 from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
+from napari_lbs._core._threads import process_threads, thread_pool
 from napari_lbs._core._validation import check_memory
 
 __all__ = [
@@ -55,7 +54,6 @@ __all__ = [
 ]
 
 _WORKING_BYTES = 512 * 2**20  # working memory for one batch of padded planes
-_POOL = ThreadPoolExecutor(max_workers=os.cpu_count() or 1, thread_name_prefix="napari-lbs-asm")
 _MAX_PAD_FACTOR = 4
 
 
@@ -238,7 +236,7 @@ def _propagated_batches(field, distances, *, wavelength_um, pixel_um, medium_ind
     grid, spread_limit_um = propagation_grid(field.shape, z_max_um=float(np.max(np.abs(distances))), wavelength_um=wavelength_um, pixel_um=pixel_um, medium_index=medium_index)
     padded = np.full(grid, _border_mean(field), dtype=dtype)
     padded[:rows, :cols] = field
-    spectrum = scipy.fft.fft2(padded, workers=-1, overwrite_x=True)
+    spectrum = scipy.fft.fft2(padded, workers=process_threads(), overwrite_x=True)
     batch = max(1, _WORKING_BYTES // (spectrum.nbytes * 2))
     # An LRU cache smaller than a scan's kernels never hits on the next scan (each kernel is
     # evicted before its turn comes again), so such a scan does not fill it: a 1024² hologram
@@ -254,8 +252,8 @@ def _propagated_batches(field, distances, *, wavelength_um, pixel_um, medium_ind
             np.multiply(spectrum, kernel, out=work[j])
 
         # numpy releases the GIL: the memory-bound products run on all cores like the FFTs do.
-        list(_POOL.map(multiply, range(stop - start), distances[start:stop]))
-        scipy.fft.ifft2(work, axes=(-2, -1), workers=-1, overwrite_x=True)
+        list(thread_pool("asm").map(multiply, range(stop - start), distances[start:stop]))
+        scipy.fft.ifft2(work, axes=(-2, -1), workers=process_threads(), overwrite_x=True)
         yield start, stop, work[:, :rows, :cols]
         steps.advance(stop - start)
 
@@ -297,10 +295,10 @@ def superpose(
         if np.shape(layer) != shape:
             raise InputError(f"scattered: expected every field of shape {shape}, got {np.shape(layer)}")
         padded[: shape[0], : shape[1]] = layer
-        spectrum = scipy.fft.fft2(padded, workers=-1)
+        spectrum = scipy.fft.fft2(padded, workers=process_threads())
         kernel = transfer_function(grid, float(z), wavelength_um=wavelength_um, pixel_um=pixel_um, medium_index=medium_index, spread_limit_um=spread_limit_um, dtype=dtype)
         total += spectrum * kernel
-    return scipy.fft.ifft2(total, workers=-1, overwrite_x=True)[: shape[0], : shape[1]]
+    return scipy.fft.ifft2(total, workers=process_threads(), overwrite_x=True)[: shape[0], : shape[1]]
 
 
 def propagate(

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import time
 from collections.abc import Sequence
 from contextlib import ExitStack
@@ -39,6 +38,7 @@ from napari_lbs._core._files import atomic_path, read_json_object, write_json
 from napari_lbs._core._frames import HologramFrames, open_frames
 from napari_lbs._core._io import as_hologram
 from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback, Stopped
+from napari_lbs._core._threads import process_threads, size_threads
 from napari_lbs._core._validation import InputError
 
 __all__ = ["SequenceResult", "local_cluster", "predict_sequence"]
@@ -72,12 +72,10 @@ class SequenceResult:
 
 def _frame_particles(hologram: np.ndarray, model, config: ExperimentConfig, background: np.ndarray | None, device: str, should_stop: StopCallback | None = None) -> tuple[dict, dict]:
     """One frame's `predict_particles` (the dask task). ``model`` is the worker's copy, moved to ``device`` on first use; ``should_stop`` (threads of this process only) ends it between planes."""
-    import torch
-
     from napari_lbs._core._network import resolve_device
     from napari_lbs._core._prediction import predict_particles
 
-    torch.set_num_threads(1)  # the same rounding on every worker (module docstring)
+    size_threads(1)  # the same rounding on every worker (module docstring), and the cores split between frames
     target = resolve_device(device)
     if next(model.network.parameters()).device != target:
         model.network.to(target)
@@ -184,7 +182,7 @@ class _Scheduler:
                 self.cluster = local_cluster(workers, processes=local_processes)
                 self.client = Client(self.cluster)
             self.model = self.client.scatter(model, broadcast=True, hash=False)  # sent once, kept by every worker
-        self.local_threads = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+        self.local_threads = process_threads()
         # the local scheduler runs a batch of one frame per core; a cluster keeps two frames per worker in flight
         self.slots = _IN_FLIGHT_PER_WORKER * max(1, len(self.client.scheduler_info()["workers"])) if self.client else self.local_threads
         self.description = (f"dask.distributed at {scheduler}" if scheduler else f"dask LocalCluster of {workers} workers" if workers
@@ -322,9 +320,7 @@ def predict_sequence(
         first = frames.read(0)  # the first frame's pixels (and the shape every read checks)
         if static is not None and static.shape != first.shape:
             raise InputError(f"background: expected the frames' shape {first.shape}, got {static.shape}")
-        import torch
-
-        cleanup.callback(torch.set_num_threads, torch.get_num_threads())  # the frames ran on one thread each in this process
+        cleanup.callback(size_threads, process_threads())  # the frames ran on one thread each in this process
         runner = _Scheduler(loaded, workers=workers, scheduler=scheduler, local_processes=local_processes)  # before the work folder: nothing left if unreachable
         pending: dict = {}
         cleanup.callback(runner.close, pending)

@@ -16,6 +16,7 @@ import scipy.fft
 
 from napari_lbs._core._io import InputError
 from napari_lbs._core._optics import propagation_grid, superpose, transfer_function
+from napari_lbs._core._threads import process_threads
 
 __all__ = [
     "ParticleField",
@@ -285,7 +286,7 @@ def simulate_hologram(field: ParticleField, *, wavelength_um: float, medium_inde
         transmission[:rows, :cols] = 1.0 - image
         wave *= transmission
         kernel = transfer_function(grid, float(depth - next_depth), spread_limit_um=spread_limit_um, **optics)
-        wave = scipy.fft.ifft2(scipy.fft.fft2(wave, workers=-1) * kernel, workers=-1)
+        wave = scipy.fft.ifft2(scipy.fft.fft2(wave, workers=process_threads()) * kernel, workers=process_threads())
     return (np.abs(wave[:rows, :cols]) ** 2).astype(np.float32)
 
 

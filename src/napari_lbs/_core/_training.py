@@ -34,8 +34,8 @@ Files written (all atomically, so a stop or a crash never leaves a broken one):
 Same seed, same data, same device → the same weights on CPU, under any load: the work is a
 fixed number of epochs, the batch order and crops come from the seed, and the CPU kernels the
 network uses are deterministic. Their float summation order depends on the thread count, so
-bit-identical weights on another machine need the same count (the log's ``threads``) and the
-same torch build and instruction set. A ``minutes`` budget stops at a time, not a
+bit-identical weights on another machine need the same count (the log's ``threads``;
+``NAPARI_LBS_THREADS``, `napari_lbs._core._threads`) and the same torch build and instruction set. A ``minutes`` budget stops at a time, not a
 step: it is a safety stop, the one setting that can end two runs at different epochs, and the
 log's ``stop_reason`` says when it did.
 """
@@ -62,6 +62,7 @@ from napari_lbs._core._metrics import depth_errors_um, diameter_errors_um, score
 from napari_lbs._core._network import FORMULATIONS, PRESETS, build_network, focus_maps, network_outputs, resolve_device, save_model
 from napari_lbs._core._progress import ProgressCallback, ReportCallback, Steps, StopCallback
 from napari_lbs._core._synthesis import LABEL_SCALE
+from napari_lbs._core._threads import process_threads
 from napari_lbs._core._validation import check_resume_matches, load_resume_state
 
 __all__ = ["TrainingSettings", "TrainingResult", "train_model", "THRESHOLD_FRACTIONS", "FOCUS_THRESHOLDS"]
@@ -439,6 +440,7 @@ def train_model(
         raise InputError(f"patch_size: a {settings.patch_size}-pixel patch is larger than the {size}-pixel tiles of {dataset.path}")
     device = resolve_device(settings.device)
 
+    threads = process_threads()
     torch.manual_seed(settings.seed)
     rng = np.random.default_rng(settings.seed)
     formulation = (_FocusFormulation if settings.formulation == "focus" else _SeedFormulation)(dataset, training, settings)
@@ -454,7 +456,7 @@ def train_model(
         "settings": asdict(settings),
         "learning_rate": settings.rate,
         "device": str(device),
-        "threads": torch.get_num_threads(),
+        "threads": threads,
         "dataset": dataset_summary(dataset),
         "training_groups": training,
         "validation_groups": validation,
