@@ -81,6 +81,23 @@ def test_c2st_is_chance_for_two_samples_of_one_distribution_and_near_one_for_dif
     assert apart["accuracy"] > 0.95 and apart["interval"][0] > 0.85 and apart["real_probability"].shape == (64,)
 
 
+def test_two_samples_of_one_simulator_are_not_told_apart_and_a_blurred_one_is():
+    from napari_lbs._core._gap._features import set_summaries
+    from napari_lbs._core._gap._scenarios import Scenario
+
+    def tiles(effects, seed):
+        scenario = Scenario((), effects, dict(TRUTH), {}, 1.0)
+        out = []
+        for k in range(4):
+            out += simulate_tiles(scenario, CONFIG, GRID, np.random.default_rng([seed, k]))
+        return set_summaries(out, config=CONFIG)[0]
+
+    first, second, blurred = tiles({}, 1), tiles({}, 2), tiles({"sensor_blur": {"sigma_px": 1.5}}, 3)
+    same, apart = c2st(first, second), c2st(first, blurred)
+    assert abs(same["accuracy"] - 0.5) < 0.15 and apart["accuracy"] > 0.9
+    assert mmd(first, blurred)["value"] > 5 * max(mmd(first, second)["value"], 0.01)
+
+
 def test_mmd_is_near_zero_for_one_distribution_and_grows_with_the_difference():
     rng = np.random.default_rng(2)
     same = mmd(rng.normal(size=(64, 10)), rng.normal(size=(96, 10)))
