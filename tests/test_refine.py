@@ -264,3 +264,14 @@ def test_predict_refine_writes_the_refined_columns(tmp_path, monkeypatch):
     assert "score" in header
     table = read_particles(tmp_path / "p.csv")
     assert abs(table["z_um"][0] - truth[2]) < 3.0
+
+
+@pytest.mark.parametrize("offset_um", [300.0, -300.0])
+def test_a_depth_300_um_off_is_recovered_by_the_depth_scan(offset_um):
+    from napari_lbs._core import RefineSettings, refine_particles
+
+    truth = (36.3 * PIXEL_UM, 35.6 * PIXEL_UM, 1500.0, 22.0)
+    start = _table([(truth[0] + 1.0, truth[1] - 0.8, truth[2] + offset_um, truth[3] + 0.8)])
+    out = refine_particles(_scene([truth]), start, _config(), fixed={"absorption": 0.0, "index_contrast": 0.26},
+                           settings=RefineSettings(**{**FAST, "depth_window_um": 400.0}))
+    assert abs(out.z_um[0] - truth[2]) < 2.0 and abs(out.diameter_um[0] - truth[3]) < 0.3
