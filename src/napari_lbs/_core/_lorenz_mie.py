@@ -92,31 +92,36 @@ def mie_coefficients(size_parameter: torch.Tensor, relative_index: torch.Tensor,
     # leaves errors of order 1 in a_n for non-absorbing spheres of size parameter ≥ 50.
     largest = float(torch.max(torch.abs(mx)).item())
     start = max(terms, int(largest)) + 16 + int(4.0 * largest ** (1 / 3))
-    inner = torch.zeros_like(mx)
-    outer = torch.zeros_like(x)
-    inner_d: list[torch.Tensor] = [inner] * (terms + 1)
-    outer_d: list[torch.Tensor] = [outer] * (terms + 1)
+    # D_n(mx) and D_n(x) together; multiplications by 1/z cost less than divisions
+    z = torch.stack([mx, x])
+    inverse = 1.0 / z
+    log_derivative = torch.zeros_like(z)
+    kept: list[torch.Tensor] = [log_derivative] * (terms + 1)
     for n in range(start, 0, -1):
-        inner = n / mx - 1.0 / (inner + n / mx)
-        outer = n / x - 1.0 / (outer + n / x)
+        t = n * inverse
+        log_derivative = t - 1.0 / (log_derivative + t)
         if n - 1 <= terms:
-            inner_d[n - 1] = inner
-            outer_d[n - 1] = outer
+            kept[n - 1] = log_derivative
+    inner, outer = torch.stack(kept, dim=-1)  # (B, terms + 1) each
+    n_over_x = torch.arange(terms + 1, dtype=torch.float64, device=x.device) * inverse[1][:, None]
+    up_psi = n_over_x[:, 1:] - outer[:, :-1]  # ψ_n / ψ_{n-1}, n = 1 … terms
     psi_xi = 0.5 * (1.0 - torch.exp(2j * x))  # ψ_0 ξ_0
     ratio = 1j * torch.sin(x) * torch.exp(-1j * x)  # ψ_0 / ξ_0
     d3 = torch.full_like(x, 1j)
-    a_terms, b_terms = [], []
+    ratios, d3s = [], []
     for n in range(1, terms + 1):
-        up_psi = n / x - outer_d[n - 1]
-        up_xi = n / x - d3
-        psi_xi = psi_xi * up_psi * up_xi
-        ratio = ratio * up_psi / up_xi
-        d3 = outer_d[n] + 1j / psi_xi
-        ha = inner_d[n] / m
-        hb = inner_d[n] * m
-        a_terms.append(ratio * (ha - outer_d[n]) / (ha - d3))
-        b_terms.append(ratio * (hb - outer_d[n]) / (hb - d3))
-    return torch.stack(a_terms, dim=-1), torch.stack(b_terms, dim=-1)
+        up_xi = n_over_x[:, n] - d3
+        psi_xi = psi_xi * up_psi[:, n - 1] * up_xi
+        ratio = ratio * up_psi[:, n - 1] / up_xi
+        d3 = outer[:, n] + 1j / psi_xi
+        ratios.append(ratio)
+        d3s.append(d3)
+    ratio, d3 = torch.stack(ratios, dim=-1), torch.stack(d3s, dim=-1)
+    ha = inner[:, 1:] / m[:, None]
+    hb = inner[:, 1:] * m[:, None]
+    a = ratio * (ha - outer[:, 1:]) / (ha - d3)
+    b = ratio * (hb - outer[:, 1:]) / (hb - d3)
+    return a, b
 
 
 def radial_step(z_um: torch.Tensor, diameter_um: torch.Tensor, *, wavelength_um: float, medium_index: float, samples_per_lobe: int = 12) -> torch.Tensor:
@@ -140,6 +145,7 @@ def _radial_profiles(a: torch.Tensor, b: torch.Tensor, k: float, z_um: torch.Ten
     z = z_um[:, None]
     r = torch.sqrt(rho_um**2 + z**2)
     kr = k * r
+    inv_kr = 1.0 / kr
     cos_t = z / r
     sin_t = rho_um / r
     xi_prev2 = torch.ones_like(kr, dtype=torch.complex128)
@@ -154,8 +160,8 @@ def _radial_profiles(a: torch.Tensor, b: torch.Tensor, k: float, z_um: torch.Ten
         swisc = pi_n * cos_t
         twisc = swisc - pi_prev
         minus_tau = pi_prev - n * twisc
-        xi = (2 * n - 1) * xi_prev / kr - xi_prev2
-        dxi = n * xi / kr - xi_prev
+        xi = ((2 * n - 1) * inv_kr) * xi_prev - xi_prev2
+        dxi = (n * inv_kr) * xi - xi_prev
         prefactor *= 1j
         en = prefactor * (2 * n + 1) / (n * n + n)
         an = (1j * en) * a[:, n - 1 : n]
