@@ -275,3 +275,13 @@ def test_a_depth_300_um_off_is_recovered_by_the_depth_scan(offset_um):
     out = refine_particles(_scene([truth]), start, _config(), fixed={"absorption": 0.0, "index_contrast": 0.26},
                            settings=RefineSettings(**{**FAST, "depth_window_um": 400.0}))
     assert abs(out.z_um[0] - truth[2]) < 2.0 and abs(out.diameter_um[0] - truth[3]) < 0.3
+
+
+def test_a_depth_shifted_twin_is_merged_into_its_particle():
+    from napari_lbs._core import RefineSettings, refine_particles
+
+    truth = (36.3 * PIXEL_UM, 35.6 * PIXEL_UM, 1500.0, 22.0)
+    starts = _table([(truth[0] + 0.5, truth[1], truth[2] + 10.0, 22.5), (truth[0] - 0.5, truth[1] + 0.4, truth[2] + 300.0, 21.5)])
+    out = refine_particles(_scene([truth]), starts, _config(), fixed={"absorption": 0.0, "index_contrast": 0.26},
+                           settings=RefineSettings(**{**FAST, "depth_window_um": 400.0, "rounds": 1}))
+    assert len(out) == 1 and abs(out.z_um[0] - truth[2]) < 2.0
