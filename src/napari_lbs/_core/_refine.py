@@ -10,17 +10,22 @@ batched in torch.
 
 1. **Patch**: a square of at most ``patch_px`` pixels, and no wider than the disc inside
    which the fringes are sampled (their frequency below the pixel's Nyquist limit).
-2. **Depth candidates**: the depth is scanned over ``±depth_window_um`` around the guess,
-   in steps that move the patch's outermost fringe by one radian; the ``depth_candidates``
-   best local minima each start a fit, so a depth wrong by 300 µm is a fit choice.
-3. **Fit**: Levenberg–Marquardt on Huber-weighted residuals (iteratively reweighted, the
-   noise scale from the residuals' median absolute deviation); the Jacobian of the
-   differentiable forward model by forward-mode automatic differentiation.
-4. **Neighbours**: after a first round, each patch is fitted again with the holograms of
-   the particles around it (fixed at their first-round values) added to its model.
-5. **False detections**: a particle whose best fit does not lower the robust cost of the
-   particle-free model (the illumination alone) by ``min_gain`` noise variances is dropped.
-6. **Uncertainties**: ``σ² (JᵀWJ)⁻¹`` at the optimum (Gauss–Newton), ``σ`` the residuals'
+2. **Searches**: the depth is scanned over ``±depth_window_um`` around the guess, in steps
+   that move the patch's outermost fringe by one radian, so a depth wrong by 300 µm is a
+   fit choice; at the best depths the size and index are scanned; the best starts are fitted
+   coarsely (every other pixel).
+3. **Fit**: Levenberg–Marquardt on Huber-weighted residuals (the noise scale from the
+   residuals' median absolute deviation); the Jacobian by finite differences of the
+   differentiable forward model, every perturbation in one batch.
+4. **Valleys and ripple**: the phase delay through a transparent sphere is seen modulo 2π
+   and its hologram ripples with its size; the neighbouring size–index valleys are fitted
+   and compared (`_choose_valley`), and the valley itself is scanned (`_escape_ripple`).
+5. **Neighbours**: after a first round, each patch with other particles in reach is fitted
+   again with their summed fields (fixed at their first-round values) in its model.
+6. **False detections and twins**: a particle whose best fit does not lower the robust cost
+   of the particle-free model (the illumination alone) by ``min_gain`` noise variances is
+   dropped, and so is one that converged onto a particle another detection fitted better.
+7. **Uncertainties**: ``σ² (JᵀWJ)⁻¹`` at the optimum (Gauss–Newton), ``σ`` the residuals'
    scale, inflated by the residuals' pixel-to-pixel correlation (what model error and
    neighbours leave is not white).
 
