@@ -97,6 +97,27 @@ def test_kernel_phase_in_float32_storage_is_accurate():
     assert np.array_equal(np.abs(k32) > 0, q <= 1)
 
 
+@pytest.mark.parametrize("shape", [(9, 8), (8, 9), (65, 50)])
+@pytest.mark.parametrize("spread_limit_um", [None, 2000.0])
+def test_kernel_is_the_angular_spectrum_at_every_frequency_of_odd_even_and_unequal_grids(shape, spread_limit_um):
+    """Negative frequencies included (the kernel is built on the non-negative quarter and mirrored):
+    unit modulus with the phase within 1e-9 rad where light passes, zero where it is evanescent or
+    beyond the band limit."""
+    lam, pixel_um, z_um = 0.5, 0.2, -1234.5  # pitch < λ/2: evanescent frequencies exist
+    kernel = transfer_function(shape, z_um, wavelength_um=lam, pixel_um=pixel_um, spread_limit_um=spread_limit_um, dtype=np.complex128, cache=False)
+    fy, fx = np.fft.fftfreq(shape[0], pixel_um)[:, None], np.fft.fftfreq(shape[1], pixel_um)[None, :]
+    q = lam**2 * (fy**2 + fx**2)
+    passed = q <= 1
+    if spread_limit_um is not None:
+        limit = 1 / (lam * np.hypot(z_um / spread_limit_um, 1))
+        passed &= (np.abs(fy) <= limit) & (np.abs(fx) <= limit)
+    assert passed.any() and not passed.all()
+    assert np.array_equal(kernel != 0, passed)
+    exact = 2 * np.pi * z_um * (np.sqrt(1 - q[passed]) - 1) / lam
+    assert np.allclose(np.abs(kernel[passed]), 1, atol=1e-12)
+    assert np.max(np.abs(np.angle(kernel[passed] * np.exp(-1j * exact)))) < 1e-9
+
+
 @pytest.mark.parametrize("z0_um", [2000.0, 4000.0])
 def test_point_source_refocuses_at_its_depth_and_position(z0_um):
     """A Rayleigh–Sommerfeld point source at (row 130, col 121.0), depth z0 refocuses there.

@@ -180,20 +180,29 @@ def transfer_function(
     if cached is not None:
         return cached
     rate, fy, fx = _phase_rate(tuple(shape), float(wavelength_um), float(pixel_um), float(medium_index))
+    # The kernel depends on |fy| and |fx| alone, and fftfreq's negative frequencies are the
+    # positive ones negated exactly: built on the non-negative quarter and mirrored, it is the
+    # same kernel for a quarter of the trigonometry, which dominated a cold scan's time.
+    rows, cols = shape[0] // 2 + 1, shape[1] // 2 + 1
+    rate = rate[:rows, :cols]
     phase = rate * float(z_um)  # float64: up to ~1e3 rad at 5 mm, exact to ~1e-12 rad
     # Wrapped to [-π, π] in float64 first, the phase loses nothing (< 2e-7 rad) in the real
     # dtype of the kernel, where cos and sin are cheapest.
     phase -= 2.0 * np.pi * np.round(phase / (2.0 * np.pi))
     phase = phase.astype(np.float32 if dtype == np.complex64 else np.float64)
-    kernel = np.empty(shape, dtype=dtype)
-    np.cos(phase, out=kernel.real)
-    np.sin(phase, out=kernel.imag)
+    quarter = np.empty((rows, cols), dtype=dtype)
+    np.cos(phase, out=quarter.real)
+    np.sin(phase, out=quarter.imag)
     blocked = np.isnan(rate)
     if spread_limit_um is not None and z_um != 0.0:
         lam = _medium_wavelength(wavelength_um, medium_index)
         limit = 1.0 / (lam * np.sqrt((float(z_um) / spread_limit_um) ** 2 + 1.0))
-        blocked |= (np.abs(fy)[:, None] > limit) | (np.abs(fx)[None, :] > limit)
-    kernel[blocked] = 0.0
+        blocked |= (np.abs(fy[:rows])[:, None] > limit) | (np.abs(fx[:cols])[None, :] > limit)
+    quarter[blocked] = 0.0
+    kernel = np.empty(shape, dtype=dtype)
+    kernel[:rows, :cols] = quarter
+    kernel[:rows, cols:] = quarter[:, shape[1] - cols : 0 : -1]  # column n - k is column k
+    kernel[rows:] = kernel[shape[0] - rows : 0 : -1]
     kernel.setflags(write=False)
     if cache:
         _TRANSFER_CACHE.put(key, kernel)
@@ -402,5 +411,5 @@ def backpropagate(
         raise InputError(f"out: expected shape {expected}, got {out.shape}")
     steps = Steps(distances.size, progress=progress, should_stop=should_stop)
     for start, stop, block in _propagated_batches(normalised, -distances, wavelength_um=wavelength_um, pixel_um=pixel_um, medium_index=medium_index, steps=steps):
-        out[start:stop] = np.abs(block)
+        np.abs(block, out=out[start:stop])  # no temporary plane batch
     return out
