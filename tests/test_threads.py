@@ -33,7 +33,7 @@ def _probe(sizing: str, *, cores: set[int] | None = None, env: str | None = None
 @pytest.mark.parametrize("sizing", ["size_threads()\nimport numpy, torch", "import numpy, torch\nsize_threads()"], ids=["before-import", "after-import"])
 def test_threads_follow_the_cores_the_process_may_run_on_and_the_override(sizing):
     cores = sorted(os.sched_getaffinity(0))
-    everywhere = lambda n: {"count": n, "torch": n, "blas": [n], "pool": n}  # noqa: E731
+    everywhere = lambda n: {"count": n, "torch": n, "blas": [n], "pool": n}
     assert _probe(sizing) == everywhere(len(cores))
     assert _probe(sizing, cores={cores[0]}) == everywhere(1)  # taskset -c 0
     assert _probe(sizing, env="1") == everywhere(1)

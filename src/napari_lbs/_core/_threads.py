@@ -22,7 +22,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 from napari_lbs._core._errors import InputError
 
-__all__ = ["THREADS_ENV", "available_threads", "size_threads", "process_threads", "thread_pool"]
+__all__ = ["THREADS_ENV", "available_threads", "process_threads", "size_threads", "thread_pool"]
 
 THREADS_ENV = "NAPARI_LBS_THREADS"
 # Read by OpenMP (torch), OpenBLAS and MKL when they load: libraries loaded after the sizing,
