@@ -27,6 +27,7 @@ from napari_lbs._core._gap._features import feature_names, set_features, set_sum
 from napari_lbs._core._gap._forest import ForestArrays, train_forest
 from napari_lbs._core._gap._scenarios import ScenarioPrior, TileGrid, draw_scenario, simulate_tiles
 from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
+from napari_lbs._core._threads import available_threads, size_threads
 
 __all__ = ["DiagnosisSettings", "Diagnoser", "amortized_diagnoser", "default_cache_dir", "forest_posterior", "load_diagnoser"]
 
@@ -57,7 +58,8 @@ class DiagnosisSettings:
         so the same hologram gets the same posterior whatever ``seed``.
     training_seed : int
     jobs : int or None
-        Processes that simulate (default: the cores this process may use).
+        Processes that simulate (default: `available_threads`, the cores this process may
+        use or ``NAPARI_LBS_THREADS``).
     cache_dir : str or None
         Where diagnosers are kept (default `default_cache_dir`).
     """
@@ -144,7 +146,8 @@ def _simulations(tasks: list, *, jobs: int, steps: Steps) -> list:
     # forked where the platform can (a script or notebook without a ``__main__`` guard works; the
     # children touch no Qt or torch state), else spawned
     method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
-    with concurrent.futures.ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context(method)) as pool:
+    # one thread each: the processes share the cores between them
+    with concurrent.futures.ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context(method), initializer=size_threads, initargs=(1,)) as pool:
         futures = [pool.submit(_simulate, task) for task in tasks]
         try:
             for future in concurrent.futures.as_completed(futures):
@@ -156,10 +159,6 @@ def _simulations(tasks: list, *, jobs: int, steps: Steps) -> list:
             pool.shutdown(wait=True, cancel_futures=True)
             raise
     return results
-
-
-def _cores() -> int:
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 def amortized_diagnoser(
@@ -186,7 +185,7 @@ def amortized_diagnoser(
     start = time.perf_counter()
     steps = Steps(settings.simulations + 1, progress=progress, should_stop=should_stop)
     tasks = [(i, config, grid, prior, settings.training_seed) for i in range(settings.simulations)]
-    results = _simulations(tasks, jobs=settings.jobs or _cores(), steps=steps)
+    results = _simulations(tasks, jobs=settings.jobs or available_threads(), steps=steps)
     steps.check()
     candidates = tuple(prior.candidates)
     features = np.stack([r[1] for r in results])
@@ -194,7 +193,7 @@ def amortized_diagnoser(
     present = np.array([[c in r[3] for c in candidates] for r in results], bool)
     param_names = sorted({name for r in results for name in r[4]})
     params = {name: np.array([r[4].get(name, np.nan) for r in results], np.float64) for name in param_names}
-    forest = train_forest(features, forest_answers(present), trees=settings.trees, seed=settings.training_seed, jobs=min(settings.jobs or _cores(), 4))
+    forest = train_forest(features, forest_answers(present), trees=settings.trees, seed=settings.training_seed, jobs=min(settings.jobs or available_threads(), 4))
     steps.advance()
     _, names = set_summaries([np.random.default_rng(0).uniform(0.5, 1.5, (grid.tile_px, grid.tile_px)).astype(np.float32)], config=config)  # the names only
     meta = {**setup, "key": key, "summary_names": [list(n) for n in names], "candidates": list(candidates), "train_seconds": round(time.perf_counter() - start, 1)}

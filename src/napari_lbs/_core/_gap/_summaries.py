@@ -14,9 +14,7 @@ planes, dark-core area, autocorrelation of the fringes).
 from __future__ import annotations
 
 import functools
-import os
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import scipy.fft
@@ -25,6 +23,7 @@ from scipy import ndimage
 from napari_lbs._core._config import ExperimentConfig
 from napari_lbs._core._effects import EFFECTS
 from napari_lbs._core._optics import transfer_function
+from napari_lbs._core._threads import process_threads, thread_pool
 
 __all__ = ["tile_summaries", "SUMMARY_GROUPS", "MIN_TILE_PX"]
 
@@ -168,26 +167,8 @@ def _tiles_summaries(
         with np.errstate(all="ignore"):  # a flat (e.g. fully saturated) tile has no moments: NaN, which the caller handles
             return tile_summaries(args[0], config=config, fringe_frequency=fringe_frequency, field_mean=args[1], surroundings=args[2])
 
-    done = list(_summary_pool().map(one, zip(tiles, field_means, surroundings, strict=True)))
+    done = list(thread_pool("summaries").map(one, zip(tiles, field_means, surroundings, strict=True)))
     return np.stack([values for values, _ in done]), done[0][1]
-
-
-_POOL: dict[int, ThreadPoolExecutor] = {}
-
-
-def _summary_pool() -> ThreadPoolExecutor:
-    """The threads `_tiles_summaries` runs on: one per usable core (at most 8: tiles are few), started once per process.
-
-    Keyed by process id: a process forked after the pool started (a `ProcessPoolExecutor`
-    of benchmark cases) inherits the pool's object but not its threads, and would wait on it
-    for ever.
-    """
-    pid = os.getpid()
-    if pid not in _POOL:
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-        _POOL.clear()
-        _POOL[pid] = ThreadPoolExecutor(max_workers=min(cores, 8), thread_name_prefix="napari-lbs-summaries")
-    return _POOL[pid]
 
 
 _ELASTICITY_WINDOW_PX = 6  # even: after the one-pixel shift below, the window is centred on a 2 × 2 block's centre
@@ -239,7 +220,7 @@ def _high_band_peakedness(image: np.ndarray) -> float:
     rows, cols = (image.shape[0] // block) * block, (image.shape[1] // block) * block
     blocks = image[:rows, :cols].reshape(rows // block, block, cols // block, block).swapaxes(1, 2).reshape(-1, block, block)
     blocks = (blocks - blocks.mean(axis=(1, 2), keepdims=True)) * _hann(block, block).astype(image.dtype)
-    power = np.abs(scipy.fft.fft2(blocks, workers=-1)) ** 2
+    power = np.abs(scipy.fft.fft2(blocks, workers=process_threads())) ** 2
     values = power[:, _peakedness_bins(block)].astype(np.float64)
     return float(np.mean(np.log10(np.mean(values**2, axis=1) / (np.mean(values, axis=1) ** 2 + 1e-300) + 1e-12)))
 
@@ -309,13 +290,13 @@ def _periodic_planes(image: np.ndarray, distances_um: np.ndarray, *, wavelength_
     finely enough and nothing wraps more than half way round.
     """
     kernels = _plane_kernels(image.shape, tuple(float(z) for z in distances_um), wavelength_um, pixel_um, medium_index)
-    return scipy.fft.ifft2(scipy.fft.fft2(image.astype(np.complex64))[None] * kernels, workers=-1, overwrite_x=True)
+    return scipy.fft.ifft2(scipy.fft.fft2(image.astype(np.complex64))[None] * kernels, workers=process_threads(), overwrite_x=True)
 
 
 def _power_spectrum(image: np.ndarray) -> np.ndarray:
     """Power of the Hann-windowed fluctuation of a mean-normalised image (in the image's precision)."""
     window = _hann(*image.shape).astype(image.dtype, copy=False)
-    return np.abs(scipy.fft.fft2((image - 1) * window, workers=-1)) ** 2 / window.sum(dtype=np.float64)
+    return np.abs(scipy.fft.fft2((image - 1) * window, workers=process_threads())) ** 2 / window.sum(dtype=np.float64)
 
 
 @functools.lru_cache(maxsize=8)
