@@ -29,7 +29,7 @@ def converged_pylorenzmie(monkeypatch):
     polystyrene in water, |Δa_n| up to 0.92). Forty more orders make its coefficients
     agree with the textbook formula (scipy's Bessel functions) to 1e-5.
     """
-    theory = pytest.importorskip("pylorenzmie.theory")
+    theory = pytest.importorskip("pylorenzmie.theory")  # reason-ok: a test extra, installed by CI (.[test]); skipped only where a user left it out
     from pylorenzmie.theory.Instrument import Instrument
 
     stock = theory.Sphere.wiscombe_yang
