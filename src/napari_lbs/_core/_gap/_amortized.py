@@ -15,7 +15,7 @@ import json
 import multiprocessing
 import os
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -268,8 +268,3 @@ def load_diagnoser(path) -> Diagnoser:
     if not (diagnoser.present.shape == (n, len(diagnoser.candidates)) and diagnoser.forest.value.shape[1] == 2 * len(diagnoser.candidates) + 2 and diagnoser.summaries.shape[0] == n):
         raise InputError(f"{path}: not a napari-lbs diagnoser cache (arrays of inconsistent shapes)")
     return diagnoser
-
-
-def asdict_settings(settings: DiagnosisSettings) -> dict:
-    """The settings as a JSON-ready dict (for provenance)."""
-    return asdict(settings)

@@ -24,7 +24,7 @@ from napari_lbs._core._config import ExperimentConfig
 from napari_lbs._core._effects import EFFECTS, OPTICAL_EFFECTS, check_effects, optical_hologram, sensor_image
 from napari_lbs._core._synthesis import random_particle_field
 
-__all__ = ["TileGrid", "Scenario", "ScenarioPrior", "draw_scenario", "simulate_tiles", "TRANSPARENT", "OPAQUE"]
+__all__ = ["TileGrid", "Scenario", "ScenarioPrior", "draw_scenario", "simulate_tiles", "catalog_candidates", "TRANSPARENT", "OPAQUE", "SATURATION"]
 
 TRANSPARENT = 0.55  # particle_phase: the particles transmit at least this fraction of the field's amplitude
 OPAQUE = 0.35  # every other scenario's spheres transmit at most this
