@@ -27,7 +27,7 @@ Calibration and diagnosis see only the real-density hologram, never its truth. E
 is cached in ``--out`` and training resumes from its last epoch, so an interrupted run
 continues where it stopped. Seeds are fixed: same result each run.
 
-Run: python benchmarks/bench_pseudoreal.py [--out DIR] [--groups G] [--epochs E] [--check]
+Run: python benchmarks/bench_pseudoreal.py [--out DIR] [--groups G] [--epochs E] [--stages S ...] [--real-density-only] [--check]
 """
 
 from __future__ import annotations
@@ -88,17 +88,20 @@ def _hologram(folder: Path, name: str, count: int, seed: int, distractors: dict 
     return read_hologram(image_path), read_particles(truth_path)
 
 
-def run(out: Path, groups: int, epochs: int, only: list[str] | None = None) -> dict:
+def run(out: Path, groups: int, epochs: int, only: list[str] | None = None, real_density_only: bool = False) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     config = load_config(None)
-    holograms = {label: _hologram(out, label.replace(" ", "_"), count, seed=7 + i) for i, (label, count) in enumerate(DENSITIES.items())}
+    densities = {"real density": DENSITIES["real density"]} if real_density_only else DENSITIES
+    holograms = {label: _hologram(out, label.replace(" ", "_"), count, seed=7 + i) for i, (label, count) in enumerate(densities.items())}
     experiment = holograms["real density"][0]  # what the user has: a hologram, no truth
-    holograms["with distractors"] = _hologram(out, "real_density_distractors", DENSITIES["real density"], seed=7, distractors=WITH_DISTRACTORS)
+    if not real_density_only:
+        holograms["with distractors"] = _hologram(out, "real_density_distractors", DENSITIES["real density"], seed=7, distractors=WITH_DISTRACTORS)
 
     calibration_path = out / "calibration.json"
-    if not calibration_path.is_file():
+    calibrated = not only or {"lbs", "transparent", "effects"} & set(only)
+    if calibrated and not calibration_path.is_file():
         write_json(calibration_path, calibrate_hologram(experiment, config, settings=CalibrationSettings(generations=40, seed=0)).to_json())
-    calibration = json.loads(calibration_path.read_text())
+    calibration = json.loads(calibration_path.read_text()) if calibrated else {"params": None, "ssim": None}
     report_path = out / "diagnosis" / "report.json"
     needs_report = not only or {"transparent", "effects", "plain_effects"} & set(only)
     if needs_report and not report_path.is_file():
@@ -109,7 +112,7 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None) -> d
     report = json.loads(report_path.read_text()) if needs_report else {"verdict": None, "posterior": None}
     effects = effects_from_report(report, name=str(report_path)) if needs_report else {}
 
-    lbs = InputProcessing.from_calibration(calibration)
+    lbs = InputProcessing.from_calibration(calibration) if calibrated else None
     stages = {
         "plain": (InputProcessing(), {}, Distractors()),
         "lbs": (lbs, {}, Distractors()),
@@ -173,11 +176,12 @@ def main() -> None:
     parser.add_argument("--groups", type=int, default=64)
     parser.add_argument("--epochs", type=int, default=5)
     parser.add_argument("--stages", nargs="+", help="run only these stages (default: all)")
+    parser.add_argument("--real-density-only", action="store_true", help="only the real-density hologram (no 4x density, no distractors): the closed loop's short form")
     parser.add_argument("--check", action="store_true", help="only check the fast Lorenz-Mie field against pylorenzmie on a full plane")
     args = parser.parse_args()
     print(f"azimuthal decomposition vs pylorenzmie on a full plane: max relative error {pseudoreal.check_azimuthal():.1e}", flush=True)
     if not args.check:
-        results = run(Path(args.out), args.groups, args.epochs, args.stages)
+        results = run(Path(args.out), args.groups, args.epochs, args.stages, real_density_only=args.real_density_only)
         print(json.dumps(results, indent=1))
 
 
