@@ -242,3 +242,21 @@ def test_a_tile_sees_the_envelope_and_fringe_of_its_place_on_the_sensor():
     rows, cols = np.arange(40, 72), np.arange(64, 112)
     tile = sensor_image(frame[40:72, 64:112], NEUTRAL, effects, noise=noise[40:72, 64:112], frame_px=(rows, cols, frame.shape))
     np.testing.assert_allclose(tile, whole[40:72, 64:112], rtol=1e-5)
+
+
+def test_the_spectral_average_of_the_interference_term_matches_an_average_over_wavelengths():
+    from napari_lbs._core import ParticleField
+    from napari_lbs._core._optics import superpose
+    from napari_lbs._core._synthesis import layer_images
+
+    one = ParticleField(np.array([280.5]), np.array([280.5]), np.array([3000.0]), np.array([25.0]), (256, 256), 2.2)
+    depths, images = layer_images(one)
+    fields = [-image for image in images]
+    bandwidth_um, optics = 0.04, {"pixel_um": 2.2, "periodic": True}
+    sigma = bandwidth_um / (2 * np.sqrt(2 * np.log(2)))
+    wavelengths = 0.66 + np.linspace(-4, 4, 81) * sigma
+    weights = np.exp(-0.5 * ((wavelengths - 0.66) / sigma) ** 2)
+    brute = sum(w * superpose(fields, depths, wavelength_um=lam, **optics) for w, lam in zip(weights / weights.sum(), wavelengths, strict=True))
+    averaged = superpose(fields, depths, wavelength_um=0.66, bandwidth_um=bandwidth_um, **optics)
+    narrow = superpose(fields, depths, wavelength_um=0.66, **optics)
+    assert np.sqrt(np.mean((averaged.real - brute.real) ** 2)) < 0.01 * np.sqrt(np.mean(narrow.real**2))

@@ -237,26 +237,18 @@ def _sphere_fields(field: ParticleField, depth: float, *, transmission: float, i
     return out
 
 
-_SPECTRUM_NODES, _SPECTRUM_WEIGHTS = np.polynomial.hermite.hermgauss(5)  # a Gaussian spectrum's wavelengths and weights
-
-
 def optical_hologram(field: ParticleField, effects: dict, *, wavelength_um: float, medium_index: float = 1.0, periodic: bool = False) -> np.ndarray:
     """Sensor intensity of a particle field with the optical effects of ``effects`` (float32, unobstructed = 1).
 
     ``periodic``: the window is one period of an endless field (`superpose`); the shadowing
-    model (``multiple_scattering``) always pads.
-    A source of spectral width ``coherence.bandwidth_nm`` (FWHM of a Gaussian spectrum) gives the
-    incoherent mean of the holograms at 5 wavelengths (Gauss–Hermite nodes).
+    model (``multiple_scattering``) always pads. A source of spectral width
+    ``coherence.bandwidth_nm`` (FWHM of a Gaussian spectrum) gives ``1 + 2 Re⟨s⟩ + |s|²``: the
+    interference term averaged over the spectrum (`superpose`'s ``bandwidth_um``), the
+    scattered light's own intensity at the centre wavelength (the shadowing model ignores it).
     """
     unknown = set(effects) - set(EFFECTS)
     if unknown:
         raise InputError(f"effects: unknown effect id {sorted(unknown)[0]!r}; expected one of {', '.join(EFFECTS)}")
-    bandwidth_um = _param(effects, "coherence", "bandwidth_nm") * 1e-3
-    if bandwidth_um > 0:
-        narrow = {**effects, "coherence": {**effects["coherence"], "bandwidth_nm": 0.0}}
-        sigma_um = bandwidth_um / (2.0 * math.sqrt(2.0 * math.log(2.0)))
-        images = [optical_hologram(field, narrow, wavelength_um=wavelength_um + math.sqrt(2.0) * sigma_um * node, medium_index=medium_index, periodic=periodic) for node in _SPECTRUM_NODES]
-        return (np.tensordot(_SPECTRUM_WEIGHTS / math.sqrt(math.pi), np.stack(images), axes=1)).astype(np.float32)
     if _param(effects, "multiple_scattering", "on") >= 0.5:
         return simulate_hologram(field, wavelength_um=wavelength_um, medium_index=medium_index, shadowing=True)
     source_um = _param(effects, "spherical_wave", "source_mm") * 1000.0
@@ -276,7 +268,12 @@ def optical_hologram(field: ParticleField, effects: dict, *, wavelength_um: floa
     theta = _param(effects, "coherence", "theta_mrad") * 1e-3
     if theta > 0:
         fields = [_blur(f, theta * z / field.pixel_um) for f, z in zip(fields, depths, strict=True)]
-    scattered = superpose(fields, depths, wavelength_um=wavelength_um, pixel_um=field.pixel_um, medium_index=medium_index, periodic=periodic)
+    optics = {"wavelength_um": wavelength_um, "pixel_um": field.pixel_um, "medium_index": medium_index, "periodic": periodic}
+    scattered = superpose(fields, depths, **optics)
+    bandwidth_um = _param(effects, "coherence", "bandwidth_nm") * 1e-3
+    if bandwidth_um > 0:
+        averaged = superpose(fields, depths, bandwidth_um=bandwidth_um, **optics)
+        return (1.0 + 2.0 * averaged.real + np.abs(scattered) ** 2).astype(np.float32)
     return (np.abs(1.0 + scattered) ** 2).astype(np.float32)
 
 

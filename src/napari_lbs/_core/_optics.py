@@ -275,6 +275,7 @@ def superpose(
     pixel_um: float,
     medium_index: float = 1.0,
     periodic: bool = False,
+    bandwidth_um: float = 0.0,
 ) -> np.ndarray:
     """Sum of several scattered fields, each propagated by its own distance, at one plane.
 
@@ -284,6 +285,14 @@ def superpose(
     ``periodic=True`` the window is one period of an endless field instead (no padding): light
     leaving one side enters the other, so every part of the window has scatterers all around
     it, as a crop of a large sensor does.
+
+    ``bandwidth_um`` (FWHM of a Gaussian source spectrum, vacuum µm): the field averaged over
+    the spectrum, as it interferes with the unscattered light. Paraxially, a frequency ``f``
+    propagated by ``z`` is delayed against the unscattered wave by ``exp(-iπ λ z f²)``; its
+    mean over a Gaussian spectrum of standard deviation σ multiplies it by
+    ``exp(-(π σ z f²)² / 2)`` (λ and σ in the medium): fringes of high order (large ``z f²``)
+    wash out, exactly, at any bandwidth. The returned field is then the linear term's; the
+    scattered light's own intensity ``|s|²`` needs the field at the centre wavelength.
 
     Returns
     -------
@@ -300,12 +309,17 @@ def superpose(
         grid, spread_limit_um = propagation_grid(shape, z_max_um=float(np.max(np.abs(distances))), wavelength_um=wavelength_um, pixel_um=pixel_um, medium_index=medium_index)
     total = np.zeros(grid, dtype=dtype)
     padded = np.zeros(grid, dtype=dtype)
+    if bandwidth_um > 0:
+        sigma_um = bandwidth_um / (2.0 * np.sqrt(2.0 * np.log(2.0))) / medium_index
+        f2 = np.fft.fftfreq(grid[0], d=pixel_um)[:, None] ** 2 + np.fft.fftfreq(grid[1], d=pixel_um)[None, :] ** 2
     for layer, z in zip(scattered, distances, strict=True):
         if np.shape(layer) != shape:
             raise InputError(f"scattered: expected every field of shape {shape}, got {np.shape(layer)}")
         padded[: shape[0], : shape[1]] = layer
         spectrum = scipy.fft.fft2(padded, workers=process_threads())
         kernel = transfer_function(grid, float(z), wavelength_um=wavelength_um, pixel_um=pixel_um, medium_index=medium_index, spread_limit_um=spread_limit_um, dtype=dtype)
+        if bandwidth_um > 0:
+            kernel = kernel * np.exp(-0.5 * (np.pi * sigma_um * float(z) * f2) ** 2).astype(kernel.real.dtype)
         total += spectrum * kernel
     return scipy.fft.ifft2(total, workers=process_threads(), overwrite_x=True)[: shape[0], : shape[1]]
 
