@@ -57,6 +57,11 @@ def test_the_forest_as_arrays_answers_as_scikit_learn_does_and_refuses_inconsist
     arrays["forest_left"] = arrays["forest_left"] + 10**6
     with pytest.raises(ValueError, match="out of range"):
         ForestArrays.from_arrays(arrays)
+    cyclic = forest.arrays()
+    inner = int(np.flatnonzero(cyclic["forest_left"] >= 0)[0])
+    cyclic["forest_left"][inner] = inner  # a node its own child: evaluation would never end
+    with pytest.raises(ValueError, match="cycle"):
+        ForestArrays.from_arrays(cyclic)
 
 
 def test_one_forest_learns_the_model_and_each_effect_and_the_posterior_sums_to_one():
@@ -189,7 +194,9 @@ def test_a_corrupt_or_foreign_cache_file_is_refused_in_one_line_and_never_execut
     garbage.write_bytes(b"not a cache")
     evil = tmp_path / "evil.npz"
     np.savez(evil, meta=np.array([{"format": "napari-lbs diagnoser 1"}], dtype=object))  # needs pickle to read
-    for bad in (garbage, evil):
+    truncated = tmp_path / "truncated.npz"
+    truncated.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    for bad in (garbage, evil, truncated):
         with pytest.raises(InputError) as refused:
             load_diagnoser(bad)
         assert "\n" not in str(refused.value) and bad.name in str(refused.value)

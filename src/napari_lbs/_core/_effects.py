@@ -176,8 +176,8 @@ def _dust_spectrum(grid: tuple[int, int], count: int, grain_px: int) -> np.ndarr
 def _dust_pattern(shape: tuple[int, int], count_per_mpx: float, zone_px: float, grain_px: float = 5.0) -> np.ndarray:
     """Intensity (unobstructed = 1, float32) of dust grains on a window out of the volume.
 
-    Opaque grains (`_dust_mask`, radius ``grain_px``: 5 px is 11 µm at 2.2 µm pixels, real dust
-    on windows and cover glasses is 5–100 µm across; ``count_per_mpx`` per megapixel, over the window and a border
+    Opaque grains (`_dust_mask`, radius ``grain_px``: 5 px is 22 µm across at 2.2 µm pixels;
+    dust on windows and cover glasses is 5–100 µm across; ``count_per_mpx`` per megapixel, over the window and a border
     of half its size, whose rings reach in), diffracted to the sensor (`_fresnel_intensity`)
     on a periodic grid twice the window's size: rings that spread further (a 5 px grain at
     ``zone_px`` 60 spreads over about 360 px) wrap around, as a window evenly covered with dust

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import hashlib
+import importlib.util
 import json
 import multiprocessing
 import os
@@ -113,9 +114,21 @@ def default_cache_dir() -> Path:
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "napari-lbs" / "diagnosers"
 
 
+# the modules whose code makes a diagnoser's simulations and features: any change to them makes another diagnoser
+_SIMULATION_CODE = ("_optics", "_synthesis", "_effects", "_gap._scenarios", "_gap._summaries", "_gap._features", "_gap._forest")
+
+
+def _code_hash() -> str:
+    digest = hashlib.sha256()
+    for name in _SIMULATION_CODE:
+        spec = importlib.util.find_spec(f"napari_lbs._core.{name}")
+        digest.update(Path(spec.origin).read_bytes())
+    return digest.hexdigest()[:16]
+
+
 def _setup(config: ExperimentConfig, grid: TileGrid, prior: ScenarioPrior, settings: DiagnosisSettings) -> dict:
     return {
-        "format": CACHE_FORMAT, "napari_lbs": __version__, "config": config.to_dict(), "grid": {"frame_shape": list(grid.frame_shape), "tile_px": grid.tile_px, "per_side": grid.per_side},
+        "format": CACHE_FORMAT, "napari_lbs": __version__, "code": _code_hash(), "config": config.to_dict(), "grid": {"frame_shape": list(grid.frame_shape), "tile_px": grid.tile_px, "per_side": grid.per_side},
         "prior": {"candidates": list(prior.candidates), "none": prior.none, "one": prior.one, "known": prior.known, "bits": prior.bits, "density": list(prior.density), "strength": list(prior.strength)},
         "simulations": settings.simulations, "trees": settings.trees, "training_seed": settings.training_seed,
     }
@@ -262,9 +275,11 @@ def load_diagnoser(path) -> Diagnoser:
                 np.asarray(data["summaries"], np.float32), np.asarray(data["present"], bool), {n: np.asarray(data[f"param_{i}"], np.float64) for i, n in enumerate(names)},
                 ForestArrays.from_arrays(data), meta,
             )
-    except (OSError, ValueError, KeyError, TypeError, json.JSONDecodeError) as error:
-        raise InputError(f"{path}: not a napari-lbs diagnoser cache ({error})") from None
+    except Exception as error:  # a truncated zip, a JSON of the wrong shape, a missing array: never the file's code
+        raise InputError(f"{path}: not a napari-lbs diagnoser cache ({type(error).__name__}: {error})") from None
     n = diagnoser.features.shape[0]
-    if not (diagnoser.present.shape == (n, len(diagnoser.candidates)) and diagnoser.forest.value.shape[1] == 2 * len(diagnoser.candidates) + 2 and diagnoser.summaries.shape[0] == n):
+    forest = diagnoser.forest
+    if not (diagnoser.present.shape == (n, len(diagnoser.candidates)) and forest.value.shape[1] == 2 * len(diagnoser.candidates) + 2 and diagnoser.summaries.shape[0] == n
+            and forest.feature.max(initial=-1) < diagnoser.features.shape[1]):
         raise InputError(f"{path}: not a napari-lbs diagnoser cache (arrays of inconsistent shapes)")
     return diagnoser

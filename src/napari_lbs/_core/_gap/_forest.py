@@ -62,6 +62,9 @@ class ForestArrays:
             values = getattr(forest, name)
             if values.size and (values.min() < -1 or values.max() >= nodes):
                 raise ValueError(f"forest {name} out of range")
+        inner = forest.left >= 0
+        if np.any(forest.left[inner] <= np.flatnonzero(inner)) or np.any(forest.right[inner] <= np.flatnonzero(inner)):
+            raise ValueError("forest children must come after their node (a cycle would never end)")
         return forest
 
 

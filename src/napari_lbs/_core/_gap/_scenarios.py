@@ -24,7 +24,7 @@ from napari_lbs._core._config import ExperimentConfig
 from napari_lbs._core._effects import EFFECTS, OPTICAL_EFFECTS, check_effects, optical_hologram, sensor_image
 from napari_lbs._core._synthesis import random_particle_field
 
-__all__ = ["TileGrid", "Scenario", "ScenarioPrior", "draw_scenario", "simulate_tiles", "catalog_candidates", "TRANSPARENT", "OPAQUE", "SATURATION"]
+__all__ = ["TileGrid", "Scenario", "ScenarioPrior", "draw_scenario", "simulate_tiles", "catalog_candidates", "EFFECT_BRANCHES", "TRANSPARENT", "OPAQUE", "SATURATION"]
 
 TRANSPARENT = 0.55  # particle_phase: the particles transmit at least this fraction of the field's amplitude
 OPAQUE = 0.35  # every other scenario's spheres transmit at most this
@@ -64,13 +64,13 @@ class TileGrid:
         """Shifts (`origins`) that together cover each cell with non-overlapping tiles, as far as it holds whole tiles (at least the centre)."""
         cell = (self.frame_shape[0] // self.per_side, self.frame_shape[1] // self.per_side)
         steps = [max(c // self.tile_px, 1) for c in cell]
-        offsets = [[(k - (n - 1) / 2) * self.tile_px for k in range(n)] for n in steps]
-        return [(int(round(a)), int(round(b))) for a in offsets[0] for b in offsets[1]]
+        offsets = [[k * self.tile_px - (n - 1) * self.tile_px // 2 for k in range(n)] for n in steps]  # whole pixels: tiles never overlap
+        return [(a, b) for a in offsets[0] for b in offsets[1]]
 
-    def centres(self) -> np.ndarray:
-        """(tiles, 2) tile centres as (y, x) fractions of the frame, −0.5 … 0.5."""
+    def centres(self, shift: tuple[int, int] = (0, 0)) -> np.ndarray:
+        """(tiles, 2) tile centres (`origins` at ``shift``) as (y, x) fractions of the frame, −0.5 … 0.5."""
         half = self.tile_px / 2
-        return np.array([((r + half) / self.frame_shape[0] - 0.5, (c + half) / self.frame_shape[1] - 0.5) for r, c in self.origins()])
+        return np.array([((r + half) / self.frame_shape[0] - 0.5, (c + half) / self.frame_shape[1] - 0.5) for r, c in self.origins(shift)])
 
 
 @dataclass(frozen=True)
@@ -118,6 +118,9 @@ class Scenario:
 def _log_uniform(rng: np.random.Generator, low: float, high: float) -> float:
     return float(math.exp(rng.uniform(math.log(low), math.log(high))))
 
+
+# effects of two kinds, each scenario one of them: the strength parameter of each kind
+EFFECT_BRANCHES = {"coherence": ("theta_mrad", "bandwidth_nm"), "parasitic_fringes": ("amplitude", "dust_per_mpx")}
 
 # each effect's strength parameters: (weakest, strongest, log scale); the others are drawn over their whole range
 _STRENGTHS = {
