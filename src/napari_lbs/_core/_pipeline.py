@@ -274,7 +274,7 @@ def backprop(request: BackpropRequest, *, progress: ProgressCallback | None = No
         backpropagate(hologram, z_um, wavelength_um=config.optics.wavelength_um, pixel_um=config.optics.pixel_um, medium_index=config.optics.medium_index,
                       background=background, out=stack, progress=progress, should_stop=should_stop)
     seconds = time.perf_counter() - start
-    return StepResult(f"back-propagated {source} to {len(z_um)} planes ({z_um[0]:g}-{z_um[-1]:g} um) in {seconds:.1f} s -> {out}", z_um, (out,))
+    return StepResult(f"back-propagated {source} to {len(z_um)} planes ({z_um[0]:g}-{z_um[-1]:g} µm) in {seconds:.1f} s -> {out}", z_um, (out,))
 
 
 # --- calibrate -----------------------------------------------------------------------------
@@ -912,7 +912,7 @@ def demo(request: DemoRequest, *, progress_for: Callable[[str], ProgressCallback
         # outside the crop, a model trained without them reported 20 false particles among 119.
         processing, effects, distractors = InputProcessing(), dict(DEMO_SAMPLE_EFFECTS), Distractors(**DEMO_SAMPLE_DISTRACTORS)
         data = (f"{groups} synthetic groups of {config.tile.size}² of transparent spheres (particle_phase: index contrast {effects['particle_phase']['index_contrast']:g}), "
-                f"uncalibrated, with unlabelled distractors ({distractors.impurities_per_tile} impurities of {distractors.impurity_diameter_min_um:g}-{distractors.impurity_diameter_max_um:g} um "
+                f"uncalibrated, with unlabelled distractors ({distractors.impurities_per_tile} impurities of {distractors.impurity_diameter_min_um:g}-{distractors.impurity_diameter_max_um:g} µm "
                 f"per tile, neighbours in a {distractors.neighbours_margin_px}-pixel margin)")
     start = time.perf_counter()
     source = {"explicit": ["the built-in sample: polystyrene (n 1.59) spheres in water (n 1.33), 25 um, 660 nm"]} if effects else None
