@@ -194,6 +194,20 @@ def test_training_is_deterministic_and_resumes_to_the_same_weights(tiny_data, ti
     assert all(torch.equal(straight[key], continued[key]) for key in straight)
 
 
+def test_validating_only_the_last_epochs_trains_the_same_weights(tiny_data, tiny_model, tmp_path):
+    """Skipping the early validations changes which epochs are scored, not the training."""
+    from napari_lbs._core import TrainingSettings, train_model
+
+    settings = TrainingSettings(formulation="seed", epochs=3, batch_size=4, device="cpu", validation_groups=1, foreground_weight=20.0, validate_last=1)
+    records = []
+    result = train_model(tiny_data, tmp_path / "last.pt", settings=settings, report=records.append)
+    epochs = result.log["epochs"]
+    assert [("validation" in e) for e in epochs] == [False, False, True]
+    assert [e["train_loss"] for e in epochs] == [e["train_loss"] for e in tiny_model.log["epochs"]]
+    assert result.log["best"]["epoch"] == 3
+    assert [r["epoch"] for r in records if "batch" not in r] == [1, 2, 3]
+
+
 def test_stopping_mid_epoch_keeps_a_usable_model(tiny_data, tmp_path):
     from napari_lbs._core import TrainingSettings, load_model, train_model
 
