@@ -109,6 +109,40 @@ def test_far_field_limit_is_the_amplitude_function():
     assert np.allclose(ex[0].numpy(), expected, rtol=1e-4, atol=1e-4 * abs(expected[0]))
 
 
+@pytest.mark.parametrize("pixel_um", [None, 2.2])
+def test_azimuthal_moments_match_the_hologram_averaged_over_the_azimuth(pixel_um):
+    """``⟨I⟩`` and ``⟨I cos2φ⟩`` of the ring model against `sphere_holograms` on 720 azimuths per radius (absorbing, so C and Q matter)."""
+    import math
+
+    from napari_lbs._core._lorenz_mie import azimuthal_mean_holograms
+
+    z, d, contrast, kappa = 1800.0, 24.0, 0.26, 0.02
+    rho = torch.linspace(0.5, 160.0, 48, dtype=torch.float64)
+    phi = (torch.arange(720, dtype=torch.float64) + 0.5) * 2 * math.pi / 720
+    dx = (rho[:, None] * torch.cos(phi)).reshape(1, -1)
+    dy = (rho[:, None] * torch.sin(phi)).reshape(1, -1)
+    plane = sphere_holograms(dx, dy, *(torch.tensor([v]) for v in (z, d, contrast, kappa)), wavelength_um=WAVELENGTH_UM, medium_index=WATER,
+                             pixel_um=pixel_um, radial_step_um=torch.tensor([0.05])).reshape(48, 720)
+    ring = azimuthal_mean_holograms(torch.tensor([z]), torch.tensor([[d]]), torch.tensor([[contrast]]), torch.tensor([[kappa]]), rho[None],
+                                    wavelength_um=WAVELENGTH_UM, medium_index=WATER, pixel_um=pixel_um)[0, 0]
+    assert float((ring[:, 0] - plane.mean(dim=1)).abs().max()) < 1e-8
+    second = (plane * torch.cos(2 * phi)).mean(dim=1)
+    assert float(second.abs().max()) > 1e-5  # the second harmonic is there to be matched
+    assert float((ring[:, 1] - second).abs().max()) < 1e-8
+
+
+def test_symmetric_centre_is_found_within_a_tenth_of_a_pixel():
+    from napari_lbs._core import _refine
+
+    truth = (36.3 * PIXEL_UM, 35.6 * PIXEL_UM, 900.0, 18.0)
+    hologram = _scene([truth])
+    guess_x, guess_y = np.array([truth[0] + 1.9]), np.array([truth[1] - 1.4])
+    patches = _refine._cut_patches(hologram, guess_x, guess_y, np.array([48]), pixel_um=PIXEL_UM, device="cpu")
+    residual, _ = _refine._flat_model(patches)
+    x, y = _refine._symmetric_centres(residual, patches, guess_x, guess_y, pixel_um=PIXEL_UM)
+    assert abs(x[0] - truth[0]) < 0.1 * PIXEL_UM and abs(y[0] - truth[1]) < 0.1 * PIXEL_UM
+
+
 def test_opaque_disc_matches_the_angular_spectrum_simulator():
     from napari_lbs._core._synthesis import ParticleField, simulate_hologram
 

@@ -48,6 +48,7 @@ import math
 import torch
 
 __all__ = [
+    "azimuthal_mean_holograms",
     "disc_holograms",
     "fields_from_profiles",
     "holograms_from_fields",
@@ -66,6 +67,13 @@ def term_count(size_parameter: float, relative_index: complex) -> int:
     x = abs(float(size_parameter))
     stop = x + 4.0 * x ** (1 / 3) + 1 if x <= 8 else x + 4.05 * x ** (1 / 3) + 2
     return max(math.floor(stop), int(abs(x * complex(relative_index))), 1)
+
+
+def _reciprocal(w: torch.Tensor) -> torch.Tensor:
+    """``1 / w`` of a complex tensor through real arithmetic (torch's complex division is several times slower)."""
+    re, im = w.real, w.imag
+    inverse = 1.0 / (re * re + im * im)
+    return torch.complex(re * inverse, -im * inverse)
 
 
 def mie_coefficients(size_parameter: torch.Tensor, relative_index: torch.Tensor, *, terms: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -94,33 +102,35 @@ def mie_coefficients(size_parameter: torch.Tensor, relative_index: torch.Tensor,
     start = max(terms, int(largest)) + 16 + int(4.0 * largest ** (1 / 3))
     # D_n(mx) and D_n(x) together; multiplications by 1/z cost less than divisions
     z = torch.stack([mx, x])
-    inverse = 1.0 / z
+    inverse = _reciprocal(z)
     log_derivative = torch.zeros_like(z)
     kept: list[torch.Tensor] = [log_derivative] * (terms + 1)
     for n in range(start, 0, -1):
         t = n * inverse
-        log_derivative = t - 1.0 / (log_derivative + t)
+        log_derivative = t - _reciprocal(log_derivative + t)
         if n - 1 <= terms:
             kept[n - 1] = log_derivative
-    inner, outer = torch.stack(kept, dim=-1)  # (B, terms + 1) each
-    n_over_x = torch.arange(terms + 1, dtype=torch.float64, device=x.device) * inverse[1][:, None]
-    up_psi = n_over_x[:, 1:] - outer[:, :-1]  # ψ_n / ψ_{n-1}, n = 1 … terms
+    # the upward recurrences read one order at a time: rows of (terms + 1, B), not strided columns
+    inv_x = inverse[1]
     psi_xi = 0.5 * (1.0 - torch.exp(2j * x))  # ψ_0 ξ_0
     ratio = 1j * torch.sin(x) * torch.exp(-1j * x)  # ψ_0 / ξ_0
     d3 = torch.full_like(x, 1j)
     ratios, d3s = [], []
     for n in range(1, terms + 1):
-        up_xi = n_over_x[:, n] - d3
-        psi_xi = psi_xi * up_psi[:, n - 1] * up_xi
-        ratio = ratio * up_psi[:, n - 1] / up_xi
-        d3 = outer[:, n] + 1j / psi_xi
+        n_over_x = n * inv_x
+        up_psi = n_over_x - kept[n - 1][1]  # ψ_n / ψ_{n-1}
+        up_xi = n_over_x - d3
+        psi_xi = psi_xi * up_psi * up_xi
+        ratio = ratio * up_psi * _reciprocal(up_xi)
+        d3 = kept[n][1] + 1j * _reciprocal(psi_xi)
         ratios.append(ratio)
         d3s.append(d3)
     ratio, d3 = torch.stack(ratios, dim=-1), torch.stack(d3s, dim=-1)
-    ha = inner[:, 1:] / m[:, None]
-    hb = inner[:, 1:] * m[:, None]
-    a = ratio * (ha - outer[:, 1:]) / (ha - d3)
-    b = ratio * (hb - outer[:, 1:]) / (hb - d3)
+    inner, outer = torch.stack(kept[1:], dim=-1)  # (B, terms) each
+    ha = inner * _reciprocal(m)[:, None]
+    hb = inner * m[:, None]
+    a = ratio * (ha - outer) * _reciprocal(ha - d3)
+    b = ratio * (hb - outer) * _reciprocal(hb - d3)
     return a, b
 
 
@@ -330,6 +340,149 @@ def sphere_holograms(
     optics = {"wavelength_um": wavelength_um, "medium_index": medium_index}
     fields = sphere_fields(dx_um, dy_um, z_um, diameter_um, index_contrast, absorption, terms=terms, radial_step_um=radial_step_um, **optics)
     return holograms_from_fields(fields, dx_um, dy_um, z_um, pixel_um=pixel_um, **optics)
+
+
+def _weighted_coefficients(a: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``i E_n a_n`` and ``E_n b_n`` with ``E_n = i^n (2n+1) / (n(n+1))``: the factors of `_radial_profiles`' sums."""
+    n = torch.arange(1, a.shape[-1] + 1, dtype=torch.float64, device=a.device)
+    phase = torch.tensor([1.0 + 0j, 1j, -1.0 + 0j, -1j], dtype=torch.complex128, device=a.device)[(torch.arange(1, a.shape[-1] + 1, device=a.device) % 4)]
+    en = phase * (2.0 * n + 1.0) / (n * n + n)
+    return 1j * en * a, en * b
+
+
+def _profile_sums(a_eff: torch.Tensor, b_eff: torch.Tensor, k: float, z_um: torch.Tensor, rho_um: torch.Tensor, *, block: int = 1 << 21
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``A, B, C`` (module docstring) of S coefficient sets per row, at each row's radii: three (..., S, R) tensors.
+
+    ``a_eff, b_eff``: (..., S, terms) from `_weighted_coefficients`; ``z_um`` (...);
+    ``rho_um`` (..., R); leading dimensions broadcast. The angular and radial functions
+    (``π_n, τ_n, ξ_n, ξ_n'``) depend on a row's depth and radii only, so they are computed
+    once per row and the partial-wave sums of all S sets are matrix products: a size–index
+    scan costs little more than one model.
+    """
+    terms = a_eff.shape[-1]
+    z = z_um[..., None]
+    r = torch.sqrt(rho_um**2 + z**2)
+    kr = k * r
+    inv_kr = 1.0 / kr
+    cos_t = z / r
+    sin_t = rho_um / r
+    xi_prev2 = torch.ones_like(kr, dtype=torch.complex128)
+    xi_prev = torch.full_like(xi_prev2, -1j)
+    pi_prev = torch.zeros_like(kr)
+    pi_n = torch.ones_like(kr)
+    s0 = s1 = s2 = 0
+    width = max(1, min(terms, block // max(1, rho_um.numel())))
+    basis: list[list[torch.Tensor]] = [[], [], [], []]
+    first = 0
+    for n in range(1, terms + 1):
+        swisc = pi_n * cos_t
+        twisc = swisc - pi_prev
+        tau = n * twisc - pi_prev
+        xi = ((2 * n - 1) * inv_kr) * xi_prev - xi_prev2
+        dxi = (n * inv_kr) * xi - xi_prev
+        for store, value in zip(basis, (pi_n * xi, tau * dxi, pi_n * dxi, tau * xi), strict=True):
+            store.append(value)
+        pi_prev, pi_n = pi_n, swisc + (1.0 + 1.0 / n) * twisc
+        xi_prev2, xi_prev = xi_prev, xi
+        if len(basis[0]) == width or n == terms:
+            p_xi, t_dxi, p_dxi, t_xi = (torch.stack(store, dim=-2) for store in basis)  # (..., width, R)
+            orders = torch.arange(first + 1, n + 1, dtype=torch.float64, device=rho_um.device)
+            a_block, b_block = a_eff[..., first:n], b_eff[..., first:n]
+            s0 = s0 + (a_block * (orders * orders + orders)) @ p_xi
+            s1 = s1 - a_block @ t_dxi - b_block @ p_xi
+            s2 = s2 + a_block @ p_dxi + b_block @ t_xi
+            basis = [[], [], [], []]
+            first = n
+    sin_t, cos_t, kr = sin_t[..., None, :], cos_t[..., None, :], kr[..., None, :]
+    radial = s0 * sin_t / kr
+    return (radial * sin_t + s1 * cos_t) / kr, -s2 / kr, (radial * cos_t - s1 * sin_t) / kr
+
+
+_AZIMUTHS = 16  # quadrature points over a quarter turn for the pixel's transfer averaged over the azimuth
+
+
+def _mean_intensity(a_eff: torch.Tensor, b_eff: torch.Tensor, z_um: torch.Tensor, rho_um: torch.Tensor, *, k: float, pixel_um: float | None,
+                    annulus_um: float | None) -> torch.Tensor:
+    """`azimuthal_mean_holograms` from weighted coefficients (..., S, terms), depths (...) and radii (..., R): (..., S, R, 2)."""
+    along_x, along_y, axial = _profile_sums(a_eff, b_eff, k, z_um, rho_um)
+    p, q = 0.5 * (along_x + along_y), 0.5 * (along_x - along_y)
+    z = z_um[..., None]
+    rho2 = rho_um**2
+    r = torch.sqrt(rho2 + z**2)
+    phase = k * rho2 / (r + z)
+    carrier = (torch.cos(phase) + 1j * torch.sin(phase))[..., None, :]
+    # moments ⟨T⟩, ⟨T cos2φ⟩, ⟨T cos²2φ⟩ of the pixel's transfer T over the azimuth (T = 1 for point samples)
+    t0, t1, t2 = 1.0, 0.0, 0.5
+    if pixel_um is not None:
+        half = (k * pixel_um / (2.0 * math.pi * r) * rho_um)[..., None]
+        phi = (torch.arange(_AZIMUTHS, dtype=torch.float64, device=rho_um.device) + 0.5) * (0.5 * math.pi / _AZIMUTHS)
+        transfer = torch.sinc(half * torch.cos(phi)) * torch.sinc(half * torch.sin(phi))
+        c2 = torch.cos(2.0 * phi)
+        t0, t1, t2 = (m[..., None, :] for m in (transfer.mean(dim=-1), (transfer * c2).mean(dim=-1), (transfer * c2 * c2).mean(dim=-1)))
+    if annulus_um is not None:
+        carrier = carrier * torch.sinc(k * rho_um / r * annulus_um / (2.0 * math.pi))[..., None, :]
+    c_sq = axial.real**2 + axial.imag**2
+    mean = 1.0 + 2.0 * (carrier * (p * t0 + q * t1)).real + p.real**2 + p.imag**2 + q.real**2 + q.imag**2 + 0.5 * c_sq
+    second = 2.0 * (carrier * (p * t1 + q * t2)).real + (p.conj() * q).real + 0.25 * c_sq
+    return torch.stack([mean, second], dim=-1)
+
+
+def azimuthal_mean_holograms(
+    z_um: torch.Tensor,
+    diameter_um: torch.Tensor,
+    index_contrast: torch.Tensor,
+    absorption: torch.Tensor,
+    rho_um: torch.Tensor,
+    *,
+    wavelength_um: float,
+    medium_index: float,
+    pixel_um: float | None = None,
+    annulus_um: float | None = None,
+    terms: int | None = None,
+) -> torch.Tensor:
+    """Holograms' two azimuthal moments about each sphere's centre, ``⟨I⟩`` and ``⟨I cos2φ⟩``: (N, S, R, 2).
+
+    With ``P = (A + B)/2``, ``Q = (A - B)/2`` (module docstring), ``E_x = e^{iΦ}(P + Q cos2φ)``,
+    ``E_y = e^{iΦ} Q sin2φ``, ``E_z = e^{iΦ} C cosφ``, so a sphere's hologram holds only the
+    harmonics 0 and 2 of the azimuth::
+
+        I = 1 + |P|² + |Q|² + |C|²/2 + 2 Re(e^{iΦ} P)
+              + cos2φ (2 Re(e^{iΦ} Q) + 2 Re(P̄ Q) + |C|²/2)
+
+    and its ring means ``⟨I⟩`` and ``⟨I cos2φ⟩`` (half the second harmonic) carry all of
+    it: a sphere's ring profile costs radial samples, not pixels. ``pixel_um``: each pixel's
+    transfer ``sinc(h x) sinc(h y)`` (as `sphere_holograms`) on the interference term,
+    its moments over φ by quadrature. ``annulus_um``: the data are means over rings that
+    wide, so the interference term is also averaged across the ring (``sinc`` of the fringe
+    phase the ring spans).
+
+    Parameters
+    ----------
+    z_um : (N,) tensor
+        Depth of row n (µm, in the medium).
+    diameter_um, index_contrast, absorption : (N, S) tensors
+        S spheres per row, all at that row's depth.
+    rho_um : (N, R) tensor
+        Radii (µm) of row n.
+    wavelength_um, medium_index, pixel_um, annulus_um : float
+    terms : int, optional
+        Partial waves (default: `term_count` of the largest sphere).
+
+    Returns
+    -------
+    (N, S, R, 2) float64 tensor: ``⟨I⟩`` (unobstructed light = 1) and ``⟨I cos2φ⟩``.
+    """
+    k = 2.0 * math.pi * medium_index / wavelength_um
+    count, sets = diameter_um.shape
+    size = (k * diameter_um.to(torch.float64) / 2.0).reshape(-1)
+    relative = (((medium_index + index_contrast.to(torch.float64)) + 1j * absorption.to(torch.float64)) / medium_index).reshape(-1)
+    if terms is None:
+        largest = int(torch.argmax(size))
+        terms = term_count(float(size[largest]), complex(relative[largest]))
+    a, b = mie_coefficients(size, relative, terms=terms)
+    a_eff, b_eff = (t.reshape(count, sets, terms) for t in _weighted_coefficients(a, b))
+    return _mean_intensity(a_eff, b_eff, z_um.to(torch.float64), rho_um.to(torch.float64), k=k, pixel_um=pixel_um, annulus_um=annulus_um)
 
 
 class _BesselJ1(torch.autograd.Function):

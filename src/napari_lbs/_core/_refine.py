@@ -46,7 +46,17 @@ import torch
 
 from napari_lbs._core._config import ExperimentConfig
 from napari_lbs._core._io import PARTICLE_COLUMNS, InputError
-from napari_lbs._core._lorenz_mie import fields_from_profiles, holograms_from_fields, radial_profiles, radial_step, sphere_fields, term_count
+from napari_lbs._core._lorenz_mie import (
+    _mean_intensity,
+    _weighted_coefficients,
+    fields_from_profiles,
+    holograms_from_fields,
+    mie_coefficients,
+    radial_profiles,
+    radial_step,
+    sphere_fields,
+    term_count,
+)
 from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
 
 __all__ = ["FIT_PARAMETERS", "REFINE_COLUMNS", "RefineSettings", "refine_particles"]
@@ -363,64 +373,58 @@ def _levenberg_marquardt(model: _Model, params: torch.Tensor, free: torch.Tensor
     """Robust Levenberg–Marquardt on every patch at once; returns the parameters and their robust cost.
 
     Each patch keeps its own damping; a rejected step is retried, more damped, on the
-    patches that rejected it only.
+    patches that rejected it only, and a patch whose cost fell by less than
+    `_LM_TOLERANCE` in an iteration has converged and leaves the batch.
     """
-    data, mask = model.patches.data, model.patches.mask
     count = params.shape[0]
     params = params.clone()
     damping = torch.full((count,), 1e-3, dtype=torch.float64, device=params.device)
-    freef = free.to(torch.float64)
     cost = torch.zeros(count, dtype=torch.float64, device=params.device)
+    active = torch.arange(count, device=params.device)
     for _ in range(iterations):
         if steps is not None:
             steps.check()
-        prediction, jac = model.jacobian(params, free)
+        sub = model if active.numel() == count else model.select(active)
+        data, mask = sub.patches.data, sub.patches.mask
+        p, f, s = params[active], free[active], scale[active]
+        freef = f.to(torch.float64)
+        prediction, jac = sub.jacobian(p, f)
         residual = data - prediction
-        weight, cost = _huber(residual, scale, mask, settings.huber)
+        weight, current = _huber(residual, s, mask, settings.huber)
+        before = current.clone()
         jac = jac * freef[:, None, :]
         jtw = jac.transpose(1, 2) * weight[:, None, :]
         normal = jtw @ jac
         gradient = (jtw @ residual[:, :, None])[:, :, 0]
         diagonal = torch.diagonal(normal, dim1=1, dim2=2).clamp(min=1e-30)
         # fixed parameters: a unit diagonal and no gradient keep them where they are
-        normal = normal + torch.diag_embed(torch.where(free, torch.zeros_like(diagonal), torch.ones_like(diagonal)))
-        rows = torch.arange(count, device=params.device)
+        normal = normal + torch.diag_embed(torch.where(f, torch.zeros_like(diagonal), torch.ones_like(diagonal)))
+        rows = torch.arange(active.numel(), device=params.device)
+        lam = damping[active]
         for _attempt in range(4):
-            system = normal[rows] + torch.diag_embed(damping[rows, None] * torch.where(free[rows], diagonal[rows], torch.zeros_like(diagonal[rows])))
+            system = normal[rows] + torch.diag_embed(lam[rows, None] * torch.where(f[rows], diagonal[rows], torch.zeros_like(diagonal[rows])))
             delta = torch.linalg.solve(system, gradient[rows, :, None])[:, :, 0]
-            trial = _clamp(params[rows] + delta * freef[rows], low[rows], high[rows])
-            subset = model if rows.numel() == count else model.select(rows)
-            _, trial_cost = _huber(data[rows] - subset(trial), scale[rows], mask[rows], settings.huber)
-            better = trial_cost < cost[rows]
-            params[rows[better]] = trial[better]
-            cost[rows[better]] = trial_cost[better]
-            damping[rows] = torch.where(better, damping[rows] * 0.3, damping[rows] * 10.0).clamp(1e-7, 1e7)
+            trial = _clamp(p[rows] + delta * freef[rows], low[active][rows], high[active][rows])
+            subset = sub if rows.numel() == active.numel() else sub.select(rows)
+            _, trial_cost = _huber(data[rows] - subset(trial), s[rows], mask[rows], settings.huber)
+            better = trial_cost < current[rows]
+            p[rows[better]] = trial[better]
+            current[rows[better]] = trial_cost[better]
+            lam[rows] = torch.where(better, lam[rows] * 0.3, lam[rows] * 10.0).clamp(1e-7, 1e7)
             rows = rows[~better]
             if rows.numel() == 0:
                 break
+        params[active] = p
+        cost[active] = current
+        damping[active] = lam
+        # converged: the cost fell by less than a tenth of a noise variance
+        active = active[before - current >= _LM_TOLERANCE]
+        if active.numel() == 0:
+            break
     return params, cost
 
 
-def _scan(model: _Model, trials: torch.Tensor, scale: torch.Tensor, *, settings: RefineSettings) -> torch.Tensor:
-    """Robust cost (B, T) of trial physical parameters (B, T, 6), each with its best illumination (least squares on c0, c1, c2)."""
-    patches = model.patches
-    count, total = trials.shape[:2]
-    chunk = max(1, int(2e6 // max(1, count * patches.data.shape[1])))
-    mask = patches.mask
-    costs = []
-    for first in range(0, total, chunk):
-        part = trials[:, first : first + chunk]
-        n = part.shape[1]
-        params = torch.zeros((n * count, _PHYSICAL + _NUISANCE), dtype=torch.float64, device=trials.device)
-        params[:, :_PHYSICAL] = part.transpose(0, 1).reshape(n * count, _PHYSICAL)
-        others = None if model.others is None else model.others.repeat(1, n, 1)
-        batch = _Model(_expand(patches, n, interleave=False), others, pixel_um=model.pixel_um, terms=model.terms, **model.optics)
-        spheres = batch.sphere(params).reshape(n, count, -1)
-        basis = torch.stack([spheres, spheres * patches.u, spheres * patches.v], dim=-1) * mask[:, :, None]
-        solution = torch.linalg.lstsq(basis, (patches.data * mask)[None, :, :, None].expand(n, -1, -1, -1)).solution
-        residual = (patches.data - (basis @ solution)[..., 0]).reshape(n * count, -1)
-        costs.append(_huber(residual, scale.repeat(n), mask.repeat(n, 1), settings.huber)[1].reshape(n, count))
-    return torch.cat(costs, dim=0).T
+_LM_TOLERANCE = 0.05  # half noise variances (Δχ² = 0.1)
 
 
 def _best(costs: torch.Tensor, count: int, *, local: bool) -> torch.Tensor:
@@ -431,54 +435,6 @@ def _best(costs: torch.Tensor, count: int, *, local: bool) -> torch.Tensor:
         minima = (costs <= padded[:, :-2]) & (costs <= padded[:, 2:])
         ranked = torch.where(minima, costs, costs + costs.abs().max() + 1.0)
     return torch.argsort(ranked, dim=1)[:, : min(count, costs.shape[1])]
-
-
-def _depth_offsets(model: _Model, params: torch.Tensor, *, window_um: float, pixel_um: float) -> torch.Tensor:
-    """Depth offsets (µm) of the scan: steps that move the patch's outermost fringe (phase k ρ²/2z) by one radian at the nearest depth."""
-    patches = model.patches
-    k = 2.0 * math.pi * model.optics["medium_index"] / model.optics["wavelength_um"]
-    rho_max = float(torch.max(torch.sqrt((patches.x_um - params[:, :1]) ** 2 + (patches.y_um - params[:, 1:2]) ** 2) * patches.mask))
-    nearest = float(torch.clamp(params[:, 2] - window_um, min=0.1 * window_um).min())
-    step = max(2.0 * nearest**2 / (k * max(rho_max, pixel_um) ** 2), 0.5 * pixel_um)
-    return torch.arange(-window_um, window_um + 0.5 * step, step, dtype=torch.float64, device=params.device)
-
-
-# The size-index scan: diameters around the start, and for each the index contrasts whose
-# phase delay k0 d Δn steps through one period on each side of the start's in thirds (the
-# valley itself is chosen after the fit, `_choose_valley`).
-_SCAN_DIAMETER_STEPS = (-2, -1, 0, 1, 2)  # in units of _SCAN_DIAMETER_UM
-_SCAN_DIAMETER_UM = 0.8
-_SCAN_DELAY_STEPS = tuple(j / 3 for j in range(-3, 4))
-
-
-def _search_starts(model: _Model, params: torch.Tensor, free: torch.Tensor, scale: torch.Tensor, *, window_um: float, pixel_um: float,
-                   settings: RefineSettings) -> torch.Tensor:
-    """Starting points (B, K, 9): the best depths of a depth scan, then the best sizes and indices of a size–index scan at each."""
-    count = params.shape[0]
-    physical = params[:, :_PHYSICAL]
-    starts = physical[:, None, :]
-    if bool(free[:, 2].any()):
-        offsets = _depth_offsets(model, params, window_um=window_um, pixel_um=pixel_um)
-        trials = physical[:, None, :].repeat(1, offsets.numel(), 1)
-        trials[:, :, 2] = torch.where(free[:, 2:3], torch.clamp(physical[:, 2:3] + offsets, min=1.0), physical[:, 2:3])
-        pick = _best(_scan(model, trials, scale, settings=settings), settings.depth_candidates, local=True)
-        starts = torch.gather(trials, 1, pick[:, :, None].expand(-1, -1, _PHYSICAL))
-    if bool(free[:, 3].any() or free[:, 4].any()):
-        wavelength = model.optics["wavelength_um"]
-        d_steps = torch.tensor(_SCAN_DIAMETER_STEPS, dtype=torch.float64, device=params.device) * _SCAN_DIAMETER_UM
-        delays = torch.tensor(_SCAN_DELAY_STEPS, dtype=torch.float64, device=params.device) * wavelength
-        diameters = torch.where(free[:, 3:4], torch.clamp(physical[:, 3:4] + d_steps, min=_BOUNDS["diameter_um"][0]), physical[:, 3:4])  # (B, D)
-        delay0 = physical[:, 3:4] * physical[:, 4:5]
-        contrasts = torch.where(free[:, 4:5, None], (delay0[:, :, None] + delays) / diameters[:, :, None], physical[:, 4:5, None])  # (B, D, N)
-        grown = starts[:, :, None, None, :].repeat(1, 1, d_steps.numel(), delays.numel(), 1)
-        grown[..., 3] = diameters[:, None, :, None]
-        grown[..., 4] = contrasts[:, None, :, :]
-        grown = grown.reshape(count, -1, _PHYSICAL)
-        pick = _best(_scan(model, grown, scale, settings=settings), settings.depth_candidates, local=False)
-        starts = torch.gather(grown, 1, pick[:, :, None].expand(-1, -1, _PHYSICAL))
-    out = params[:, None, :].repeat(1, starts.shape[1], 1)
-    out[:, :, :_PHYSICAL] = starts
-    return out
 
 
 def _residual_inflation(residual: torch.Tensor, mask: torch.Tensor, shapes: list[tuple[int, int]]) -> torch.Tensor:
@@ -502,68 +458,398 @@ def _residual_inflation(residual: torch.Tensor, mask: torch.Tensor, shapes: list
     return torch.tensor(out, dtype=torch.float64, device=residual.device)
 
 
+# ---------------------------------------------------------------------------------------
+# Searches on ring profiles. A sphere's hologram averaged over the azimuth about its centre
+# is exact from its radial profiles (`azimuthal_mean_holograms`), and the data's ring means
+# are one scatter-add: a depth or size–index trial costs the rings (about half the patch
+# edge), not the patch's pixels. The illumination's linear terms average out over a ring.
+
+_CENTRE_REACH_PX = 3.0  # the symmetric centre is looked for this far around the guess
 _VALLEY_PRIOR = 16.0  # robust-cost units (half noise variances) per squared phase-delay period from the starting index
-_RIPPLE_SPAN = 6.0  # the valley scan's reach on each side, in size parameter k a (±0.95 µm in diameter in water at 660 nm)
-_RIPPLE_STARTS = 3  # its best minima refitted
+# size–index grid at each candidate depth: diameters around the start, and for each the
+# index contrasts whose phase delay k0 d Δn steps through one period on each side
+_GRID_DIAMETER_UM = tuple(0.4 * j for j in range(-6, 7))
+_GRID_DELAY_PERIODS = tuple(j / 4 for j in range(-4, 5))
+# the valley profile: size parameter k a along the line of constant phase delay, the
+# neighbouring valleys, and the delay and depth offsets each point is minimised over
+_PROFILE_SPAN = 4.0
+_PROFILE_STEP = 0.25
+_PROFILE_VALLEYS = (-1, 0, 1)
+_PROFILE_DELAY = 0.03  # periods
+_INTERVAL = 2.0  # half-variances: Δχ² = 4, the two-standard-deviation interval of one parameter
 
 
-_VALLEYS = (-1, 1)  # neighbouring size–index valleys, in phase-delay periods
+@dataclass
+class _Rings:
+    """Ring means of a batch's patches about centres (rings one pixel wide, out to the patch's corners)."""
+
+    data: torch.Tensor  # (B, R, 2) mean intensity and mean intensity × cos2φ
+    weight: torch.Tensor  # (B, R) pixels per ring
+    rho_um: torch.Tensor  # (B, R) their mean radius
+    cos2: torch.Tensor  # (B, R) their mean cos2φ (0 on a whole ring)
+    cos2_sq: torch.Tensor  # (B, R) their mean cos²2φ (1/2 on a whole ring)
+    width_um: float
+
+    def map(self, change) -> _Rings:
+        """The rings with ``change`` applied to every per-patch tensor (repeat, select)."""
+        return _Rings(change(self.data), change(self.weight), change(self.rho_um), change(self.cos2), change(self.cos2_sq), self.width_um)
+
+    def model(self, moments: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Expected ring means (..., R) of ``I`` and ``I cos2φ`` from the model's moments (..., R, 2) (`azimuthal_mean_holograms`).
+
+        The hologram is ``h0 + h2 cos2φ`` (``h2 = 2 ⟨I cos2φ⟩``), so over a ring's pixels, a
+        whole ring or the arcs of a patch's corners, its means are ``h0 + h2 ⟨cos2φ⟩`` and
+        ``h0 ⟨cos2φ⟩ + h2 ⟨cos²2φ⟩``.
+        """
+        h0, h2 = moments[..., 0], 2.0 * moments[..., 1]
+        return h0 + h2 * self.cos2_like(h0), h0 * self.cos2_like(h0) + h2 * self.cos2_sq_like(h0)
+
+    def cos2_like(self, like: torch.Tensor) -> torch.Tensor:
+        return self.cos2.reshape(self.cos2.shape[0], *([1] * (like.dim() - 2)), -1)
+
+    def cos2_sq_like(self, like: torch.Tensor) -> torch.Tensor:
+        return self.cos2_sq.reshape(self.cos2_sq.shape[0], *([1] * (like.dim() - 2)), -1)
 
 
-def _choose_valley(model: _Model, params: torch.Tensor, free: torch.Tensor, low: torch.Tensor, high: torch.Tensor, *, start_index: torch.Tensor,
-                   scale: torch.Tensor, settings: RefineSettings, steps: Steps) -> torch.Tensor:
-    """The converged fit in the best of the size–index valleys around ``params`` (Δn = j λ/d).
+def _symmetric_centres(residual: torch.Tensor, patches: _Patches, guess_x: np.ndarray, guess_y: np.ndarray, *, pixel_um: float) -> tuple[np.ndarray, np.ndarray]:
+    """Centres (µm) about which each patch is point-symmetric, near the guesses.
 
-    The phase delay through a transparent sphere, ``k0 d Δn``, is seen modulo 2π: valleys one
-    period apart differ only in light refracted beyond the patch. Each valley's fit is
-    converged before they are compared; where their costs are within a few noise
-    variances (`_VALLEY_PRIOR` per period²) the valley nearest the starting index wins.
+    A sphere's hologram is symmetric under ``(x, y) → (2c - x, 2c - y)`` (every term of the
+    module docstring of `_lorenz_mie` is even in the azimuth), so the self-convolution of the
+    patch peaks at ``2c`` (Cauchy–Schwarz). The patch is tapered about the current centre
+    (neighbours and the border weigh less) and the peak found with sub-pixel parabolas,
+    twice.
     """
-    count = params.shape[0]
-    period = model.optics["wavelength_um"] / params[:, 3]
-    shifts = torch.tensor((0,) + _VALLEYS, dtype=torch.float64, device=params.device)
-    k = shifts.numel()
-    candidates = params[:, None, :].repeat(1, k, 1)
-    candidates[:, :, 4] = params[:, 4:5] + torch.where(free[:, 4:5], period[:, None] * shifts, torch.zeros_like(period[:, None]))
-    grow = lambda t: t.repeat_interleave(k, dim=0)
-    wide = _Model(_expand(model.patches, k), _grow_others(model.others, k), pixel_um=model.pixel_um, terms=model.terms, **model.optics)
-    fitted, cost = _levenberg_marquardt(wide, candidates.reshape(count * k, -1), grow(free), grow(low), grow(high), scale=grow(scale), settings=settings,
-                                        iterations=max(3, settings.iterations // 2), steps=steps)
-    valleys = (fitted[:, 4] - grow(start_index)) / (model.optics["wavelength_um"] / fitted[:, 3])
-    cost = cost + _VALLEY_PRIOR * valleys**2
-    best = torch.argmin(cost.reshape(count, k), dim=1)
-    return fitted[torch.arange(count, device=params.device) * k + best]
+    out_x, out_y = guess_x.copy(), guess_y.copy()
+    for i, (rows, cols) in enumerate(patches.shape):
+        if rows < 8 or cols < 8:
+            continue
+        image = residual[i, : rows * cols].reshape(rows, cols).cpu().numpy()
+        x0, y0 = float(patches.x_um[i, 0]) / pixel_um, float(patches.y_um[i, 0]) / pixel_um
+        guess = np.array([guess_x[i] / pixel_um - x0, guess_y[i] / pixel_um - y0])
+        centre = guess.copy()
+        yy, xx = np.mgrid[0:rows, 0:cols].astype(float)
+        radius = 0.5 * min(rows, cols)
+        for _ in range(2):
+            rho = np.hypot(xx - centre[0], yy - centre[1]) / radius
+            tapered = image * np.cos(0.5 * np.pi * np.minimum(rho, 1.0)) ** 2
+            spectrum = np.fft.rfft2(tapered, s=(2 * rows, 2 * cols))
+            conv = np.fft.irfft2(spectrum * spectrum, s=(2 * rows, 2 * cols))
+            lo = np.floor(2 * (guess - _CENTRE_REACH_PX)).astype(int)
+            hi = np.ceil(2 * (guess + _CENTRE_REACH_PX)).astype(int)
+            lo = np.maximum(lo, 1)
+            hi = np.minimum(hi, np.array([2 * cols - 2, 2 * rows - 2]))
+            if np.any(hi < lo):
+                break
+            region = conv[lo[1] : hi[1] + 1, lo[0] : hi[0] + 1]
+            my, mx = np.unravel_index(int(np.argmax(region)), region.shape)
+            my, mx = my + lo[1], mx + lo[0]
+            peak = np.array([mx, my], dtype=float)
+            for axis, (minus, mid, plus) in enumerate(((conv[my, mx - 1], conv[my, mx], conv[my, mx + 1]), (conv[my - 1, mx], conv[my, mx], conv[my + 1, mx]))):
+                curvature = minus - 2.0 * mid + plus
+                if curvature < 0:
+                    peak[axis] += float(np.clip(0.5 * (minus - plus) / curvature, -0.5, 0.5))
+            centre = peak / 2.0
+        out_x[i] = (centre[0] + x0) * pixel_um
+        out_y[i] = (centre[1] + y0) * pixel_um
+    return out_x, out_y
 
 
-def _escape_ripple(model: _Model, params: torch.Tensor, free: torch.Tensor, low: torch.Tensor, high: torch.Tensor, *, scale: torch.Tensor,
-                   settings: RefineSettings, steps: Steps) -> torch.Tensor:
-    """The best of fits restarted along the valley of constant phase delay ``d (n_p - n_m)``.
+def _cut_rings(patches: _Patches, centre_x: torch.Tensor, centre_y: torch.Tensor, *, pixel_um: float) -> _Rings:
+    """Ring means (`_Rings`) of each patch about its centre, every pixel of the patch in one ring."""
+    dx = patches.x_um - centre_x[:, None]
+    dy = patches.y_um - centre_y[:, None]
+    rho2 = dx**2 + dy**2
+    rho = torch.sqrt(rho2)
+    cos2 = torch.where(rho2 > 0, (dx**2 - dy**2) / torch.clamp(rho2, min=1e-30), torch.zeros_like(rho2))
+    keep = patches.mask
+    width = pixel_um
+    count = max(1, math.ceil(float((rho * keep).max()) / width) + 1)
+    ring = torch.clamp((rho / width).long(), max=count - 1)
+    zeros = torch.zeros((rho.shape[0], count), dtype=torch.float64, device=rho.device)
+    sums = [zeros.scatter_add(1, ring, keep * values) for values in (torch.ones_like(rho), patches.data, patches.data * cos2, rho, cos2, cos2 * cos2)]
+    weight = sums[0]
+    safe = torch.clamp(weight, min=1.0)
+    centres = (torch.arange(count, dtype=torch.float64, device=rho.device) + 0.5) * width
+    rho_mean = torch.where(weight > 0, sums[3] / safe, centres.expand_as(weight))
+    cos2_sq = torch.where(weight > 0, sums[5] / safe, torch.full_like(weight, 0.5))
+    return _Rings(torch.stack([sums[1] / safe, sums[2] / safe], dim=-1), weight, torch.clamp(rho_mean, min=1e-3), sums[4] / safe,
+                  torch.clamp(cos2_sq, min=1e-3), width)
 
-    A transparent sphere's hologram ripples with its size (morphology-dependent resonances):
-    along the valley where the phase delay through the sphere is constant the loss has
-    minima ``Δ(k a) ≈ 0.2`` apart, deep enough to stop a fit far from the deepest (measured:
-    0.3 µm at d = 18 µm). The valley is scanned (``Δ(k a) = 0.25`` steps over ±`_RIPPLE_SPAN`
-    in k a, each with its best illumination), and the best minima, refitted briefly, compete
-    with the fit.
+
+def _ring_fit_terms(rings: _Rings, moments: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Weighted data and model of the rings: ``(√w0 D0, √w2 D2, √w0 M0, √w2 M2)``, each (..., R), ``w`` their inverse variances over σ²."""
+    m0, m2 = rings.model(moments)
+    shape = (rings.weight.shape[0], *([1] * (m0.dim() - 2)), -1)
+    w0 = torch.sqrt(rings.weight).reshape(shape)
+    w2 = torch.sqrt(rings.weight / rings.cos2_sq).reshape(shape)
+    d0 = rings.data[..., 0].reshape(shape)
+    d2 = rings.data[..., 1].reshape(shape)
+    return w0 * d0, w2 * d2, w0 * m0, w2 * m2
+
+
+def _ring_costs(rings: _Rings, z_um: torch.Tensor, spheres: torch.Tensor, scale: torch.Tensor, *, model: _Model) -> torch.Tensor:
+    """Cost (B, Z, S), in half noise variances, of S spheres (diameter, index contrast, κ) at each of Z depths per patch.
+
+    Each with its best brightness ``c0`` (least squares): ``½ Σ_rings w (D - c0 M)² / σ²``
+    over both ring means (`_Rings.model`), ``w`` their inverse variances in units of the
+    pixel noise σ², so differences are χ² differences of the patch.
     """
-    count = params.shape[0]
+    k = 2.0 * math.pi * model.optics["medium_index"] / model.optics["wavelength_um"]
+    medium = model.optics["medium_index"]
+    count, depths = z_um.shape
+    sets = spheres.shape[1]
+    radii = rings.rho_um.shape[1]
+    size = (k * spheres[..., 0] / 2.0).reshape(-1)
+    relative = ((medium + spheres[..., 1]) + 1j * spheres[..., 2]).reshape(-1) / medium
+    a, b = mie_coefficients(size, relative, terms=model.terms)
+    a_eff, b_eff = (t.reshape(count, 1, sets, model.terms) for t in _weighted_coefficients(a, b))
+    per = max(1, int(_RING_BLOCK // max(1, depths * sets * radii)))
+    out = []
+    for first in range(0, count, per):
+        part = slice(first, first + per)
+        moments = _mean_intensity(a_eff[part], b_eff[part], z_um[part], rings.rho_um[part, None, :].expand(-1, depths, -1), k=k,
+                                  pixel_um=model.pixel_um, annulus_um=rings.width_um)  # (b, Z, S, R, 2)
+        sub = rings.map(lambda t, part=part: t[part])
+        d0, d2, m0, m2 = _ring_fit_terms(sub, moments)
+        cross = (d0 * m0 + d2 * m2).sum(dim=-1)
+        square = torch.clamp((m0 * m0 + m2 * m2).sum(dim=-1), min=1e-30)
+        total = (d0 * d0 + d2 * d2).sum(dim=-1)
+        out.append(0.5 * torch.clamp(total - cross**2 / square, min=0.0) / scale[part, None, None] ** 2)
+    return torch.cat(out, dim=0)
+
+
+_RING_BLOCK = 1.5e6  # ring samples per chunk of `_ring_costs` (memory)
+
+
+def _ring_residuals(rings: _Rings, z_um: torch.Tensor, spheres: torch.Tensor, scale: torch.Tensor, *, model: _Model) -> torch.Tensor:
+    """Whitened ring residuals (B, R) of one sphere (diameter, index contrast, κ) per patch at its depth (B,), its brightness fitted."""
+    k = 2.0 * math.pi * model.optics["medium_index"] / model.optics["wavelength_um"]
+    medium = model.optics["medium_index"]
+    count = z_um.shape[0]
+    a, b = mie_coefficients(k * spheres[:, 0] / 2.0, ((medium + spheres[:, 1]) + 1j * spheres[:, 2]) / medium, terms=model.terms)
+    a_eff, b_eff = (t.reshape(count, 1, model.terms) for t in _weighted_coefficients(a, b))
+    moments = _mean_intensity(a_eff, b_eff, z_um, rings.rho_um, k=k, pixel_um=model.pixel_um, annulus_um=rings.width_um)[:, 0]  # (B, R, 2)
+    d0, d2, m0, m2 = _ring_fit_terms(rings, moments)
+    c0 = (d0 * m0 + d2 * m2).sum(dim=1) / torch.clamp((m0 * m0 + m2 * m2).sum(dim=1), min=1e-30)
+    return torch.cat([d0 - c0[:, None] * m0, d2 - c0[:, None] * m2], dim=1) / scale[:, None]
+
+
+def _ring_fit(rings: _Rings, start: torch.Tensor, free: torch.Tensor, kappa: torch.Tensor, scale: torch.Tensor, low: torch.Tensor, high: torch.Tensor, *,
+              model: _Model, iterations: int, depth_reach_um: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Gauss–Newton of (z, d, Δn) (B, 3) on the ring residuals; returns them and their cost (half-variances).
+
+    The depth and size trade off along a diagonal valley of the ring cost (a larger sphere
+    farther away), which a grid cut along the axes misses: the fit follows it. The
+    derivatives are secants over the ripple (`_Model.jacobian`'s envelope: ``Δ(k a) = ±0.5``,
+    ``Δ(m x) = ±0.5``; depth ±0.5 µm), so the fit follows the valley's envelope and the
+    valley profile then picks among its ripples.
+    """
+    count = start.shape[0]
+    params = start.clone()
+    freef = free.to(torch.float64)
     k_m = 2.0 * math.pi * model.optics["medium_index"] / model.optics["wavelength_um"]
-    shifts = torch.arange(-_RIPPLE_SPAN, _RIPPLE_SPAN + 1e-9, 0.25, dtype=torch.float64, device=params.device) * (2.0 / k_m)
-    both = (free[:, 3] & free[:, 4]).to(torch.float64)
-    trials = params[:, None, :_PHYSICAL].repeat(1, shifts.numel(), 1)
-    diameters = torch.clamp(params[:, 3:4] + shifts[None, :] * both[:, None], min=_BOUNDS["diameter_um"][0])
-    trials[:, :, 4] = params[:, 4:5] * params[:, 3:4] / diameters
-    trials[:, :, 3] = diameters
-    pick = _best(_scan(model, trials, scale, settings=settings), _RIPPLE_STARTS, local=True)
-    starts = params[:, None, :].repeat(1, pick.shape[1], 1)
-    starts[:, :, :_PHYSICAL] = torch.gather(trials, 1, pick[:, :, None].expand(-1, -1, _PHYSICAL))
-    k = pick.shape[1] + 1
-    candidates = torch.cat([params[:, None, :], starts], dim=1).reshape(count * k, -1)
-    grow = lambda t: t.repeat_interleave(k, dim=0)
-    wide = _Model(_expand(model.patches, k), _grow_others(model.others, k), pixel_um=model.pixel_um, terms=model.terms, **model.optics)
-    fitted, cost = _levenberg_marquardt(wide, candidates, grow(free), grow(low), grow(high), scale=grow(scale), settings=settings, iterations=3, steps=steps)
-    best = torch.argmin(cost.reshape(count, k), dim=1)
-    return fitted[torch.arange(count, device=params.device) * k + best]
+
+    def residuals(p: torch.Tensor, rows: int) -> torch.Tensor:
+        grow = lambda t: t.repeat(rows // count, *([1] * (t.dim() - 1)))
+        ring_rows = rings.map(grow)
+        return _ring_residuals(ring_rows, p[:, 0], torch.stack([p[:, 1], p[:, 2], grow(kappa)], dim=-1), grow(scale), model=model)
+
+    best = params.clone()
+    best_cost = torch.full((count,), math.inf, dtype=torch.float64, device=start.device)
+    for _ in range(iterations):
+        steps = torch.stack([torch.full_like(params[:, 0], 0.5), torch.full_like(params[:, 0], 1.0 / k_m),
+                             0.5 * model.optics["medium_index"] / (k_m * params[:, 1] / 2.0)], dim=-1)  # (B, 3), each way
+        stacked = params.repeat(7, 1)
+        for axis in range(3):
+            stacked[(2 * axis + 1) * count : (2 * axis + 2) * count, axis] += steps[:, axis]
+            stacked[(2 * axis + 2) * count : (2 * axis + 3) * count, axis] -= steps[:, axis]
+        res = residuals(stacked, 7 * count).reshape(7, count, -1)
+        # the stencil's mean residual and cost: the envelope, the ripple averaged out
+        base = res.mean(dim=0)
+        cost = 0.5 * (res**2).sum(dim=2).mean(dim=0)
+        jac = torch.stack([(res[2 * axis + 1] - res[2 * axis + 2]) / (2.0 * steps[:, axis:axis + 1]) for axis in range(3)], dim=-1) * freef[:, None, :]
+        better = cost < best_cost
+        best_cost = torch.where(better, cost, best_cost)
+        best = torch.where(better[:, None], params, best)
+        normal = jac.transpose(1, 2) @ jac
+        gradient = -(jac.transpose(1, 2) @ base[:, :, None])[:, :, 0]
+        diagonal = torch.diagonal(normal, dim1=1, dim2=2).clamp(min=1e-30)
+        normal = normal + torch.diag_embed(torch.where(free, _RING_DAMPING * diagonal, torch.ones_like(diagonal)))
+        # Gauss–Newton on the envelope, every step taken (the ripple would reject good ones),
+        # each at most a few secant widths; the best point visited is kept
+        delta = torch.linalg.solve(normal, gradient[:, :, None])[:, :, 0] * freef
+        reach = _RING_REACH * steps
+        reach[:, 0] = depth_reach_um
+        delta = torch.maximum(torch.minimum(delta, reach), -reach)
+        params = torch.maximum(torch.minimum(params + delta, high), low)
+    return best, best_cost
+
+
+_RING_DAMPING = 1e-4
+_RING_REACH = 4.0  # largest Gauss–Newton step of size and index, in secant widths (Δ(k a) = 2)
+
+
+def _ring_depth_step(rings: _Rings, z_um: torch.Tensor, *, window_um: float, k: float, pixel_um: float) -> float:
+    """Depth step (µm) that moves the outermost ring's fringe (phase k ρ²/2z) by one radian at the nearest depth scanned."""
+    rho_max = float(torch.max(torch.where(rings.weight > 0, rings.rho_um, torch.zeros_like(rings.rho_um))))
+    nearest = float(torch.clamp(z_um - window_um, min=0.1 * max(window_um, 1.0)).min())
+    return max(2.0 * nearest**2 / (k * max(rho_max, pixel_um) ** 2), 0.5 * pixel_um)
+
+
+def _parabola_vertex(costs: torch.Tensor, best: torch.Tensor) -> torch.Tensor:
+    """Sub-sample offset (-0.5 … 0.5) of the minimum of (B, T) costs near their samples ``best`` (B,)."""
+    last = costs.shape[1] - 1
+    rows = torch.arange(costs.shape[0], device=costs.device)
+    inner = torch.clamp(best, 1, max(last - 1, 1))
+    if last < 2:
+        return torch.zeros_like(costs[:, 0])
+    minus, mid, plus = costs[rows, inner - 1], costs[rows, inner], costs[rows, inner + 1]
+    curvature = minus - 2.0 * mid + plus
+    vertex = torch.where(curvature > 0, 0.5 * (minus - plus) / torch.clamp(curvature, min=1e-30), torch.zeros_like(mid))
+    return torch.clamp(vertex + (inner - best), -0.5, 0.5)
+
+
+def _ring_search(rings: _Rings, params: torch.Tensor, free: torch.Tensor, scale: torch.Tensor, *, model: _Model, window_um: float,
+                 start_index: torch.Tensor, settings: RefineSettings) -> torch.Tensor:
+    """Depth, diameter and index contrast (B, 3) from the ring profiles: depth scan, size–index grid, fine depth scan.
+
+    The depth is scanned over ``±window_um`` in steps that move the outermost ring's fringe
+    by one radian; its ``depth_candidates`` best local minima are refined by a scan a
+    quarter step apart; at each, diameters ±2.4 µm and index contrasts one phase-delay
+    period on each side (quarter periods) are compared, the valleys away from the starting
+    index paying `_VALLEY_PRIOR` per period²; at the best, the depth is scanned finely again.
+    """
+    k = 2.0 * math.pi * model.optics["medium_index"] / model.optics["wavelength_um"]
+    wavelength = model.optics["wavelength_um"]
+    count = params.shape[0]
+    device = params.device
+    z, d, n, kappa = params[:, 2].clone(), params[:, 3].clone(), params[:, 4].clone(), params[:, 5]
+    step = _ring_depth_step(rings, z, window_um=window_um, k=k, pixel_um=model.pixel_um or 1.0)
+    fine = torch.arange(-6, 7, dtype=torch.float64, device=device) * (step / 4.0)
+
+    def refine_depth(depths: torch.Tensor, spheres: torch.Tensor) -> torch.Tensor:  # (B, K) depths, (B, K, 3) spheres
+        kk = depths.shape[1]
+        trials = torch.clamp(depths[:, :, None] + fine, min=1.0).reshape(count * kk, -1)
+        rows = lambda t: t.repeat_interleave(kk, dim=0)
+        ring_rows = rings.map(rows)
+        costs = _ring_costs(ring_rows, trials, spheres.reshape(count * kk, 1, 3), rows(scale), model=model)[:, :, 0]
+        best = torch.argmin(costs, dim=1)
+        offset = _parabola_vertex(costs, best)
+        chosen = trials[torch.arange(trials.shape[0], device=device), best] + offset * (step / 4.0)
+        return torch.where(free[:, 2:3], chosen.reshape(count, kk), depths)
+
+    here = torch.stack([d, n, kappa], dim=-1)[:, None, :]
+    depths = z[:, None]
+    if bool(free[:, 2].any()):
+        offsets = torch.arange(-window_um, window_um + 0.5 * step, step, dtype=torch.float64, device=device)
+        trials = torch.where(free[:, 2:3], torch.clamp(z[:, None] + offsets, min=1.0), z[:, None])
+        costs = _ring_costs(rings, trials, here, scale, model=model)[:, :, 0]
+        pick = _best(costs, settings.depth_candidates, local=True)
+        depths = refine_depth(torch.gather(trials, 1, pick), here.expand(-1, pick.shape[1], -1))
+    kk = depths.shape[1]
+    candidates = torch.stack([depths, d[:, None].expand(-1, kk), n[:, None].expand(-1, kk)], dim=-1)  # (B, K, 3)
+    if bool(free[:, 3].any() or free[:, 4].any()):
+        d_steps = torch.tensor(_GRID_DIAMETER_UM, dtype=torch.float64, device=device)
+        delays = torch.tensor(_GRID_DELAY_PERIODS, dtype=torch.float64, device=device) * wavelength
+        diameters = torch.where(free[:, 3:4], torch.clamp(d[:, None] + d_steps, min=_BOUNDS["diameter_um"][0]), d[:, None])  # (B, D)
+        contrasts = torch.where(free[:, 4:5, None], ((d * n)[:, None, None] + delays) / diameters[:, :, None], n[:, None, None])  # (B, D, N)
+        spheres = torch.stack([diameters[:, :, None].expand_as(contrasts), contrasts, kappa[:, None, None].expand_as(contrasts)], dim=-1).reshape(count, -1, 3)
+        costs = _ring_costs(rings, depths, spheres, scale, model=model)  # (B, K, S)
+        valleys = (spheres[:, :, 1] - start_index[:, None]) / (wavelength / spheres[:, :, 0])
+        costs = costs + _VALLEY_PRIOR * (valleys**2 * free[:, 4:5].to(torch.float64))[:, None, :]
+        best = torch.argmin(costs, dim=2)  # (B, K)
+        chosen = torch.gather(spheres, 1, best[:, :, None].expand(-1, -1, 3))
+        candidates = torch.stack([depths, chosen[:, :, 0], chosen[:, :, 1]], dim=-1)
+    # every candidate followed down its valley, then the best (the valley prior as above)
+    grow = lambda t: t.repeat_interleave(kk, dim=0)
+    flat_free = grow(free[:, 2:5])
+    low = grow(torch.stack([torch.clamp(z - 1.5 * window_um, min=1.0), torch.full_like(z, _BOUNDS["diameter_um"][0]),
+                            torch.full_like(z, _BOUNDS["index_contrast"][0])], dim=-1))
+    high = grow(torch.stack([z + 1.5 * window_um, torch.full_like(z, _BOUNDS["diameter_um"][1]), torch.full_like(z, _BOUNDS["index_contrast"][1])], dim=-1))
+    ring_rows = rings.map(grow)
+    fitted, cost = _ring_fit(ring_rows, candidates.reshape(count * kk, 3), flat_free, grow(kappa), grow(scale), low, high, model=model,
+                             iterations=_RING_ITERATIONS, depth_reach_um=step / 2.0)
+    valleys = (fitted[:, 2] - grow(start_index)) / (wavelength / fitted[:, 1])
+    cost = cost + _VALLEY_PRIOR * valleys**2 * flat_free[:, 2].to(torch.float64)
+    best = torch.argmin(cost.reshape(count, kk), dim=1)
+    return fitted[torch.arange(count, device=device) * kk + best]
+
+
+_RING_ITERATIONS = 8
+
+
+@dataclass
+class _Profile:
+    """The valley profile of each patch (`_ring_profile`)."""
+
+    diameter_um: torch.Tensor  # (B, T) along the valley
+    contrast: torch.Tensor  # (B, T, J) at each valley's minimum
+    depth_um: torch.Tensor  # (B, T, J)
+    cost: torch.Tensor  # (B, T, J) minimised over depth and delay, half-variances
+    scale: torch.Tensor  # (B,) noise scale the costs are in
+
+
+def _ring_profile(rings: _Rings, z_um: torch.Tensor, diameter_um: torch.Tensor, contrast: torch.Tensor, kappa: torch.Tensor, free: torch.Tensor,
+                  scale: torch.Tensor, *, model: _Model, depth_step_um: float) -> _Profile:
+    """The cost along the valley of constant phase delay ``d (n_p - n_m)`` and its neighbours, minimised over depth and delay.
+
+    A transparent sphere's hologram ripples with its size (morphology-dependent resonances,
+    minima ``Δ(k a) ≈ 0.2`` apart at k a ≈ 150) and its phase delay is seen modulo 2π, so
+    along the valley the loss is flat to within the noise over several ripples, and the
+    neighbouring valleys (Δn = λ/d) may be as deep. Each point (``Δ(k a)`` in
+    `_PROFILE_STEP` steps over ±`_PROFILE_SPAN`, valley j in `_PROFILE_VALLEYS`) is
+    minimised over the depth (±``depth_step_um``) and the delay (±`_PROFILE_DELAY` periods)
+    by a quadratic through 3 × 3 samples: a profile likelihood.
+    """
+    k = 2.0 * math.pi * model.optics["medium_index"] / model.optics["wavelength_um"]
+    wavelength = model.optics["wavelength_um"]
+    device = z_um.device
+    count = z_um.shape[0]
+    both = (free[:, 3] & free[:, 4]).to(torch.float64)[:, None]
+    index_free = free[:, 4].to(torch.float64)[:, None]
+    t = torch.arange(-_PROFILE_SPAN, _PROFILE_SPAN + 1e-9, _PROFILE_STEP, dtype=torch.float64, device=device)
+    diameters = torch.clamp(diameter_um[:, None] + both * t * (2.0 / k), min=_BOUNDS["diameter_um"][0])  # (B, T)
+    valleys = torch.tensor(_PROFILE_VALLEYS, dtype=torch.float64, device=device)
+    shifts = torch.tensor((-1.0, 0.0, 1.0), dtype=torch.float64, device=device)
+    delay = (diameter_um * contrast)[:, None, None, None] + index_free[:, :, None, None] * (valleys[:, None] + _PROFILE_DELAY * shifts) * wavelength  # (B,1,J,Q)
+    contrasts = delay / diameters[:, :, None, None]  # (B, T, J, Q)
+    spheres = torch.stack([diameters[:, :, None, None].expand_as(contrasts), contrasts, kappa[:, None, None, None].expand_as(contrasts)], dim=-1)
+    sizes = contrasts.shape[1:]
+    depths = torch.clamp(z_um[:, None] + shifts * depth_step_um, min=1.0)  # (B, 3)
+    costs = _ring_costs(rings, depths, spheres.reshape(count, -1, 3), scale, model=model)  # (B, 3 depths, T*J*Q)
+    samples = costs.reshape(count, 3, *sizes).permute(0, 2, 3, 1, 4).reshape(count, sizes[0], sizes[1], 9)  # (B, T, J, depth × delay)
+    u, v = torch.meshgrid(shifts, shifts, indexing="ij")  # depth, delay
+    u, v = u.reshape(-1), v.reshape(-1)
+    design = torch.stack([torch.ones_like(u), u, v, u * u, v * v, u * v], dim=-1)
+    c = samples @ torch.linalg.pinv(design).T  # (B, T, J, 6)
+    det = 4.0 * c[..., 3] * c[..., 4] - c[..., 5] ** 2
+    safe = torch.where(det.abs() > 1e-12, det, torch.ones_like(det))
+    uu = (-2.0 * c[..., 4] * c[..., 1] + c[..., 5] * c[..., 2]) / safe
+    vv = (-2.0 * c[..., 3] * c[..., 2] + c[..., 5] * c[..., 1]) / safe
+    value = c[..., 0] + c[..., 1] * uu + c[..., 2] * vv + c[..., 3] * uu**2 + c[..., 4] * vv**2 + c[..., 5] * uu * vv
+    ok = (c[..., 3] > 0) & (det > 0) & (uu.abs() <= 1.5) & (vv.abs() <= 1.5)
+    lowest, at = samples.min(dim=-1)
+    use = ok & (value < lowest)
+    profile = torch.where(use, value, lowest)
+    uu = torch.where(use, uu, u[at])
+    vv = torch.where(use, vv, v[at])
+    best_delay = (diameter_um * contrast)[:, None, None] + index_free[:, :, None] * (valleys + _PROFILE_DELAY * vv) * wavelength
+    return _Profile(diameters, best_delay / diameters[:, :, None], z_um[:, None, None] + uu * depth_step_um, profile, scale)
+
+
+def _profile_spread(profile: _Profile, diameter_um: torch.Tensor, contrast: torch.Tensor, threshold: torch.Tensor) -> torch.Tensor:
+    """(B, 2) one-standard-deviation widths of diameter and index from the profile: the farthest point within ``threshold`` of its minimum, halved.
+
+    ``threshold`` (B,): half-variances in the profile's units (Δχ² = 4, times the residuals'
+    correlation inflation, rescaled to the profile's noise scale). Half a grid step is added
+    to the diameter's reach (the grid's resolution).
+    """
+    inside = profile.cost <= (profile.cost.amin(dim=(1, 2)) + threshold)[:, None, None]
+    d_reach = torch.where(inside, (profile.diameter_um[:, :, None] - diameter_um[:, None, None]).abs(), torch.zeros_like(profile.cost)).amax(dim=(1, 2))
+    step = (profile.diameter_um[:, 1:] - profile.diameter_um[:, :-1]).abs().amax(dim=1) if profile.diameter_um.shape[1] > 1 else torch.zeros_like(d_reach)
+    n_reach = torch.where(inside, (profile.contrast - contrast[:, None, None]).abs(), torch.zeros_like(profile.cost)).amax(dim=(1, 2))
+    return torch.stack([(d_reach + 0.5 * step) / 2.0, n_reach / 2.0], dim=-1)
 
 
 def _grow_others(others: torch.Tensor | None, k: int) -> torch.Tensor | None:
@@ -586,12 +872,55 @@ def _flat_model(patches: _Patches) -> tuple[torch.Tensor, torch.Tensor]:
     return residual, _robust_scale(residual, patches.mask)
 
 
+def _valley_profile(fine: _Patches, model: _Model, final: torch.Tensor, cost: torch.Tensor, free: torch.Tensor, low: torch.Tensor, high: torch.Tensor,
+                    scale: torch.Tensor, *, pixel_um: float, start_index: torch.Tensor, settings: RefineSettings, steps: Steps) -> tuple[torch.Tensor, torch.Tensor, _Profile]:
+    """The valley profile (`_ring_profile`) about each fit, and the fit moved to its deepest point where that lies elsewhere.
+
+    Where the profile's best point (the valley prior included) is another ripple minimum
+    (more than a profile step away) or another valley, the fit is restarted there and the
+    better of the two fits (robust cost plus the valley prior) is kept.
+    """
+    optics = model.optics
+    count = final.shape[0]
+    device = final.device
+    k_m = 2.0 * math.pi * optics["medium_index"] / optics["wavelength_um"]
+    rings = _cut_rings(fine, final[:, 0], final[:, 1], pixel_um=pixel_um)
+    depth_step = _ring_depth_step(rings, final[:, 2], window_um=0.0, k=k_m, pixel_um=pixel_um) / 4.0
+    profile = _ring_profile(rings, final[:, 2], final[:, 3], final[:, 4], final[:, 5], free, scale, model=model, depth_step_um=depth_step)
+    period = lambda d: optics["wavelength_um"] / d
+    prior = lambda n, d, rows: _VALLEY_PRIOR * ((n - start_index[rows]) / period(d)) ** 2 * free[rows, 4].to(torch.float64)
+    ranked = profile.cost + _VALLEY_PRIOR * ((profile.contrast - start_index[:, None, None]) / period(profile.diameter_um)[:, :, None]) ** 2 \
+        * free[:, 4:5, None].to(torch.float64)
+    flat = torch.argmin(ranked.reshape(count, -1), dim=1)
+    rows = torch.arange(count, device=device)
+    valleys = profile.cost.shape[2]
+    moved = final.clone()
+    moved[:, 2] = profile.depth_um.reshape(count, -1)[rows, flat]
+    moved[:, 3] = profile.diameter_um[rows, flat // valleys]
+    moved[:, 4] = profile.contrast.reshape(count, -1)[rows, flat]
+    elsewhere = ((moved[:, 3] - final[:, 3]).abs() > 1.5 * _PROFILE_STEP * 2.0 / k_m) | ((moved[:, 4] - final[:, 4]).abs() > 0.5 * period(final[:, 3]))
+    todo = torch.nonzero(elsewhere).flatten()
+    if todo.numel():
+        steps.check()
+        sub = model.select(todo)
+        refit, refit_cost = _levenberg_marquardt(sub, _clamp(moved[todo], low[todo], high[todo]), free[todo], low[todo], high[todo], scale=scale[todo],
+                                                 settings=settings, iterations=settings.iterations, steps=steps)
+        better = refit_cost + prior(refit[:, 4], refit[:, 3], todo) < cost[todo] + prior(final[todo, 4], final[todo, 3], todo)
+        final = final.clone()
+        cost = cost.clone()
+        final[todo[better]] = refit[better]
+        cost[todo[better]] = refit_cost[better]
+    return final, cost, profile
+
+
 def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of, *, search: bool, settings: RefineSettings, config: ExperimentConfig,
                terms: int, device, steps: Steps) -> dict[str, np.ndarray]:
     """Fit one batch of particles from (B, 6) physical starting parameters; arrays per particle.
 
-    With ``search``: depth scan and index-contrast candidates, each fitted coarsely on every
-    other pixel, then the best fitted on every pixel. Without: the fine fit from ``start``.
+    With ``search``: symmetric centre, ring-profile searches (`_ring_search`) and the valley
+    profile (`_ring_profile`, which also picks the start), then the fit on every pixel.
+    Without: the fit from ``start``. Either way the valley profile about the fit widens the
+    diameter's and index's uncertainties (``spread``).
     """
     optics = config.optics
     count = start.shape[0]
@@ -617,37 +946,32 @@ def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of
     for axis, name in ((3, "diameter_um"), (4, "index_contrast"), (5, "absorption")):
         low[:, axis], high[:, axis] = _BOUNDS[name]
     flat_residual, scale = _flat_model(fine)
+    start_index = torch.as_tensor(start[:, 4], dtype=torch.float64, device=device)
+    # the ring means of the data itself (neighbours included): their subtraction would need their fits
     if search:
-        coarse = _cut_patches(image, start[:, 0], start[:, 1], edges, pixel_um=optics.pixel_um, device=device, stride=2)
-        coarse_model = _Model(coarse, others_of(coarse) if others_of is not None else None, **model_optics)
-        _, coarse_scale = _flat_model(coarse)
-        candidates = _search_starts(coarse_model, params, free_t, coarse_scale, window_um=z_window, pixel_um=optics.pixel_um, settings=settings)
-        steps.check()
-        k = candidates.shape[1]
-        wide_model = _Model(_expand(coarse, k), _grow_others(coarse_model.others, k), **model_optics)
-        grow = lambda t: t.repeat_interleave(k, dim=0)
-        # absorption stays at its start while the valley is chosen: free, it lets a wrong
-        # size–index valley mimic the right one (measured on noise-free spheres)
-        searching = free_t.clone()
-        searching[:, 5] = False
-        fitted, cost = _levenberg_marquardt(wide_model, candidates.reshape(count * k, -1), grow(searching), grow(low), grow(high), scale=grow(coarse_scale),
-                                            settings=settings, iterations=max(2, settings.iterations // 3), steps=steps)
-        # Valleys one phase delay apart (Δn = λ/d) differ only in light refracted outside
-        # the patch: where the data cannot tell them apart (cost within a few noise
-        # variances) the valley nearest the starting index wins.
-        valleys = (fitted[:, 4] - grow(params[:, 4])) / (optics.wavelength_um / grow(params[:, 3]))
-        cost = cost + _VALLEY_PRIOR * valleys**2 * grow(free_t[:, 4].to(torch.float64))
-        best = torch.argmin(cost.reshape(count, k), dim=1)
-        params = fitted[torch.arange(count, device=device) * k + best]
+        centre_x, centre_y = _symmetric_centres(flat_residual, fine, start[:, 0], start[:, 1], pixel_um=optics.pixel_um)
+        params[:, 0] = torch.where(free_t[:, 0], torch.as_tensor(centre_x, device=device), params[:, 0])
+        params[:, 1] = torch.where(free_t[:, 1], torch.as_tensor(centre_y, device=device), params[:, 1])
+        rings = _cut_rings(fine, params[:, 0], params[:, 1], pixel_um=optics.pixel_um)
+        params[:, 2:5] = _ring_search(rings, params, free_t, scale, model=model, window_um=z_window, start_index=start_index, settings=settings)
+        params = _clamp(params, low, high)
     steps.check()
-    coarse_fit, _ = _levenberg_marquardt(model, params, free_t, low, high, scale=scale, settings=settings, iterations=2, steps=steps)
+    # absorption stays at its start for the first step: free early, it lets a wrong
+    # size–index valley mimic the right one (measured on noise-free spheres)
+    early = free_t.clone()
+    early[:, 5] = False
+    coarse_fit, _ = _levenberg_marquardt(model, params, early, low, high, scale=scale, settings=settings, iterations=1, steps=steps)
     fit_scale = _robust_scale(fine.data - model(coarse_fit), fine.mask)
-    final, _ = _levenberg_marquardt(model, coarse_fit, free_t, low, high, scale=fit_scale, settings=settings, iterations=settings.iterations, steps=steps)
-    if search and bool(free_t[:, 4].any()):
-        final = _choose_valley(model, final, free_t, low, high, start_index=torch.as_tensor(start[:, 4], device=device), scale=fit_scale, settings=settings,
-                               steps=steps)
-    if search and bool((free_t[:, 3] & free_t[:, 4]).any()):
-        final = _escape_ripple(model, final, free_t, low, high, scale=fit_scale, settings=settings, steps=steps)
+    final, final_cost = _levenberg_marquardt(model, coarse_fit, free_t, low, high, scale=fit_scale, settings=settings, iterations=settings.iterations,
+                                             steps=steps)
+    profile = None
+    if bool((free_t[:, 3] | free_t[:, 4]).any()):
+        # the rings see the neighbours' holograms (fitted in the first round) taken out of the data
+        cleaned = fine if model.others is None else _Patches(fine.data - model.others[0].real * fine.mask, fine.mask, fine.x_um, fine.y_um, fine.u, fine.v,
+                                                            fine.shape)
+        final, final_cost, profile = _valley_profile(cleaned, model, final, final_cost, free_t, low, high, fit_scale, pixel_um=optics.pixel_um,
+                                                     start_index=start_index,
+                                                     settings=settings, steps=steps)
     prediction, jac = model.jacobian(final, free_t, envelope=True)
     residual = (fine.data - prediction) * fine.mask
     sigma = _robust_scale(residual, fine.mask)
@@ -659,11 +983,17 @@ def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of
     inflation = _residual_inflation(residual, fine.mask, fine.shape)
     covariance = torch.linalg.pinv(normal) * (sigma**2 * inflation)[:, None, None]
     errors = torch.sqrt(torch.clamp(torch.diagonal(covariance, dim1=1, dim2=2), min=0.0)) * free_t
+    spread = torch.full((count, 2), math.nan, dtype=torch.float64, device=device)
+    if profile is not None:
+        # the profile's costs are in its own noise scale: Δχ² = 4 in the fit's is that times (σ_fit / σ_profile)²
+        threshold = _INTERVAL * inflation * (sigma / profile.scale) ** 2
+        spread = _profile_spread(profile, final[:, 3], final[:, 4], threshold) * free_t[:, 3:5].to(torch.float64)
     pixels = torch.clamp(fine.mask.sum(dim=1), min=1.0)
     residual_rms = torch.sqrt(torch.sum(residual**2, dim=1) / pixels) / torch.clamp(final[:, _PHYSICAL].abs(), min=1e-12)
     return {
         "params": final[:, :_PHYSICAL].cpu().numpy(),
         "errors": errors[:, :_PHYSICAL].cpu().numpy(),
+        "spread": spread.cpu().numpy(),
         "gain": (free_cost - fit_cost).cpu().numpy(),
         "residual": residual_rms.cpu().numpy(),
         "ok": torch.isfinite(final).all(dim=1).cpu().numpy() & np.array([s[0] > 0 for s in fine.shape]),
@@ -831,7 +1161,9 @@ def refine_particles(
     out = frame.copy()
     if count:
         keep = np.where(result["ok"], result["gain"] >= settings.min_gain, True) & ~_duplicates(result)
-        params, errors = result["params"], result["errors"]
+        params, errors = result["params"], result["errors"].copy()
+        # the diameter and index: the larger of the curvature's and the valley profile's standard deviation
+        errors[:, 3:5] = np.maximum(errors[:, 3:5], np.nan_to_num(result["spread"], nan=0.0))
         refined = result["ok"]
         out["x_um"] = np.where(refined, params[:, 0], frame["x_um"])
         out["y_um"] = np.where(refined, params[:, 1], frame["y_um"])
