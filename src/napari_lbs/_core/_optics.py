@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from functools import lru_cache
 
 import numpy as np
@@ -50,6 +50,7 @@ __all__ = [
     "transfer_function",
     "propagate",
     "backpropagate",
+    "backpropagated_blocks",
     "set_transfer_cache_limit",
 ]
 
@@ -363,6 +364,55 @@ def propagate(
     return out[0] if np.ndim(z_um) == 0 else out
 
 
+def _normalised_hologram(hologram: np.ndarray, background: np.ndarray | None) -> np.ndarray:
+    """The hologram divided by ``background`` or by its own mean, float32 (float64 for float64 input); validated."""
+    hologram = np.asarray(hologram)
+    if hologram.ndim != 2:
+        raise InputError(f"hologram: expected a 2-D image, got shape {hologram.shape}")
+    if not np.all(np.isfinite(hologram)):
+        raise InputError("hologram: contains NaN or infinite values")
+    real_dtype = np.float64 if hologram.dtype == np.float64 else np.float32
+    if background is None:
+        level = float(hologram.mean())
+        if level <= 0.0:
+            raise InputError(f"hologram: expected a positive mean intensity, got {level}")
+        return hologram.astype(real_dtype) / real_dtype(level)
+    background = np.asarray(background, dtype=real_dtype)
+    if background.shape != hologram.shape:
+        raise InputError(f"background: expected shape {hologram.shape} (the hologram's), got {background.shape}")
+    if not np.all(np.isfinite(background)) or np.any(background <= 0):
+        raise InputError("background: expected finite, positive values everywhere")
+    return hologram.astype(real_dtype) / background
+
+
+def backpropagated_blocks(
+    hologram: np.ndarray,
+    z_um: Sequence[float],
+    *,
+    wavelength_um: float,
+    pixel_um: float,
+    medium_index: float = 1.0,
+    background: np.ndarray | None = None,
+    steps: Steps | None = None,
+) -> Iterator[tuple[int, int, np.ndarray]]:
+    """`backpropagate` one batch of depths at a time, for stacks too large to hold.
+
+    Yields ``(start, stop, field)``: the complex field at depths ``z_um[start:stop]``,
+    ``(stop - start, rows, cols)``, whose ``np.abs`` is those planes of `backpropagate`
+    bit for bit. The array is reused by the next batch: take what is kept out of it first.
+    Batches hold about 512 MiB of padded planes (one plane when a plane is larger).
+
+    Parameters
+    ----------
+    steps : Steps, optional
+        Advanced by each batch's planes and checked before each (a stop raises `Stopped`).
+    """
+    normalised = _normalised_hologram(hologram, background)
+    distances = _distances(z_um)
+    steps = steps if steps is not None else Steps(distances.size)
+    yield from _propagated_batches(normalised, -distances, wavelength_um=wavelength_um, pixel_um=pixel_um, medium_index=medium_index, steps=steps)
+
+
 def backpropagate(
     hologram: np.ndarray,
     z_um: Sequence[float],
@@ -397,28 +447,12 @@ def backpropagate(
     -------
     (len(z_um), rows, cols) array, float32 for float32 input, float64 for float64 input.
     """
-    hologram = np.asarray(hologram)
-    if hologram.ndim != 2:
-        raise InputError(f"hologram: expected a 2-D image, got shape {hologram.shape}")
-    if not np.all(np.isfinite(hologram)):
-        raise InputError("hologram: contains NaN or infinite values")
+    normalised = _normalised_hologram(hologram, background)
+    real_dtype = normalised.dtype.type
     distances = _distances(z_um)
-    real_dtype = np.float64 if hologram.dtype == np.float64 else np.float32
-    if background is None:
-        level = float(hologram.mean())
-        if level <= 0.0:
-            raise InputError(f"hologram: expected a positive mean intensity, got {level}")
-        normalised = hologram.astype(real_dtype) / real_dtype(level)
-    else:
-        background = np.asarray(background, dtype=real_dtype)
-        if background.shape != hologram.shape:
-            raise InputError(f"background: expected shape {hologram.shape} (the hologram's), got {background.shape}")
-        if not np.all(np.isfinite(background)) or np.any(background <= 0):
-            raise InputError("background: expected finite, positive values everywhere")
-        normalised = hologram.astype(real_dtype) / background
-    expected = (distances.size,) + hologram.shape
+    expected = (distances.size,) + normalised.shape
     if out is None:
-        check_memory(float(np.prod(expected)) * np.dtype(real_dtype).itemsize, what=f"{distances.size} planes of {hologram.shape[0]}x{hologram.shape[1]} pixels",
+        check_memory(float(np.prod(expected)) * np.dtype(real_dtype).itemsize, what=f"{distances.size} planes of {normalised.shape[0]}x{normalised.shape[1]} pixels",
                      remedy="raise volume.z_step_um, crop the hologram or pass out= (a memory-mapped array)")
         out = np.empty(expected, dtype=real_dtype)
     elif out.shape != expected:

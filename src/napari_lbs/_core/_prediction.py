@@ -12,8 +12,10 @@ output planes are decoded plane chunk by plane chunk — `PeakDecoder` then `sup
 The ``focus`` formulation normalises each plane once, with the min and max of every
 training-size tile interpolated bilinearly between the tile centres (`tile_normalisation`:
 each pixel sees the statistics of the tiles around it, and no seam appears where tiles meet),
-then runs its fully convolutional network on windows of ``window_px`` (default the tile size)
-stitched nearest-centre like the tiles.
+then runs its fully convolutional network on windows of at most ``window_px`` (default 640
+pixels; `window_layout`) stitched nearest-centre like the tiles. Its stack is streamed: planes
+are back-propagated a batch at a time and dropped once the last centre plane whose context
+reaches them is through the network, so a 4096² hologram needs a few GB, not its whole stack.
 """
 
 from __future__ import annotations
@@ -24,21 +26,26 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from napari_lbs import __version__
 from napari_lbs._core._calibration import experimental_planes
 from napari_lbs._core._config import ExperimentConfig
 from napari_lbs._core._detection import PeakDecoder, PlaneLinker, suppress
 from napari_lbs._core._io import InputError, as_hologram
-from napari_lbs._core._network import LoadedModel, check_model_matches, focus_maps, inference_network, load_model, network_outputs
-from napari_lbs._core._optics import backpropagate
+from napari_lbs._core._network import LoadedModel, check_model_matches, inference_network, load_model, network_outputs
+from napari_lbs._core._optics import backpropagate, backpropagated_blocks
 from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
 from napari_lbs._core._validation import check_prediction_meta
 
-__all__ = ["PredictionResult", "predict_particles", "tile_layout", "tile_normalisation"]
+__all__ = ["PredictionResult", "predict_particles", "tile_layout", "tile_normalisation", "window_layout"]
 
 _PLANES_PER_CHUNK = 8
-_WINDOW_PIXELS_PER_BATCH = 8 * 256 * 256  # input planes per network call, in pixels: bounds activation memory
+# Per pixel, one network call on one window of up to ~640² ran 1.2x cheaper than batches of
+# 256² windows and 1.4x cheaper than a 1024² window on 2 CPU cores (the activations of a
+# larger one leave the caches): ~544² windows cover a 1024² hologram with 1.13x its pixels
+# where 256² windows with the same margins needed 1.56x.
+_WINDOW_PX = 640
 
 
 @dataclass
@@ -97,11 +104,14 @@ def predict_particles(
     margin_px : int
         Half the minimum overlap of neighbouring tiles (pixels), at most a quarter tile.
     window_px : int, optional
-        ``focus`` models: edge of the windows the network runs on (pixels; at least the tile
-        size; default the tile size). Larger windows cost fewer pixels (one 1024² window is
-        1/1.56 of 256² tiles with 32-pixel margins) but on 2 CPU cores ran slower (33.4 s vs
-        30.4 s for the real 1024² hologram: a small window's activations stay in cache); they
-        may pay off on a GPU (not measured).
+        ``focus`` models: the largest edge of the windows the network runs on (pixels; at
+        least the tile size; default 640). Each axis is covered by the fewest windows of at
+        most about this edge overlapping by ``2 * margin_px`` (`window_layout`); a pixel is
+        taken from the window whose centre is nearest. The network is fully convolutional and
+        the planes are normalised over the whole image first, so windows only change the zero
+        padding the network sees near their edges, which the margins keep away from the kept
+        pixels. On 2 CPU cores, windows of 512-640 pixels cost the least per image (fewer
+        overlaps than tile-size windows, activations that still fit the caches).
     device : {"auto", "cpu", "cuda"}
     force : bool
         Run a model made for other optics or depths anyway (the config's optics are used).
@@ -128,7 +138,7 @@ def predict_particles(
     optics = {"wavelength_um": config.optics.wavelength_um, "pixel_um": config.optics.pixel_um, "medium_index": config.optics.medium_index}
     steps = Steps(len(planes), progress=progress, should_stop=should_stop)
     if loaded.formulation == "focus":
-        window_px = size if window_px is None else int(window_px)
+        window_px = _WINDOW_PX if window_px is None else int(window_px)
         if window_px < size:
             raise InputError(f"window_px: expected at least the model's tile size {size}, got {window_px}")
         particles, details = _decode_focus(hologram, loaded, planes, layout, background=background, optics=optics, steps=steps, margin_px=margin_px, window_px=window_px)
@@ -200,21 +210,38 @@ def tile_normalisation(stack: np.ndarray, layout, size: int, *, invert: bool, mo
     layout : (rows layout, cols layout)
         `tile_layout` of each axis for tiles of ``size``.
     """
-    rows, cols = layout
-    along_rows, along_cols = _interpolation_matrix(stack.shape[1], rows, size), _interpolation_matrix(stack.shape[2], cols, size)
+    normalise = _TileNormaliser(stack.shape[1:], layout, size, invert=invert, mode=mode)
     for plane in stack:
-        tiles = np.stack([plane[r : r + size, c : c + size] for r, _, _ in rows for c, _, _ in cols])
-        low = tiles.min(axis=(1, 2)).reshape(len(rows), len(cols))
-        high = tiles.max(axis=(1, 2)).reshape(len(rows), len(cols))
-        low_map = along_rows @ low @ along_cols.T
-        span_map = along_rows @ (high - low) @ along_cols.T
+        normalise(plane)
+
+
+class _TileNormaliser:
+    """`tile_normalisation` of one plane at a time (the interpolation weights computed once)."""
+
+    def __init__(self, shape: tuple[int, int], layout, size: int, *, invert: bool, mode: str) -> None:
+        self.rows, self.cols = layout
+        self.size, self.invert, self.mode = size, invert, mode
+        self.along_rows, self.along_cols = _interpolation_matrix(shape[0], self.rows, size), _interpolation_matrix(shape[1], self.cols, size)
+
+    def __call__(self, plane: np.ndarray) -> None:
+        size = self.size
+        # each tile's extremes read in place: stacking the tiles first copied every plane
+        # 1.5 times (4096² planes: 115 MB each) for the same values
+        low = np.empty((len(self.rows), len(self.cols)), plane.dtype)
+        high = np.empty_like(low)
+        for i, (r, _, _) in enumerate(self.rows):
+            for j, (c, _, _) in enumerate(self.cols):
+                tile = plane[r : r + size, c : c + size]
+                low[i, j], high[i, j] = tile.min(), tile.max()
+        low_map = self.along_rows @ low @ self.along_cols.T
+        span_map = self.along_rows @ (high - low) @ self.along_cols.T
         plane -= low_map
         plane /= np.where(span_map > 0, span_map, 1.0)
         np.clip(plane, 0.0, 1.0, out=plane)
-        if mode == "seed":
+        if self.mode == "seed":
             np.floor(plane * 255.0, out=plane)
             plane /= 255.0
-        if invert:
+        if self.invert:
             np.subtract(1.0, plane, out=plane)
 
 
@@ -238,8 +265,41 @@ def _decode_seed(hologram, loaded: LoadedModel, planes, layout, *, background, o
     return linker.particles(), {}
 
 
+def window_layout(length: int, *, most: int, margin: int) -> list[tuple[int, int, int, int]]:
+    """The fewest windows of at most about ``most`` pixels covering one axis, overlapping by at least ``2 * margin``.
+
+    Returns ``(start, stop, keep_from, keep_to)`` per window, in image pixels: each keeps the
+    pixels nearer its centre than any other window's, so the kept parts partition
+    ``[0, length)``. Every window starts at a multiple of 16 (the network's pooling factor)
+    and all but the last have one edge, a multiple of 16, so the network pools each window
+    on the same grid as the whole image and pads (by edge replication) only at the image's
+    far edge, as it does the whole image; the last window ends there. A ``most`` of at least
+    ``length`` is one window, the whole axis.
+    """
+    if length <= most:
+        return [(0, length, 0, length)]
+    overlap = 2 * margin
+    count = -(-(length - overlap) // max(most - overlap, 1))
+    share = -(-(length + overlap * (count - 1)) // count)  # ceil: the edge that many windows need
+    edge = -(-share // 16) * 16
+    stride = max(16, (edge - overlap) // 16 * 16)
+    starts = [0]
+    while starts[-1] + edge < length:
+        starts.append(starts[-1] + stride)
+    stops = [min(start + edge, length) for start in starts]
+    bounds = [0] + [(b + stop) // 2 for stop, b in zip(stops[:-1], starts[1:], strict=True)] + [length]
+    return [(start, stop, bounds[i], bounds[i + 1]) for i, (start, stop) in enumerate(zip(starts, stops, strict=True))]
+
+
 def _decode_focus(hologram, loaded: LoadedModel, planes, layout, *, background, optics, steps, margin_px: int, window_px: int) -> tuple[dict, dict]:
-    """The focus formulation: context planes in, 3-D peaks of the centre probability, one particle per peak."""
+    """The focus formulation: context planes in, 3-D peaks of the centre probability, one particle per peak.
+
+    The stack is streamed: planes are back-propagated batch by batch (`backpropagated_blocks`)
+    and normalised as they come, each centre plane goes through the network window by window
+    as soon as its context is there, and its maps go straight to the `PeakDecoder`; a plane is
+    dropped once no later centre needs it. Memory is thus the context's planes plus one batch,
+    not the whole stack: a 4096² hologram to 77 planes held 5 GB of stack before.
+    """
     meta = loaded.meta
     size, step = int(meta["tile_size"]), float(meta["step_um"])
     context = [int(o) for o in meta["context"]]
@@ -250,38 +310,46 @@ def _decode_focus(hologram, loaded: LoadedModel, planes, layout, *, background, 
     extended = [planes[0] + i * step for i in range(-reach, 0)] + list(planes) + [planes[-1] + i * step for i in range(1, reach + 1)]
     if extended[0] <= 0:
         raise InputError(f"volume.z_min_um: the model's context needs planes {reach * step:g} µm nearer the sensor than {planes[0]:g} µm")
-    # the back-propagation reports and stops too: on a 1024² hologram it is the first few seconds
+    # the back-propagation reports and stops too: one step per back-propagated plane, context included
     steps.total += len(extended)
-    reported = 0
-
-    def backpropagated(done: int, total: int) -> None:
-        nonlocal reported
-        steps.advance(done - reported)
-        reported = done
-
-    stack = backpropagate(hologram, extended, background=background, progress=backpropagated, should_stop=steps.stop_requested, **optics).astype(np.float32, copy=False)
-    tile_normalisation(stack, layout, size, invert=invert, mode=mode)
-    window_size = (min(window_px, hologram.shape[0]), min(window_px, hologram.shape[1]))
-    window_rows = tile_layout(hologram.shape[0], size=window_size[0], margin=margin_px)
-    window_cols = tile_layout(hologram.shape[1], size=window_size[1], margin=margin_px)
-    windows = (window_rows, window_cols)
-    batch_size = max(1, _WINDOW_PIXELS_PER_BATCH // (window_size[0] * window_size[1]))
+    normalise = _TileNormaliser(hologram.shape, layout, size, invert=invert, mode=mode)
+    windows = (window_layout(hologram.shape[0], most=window_px, margin=margin_px), window_layout(hologram.shape[1], most=window_px, margin=margin_px))
+    window_size = (windows[0][0][1], windows[1][0][1])  # the first window is the largest
+    network = loaded.network.eval()
+    device = next(network.parameters()).device
+    diameter_scale_um = float(meta["diameter_scale_um"])
     decoder = PeakDecoder(planes, pixel_um=optics["pixel_um"], step_um=step)
-    for first in range(0, len(planes), _PLANES_PER_CHUNK):
-        steps.check()
-        centres = list(range(first, min(first + _PLANES_PER_CHUNK, len(planes))))
-        low, high = centres[0], centres[-1] + 2 * reach + 1  # extended-stack planes this chunk needs
-        outputs = []
-        for r, _, _ in window_rows:
-            for c, _, _ in window_cols:
-                steps.check()
-                window = stack[low:high, r : r + window_size[0], c : c + window_size[1]]
-                maps = focus_maps(loaded.network, window, [k - first + reach for k in centres], context=context, diameter_scale_um=float(meta["diameter_scale_um"]), batch_size=batch_size)
-                outputs.append(np.stack([np.stack(m[1:]) for m in maps]))  # (centres, 3, window rows, window cols)
-        stitched = outputs[0] if len(outputs) == 1 else _stitched(np.stack(outputs), windows, hologram.shape)
-        for k, centre in enumerate(centres):
-            decoder.add(centre, *stitched[k])
-        steps.advance(len(centres))
+    blocks = backpropagated_blocks(hologram, extended, background=background, steps=steps, **optics)
+    held: dict[int, np.ndarray] = {}  # normalised planes by index in ``extended``
+    buffer = np.empty((1, *window_size, len(context)), np.float32)  # one window, channels last
+    with torch.inference_mode():
+        for centre in range(len(planes)):
+            while centre + 2 * reach not in held:
+                start, stop, block = next(blocks)
+                for j in range(stop - start):
+                    plane = np.abs(block[j])  # as `backpropagate` writes it
+                    normalise(plane)
+                    held[start + j] = plane
+            for gone in [k for k in held if k < centre]:
+                del held[gone]
+            steps.check()
+            channels = [held[centre + reach + o] for o in context]
+            maps = np.empty((3, *hologram.shape), np.float32)  # probability, depth offset, diameter (µm)
+            for r, r_stop, r_from, r_to in windows[0]:
+                for c, c_stop, c_from, c_to in windows[1]:
+                    shape = (r_stop - r, c_stop - c)
+                    inputs = buffer if shape == window_size else np.empty((1, *shape, len(context)), np.float32)
+                    for k, plane in enumerate(channels):
+                        inputs[0, :, :, k] = plane[r:r_stop, c:c_stop]
+                    # a channels-last NCHW view of the buffer: the layout the network runs fastest in
+                    outputs = network(torch.from_numpy(inputs).to(device).permute(0, 3, 1, 2)).float()[0, :, r_from - r : r_to - r, c_from - c : c_to - c]
+                    maps[0, r_from:r_to, c_from:c_to] = torch.sigmoid(outputs[0]).cpu().numpy()
+                    maps[1, r_from:r_to, c_from:c_to] = outputs[1].cpu().numpy()
+                    maps[2, r_from:r_to, c_from:c_to] = (torch.nn.functional.softplus(outputs[2]) * diameter_scale_um).cpu().numpy()
+            decoder.add(centre, *maps)
+            steps.advance(1)
+    for _ in blocks:  # none is left: resuming lets the last batch report its progress
+        pass
     axial_um = meta.get("axial_um")
     particles = suppress(decoder.candidates(), threshold=float(meta["threshold"]), lateral_um=float(meta["lateral_um"]), axial_um=float(axial_um) if axial_um is not None else np.inf)
-    return particles, {"axial_um": axial_um, "lateral_um": meta["lateral_um"], "context": context, "step_um": step, "windows": [len(window_rows), len(window_cols), *window_size]}
+    return particles, {"axial_um": axial_um, "lateral_um": meta["lateral_um"], "context": context, "step_um": step, "windows": [len(windows[0]), len(windows[1]), *window_size]}
