@@ -99,6 +99,35 @@ def test_the_median_background_removes_a_static_pattern(vortex, tiny_config):
         assert np.median(np.abs(corrected - clean[4])) < 0.05  # the particles' own hologram is left
 
 
+def test_the_flat_field_keeps_every_particle_and_removes_the_envelope(tiny_config):
+    from napari_lbs._core._background import flat_field
+
+    clean = simulate_sequence(tiny_config, frames=1, flow="uniform", size=256, count=4, speed_um=0.0, seed=3).frames[0]
+    rows, cols = np.indices(clean.shape)
+    envelope = (0.5 + 0.4 * cols / 256 + 0.1 * rows / 256).astype(np.float32)  # vignetting and a tilted lamp
+    assert np.median(np.abs(clean * envelope / np.mean(clean * envelope) - clean)) > 0.1  # dividing by the mean leaves it
+    corrected = clean * envelope / flat_field(clean * envelope)
+    assert np.median(np.abs(corrected - clean)) < 0.02  # the envelope is gone
+    assert np.corrcoef(corrected.ravel(), clean.ravel())[0, 1] > 0.97  # and every particle's hologram is left
+    with pytest.raises(InputError, match="sigma_px"):
+        flat_field(clean, sigma_px=0.0)
+
+
+def test_auto_takes_the_median_only_when_its_two_halves_agree(tiny_config):
+    from napari_lbs._core._background import choose_background
+
+    rows, cols = np.indices((96, 96))
+    pattern = (0.6 + 0.3 * np.sin(rows / 5.0) * np.cos(cols / 7.0) + 0.1 * (cols / 96)).astype(np.float32)  # a setup's static fringes
+    fast = simulate_sequence(tiny_config, frames=16, flow="uniform", size=96, count=3, speed_um=40.0, seed=3).frames * pattern
+    mode, background, measures = choose_background(open_frames(fast))
+    assert mode == "global" and measures["ratio"] < 0.5 and measures["frames"] == 16
+    np.testing.assert_array_equal(background, sequence_background(open_frames(fast)))
+    slow = simulate_sequence(tiny_config, frames=8, flow="uniform", size=96, count=3, speed_um=6.0, seed=3).frames  # uniform light: all the median holds is the particles
+    mode, background, measures = choose_background(open_frames(slow))
+    assert mode == "flat" and background is None and measures["ratio"] > 1.2
+    assert choose_background(open_frames(fast[:3]))[0] == "flat"  # too few frames to split in two
+
+
 # --- prediction on dask ------------------------------------------------------------------------
 
 
@@ -106,6 +135,16 @@ def _assert_same_table(a, b):
     assert list(a) == list(b)
     for name in a:
         np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+
+
+@pytest.mark.parametrize("background", ["auto", "flat"])
+def test_the_same_table_from_one_worker_and_two_with_a_per_frame_background(vortex, detector, background):
+    local = predict_sequence(vortex.frames, detector, background=background)
+    assert local.provenance["background_used"] == "flat" and len(local.particles["x_um"]) > 20
+    one = predict_sequence(vortex.frames, detector, background=background, workers=1, local_processes=False)
+    two = predict_sequence(vortex.frames, detector, background=background, workers=2, local_processes=False)
+    _assert_same_table(local.particles, one.particles)
+    _assert_same_table(local.particles, two.particles)
 
 
 def test_the_same_table_from_one_worker_and_two(vortex, detector):
@@ -150,6 +189,45 @@ def test_a_stopped_run_resumes_without_redoing_finished_frames(vortex, detector,
     _assert_same_table(resumed.particles, fresh.particles)
     with pytest.raises(InputError, match="holds the frames of another run"):
         predict_sequence(vortex.frames, detector, background="global", work_dir=work)
+
+
+def test_a_killed_cli_run_resumes_where_it_stopped(tmp_path, detector, tiny_config, monkeypatch):
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from napari_lbs._cli import main
+
+    frames = simulate_sequence(tiny_config, frames=10, flow="uniform", size=96, count=4, speed_um=6.0, seed=4).frames
+    tifffile.imwrite(tmp_path / "rec.tif", frames, photometric="minisblack")
+    command = ["predict", str(tmp_path / "rec.tif"), "--model", str(detector.path), "--out", str(tmp_path / "p.csv")]
+    parts = tmp_path / "p.csv.parts"
+    environ = {**os.environ, "NAPARI_LBS_THREADS": "1", "OMP_NUM_THREADS": "1"}
+    run = subprocess.Popen([sys.executable, "-c", "from napari_lbs._cli import console_main; console_main()", *command], env=environ,
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    while run.poll() is None and len(list(parts.glob("frame_*.npz"))) < 2 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    run.send_signal(signal.SIGKILL)  # no handler runs: what is on disk is all a resumed run has
+    run.wait()
+    assert run.returncode == -signal.SIGKILL, "the run ended before it could be killed"
+    done = sorted(int(p.stem.split("_")[1]) for p in parts.glob("frame_*.npz"))
+    assert 2 <= len(done) < 10 and not list(parts.glob("*.tmp*"))
+    predicted = []
+    import napari_lbs._core._sequence as sequence
+
+    original = sequence._frame_particles
+    monkeypatch.setattr(sequence, "_frame_particles", lambda hologram, *rest: predicted.append(hologram) or original(hologram, *rest))
+    assert main(command) == 0
+    monkeypatch.undo()
+    assert len(predicted) == 10 - len(done)  # no frame done twice
+    assert not any(np.array_equal(hologram, frames[k]) for hologram in predicted for k in done)
+    provenance = json.loads((tmp_path / "p.json").read_text())
+    assert provenance["resumed_frames"] == len(done) and provenance["background"] == "auto" and not parts.exists()
+    assert main([*command[:-1], str(tmp_path / "fresh.csv")]) == 0
+    assert _rows(tmp_path / "p.csv") == _rows(tmp_path / "fresh.csv")
 
 
 # --- ground truth and tracks -------------------------------------------------------------------

@@ -332,8 +332,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--background", metavar="BG", help="a hologram taken without particles, divided out of every frame")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     p.add_argument("--force", action="store_true", help="run a model made for other optics or depths than the config's (without it such a run exits 2 naming both values)")
-    p.add_argument("--sequence-background", choices=("global", "running", "none"), default="global",
-                   help="recordings without --background: divide every frame by the median of the frames (global, default), of the frames around it (running), or nothing")
+    p.add_argument("--sequence-background", choices=("auto", "global", "running", "flat", "none"), default="auto",
+                   help="recordings without --background: divide every frame by the median of the frames (global), of the frames around it (running), its own smooth illumination (flat), the median if the recording shows it particle-free else flat (auto, default), or nothing")
     p.add_argument("--background-window", type=_integer(1), default=21, help="frames of a running background (default 21)")
     engine = p.add_mutually_exclusive_group()
     engine.add_argument("--workers", type=_integer(1), help="recordings: run on a local dask cluster of N worker processes (default: the local threaded scheduler)")

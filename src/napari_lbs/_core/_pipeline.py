@@ -489,7 +489,7 @@ class PredictRequest:
     force : bool
         Run a model made for other optics or depths than the config's.
     sequence_background : str
-        Recordings without a background file: ``global``, ``running`` or ``none`` (`predict_sequence`).
+        Recordings without a background file: ``auto``, ``global``, ``running``, ``flat`` or ``none`` (`predict_sequence`).
     background_window : int
         Frames of a running background.
     workers : int, optional
@@ -509,7 +509,7 @@ class PredictRequest:
     background_path: str | Path | None = None
     device: str = "auto"
     force: bool = False
-    sequence_background: str = "global"
+    sequence_background: str = "auto"
     background_window: int = 21
     workers: int | None = None
     scheduler: str | None = None

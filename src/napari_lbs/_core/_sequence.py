@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from napari_lbs import __version__
-from napari_lbs._core._background import BACKGROUND_MODES, frame_window, frames_median, sequence_background
+from napari_lbs._core._background import BACKGROUND_MODES, choose_background, flat_field, frame_window, frames_median, sequence_background
 from napari_lbs._core._config import ExperimentConfig
 from napari_lbs._core._files import atomic_path, read_json_object, write_json
 from napari_lbs._core._frames import HologramFrames, open_frames
@@ -132,18 +132,21 @@ class _Work:
         with np.load(self.folder / f"frame_{index:07d}.npz") as data:
             return {name: data[name] for name in data.files}
 
-    def background(self, compute) -> np.ndarray:
-        """The global background, computed once and kept in the work folder for a resumed run."""
+    def background(self, compute) -> tuple[str, np.ndarray | None, dict]:
+        """``(mode, global background or None, measures)``, computed once and kept in the work folder for a resumed run."""
         if self.folder is None:
             return compute()
-        path = self.folder / "background.npy"
-        if path.is_file():
-            return np.load(path)
-        background = compute()
-        with atomic_path(path) as temporary:
-            with open(temporary, "wb") as handle:
-                np.save(handle, background)
-        return background
+        path, choice = self.folder / "background.npy", self.folder / "background.json"
+        if choice.is_file():
+            kept = read_json_object(choice, what="background choice")
+            return kept["mode"], np.load(path, allow_pickle=False) if kept["mode"] == "global" else None, kept["measures"]
+        mode, background, measures = compute()
+        if background is not None:
+            with atomic_path(path) as temporary:
+                with open(temporary, "wb") as handle:
+                    np.save(handle, background)
+        write_json(choice, {"mode": mode, "measures": measures})  # after the array: a choice on disk always has its background
+        return mode, background, measures
 
 
 def local_cluster(workers: int, *, processes: bool = True):
@@ -228,7 +231,7 @@ def predict_sequence(
     model,
     config: ExperimentConfig | None = None,
     *,
-    background: str | np.ndarray = "global",
+    background: str | np.ndarray = "auto",
     background_window: int = 21,
     background_samples: int = 32,
     workers: int | None = None,
@@ -250,12 +253,17 @@ def predict_sequence(
         A model file from `train_model`.
     config : ExperimentConfig, optional
         Optics and depths; default the model's own.
-    background : {"global", "running", "none"} or (rows, cols) array
-        What each frame is divided by before back-propagation: the median of
-        ``background_samples`` frames spread over the recording, the running median of the
-        ``background_window`` frames around each frame, nothing (each frame's own mean, as a
-        single hologram), or a background image taken without particles. A recording of one
-        frame has no median background (it would be the frame): ``none``.
+    background : {"auto", "global", "running", "flat", "none"} or (rows, cols) array
+        What each frame is divided by before back-propagation: ``global``, the median of
+        ``background_samples`` frames spread over the recording; ``running``, the median of
+        the ``background_window`` frames around each frame; ``flat``, the frame's own
+        illumination (`flat_field`: the frame smoothed over far more than a particle);
+        ``auto`` (default), the global median when the medians of the first and second half
+        of those frames agree, else flat (`choose_background`: a particle that moves too
+        little over the recording stays in its median and would be divided out); ``none``,
+        nothing (each frame's own mean, as a single hologram); or a background image taken
+        without particles. A recording of one frame has no median background (it would be
+        the frame): ``global`` and ``running`` become ``none``, ``auto`` becomes ``flat``.
     workers : int, optional
         Run on a ``dask.distributed`` ``LocalCluster`` of this many single-threaded workers
         (default: the local threaded scheduler, one frame per core at a time).
@@ -305,8 +313,8 @@ def predict_sequence(
         config = config if config is not None else loaded.config
         check_model_matches(loaded.meta, config, planes_um=config.volume.planes_um(), force=force)
         count = len(frames)
-        if count == 1 and mode in ("global", "running"):
-            mode = "none"  # the median of one frame is that frame: dividing by it would leave nothing
+        if count == 1 and mode in ("global", "running", "auto"):
+            mode = "flat" if mode == "auto" else "none"  # the median of one frame is that frame: dividing by it would leave nothing
         identity = {
             "sources": frames.describe(),
             "frames": count,
@@ -314,7 +322,7 @@ def predict_sequence(
             "config": config.to_dict(),
             "background": mode,
             "background_window": background_window if mode == "running" else None,
-            "background_samples": background_samples if mode == "global" else None,
+            "background_samples": background_samples if mode in ("global", "auto") else None,
             "background_sha256": hashlib.sha256(static.tobytes()).hexdigest() if static is not None else None,
         }
         first = frames.read(0)  # the first frame's pixels (and the shape every read checks)
@@ -329,8 +337,10 @@ def predict_sequence(
         steps = Steps(count, progress=progress, should_stop=should_stop)
         steps.advance(len(finished))
         todo = [index for index in range(count) if index not in finished]
-        if mode == "global" and todo:
-            static = work.background(lambda: sequence_background(frames, samples=background_samples))
+        used, measures = mode, None  # auto: global or flat, as the recording allows
+        if mode in ("global", "auto"):  # also with nothing left to do: the provenance says what was used
+            compute = (lambda: ("global", sequence_background(frames, samples=background_samples), None)) if mode == "global" else (lambda: choose_background(frames, samples=background_samples))
+            used, static, measures = work.background(compute)
         shared_background = runner.share(static)
         buffer: dict[int, np.ndarray] = {}  # frames of the running window
         queue = iter(todo)
@@ -341,6 +351,9 @@ def predict_sequence(
                     low, high = frame_window(index, count=count, window=background_window)
                     buffer = {k: buffer[k] if k in buffer else frames.read(k) for k in range(low, high)}
                     hologram, frame_background = buffer[index], frames_median(np.stack(list(buffer.values())))
+                elif used == "flat":
+                    hologram = frames.read(index)
+                    frame_background = flat_field(hologram)
                 else:
                     hologram, frame_background = frames.read(index), shared_background
                 pending[index] = runner.submit(index, hologram, config, frame_background, device, should_stop)
@@ -372,6 +385,8 @@ def predict_sequence(
         "frames": count,
         "sources": identity["sources"],
         "background": mode,
+        "background_used": used,  # what auto chose (global or flat); the mode itself otherwise
+        "background_measures": measures,
         "background_window": identity["background_window"],
         "background_samples": identity["background_samples"],
         "scheduler": runner.description,
