@@ -9,12 +9,16 @@ non-absorbing spheres of this size are wrong (tests/test_refine.py). Each partic
 starting guess is the truth moved by ~N(0, 1.5) µm laterally, ~N(0, 15) µm in depth and
 ~N(0, 1.5) µm in diameter, with the index contrast started at polystyrene's 0.26.
 
-Reported: median |Δz|, |Δd|, |Δ(n_p - n_m)| of the refined particles, the fraction whose
-error is within twice the reported uncertainty, and seconds per particle; beside it,
+Reported: median |Δz|, |Δd|, |Δ(n_p - n_m)| of the refined particles, the fraction (and
+count) whose error is within twice the reported uncertainty, per parameter, and seconds per
+particle, wall and core (user + system CPU of the process); beside them, in the same run:
 pylorenzmie's own fit (`Feature.optimize`, Levenberg–Marquardt, the same patches, started
-at the same guesses) on a few particles, its seconds per particle measured in the same run.
+at the same guesses) on a few particles, and, with ``--old-src``, another version of
+napari-lbs (e.g. ``git archive <commit> src | tar -x -C /tmp/old``) on the first
+``--old-particles`` guesses of the same scene, run in a subprocess, with the current code
+on the same subset. The load average is logged before and after.
 
-    python benchmarks/bench_refine.py --particles 8 --size 512 --threads 2 --out benchmarks/results/refine/fit.json
+    python benchmarks/bench_refine.py --particles 30 --size 1024 --threads 2 --old-src /tmp/old/src --out benchmarks/results/refine/fit.json
     python benchmarks/bench_refine.py --forward --out benchmarks/results/refine/forward.json
 """
 
@@ -22,7 +26,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -122,20 +129,71 @@ def forward_check(size: int = 160) -> list[dict]:
     return rows
 
 
+def timed_refine(hologram, start, *, threads: int) -> tuple[object, float, float]:
+    """``refine_particles`` with the default settings: (table, wall seconds, core seconds)."""
+    import torch
+
+    from napari_lbs._core import RefineSettings, load_config, refine_particles
+
+    torch.set_num_threads(threads)
+    wall, core = time.perf_counter(), time.process_time()
+    refined = refine_particles(hologram, start, load_config(), settings=RefineSettings())
+    return refined, time.perf_counter() - wall, time.process_time() - core
+
+
+def scores(refined, truth) -> dict:
+    """Medians and 2σ coverage (fraction and count) of refined particles against the truth, matched by order (all kept)."""
+    dz = refined.z_um.to_numpy() - truth.z_um.to_numpy()
+    dd = refined.diameter_um.to_numpy() - truth.diameter_um.to_numpy()
+    dn = refined.index_contrast.to_numpy() - CONTRAST
+    inside = {"z": np.abs(dz) <= 2 * refined.z_err_um.to_numpy(), "diameter": np.abs(dd) <= 2 * refined.diameter_err_um.to_numpy(),
+              "index": np.abs(dn) <= 2 * refined.index_err.to_numpy()}
+    return {
+        "median_abs_dz_um": float(np.median(np.abs(dz))), "median_abs_dd_um": float(np.median(np.abs(dd))), "median_abs_dn": float(np.median(np.abs(dn))),
+        "within_2sigma": {k: float(np.mean(v)) for k, v in inside.items()}, "within_2sigma_count": {k: f"{int(v.sum())}/{v.size}" for k, v in inside.items()},
+        "index_within_0.01": float(np.mean(np.abs(dn) <= 0.01)),
+        "rows": [{"truth_z_um": float(t.z_um), "truth_d_um": float(t.diameter_um), "dz_um": float(a), "dd_um": float(b), "dn": float(c),
+                  "z_err_um": float(e), "diameter_err_um": float(f), "index_err": float(g)}
+                 for t, a, b, c, e, f, g in zip(truth.itertuples(), dz, dd, dn, refined.z_err_um, refined.diameter_err_um, refined.index_err, strict=True)],
+    }
+
+
+def other_version(source: Path, hologram, start, *, threads: int) -> dict:
+    """The refinement of another napari-lbs source tree on the same hologram and guesses, in a subprocess: its table and timings."""
+    with tempfile.TemporaryDirectory() as folder:
+        folder = Path(folder)
+        np.save(folder / "hologram.npy", hologram)
+        start.to_csv(folder / "start.csv", index=False)
+        code = (
+            "import sys, json, numpy as np, pandas as pd; sys.path.insert(0, sys.argv[1]); import bench_refine as b;"
+            "t, w, c = b.timed_refine(np.load(sys.argv[2] + '/hologram.npy'), pd.read_csv(sys.argv[2] + '/start.csv'), threads=int(sys.argv[3]));"
+            "t.to_csv(sys.argv[2] + '/out.csv', index=False); import napari_lbs; print(json.dumps({'wall': w, 'core': c, 'module': napari_lbs.__file__}))"
+        )
+        env = {**os.environ, "PYTHONPATH": str(source)}
+        done = subprocess.run([sys.executable, "-c", code, str(Path(__file__).resolve().parent), str(folder), str(threads)], env=env, check=True,
+                              capture_output=True, text=True)
+        import pandas as pd
+
+        timing = json.loads(done.stdout.strip().splitlines()[-1])
+        return {"table": pd.read_csv(folder / "out.csv"), **timing}
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--particles", type=int, default=16)
-    parser.add_argument("--size", type=int, default=768)
+    parser.add_argument("--particles", type=int, default=30)
+    parser.add_argument("--size", type=int, default=1024)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--pylorenzmie", type=int, default=3, help="particles also fitted by pylorenzmie (0: none)")
+    parser.add_argument("--old-src", type=Path, help="another napari-lbs source tree (its src folder) to time on a subset of the same scene")
+    parser.add_argument("--old-particles", type=int, default=6, help="guesses given to --old-src (and to the current code again, for the same subset)")
     parser.add_argument("--out", type=Path)
     parser.add_argument("--forward", action="store_true", help="only compare the forward model with pylorenzmie (160² holograms over the size and depth range)")
     args = parser.parse_args(argv)
 
     import torch
 
-    from napari_lbs._core import RefineSettings, load_config, refine_particles
+    from napari_lbs._core import RefineSettings, load_config
 
     torch.set_num_threads(args.threads)
     converge_pylorenzmie()
@@ -150,43 +208,52 @@ def main(argv=None) -> int:
     config = load_config()
     began = time.perf_counter()
     hologram, truth, start = scene(args.particles, args.size, args.seed)
-    print(f"scene: {args.particles} spheres on {args.size}² in {time.perf_counter() - began:.1f} s", flush=True)
-    settings = RefineSettings()
-    began = time.perf_counter()
-    refined = refine_particles(hologram, start, config, settings=settings, progress=lambda done, total: print(f"  refine {done}/{total}", flush=True))
-    seconds = time.perf_counter() - began
+    print(f"scene: {args.particles} spheres on {args.size}² in {time.perf_counter() - began:.1f} s; load average {os.getloadavg()}", flush=True)
+    report = {"particles": args.particles, "size": args.size, "seed": args.seed, "threads": args.threads, "load_average_before": os.getloadavg()}
+    refined, wall, core = timed_refine(hologram, start, threads=args.threads)
     kept = refined.index.size
-    matched = truth.loc[: kept - 1] if kept == len(truth) else None
-    report = {"particles": args.particles, "size": args.size, "seed": args.seed, "threads": args.threads, "kept": int(kept), "seconds": seconds,
-              "seconds_per_particle": seconds / args.particles}
-    if matched is not None:
-        dz = refined.z_um.to_numpy() - matched.z_um.to_numpy()
-        dd = refined.diameter_um.to_numpy() - matched.diameter_um.to_numpy()
-        dn = refined.index_contrast.to_numpy() - CONTRAST
-        report.update({
-            "median_abs_dz_um": float(np.median(np.abs(dz))), "median_abs_dd_um": float(np.median(np.abs(dd))), "median_abs_dn": float(np.median(np.abs(dn))),
-            "within_2sigma": {"z": float(np.mean(np.abs(dz) <= 2 * refined.z_err_um)), "diameter": float(np.mean(np.abs(dd) <= 2 * refined.diameter_err_um)),
-                              "index": float(np.mean(np.abs(dn) <= 2 * refined.index_err))},
-            "index_within_0.01": float(np.mean(np.abs(dn) <= 0.01)),
-            "rows": [{"truth_z_um": float(t.z_um), "truth_d_um": float(t.diameter_um), "dz_um": float(a), "dd_um": float(b), "dn": float(c),
-                      "z_err_um": float(e), "diameter_err_um": float(f), "index_err": float(g)}
-                     for t, a, b, c, e, f, g in zip(matched.itertuples(), dz, dd, dn, refined.z_err_um, refined.diameter_err_um, refined.index_err, strict=True)],
-        })
+    report.update({"kept": int(kept), "seconds": wall, "core_seconds": core, "seconds_per_particle": wall / args.particles,
+                   "core_seconds_per_particle": core / args.particles})
+    print(f"  refined {kept}/{args.particles} in {wall:.1f} s ({core:.1f} core-s)", flush=True)
+    if kept == len(truth):
+        report.update(scores(refined, truth))
+    if args.old_src:
+        subset = start.iloc[: args.old_particles].reset_index(drop=True)
+        old = other_version(args.old_src, hologram, subset, threads=args.threads)
+        mine, wall_s, core_s = timed_refine(hologram, subset, threads=args.threads)
+        part = truth.iloc[: args.old_particles].reset_index(drop=True)
+        report["same_subset"] = {
+            "particles": args.old_particles, "old_src": str(args.old_src), "old_module": old["module"],
+            "old": {"seconds_per_particle": old["wall"] / args.old_particles, "core_seconds_per_particle": old["core"] / args.old_particles,
+                    **({k: v for k, v in scores(old["table"], part).items() if k != "rows"} if len(old["table"]) == len(part) else {})},
+            "current": {"seconds_per_particle": wall_s / args.old_particles, "core_seconds_per_particle": core_s / args.old_particles,
+                        **({k: v for k, v in scores(mine, part).items() if k != "rows"} if len(mine) == len(part) else {})},
+        }
+        report["same_subset"]["old_over_current_core"] = old["core"] / core_s
+        report["same_subset"]["old_over_current_wall"] = old["wall"] / wall_s
+        print(f"  same {args.old_particles} guesses: old {old['wall']:.1f} s ({old['core']:.1f} core-s), current {wall_s:.1f} s ({core_s:.1f} core-s)", flush=True)
     if args.pylorenzmie:
         fits = []
         for i in range(min(args.pylorenzmie, args.particles)):
+            core_began = time.process_time()
             spent, values = pylorenzmie_fit(hologram, start.iloc[i], pixel_um=config.optics.pixel_um, wavelength_um=config.optics.wavelength_um,
-                                            patch_px=settings.patch_px)
-            fits.append({"seconds": spent, "dz_um": values["z_um"] - float(truth.z_um[i]), "dd_um": values["diameter_um"] - float(truth.diameter_um[i]),
-                         "dn": values["index_contrast"] - CONTRAST})
+                                            patch_px=RefineSettings().patch_px)
+            fits.append({"seconds": spent, "core_seconds": time.process_time() - core_began, "dz_um": values["z_um"] - float(truth.z_um[i]),
+                         "dd_um": values["diameter_um"] - float(truth.diameter_um[i]), "dn": values["index_contrast"] - CONTRAST})
             print(f"  pylorenzmie particle {i}: {spent:.1f} s", flush=True)
         per = float(np.mean([f["seconds"] for f in fits]))
-        report["pylorenzmie"] = {"fits": fits, "seconds_per_particle": per, "ours_over_pylorenzmie": report["seconds_per_particle"] / per}
+        per_core = float(np.mean([f["core_seconds"] for f in fits]))
+        report["pylorenzmie"] = {"fits": fits, "seconds_per_particle": per, "core_seconds_per_particle": per_core,
+                                 "ours_over_pylorenzmie": report["seconds_per_particle"] / per,
+                                 "ours_over_pylorenzmie_core": report["core_seconds_per_particle"] / per_core}
+    report["load_average_after"] = os.getloadavg()
     text = json.dumps(report, indent=1)
     print(text)
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
+        temporary = args.out.with_suffix(".tmp")
+        temporary.write_text(text + "\n")
+        temporary.replace(args.out)
     return 0
 
 

@@ -374,7 +374,7 @@ def _levenberg_marquardt(model: _Model, params: torch.Tensor, free: torch.Tensor
 
     Each patch keeps its own damping; a rejected step is retried, more damped, on the
     patches that rejected it only, and a patch whose cost fell by less than
-    `_LM_TOLERANCE` in an iteration has converged and leaves the batch.
+    `_LM_TOLERANCE` (or `_LM_RELATIVE` of itself) in an iteration has converged and leaves the batch.
     """
     count = params.shape[0]
     params = params.clone()
@@ -417,14 +417,15 @@ def _levenberg_marquardt(model: _Model, params: torch.Tensor, free: torch.Tensor
         params[active] = p
         cost[active] = current
         damping[active] = lam
-        # converged: the cost fell by less than a tenth of a noise variance
-        active = active[before - current >= _LM_TOLERANCE]
+        # converged: the cost fell by less than a tenth of a noise variance, or 1e-4 of itself
+        active = active[before - current >= torch.clamp(_LM_RELATIVE * before, min=_LM_TOLERANCE)]
         if active.numel() == 0:
             break
     return params, cost
 
 
 _LM_TOLERANCE = 0.05  # half noise variances (Δχ² = 0.1)
+_LM_RELATIVE = 1e-4
 
 
 def _best(costs: torch.Tensor, count: int, *, local: bool) -> torch.Tensor:
@@ -872,7 +873,18 @@ def _flat_model(patches: _Patches) -> tuple[torch.Tensor, torch.Tensor]:
     return residual, _robust_scale(residual, patches.mask)
 
 
-def _valley_profile(fine: _Patches, model: _Model, final: torch.Tensor, cost: torch.Tensor, free: torch.Tensor, low: torch.Tensor, high: torch.Tensor,
+def _polish(coarse_model: _Model, model: _Model, params: torch.Tensor, free: torch.Tensor, low: torch.Tensor, high: torch.Tensor, *, scale: torch.Tensor,
+            settings: RefineSettings, steps: Steps) -> torch.Tensor:
+    """Levenberg–Marquardt from ``params``: up to ``settings.iterations`` on every other pixel, then up to `_FINE_ITERATIONS` on every pixel."""
+    params, _ = _levenberg_marquardt(coarse_model, params, free, low, high, scale=scale, settings=settings, iterations=settings.iterations, steps=steps)
+    params, _ = _levenberg_marquardt(model, params, free, low, high, scale=scale, settings=settings, iterations=_FINE_ITERATIONS, steps=steps)
+    return params
+
+
+_FINE_ITERATIONS = 3
+
+
+def _valley_profile(fine: _Patches, model: _Model, coarse_model: _Model, final: torch.Tensor, cost: torch.Tensor, free: torch.Tensor, low: torch.Tensor, high: torch.Tensor,
                     scale: torch.Tensor, *, pixel_um: float, start_index: torch.Tensor, settings: RefineSettings, steps: Steps) -> tuple[torch.Tensor, torch.Tensor, _Profile]:
     """The valley profile (`_ring_profile`) about each fit, and the fit moved to its deepest point where that lies elsewhere.
 
@@ -903,8 +915,9 @@ def _valley_profile(fine: _Patches, model: _Model, final: torch.Tensor, cost: to
     if todo.numel():
         steps.check()
         sub = model.select(todo)
-        refit, refit_cost = _levenberg_marquardt(sub, _clamp(moved[todo], low[todo], high[todo]), free[todo], low[todo], high[todo], scale=scale[todo],
-                                                 settings=settings, iterations=settings.iterations, steps=steps)
+        refit = _polish(coarse_model.select(todo), sub, _clamp(moved[todo], low[todo], high[todo]), free[todo], low[todo], high[todo], scale=scale[todo],
+                        settings=settings, steps=steps)
+        refit_cost = _huber(sub.patches.data - sub(refit), scale[todo], sub.patches.mask, settings.huber)[1]
         better = refit_cost + prior(refit[:, 4], refit[:, 3], todo) < cost[todo] + prior(final[todo, 4], final[todo, 3], todo)
         final = final.clone()
         cost = cost.clone()
@@ -960,16 +973,19 @@ def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of
     # size–index valley mimic the right one (measured on noise-free spheres)
     early = free_t.clone()
     early[:, 5] = False
-    coarse_fit, _ = _levenberg_marquardt(model, params, early, low, high, scale=scale, settings=settings, iterations=1, steps=steps)
-    fit_scale = _robust_scale(fine.data - model(coarse_fit), fine.mask)
-    final, final_cost = _levenberg_marquardt(model, coarse_fit, free_t, low, high, scale=fit_scale, settings=settings, iterations=settings.iterations,
-                                             steps=steps)
+    # most iterations on every other pixel (a quarter of the work), the last ones on all
+    coarse = _cut_patches(image, start[:, 0], start[:, 1], edges, pixel_um=optics.pixel_um, device=device, stride=2)
+    coarse_model = _Model(coarse, others_of(coarse) if others_of is not None else None, **model_optics)
+    coarse_fit, _ = _levenberg_marquardt(coarse_model, params, early, low, high, scale=scale, settings=settings, iterations=1, steps=steps)
+    fit_scale = _robust_scale(coarse.data - coarse_model(coarse_fit), coarse.mask)
+    final = _polish(coarse_model, model, coarse_fit, free_t, low, high, scale=fit_scale, settings=settings, steps=steps)
+    final_cost = _huber(fine.data - model(final), fit_scale, fine.mask, settings.huber)[1]
     profile = None
     if bool((free_t[:, 3] | free_t[:, 4]).any()):
         # the rings see the neighbours' holograms (fitted in the first round) taken out of the data
         cleaned = fine if model.others is None else _Patches(fine.data - model.others[0].real * fine.mask, fine.mask, fine.x_um, fine.y_um, fine.u, fine.v,
                                                             fine.shape)
-        final, final_cost, profile = _valley_profile(cleaned, model, final, final_cost, free_t, low, high, fit_scale, pixel_um=optics.pixel_um,
+        final, final_cost, profile = _valley_profile(cleaned, model, coarse_model, final, final_cost, free_t, low, high, fit_scale, pixel_um=optics.pixel_um,
                                                      start_index=start_index,
                                                      settings=settings, steps=steps)
     prediction, jac = model.jacobian(final, free_t, envelope=True)
