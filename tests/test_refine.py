@@ -86,6 +86,18 @@ def test_mie_coefficients_match_the_textbook_formula():
         assert abs(complex(b[0, n - 1]) - b_exact) < 1e-4
 
 
+def test_mie_coefficients_without_gradient_equal_the_differentiable_ones():
+    """The numpy path (no gradient wanted) and the torch path (a gradient wanted) give the same a_n, b_n."""
+    x = torch.tensor([30.0, 120.0, 228.0], dtype=torch.float64)
+    m = torch.tensor([1.59 / WATER, (1.33 + 0.6 + 0.05j) / WATER, 1.2 + 0.0j], dtype=torch.complex128)
+    terms = term_count(228.0 * 1.15, 1.0)
+    fast = mie_coefficients(x, m, terms=terms)
+    slow = mie_coefficients(x.clone().requires_grad_(True), m, terms=terms)
+    assert slow[0].requires_grad and not fast[0].requires_grad
+    for ours, theirs in zip(fast, slow, strict=True):
+        assert torch.allclose(ours, theirs.detach(), rtol=1e-9, atol=1e-12)
+
+
 def test_far_field_limit_is_the_amplitude_function():
     """Far away the field is ``cosθ S2(θ) e^{ik(r - z)} / (-ikr)`` along the polarisation (Bohren & Huffman Eq. 4.74)."""
     diameter, contrast, z = 5.0, 0.26, 2.0e7
