@@ -113,19 +113,23 @@ def test_the_flat_field_keeps_every_particle_and_removes_the_envelope(tiny_confi
         flat_field(clean, sigma_px=0.0)
 
 
-def test_auto_takes_the_median_only_when_its_two_halves_agree(tiny_config):
+def test_auto_takes_the_median_only_when_it_has_static_structure_and_no_particles(tiny_config):
     from napari_lbs._core._background import choose_background
 
     rows, cols = np.indices((96, 96))
     pattern = (0.6 + 0.3 * np.sin(rows / 5.0) * np.cos(cols / 7.0) + 0.1 * (cols / 96)).astype(np.float32)  # a setup's static fringes
-    fast = simulate_sequence(tiny_config, frames=16, flow="uniform", size=96, count=3, speed_um=40.0, seed=3).frames * pattern
-    mode, background, measures = choose_background(open_frames(fast))
-    assert mode == "global" and measures["ratio"] < 0.5 and measures["frames"] == 16
-    np.testing.assert_array_equal(background, sequence_background(open_frames(fast)))
-    slow = simulate_sequence(tiny_config, frames=8, flow="uniform", size=96, count=3, speed_um=6.0, seed=3).frames  # uniform light: all the median holds is the particles
-    mode, background, measures = choose_background(open_frames(slow))
-    assert mode == "flat" and background is None and measures["ratio"] > 1.2
+    fast = simulate_sequence(tiny_config, frames=16, flow="uniform", size=96, count=3, speed_um=40.0, seed=3).frames
+    mode, background, measures = choose_background(open_frames(fast * pattern))
+    assert mode == "global" and measures["ratio"] < 0.5 and measures["residue"] < 0.6 and measures["frames"] == 16
+    np.testing.assert_array_equal(background, sequence_background(open_frames(fast * pattern)))
+    mode, background, measures = choose_background(open_frames(fast))  # uniform light: nothing static for the median to remove
+    assert mode == "flat" and background is None and measures["ratio"] > 1.5 and measures["residue"] < 0.6
+    slow = simulate_sequence(tiny_config, frames=8, flow="uniform", size=96, count=3, speed_um=6.0, seed=3).frames * pattern
+    mode, background, measures = choose_background(open_frames(slow))  # static fringes, but the particles are still in the median
+    assert mode == "flat" and measures["ratio"] < 1.0 and measures["residue"] > 1.4
     assert choose_background(open_frames(fast[:3]))[0] == "flat"  # too few frames to split in two
+    assert choose_background(open_frames(fast * pattern), residue=0.3)[0] == "flat"
+    assert choose_background(open_frames(slow), residue=2.0)[0] == "global"
 
 
 # --- prediction on dask ------------------------------------------------------------------------

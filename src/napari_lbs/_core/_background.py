@@ -11,10 +11,12 @@ A particle that moves less than its hologram's extent over the frames of the med
 part of its fringes in it, and dividing by it takes part of the particle away. A per-frame
 flat field (`flat_field`: the frame smoothed over far more than a particle's hologram) has
 no particle in it whatever the motion, but keeps no static fine structure either.
-``auto`` (`choose_background`) uses the median only where the recording shows it is
-particle-free: the medians of the first and of the second half of the sampled frames must
-agree (static structure is in both, a slow particle's residue sits in each at another
-place), else the flat field.
+``auto`` (`choose_background`) uses the median only where the recording shows that it has
+static structure to remove and that it is particle-free: the medians of the first and of
+the second half of the sampled frames must agree better than the median's fine structure
+(static structure is in both halves, a slow particle's residue sits in each at another
+place) and better than a frame differs from the median (the particles' own signal); else
+the flat field.
 """
 
 from __future__ import annotations
@@ -24,13 +26,16 @@ import numpy as np
 from napari_lbs._core._errors import InputError
 from napari_lbs._core._frames import HologramFrames
 
-__all__ = ["BACKGROUND_MODES", "FLAT_SIGMA_PX", "MEDIAN_AGREEMENT", "choose_background", "flat_field", "frame_window", "frames_median", "sequence_background"]
+__all__ = ["BACKGROUND_MODES", "FLAT_SIGMA_PX", "MEDIAN_AGREEMENT", "MEDIAN_RESIDUE", "choose_background", "flat_field", "frame_window", "frames_median", "sequence_background"]
 
 BACKGROUND_MODES = ("auto", "global", "running", "flat", "none")
 FLAT_SIGMA_PX = 32.0  # smoothing of the flat field: a particle's shadow is ~100 px² of the ~6400 px² it averages over
-# auto takes the median when its halves disagree by less than its fine structure: then most of that structure is static
-# (the ratio on development recordings: benchmarks/bench_flow.py --measures-only, docs/sequences.md)
+# auto takes the median when its halves disagree by less than its fine structure (most of that structure is static) and
+# by at most 1.3 times a frame's own deviation from it (the particles have left it). Both set on development recordings
+# (benchmarks/bench_flow.py, seeds 1-3; docs/sequences.md): structure ratio 1.2-4.5 in uniform light, 0.3-0.7 behind
+# static fringes; residue 1.42-1.69 where flat found more tracks (4-8 um a frame), 0.97-1.14 where the median did (16-32).
 MEDIAN_AGREEMENT = 1.0
+MEDIAN_RESIDUE = 1.3
 
 
 def frame_window(index: int, *, count: int, window: int) -> tuple[int, int]:
@@ -77,17 +82,22 @@ def _sample_indices(count: int, samples: int) -> np.ndarray:
     return np.unique(np.linspace(0, count - 1, min(samples, count)).round().astype(int))
 
 
-def choose_background(frames: HologramFrames, *, samples: int = 32, agreement: float = MEDIAN_AGREEMENT) -> tuple[str, np.ndarray | None, dict]:
-    """The ``auto`` background: the global median when the recording shows it is free of particles, else a per-frame flat field.
+def choose_background(frames: HologramFrames, *, samples: int = 32, agreement: float = MEDIAN_AGREEMENT,
+                      residue: float = MEDIAN_RESIDUE) -> tuple[str, np.ndarray | None, dict]:
+    """The ``auto`` background: the global median when the recording shows it has static structure and no particles, else a per-frame flat field.
 
     The ``samples`` frames of the global median are split into the first and the second
     half (in time). Static structure (illumination, dust, window fringes) is the same in
     both halves' medians; the fringes of a particle that moved too little to leave the median
     sit in each at another place. The disagreement is the mean of ``|median_1 / median_2 - 1|``
     (the particles' residue), the structure the mean of ``|median / flat_field(median) - 1|``
-    (the median's fine structure: static structure and residue). When the disagreement is at
-    most ``agreement`` times the structure, most of the structure is static and the median is
-    taken; else the particles would lose more to it than the static structure costs: flat.
+    (the median's fine structure: static structure and residue), the signal the mean over the
+    sampled frames of ``|frame / median - 1|`` (what the particles add to a frame). The
+    median is taken when the disagreement is at most ``agreement`` times the structure
+    (most of the structure is static: there is something for the median to remove that a
+    flat field cannot) and at most ``residue`` times the signal (the particles have moved
+    out of it); else the particles would lose more to it than the static structure costs:
+    flat. In uniform light there is no static structure and a flat field loses nothing.
 
     Parameters
     ----------
@@ -96,26 +106,32 @@ def choose_background(frames: HologramFrames, *, samples: int = 32, agreement: f
         Frames of the global median (spread evenly over the recording).
     agreement : float
         Largest ratio of disagreement to structure that still takes the median (dimensionless).
+    residue : float
+        Largest ratio of disagreement to signal that still takes the median (dimensionless).
 
     Returns
     -------
     (mode, background, measures)
         ``("global", median, ...)`` or ``("flat", None, ...)``; ``measures`` holds the
-        ``disagreement``, ``structure`` and their ``ratio`` (None with fewer than 4 sampled
-        frames, too few to split: flat).
+        ``disagreement``, ``structure``, ``signal``, ``ratio`` (disagreement / structure) and
+        ``residue`` (disagreement / signal), all None with fewer than 4 sampled frames (too
+        few to split: flat), and the number of ``frames`` sampled.
     """
     chosen = _sample_indices(len(frames), samples)
     if chosen.size < 4:
-        return "flat", None, {"disagreement": None, "structure": None, "ratio": None, "frames": int(chosen.size)}
+        return "flat", None, {"disagreement": None, "structure": None, "signal": None, "ratio": None, "residue": None, "frames": int(chosen.size)}
     stack = np.stack([frames.read(int(k)) for k in chosen])
     half = chosen.size // 2
     first, second = frames_median(stack[:half]), frames_median(stack[half:])
     disagreement = float(np.mean(np.abs(first / second - 1.0)))
     median = frames_median(stack)
     structure = float(np.mean(np.abs(median / flat_field(median) - 1.0)))
+    signal = float(np.mean([np.mean(np.abs(frame / median - 1.0)) for frame in stack]))
     ratio = disagreement / structure if structure > 0 else np.inf
-    measures = {"disagreement": round(disagreement, 6), "structure": round(structure, 6), "ratio": round(float(ratio), 4), "frames": int(chosen.size)}
-    if ratio <= agreement:
+    moved = disagreement / signal if signal > 0 else np.inf
+    measures = {"disagreement": round(disagreement, 6), "structure": round(structure, 6), "signal": round(signal, 6),
+                "ratio": round(float(ratio), 4), "residue": round(float(moved), 4), "frames": int(chosen.size)}
+    if ratio <= agreement and moved <= residue:
         return "global", median, measures
     return "flat", None, measures
 
