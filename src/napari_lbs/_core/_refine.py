@@ -469,7 +469,7 @@ _CENTRE_REACH_PX = 3.0  # the symmetric centre is looked for this far around the
 _VALLEY_PRIOR = 16.0  # robust-cost units (half noise variances) per squared phase-delay period from the starting index
 # size–index grid at each candidate depth: diameters around the start, and for each the
 # index contrasts whose phase delay k0 d Δn steps through one period on each side
-_GRID_DIAMETER_UM = tuple(0.4 * j for j in range(-6, 7))
+_GRID_DIAMETER_UM = tuple(0.4 * j for j in range(-9, 10))
 _GRID_DELAY_PERIODS = tuple(j / 4 for j in range(-4, 5))
 # the valley profile: size parameter k a along the line of constant phase delay, the
 # neighbouring valleys, and the delay and depth offsets each point is minimised over
@@ -717,7 +717,7 @@ def _ring_search(rings: _Rings, params: torch.Tensor, free: torch.Tensor, scale:
 
     The depth is scanned over ``±window_um`` in steps that move the outermost ring's fringe
     by one radian; its ``depth_candidates`` best local minima are refined by a scan a
-    quarter step apart; at each, diameters ±2.4 µm and index contrasts one phase-delay
+    quarter step apart; at each, diameters ±3.6 µm and index contrasts one phase-delay
     period on each side (quarter periods) are compared, the valleys away from the starting
     index paying `_VALLEY_PRIOR` per period²; at the best, the depth is scanned finely again.
     """
@@ -789,6 +789,7 @@ class _Profile:
     depth_um: torch.Tensor  # (B, T, J)
     cost: torch.Tensor  # (B, T, J) minimised over depth and delay, half-variances
     scale: torch.Tensor  # (B,) noise scale the costs are in
+    dof: torch.Tensor  # (B,) ring means less the fitted parameters (c0, depth, delay, size)
 
 
 def _ring_profile(rings: _Rings, z_um: torch.Tensor, diameter_um: torch.Tensor, contrast: torch.Tensor, kappa: torch.Tensor, free: torch.Tensor,
@@ -836,7 +837,8 @@ def _ring_profile(rings: _Rings, z_um: torch.Tensor, diameter_um: torch.Tensor, 
     uu = torch.where(use, uu, u[at])
     vv = torch.where(use, vv, v[at])
     best_delay = (diameter_um * contrast)[:, None, None] + index_free[:, :, None] * (valleys + _PROFILE_DELAY * vv) * wavelength
-    return _Profile(diameters, best_delay / diameters[:, :, None], z_um[:, None, None] + uu * depth_step_um, profile, scale)
+    dof = torch.clamp(2.0 * (rings.weight > 0).sum(dim=1).to(torch.float64) - 4.0, min=1.0)
+    return _Profile(diameters, best_delay / diameters[:, :, None], z_um[:, None, None] + uu * depth_step_um, profile, scale, dof)
 
 
 def _profile_spread(profile: _Profile, diameter_um: torch.Tensor, contrast: torch.Tensor, threshold: torch.Tensor) -> torch.Tensor:
@@ -983,8 +985,15 @@ def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of
     profile = None
     if bool((free_t[:, 3] | free_t[:, 4]).any()):
         # the rings see the neighbours' holograms (fitted in the first round) taken out of the data
-        cleaned = fine if model.others is None else _Patches(fine.data - model.others[0].real * fine.mask, fine.mask, fine.x_um, fine.y_um, fine.u, fine.v,
-                                                            fine.shape)
+        # (and their interference with this particle, at its fit), and the data divided by the
+        # illumination's slope, which the rings' means do not fit (only its level)
+        gain = model.illumination(final)
+        data = fine.data
+        if model.others is not None:
+            data = data - gain * (model.sphere(final) - _Model(fine, None, **model_optics).sphere(final))
+        level = final[:, _PHYSICAL : _PHYSICAL + 1]
+        data = torch.where(fine.mask > 0, data * (level / torch.where(gain.abs() > 1e-12, gain, level)), fine.data)
+        cleaned = _Patches(data, fine.mask, fine.x_um, fine.y_um, fine.u, fine.v, fine.shape)
         final, final_cost, profile = _valley_profile(cleaned, model, coarse_model, final, final_cost, free_t, low, high, fit_scale, pixel_um=optics.pixel_um,
                                                      start_index=start_index,
                                                      settings=settings, steps=steps)
@@ -1002,7 +1011,10 @@ def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of
     spread = torch.full((count, 2), math.nan, dtype=torch.float64, device=device)
     if profile is not None:
         # the profile's costs are in its own noise scale: Δχ² = 4 in the fit's is that times (σ_fit / σ_profile)²
-        threshold = _INTERVAL * inflation * (sigma / profile.scale) ** 2
+        # plus the rings' excess χ² at the profile's minimum (above its degrees of freedom):
+        # what the model does not explain can move the minimum by as much (see docs/refinement.md)
+        excess = torch.clamp(profile.cost.amin(dim=(1, 2)) - 0.5 * profile.dof, min=0.0)
+        threshold = _INTERVAL * inflation * (sigma / profile.scale) ** 2 + excess
         spread = _profile_spread(profile, final[:, 3], final[:, 4], threshold) * free_t[:, 3:5].to(torch.float64)
     pixels = torch.clamp(fine.mask.sum(dim=1), min=1.0)
     residual_rms = torch.sqrt(torch.sum(residual**2, dim=1) / pixels) / torch.clamp(final[:, _PHYSICAL].abs(), min=1e-12)
