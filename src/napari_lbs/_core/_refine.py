@@ -610,7 +610,8 @@ def _ring_costs(rings: _Rings, z_um: torch.Tensor, spheres: torch.Tensor, scale:
     for first in range(0, count, per):
         part = slice(first, first + per)
         moments = _mean_intensity(a_eff[part], b_eff[part], z_um[part], rings.rho_um[part, None, :].expand(-1, depths, -1), k=k,
-                                  pixel_um=model.pixel_um, annulus_um=rings.width_um)  # (b, Z, S, R, 2)
+                                  pixel_um=model.pixel_um, annulus_um=rings.width_um,
+                                  lobe_diameter_um=spheres[part, :, 0].amax(dim=1)[:, None])  # (b, Z, S, R, 2)
         sub = rings.map(lambda t, part=part: t[part])
         d0, d2, m0, m2 = _ring_fit_terms(sub, moments)
         cross = (d0 * m0 + d2 * m2).sum(dim=-1)
@@ -630,7 +631,8 @@ def _ring_residuals(rings: _Rings, z_um: torch.Tensor, spheres: torch.Tensor, sc
     count = z_um.shape[0]
     a, b = mie_coefficients(k * spheres[:, 0] / 2.0, ((medium + spheres[:, 1]) + 1j * spheres[:, 2]) / medium, terms=model.terms)
     a_eff, b_eff = (t.reshape(count, 1, model.terms) for t in _weighted_coefficients(a, b))
-    moments = _mean_intensity(a_eff, b_eff, z_um, rings.rho_um, k=k, pixel_um=model.pixel_um, annulus_um=rings.width_um)[:, 0]  # (B, R, 2)
+    moments = _mean_intensity(a_eff, b_eff, z_um, rings.rho_um, k=k, pixel_um=model.pixel_um, annulus_um=rings.width_um,
+                              lobe_diameter_um=spheres[:, 0])[:, 0]  # (B, R, 2)
     d0, d2, m0, m2 = _ring_fit_terms(rings, moments)
     c0 = (d0 * m0 + d2 * m2).sum(dim=1) / torch.clamp((m0 * m0 + m2 * m2).sum(dim=1), min=1e-30)
     return torch.cat([d0 - c0[:, None] * m0, d2 - c0[:, None] * m2], dim=1) / scale[:, None]
