@@ -163,6 +163,23 @@ def test_ring_moments_through_the_coarse_radial_grid_match_the_direct_sums():
     assert float((coarse - direct).abs().max()) < 1e-4 * modulation
 
 
+def test_valley_interval_widens_with_the_rings_unexplained_chi_square():
+    """The profile's interval reaches as far as the cost stays within Δχ² = 4 plus the excess χ² of the minimum, in the valley and across."""
+    from napari_lbs._core import _refine
+
+    diameters = torch.linspace(29.0, 31.0, 41, dtype=torch.float64)[None]  # 0.05 µm apart
+    contrast = torch.stack([torch.full((41,), 0.26 + j * 0.022, dtype=torch.float64) for j in (-1, 0, 1)], dim=-1)[None]
+    offset = (diameters[0] - 30.0)[:, None] / 0.1  # half-variances rise as (Δd / 0.1 µm)²
+    cost = (offset**2 + torch.tensor([30.0, 0.0, 30.0], dtype=torch.float64))[None]
+    for minimum, reach_d, across in ((100.0, 0.15, False), (140.0, 0.65, True)):  # dof 200: excess 0 and 40
+        profile = _refine._Profile(diameters, contrast, torch.zeros_like(cost), cost + minimum, torch.ones(1, dtype=torch.float64), torch.tensor([200.0]))
+        threshold = _refine._interval_threshold(profile, torch.ones(1, dtype=torch.float64))
+        assert float(threshold[0]) == _refine._INTERVAL + max(minimum - 100.0, 0.0)
+        spread = _refine._profile_spread(profile, torch.tensor([30.0], dtype=torch.float64), torch.tensor([0.26], dtype=torch.float64), threshold)
+        assert abs(2.0 * float(spread[0, 0]) - reach_d) < 0.03
+        assert (float(spread[0, 1]) > 0.01) == across  # the neighbouring valleys only within the wider interval
+
+
 def test_symmetric_centre_is_found_within_a_tenth_of_a_pixel():
     from napari_lbs._core import _refine
 

@@ -843,6 +843,19 @@ def _ring_profile(rings: _Rings, z_um: torch.Tensor, diameter_um: torch.Tensor, 
     return _Profile(diameters, best_delay / diameters[:, :, None], z_um[:, None, None] + uu * depth_step_um, profile, scale, dof)
 
 
+def _interval_threshold(profile: _Profile, inflation: torch.Tensor) -> torch.Tensor:
+    """(B,) cost above the profile's minimum (half-variances, its units) that bounds the two-standard-deviation interval.
+
+    Δχ² = 4 times ``inflation`` (the residuals' correlation, and the fit's noise scale over
+    the profile's, squared), plus the rings' excess χ² at the minimum (its cost less half
+    its degrees of freedom): a model error ``δ`` of χ² ``|δ|²`` moves the minimum of a
+    least-squares cost by at most that much, and what the best point leaves unexplained
+    estimates it.
+    """
+    excess = torch.clamp(profile.cost.amin(dim=(1, 2)) - 0.5 * profile.dof, min=0.0)
+    return _INTERVAL * inflation + excess
+
+
 def _profile_spread(profile: _Profile, diameter_um: torch.Tensor, contrast: torch.Tensor, threshold: torch.Tensor) -> torch.Tensor:
     """(B, 2) one-standard-deviation widths of diameter and index from the profile: the farthest point within ``threshold`` of its minimum, halved.
 
@@ -1012,11 +1025,7 @@ def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of
     errors = torch.sqrt(torch.clamp(torch.diagonal(covariance, dim1=1, dim2=2), min=0.0)) * free_t
     spread = torch.full((count, 2), math.nan, dtype=torch.float64, device=device)
     if profile is not None:
-        # the profile's costs are in its own noise scale: Δχ² = 4 in the fit's is that times (σ_fit / σ_profile)²
-        # plus the rings' excess χ² at the profile's minimum (above its degrees of freedom):
-        # what the model does not explain can move the minimum by as much (see docs/refinement.md)
-        excess = torch.clamp(profile.cost.amin(dim=(1, 2)) - 0.5 * profile.dof, min=0.0)
-        threshold = _INTERVAL * inflation * (sigma / profile.scale) ** 2 + excess
+        threshold = _interval_threshold(profile, inflation * (sigma / profile.scale) ** 2)
         spread = _profile_spread(profile, final[:, 3], final[:, 4], threshold) * free_t[:, 3:5].to(torch.float64)
     pixels = torch.clamp(fine.mask.sum(dim=1), min=1.0)
     residual_rms = torch.sqrt(torch.sum(residual**2, dim=1) / pixels) / torch.clamp(final[:, _PHYSICAL].abs(), min=1e-12)
