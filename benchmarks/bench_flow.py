@@ -27,7 +27,7 @@ Seeds split the cases: development seeds (``--seeds``, default 1 2 3) are for ch
 methods; the final check is seed 0 (``--seeds 0``), run once the choice is made.
 
 Run: python benchmarks/bench_flow.py --model MODEL.pt [--speeds 4 8 16 32] [--seeds 1 2 3]
-[--backgrounds auto global flat none] [--json OUT.json]
+[--backgrounds auto global flat none] [--pattern] [--workers 1 2] [--json OUT.json]
 """
 
 from __future__ import annotations
@@ -105,6 +105,7 @@ def main() -> None:
     parser.add_argument("--recovered-links", type=int, default=6, help="matched detections a predicted track needs to recover a true track (default 6)")
     parser.add_argument("--pattern", action="store_true", help="multiply every frame by a static pattern of fringes and vignetting (what a real setup adds)")
     parser.add_argument("--measures-only", action="store_true", help="only print auto's measures (choose_background) for each case, no prediction")
+    parser.add_argument("--workers", type=int, nargs="+", default=[], help="also run every case on a LocalCluster of N worker processes and record whether its table is the local one's, value for value")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
 
@@ -134,6 +135,10 @@ def main() -> None:
                         "background_used": result.provenance.get("background_used"), "background_measures": result.provenance.get("background_measures"),
                         **recovered_tracks(linked, truth, frames=args.frames, needed=args.recovered_links),
                         "seconds": round(time.perf_counter() - start, 2), "core_seconds": round(after.user + after.system - cpu.user - cpu.system, 2)}
+                for workers in args.workers:
+                    other = predict_sequence(frames, model, config, background=mode, workers=workers)
+                    case[f"identical_with_{workers}_workers"] = set(other.particles) == set(result.particles) and all(
+                        np.array_equal(other.particles[name], result.particles[name]) for name in result.particles)
                 totals[mode].append(case["recovered"])
                 report["cases"].append(case)
                 print(json.dumps(case), flush=True)
