@@ -10,16 +10,19 @@ batched in torch.
 
 1. **Patch**: a square of at most ``patch_px`` pixels, and no wider than the disc inside
    which the fringes are sampled (their frequency below the pixel's Nyquist limit).
-2. **Searches**: the depth is scanned over ``±depth_window_um`` around the guess, in steps
-   that move the patch's outermost fringe by one radian, so a depth wrong by 300 µm is a
-   fit choice; at the best depths the size and index are scanned; the best starts are fitted
-   coarsely (every other pixel).
+2. **Searches on ring profiles**: about the patch's centre of symmetry, the ring means of
+   ``I`` and ``I cos2φ`` are exact functions of the sphere's radial profiles
+   (`azimuthal_mean_holograms`), so the depth is scanned over ``±depth_window_um`` (steps
+   that move the outermost fringe by one radian), the size and index on a grid at the best
+   depths, and each start followed down its valley, at the cost of rings, not pixels.
 3. **Fit**: Levenberg–Marquardt on Huber-weighted residuals (the noise scale from the
-   residuals' median absolute deviation); the Jacobian by finite differences of the
-   differentiable forward model, every perturbation in one batch.
+   residuals' median absolute deviation), on every other pixel and then on all; the
+   Jacobian by finite differences of the differentiable forward model, every perturbation
+   in one batch.
 4. **Valleys and ripple**: the phase delay through a transparent sphere is seen modulo 2π
-   and its hologram ripples with its size; the neighbouring size–index valleys are fitted
-   and compared (`_choose_valley`), and the valley itself is scanned (`_escape_ripple`).
+   and its hologram ripples with its size; the ring cost along the line of constant phase
+   delay and in the neighbouring valleys (`_ring_profile`) restarts the fit at a deeper
+   point, and bounds the diameter's and index's intervals (`_interval_threshold`).
 5. **Neighbours**: after a first round, each patch with other particles in reach is fitted
    again with their summed fields (fixed at their first-round values) in its model.
 6. **False detections and twins**: a particle whose best fit does not lower the robust cost
@@ -27,7 +30,8 @@ batched in torch.
    dropped, and so is one that converged onto a particle another detection fitted better.
 7. **Uncertainties**: ``σ² (JᵀWJ)⁻¹`` at the optimum (Gauss–Newton), ``σ`` the residuals'
    scale, inflated by the residuals' pixel-to-pixel correlation (what model error and
-   neighbours leave is not white).
+   neighbours leave is not white); for the diameter and index, at least half the valley
+   profile's two-standard-deviation interval.
 
 Depths in the table keep the config's convention (``optics.medium_index``: with the
 default 1, air-equivalent distances); the scattering happens in the sample's medium,
