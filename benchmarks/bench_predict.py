@@ -9,7 +9,8 @@ ratios, the 4096²/1024² ratio of each build, and how the particle tables compa
 particle's nearest old one). The load average is logged before and after: on a shared machine
 only the same-run ratios mean anything.
 
-Run: python benchmarks/bench_predict.py --model demo/model.pt [--baseline 09f02ff] [--sizes 1024 4096] [--repeats 1]
+Run: python benchmarks/bench_predict.py --model demo/model.pt [--baseline 09f02ff] [--sizes 1024 4096]
+[--baseline-sizes 1024] [--repeats 1]
 Raw results: benchmarks/results/predict/bench_predict_<date>.json
 """
 
@@ -78,6 +79,8 @@ def main() -> None:
     parser.add_argument("--model", required=True)
     parser.add_argument("--baseline", default="09f02ff", help="the previous build's commit")
     parser.add_argument("--sizes", type=int, nargs="+", default=[1024, 4096], help="image edges: the real hologram tiled to each (a multiple of 1024)")
+    parser.add_argument("--baseline-sizes", type=int, nargs="*", default=None,
+                        help="the sizes the previous build runs at too (default: all; its 4096² run needs ~15 GB)")
     parser.add_argument("--repeats", type=int, default=1)
     parser.add_argument("--threads", default=None, help="NAPARI_LBS_THREADS for the children (default: theirs)")
     args = parser.parse_args()
@@ -96,13 +99,14 @@ def main() -> None:
             hologram = work / f"real{size}.tif"
             tifffile.imwrite(hologram, np.tile(sample, (size // sample.shape[0], size // sample.shape[1])))
             for repeat in range(args.repeats):
-                for name in ("old", "new"):
+                for name in ("old", "new") if args.baseline_sizes is None or size in args.baseline_sizes else ("new",):
                     out = work / f"{name}{size}.csv"
                     run = {"size": size, "build": name, "repeat": repeat, "load": os.getloadavg()[0], **run_child(trees[name], hologram, args.model, out, args.threads)}
                     record["runs"].append(run)
                     print(json.dumps(run), flush=True)
-            record[f"tables_{size}"] = compare(read_table(work / f"new{size}.csv"), read_table(work / f"old{size}.csv"))
-            print(f"{size}²: particles {record[f'tables_{size}']}", flush=True)
+            if (work / f"old{size}.csv").is_file():
+                record[f"tables_{size}"] = compare(read_table(work / f"new{size}.csv"), read_table(work / f"old{size}.csv"))
+                print(f"{size}²: particles {record[f'tables_{size}']}", flush=True)
     record["load_after"] = os.getloadavg()
     best = {(r["size"], r["build"]): min((x for x in record["runs"] if (x["size"], x["build"]) == (r["size"], r["build"])), key=lambda x: x["wall_s"]) for r in record["runs"]}
     print(f"load average before {record['load_before'][0]:.2f}, after {record['load_after'][0]:.2f}")
@@ -110,12 +114,16 @@ def main() -> None:
     for (size, name), run in sorted(best.items()):
         print(f"| {size}² | {name} | {run['wall_s']} | {run['core_s']} | {run['peak_rss_mib']} |")
     for size in args.sizes:
+        if (size, "old") not in best:
+            continue
         old, new = best[(size, "old")], best[(size, "new")]
         record[f"speedup_{size}"] = {"wall": round(old["wall_s"] / new["wall_s"], 2), "core": round(old["core_s"] / new["core_s"], 2)}
         print(f"{size}²: new is {record[f'speedup_{size}']['wall']}x faster (wall), {record[f'speedup_{size}']['core']}x (core-s); peak {old['peak_rss_mib']} -> {new['peak_rss_mib']} MiB")
     if len(args.sizes) > 1:
         small, large = min(args.sizes), max(args.sizes)
         for name in ("old", "new"):
+            if (large, name) not in best or (small, name) not in best:
+                continue
             ratio = {"wall": round(best[(large, name)]["wall_s"] / best[(small, name)]["wall_s"], 1), "core": round(best[(large, name)]["core_s"] / best[(small, name)]["core_s"], 1)}
             record[f"ratio_{large}_{small}_{name}"] = ratio
             print(f"{name}: {large}² / {small}² = {ratio['wall']}x (wall), {ratio['core']}x (core-s)")
