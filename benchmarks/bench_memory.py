@@ -8,8 +8,9 @@ them, and what is measured does not depend on the pixels), then runs
 ``napari-lbs predict`` on each as a separate process (with ``--sequence-background`` and
 ``--workers`` as asked) and samples the resident memory of that process and of all its
 children every 0.05 s. Reported per run: the peak RSS of the calling process, of each worker
-process (with ``--workers``), of their sum at any one time, the wall time and the CPU time
-(user + system of the process tree: core-seconds).
+process (with ``--workers``), of their sum at any one time and of that sum while each 25
+frames were being done, the wall time and the CPU time (user + system of the process
+tree: core-seconds).
 
 What is measured is the recording machinery (frames read lazily, at most a few in flight,
 every result written to the work folder as it arrives): the model and the depths are kept
@@ -51,9 +52,18 @@ def tiny_model(folder: Path, config_path: Path, planes: int) -> Path:
     return path
 
 
-def sample_tree(process: psutil.Process, stop: threading.Event, peaks: dict) -> None:
-    """Peak RSS of ``process`` (``caller``), of each child (by pid) and of their sum, every 0.05 s."""
+def sample_tree(process: psutil.Process, stop: threading.Event, peaks: dict, parts: Path, *, bucket: int = 25) -> None:
+    """Peak RSS of ``process`` (``caller``), of each child (by pid) and of their sum, every 0.05 s.
+
+    ``peaks["by_frames"]`` holds the peak of the sum while the work folder ``parts`` held
+    0..bucket-1, bucket..2 bucket-1, ... finished frames (counted every 0.5 s): memory that
+    grew with the frames done would show as a rising sequence.
+    """
+    done, ticks = 0, 0
     while not stop.is_set():
+        if ticks % 10 == 0 and parts.is_dir():
+            done = sum(1 for _ in parts.glob("frame_*.npz"))
+        ticks += 1
         try:
             tree = [process, *process.children(recursive=True)]
         except psutil.Error:
@@ -68,6 +78,9 @@ def sample_tree(process: psutil.Process, stop: threading.Event, peaks: dict) -> 
             key = "caller" if member.pid == process.pid else member.pid
             peaks[key] = max(peaks.get(key, 0), rss)
         peaks["sum"] = max(peaks.get("sum", 0), total)
+        window = f"{done // bucket * bucket}-{done // bucket * bucket + bucket - 1}"
+        by_frames = peaks.setdefault("by_frames", {})
+        by_frames[window] = max(by_frames.get(window, 0), total)
         stop.wait(0.05)
 
 
@@ -80,7 +93,7 @@ def run_predict(recording: Path, model: Path, out: Path, *, background: str, wor
     child = psutil.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     peaks: dict = {}
     stop = threading.Event()
-    sampler = threading.Thread(target=sample_tree, args=(child, stop, peaks), daemon=True)
+    sampler = threading.Thread(target=sample_tree, args=(child, stop, peaks, out.with_name(out.name + ".parts")), daemon=True)
     sampler.start()
     cpu = {}
     while child.poll() is None:  # the tree's CPU time, taken while its members are alive
@@ -99,7 +112,8 @@ def run_predict(recording: Path, model: Path, out: Path, *, background: str, wor
     mib = 2**20
     return {"seconds": round(time.perf_counter() - start, 1), "core_seconds_at_least": round(sum(cpu.values()), 1),
             "peak_rss_caller_mib": round(peaks["caller"] / mib), "peak_rss_sum_mib": round(peaks["sum"] / mib),
-            "peak_rss_workers_mib": sorted(round(v / mib) for k, v in peaks.items() if k not in ("caller", "sum") and v > 200 * mib),
+            "peak_rss_workers_mib": sorted(round(v / mib) for k, v in peaks.items() if k not in ("caller", "sum", "by_frames") and v > 200 * mib),
+            "peak_rss_sum_by_frames_done_mib": {k: round(v / mib) for k, v in peaks.get("by_frames", {}).items()},
             "summary": output.strip().splitlines()[-1]}
 
 
