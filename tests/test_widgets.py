@@ -237,7 +237,7 @@ def test_batch_widget_turns_a_recording_into_points_over_time_and_tracks_and_sto
     viewer = make_napari_viewer()
     workflow = dock(viewer, "LBS workflow")
     widget = workflow.batch
-    assert workflow.tabs.tabText(6) == "7 Batch" and widget.background.value == "none"  # no median by default: it would erase slow particles
+    assert workflow.tabs.tabText(6) == "7 Batch" and widget.background.value == "auto"  # as the command line: no median that holds slow particles
     workflow.training.produced.emit(detector.path)  # Training's model is Batch's model too
     assert widget.model.value == detector.path
     widget.frames.value = tmp_path / "gone.tif"
@@ -261,7 +261,7 @@ def test_batch_widget_turns_a_recording_into_points_over_time_and_tracks_and_sto
     np.testing.assert_allclose(world[:, 0], points.features["z_um"])  # (z, y, x) in µm on the plane grid
     assert tuple(points.scale) == pytest.approx((1.0, 100.0, 2.2, 2.2)) and tuple(tracks.scale) == tuple(points.scale)
     assert len(np.unique(tracks.data[:, 0])) == len(np.unique(points.features["track"])) and len(tracks.data) == len(points.data)
-    assert points.metadata["provenance"]["model_sha256"] == detector.sha256 and points.metadata["provenance"]["background"] == "none"
+    assert points.metadata["provenance"]["model_sha256"] == detector.sha256 and points.metadata["provenance"]["background"] == "auto"
     assert tracks.metadata["linking"] == {"search_range_um": 10.0, "axial_search_range_um": None, "memory": 1}
     assert "4 frames" in widget._status.value and "tracks" in widget._status.value
 

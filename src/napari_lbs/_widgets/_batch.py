@@ -28,10 +28,10 @@ class BatchWidget(StepWidget):
                                 tooltip=f"The recording (type a folder or a glob pattern; browse picks a file): {doc_of(open_frames, 'inputs')}")
         self.model = path_edit(label="model file", name="model", filter="*.pt", value="lbs-model.pt", tooltip=doc_of(predict_sequence, "model"))
         self.config = path_edit(label="config", name="config", placeholder="empty: the model's", filter="*.toml", tooltip=doc_of(predict_sequence, "config"))
-        # none by default: a median over the frames holds a slow particle, and dividing by it erased
-        # such particles (ER 31 % against 78 % with none on a user's recording)
-        self.background = ComboBox(label="background", name="background", choices=list(BACKGROUND_MODES), value="none",
-                                   tooltip=f"{doc_of(predict_sequence, 'background')} Default none: a median erases particles that stay put longer than its frames")
+        # auto, as the command line and the API: the median only where the recording shows it holds
+        # no particle (a slow particle left in it would be divided out), else each frame's flat field
+        self.background = ComboBox(label="background", name="background", choices=list(BACKGROUND_MODES), value="auto",
+                                   tooltip=doc_of(predict_sequence, "background"))
         self.window = SpinBox(label="background window", name="window", value=21, min=1, max=10000, tooltip=f"running background: {doc_of(sequence_background, 'window')}")
         self.device = ComboBox(label="device", name="device", choices=["auto", "cpu", "cuda"], value="auto", tooltip=doc_of(predict_sequence, "device"))
         self.workers = SpinBox(label="workers (0: threads)", name="workers", value=0, min=0, max=1024,
@@ -109,7 +109,7 @@ class BatchWidget(StepWidget):
         self._show_recording(source, grid, frames=frames, planes=int(result.provenance["planes_um"][2]))
         self._viewer.dims.set_point(self._viewer.dims.ndim - 4, 0)  # the first frame
         resumed = f"; {result.resumed} frames resumed from the work folder" if result.resumed else ""
-        self.done(f"{particles} particles in {frames} frames → {found} tracks in {result.seconds:.1f} s; {result.provenance['scheduler']}{resumed}")
+        self.done(f"{particles} particles in {frames} frames → {found} tracks in {result.seconds:.1f} s; background {result.provenance['background_used']}; {result.provenance['scheduler']}{resumed}")
 
 
     def _show_recording(self, source: str, grid: PlaneGrid, *, frames: int, planes: int) -> None:
