@@ -338,9 +338,11 @@ def test_predict_refine_writes_the_refined_columns(tmp_path, monkeypatch):
     monkeypatch.setattr(_prediction, "predict_particles", lambda *a, **k: _prediction.PredictionResult(guesses, {"model_sha256": "stub"}, 0.1))
     from napari_lbs._core import _refine
 
-    fast = _refine.RefineSettings(**FAST)
-    monkeypatch.setattr(_refine, "RefineSettings", lambda: fast)
-    assert _cli.main(["predict", str(tmp_path / "holo.tif"), "--model", str(tmp_path / "model.pt"), "--out", str(tmp_path / "p.csv"), "--refine"]) == 0
+    made, settings = [], _refine.RefineSettings
+    monkeypatch.setattr(_refine, "RefineSettings", lambda **options: made.append(options) or settings(**{**FAST, **options}))
+    assert _cli.main(["predict", str(tmp_path / "holo.tif"), "--model", str(tmp_path / "model.pt"), "--out", str(tmp_path / "p.csv"), "--refine",
+                      "--device", "cpu"]) == 0
+    assert made == [{"device": "cpu"}]  # the fit runs where the prediction did
     header = (tmp_path / "p.csv").read_text().splitlines()[0].split(",")
     assert header[:12] == ["x_um", "y_um", "z_um", "diameter_um", "index_contrast", "absorption", "z_err_um", "diameter_err_um", "index_err", "fit_residual",
                            "refined", "outside_training"]

@@ -569,14 +569,15 @@ def predict(request: PredictRequest, *, progress: ProgressCallback | None = None
         import numpy as np
 
         normalised = np.asarray(hologram, dtype=np.float64) / (background if background is not None else float(np.mean(hologram)))
-        particles, provenance["refine"] = _refined(normalised, particles, request.config or model.config, progress=progress, should_stop=should_stop)
+        particles, provenance["refine"] = _refined(normalised, particles, request.config or model.config, device=request.device, progress=progress,
+                                                     should_stop=should_stop)
         refined = f", {len(particles['x_um'])} kept by the fit in {provenance['refine']['seconds']:.1f} s"
     _write_table(out, record_path, particles, {**provenance, "source": str(source), "background_file": request.background_path, "particles": str(out)})
     count = len(result.particles["x_um"])
     return StepResult(f"found {count} particles in {source} in {result.seconds:.1f} s{refined} -> {out} (provenance: {record_path})", result, (out, record_path))
 
 
-def _refined_frames(frames, particles: dict, config: ExperimentConfig, *, background, log: Log, progress, should_stop) -> tuple[dict, dict]:
+def _refined_frames(frames, particles: dict, config: ExperimentConfig, *, background, device: str, log: Log, progress, should_stop) -> tuple[dict, dict]:
     """Each frame's rows of a recording's table refined on that frame (divided by the background file, else by its mean)."""
     import numpy as np
 
@@ -586,8 +587,8 @@ def _refined_frames(frames, particles: dict, config: ExperimentConfig, *, backgr
         rows = frame_of == index
         hologram = np.asarray(frames.read(int(index), log=log), dtype=np.float64)
         divisor = background if isinstance(background, np.ndarray) else float(hologram.mean())
-        table, record = _refined(hologram / divisor, {name: np.asarray(values)[rows] for name, values in particles.items()}, config, progress=progress,
-                                 should_stop=should_stop)
+        table, record = _refined(hologram / divisor, {name: np.asarray(values)[rows] for name, values in particles.items()}, config, device=device,
+                                 progress=progress, should_stop=should_stop)
         parts.append(table)
         records.append(record)
     merged = {name: np.concatenate([part[name] for part in parts]) for name in parts[0]} if parts else particles
@@ -596,7 +597,7 @@ def _refined_frames(frames, particles: dict, config: ExperimentConfig, *, backgr
     return merged, summary
 
 
-def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, *, progress, should_stop) -> tuple[dict, dict]:
+def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, *, device: str, progress, should_stop) -> tuple[dict, dict]:
     """The particle table refined by `refine_particles` (as a dict of arrays) and its provenance."""
     from dataclasses import asdict
 
@@ -604,7 +605,7 @@ def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, *,
 
     from napari_lbs._core._refine import RefineSettings, refine_particles
 
-    settings = RefineSettings()
+    settings = RefineSettings(device=device)  # the prediction's device: CUDA where it ran there
     started = time.perf_counter()
     table = refine_particles(hologram, pd.DataFrame(particles), config, settings=settings, progress=progress, should_stop=should_stop)
     record = {"settings": asdict(settings), "detections": len(particles["x_um"]), "kept": len(table), "seconds": time.perf_counter() - started}
@@ -624,8 +625,8 @@ def _predict_recording(request: PredictRequest, frames, out: Path, record_path: 
                               scheduler=request.scheduler, force=request.force, work_dir=work_dir, device=request.device, progress=progress, should_stop=should_stop)
     particles, provenance = result.particles, dict(result.provenance)
     if request.refine:
-        particles, provenance["refine"] = _refined_frames(frames, particles, request.config or model.config, background=background, log=log, progress=progress,
-                                                          should_stop=should_stop)
+        particles, provenance["refine"] = _refined_frames(frames, particles, request.config or model.config, background=background, device=request.device, log=log,
+                                                          progress=progress, should_stop=should_stop)
     _write_table(out, record_path, particles, {**provenance, "background_file": request.background_path, "particles": str(out)})
     shutil.rmtree(work_dir)
     count, done = len(result.particles["x_um"]), result.provenance["frames"]
