@@ -874,18 +874,6 @@ def _profile_spread(profile: _Profile, diameter_um: torch.Tensor, contrast: torc
     return torch.stack([(d_reach + 0.5 * step) / 2.0, n_reach / 2.0], dim=-1)
 
 
-def _grow_others(others: torch.Tensor | None, k: int) -> torch.Tensor | None:
-    """Neighbours' terms (4, B, P) repeated ``k`` times per patch, as `_expand` repeats the patches."""
-    return None if others is None else others.repeat_interleave(k, dim=1)
-
-
-def _expand(patches: _Patches, k: int, *, interleave: bool = True) -> _Patches:
-    """Each patch repeated ``k`` times in a row (one per candidate start), or the whole batch ``k`` times."""
-    grow = (lambda t: t.repeat_interleave(k, dim=0)) if interleave else (lambda t: t.repeat(k, 1))
-    shapes = [s for s in patches.shape for _ in range(k)] if interleave else patches.shape * k
-    return _Patches(*(grow(getattr(patches, f.name)) for f in fields(_Patches) if f.name != "shape"), shape=shapes)
-
-
 def _flat_model(patches: _Patches) -> tuple[torch.Tensor, torch.Tensor]:
     """Residual of the particle-free model (illumination alone, least squares) and its noise scale."""
     basis = torch.stack([patches.mask, patches.u * patches.mask, patches.v * patches.mask], dim=-1)
