@@ -1,0 +1,225 @@
+"""Detection and sizing with and without Lorenz–Mie refinement, on pseudo-real holograms.
+
+For each hologram the network's table (`predict_particles`) is refined by
+`refine_particles` (default `RefineSettings`, the hologram divided by its mean as
+``napari-lbs predict --refine`` does), and both tables are scored one-to-one against the
+truth (`score_particles`): ER, JI, TP/FP/FN, median |Δz| and |Δd| of the matches, the fitted
+index contrast of the matches (polystyrene 1.59 in water 1.33: 0.26), which of the
+network's false positives the fit dropped and which true positives it dropped wrongly, and
+the time per particle (wall and core seconds, beside the network's own time in the same run).
+
+Holograms (`pseudoreal`: Lorenz–Mie polystyrene spheres in water, 1024², 8-bit camera),
+made in the holograms folder when missing:
+
+- ``real_density``: 100 spheres of 20–30 µm (seed 7);
+- ``real_density_distractors``: the same 100 spheres, plus unlabelled debris (index 1.45,
+  3–12 µm) and spheres beyond the window's edge whose fringes reach into it;
+- ``wide_sizes``: 100 spheres of 16–36 µm, beyond the 20–30 µm the network trains on (seed 23);
+- ``4x_density``: 400 spheres of 20–30 µm (seed 8).
+
+Usage::
+
+    OMP_NUM_THREADS=1 NAPARI_LBS_THREADS=1 python benchmarks/bench_refine_detection.py \\
+        --model MODEL.pt --holograms FOLDER [--only real_density ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import resource
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import pseudoreal
+
+from napari_lbs._core import (
+    load_config,
+    load_model,
+    predict_particles,
+    read_hologram,
+    read_particles,
+    refine_particles,
+    score_particles,
+    write_particles,
+)
+from napari_lbs._core._files import write_json
+from napari_lbs._core._metrics import match_particles
+
+INDEX_CONTRAST = round(pseudoreal.N_PARTICLE - pseudoreal.N_MEDIUM, 3)
+WIDE_SIZES_UM = (16.0, 36.0)
+DISTRACTORS = {"impurities": 50, "margin_px": 128}  # as benchmarks/bench_pseudoreal.py
+HOLOGRAMS = {  # name: (spheres, seed, how)
+    "real_density": (100, 7, "plain"),
+    "real_density_distractors": (100, 7, "distractors"),
+    "wide_sizes": (100, 23, "wide"),
+    "4x_density": (400, 8, "plain"),
+}
+
+
+def wide_sizes(count: int, *, seed: int, size: int = 1024, z_air_um: tuple[float, float] = (1900.0, 4700.0)) -> tuple[np.ndarray, dict]:
+    """`pseudoreal.pseudo_real`'s scene with diameters uniform in `WIDE_SIZES_UM`."""
+    rng = np.random.default_rng(seed)
+    extent = (size - 1) * pseudoreal.PIXEL_UM
+    table = {
+        "x_um": rng.uniform(0, extent, count),
+        "y_um": rng.uniform(0, extent, count),
+        "z_um": rng.uniform(*z_air_um, count),
+        "diameter_um": rng.uniform(*WIDE_SIZES_UM, count),
+    }
+    intensity = pseudoreal.mie_intensity((size, size), table["x_um"], table["y_um"], table["z_um"], table["diameter_um"])
+    return pseudoreal.camera(intensity, rng=rng), table
+
+
+def hologram(folder: Path, name: str) -> tuple[np.ndarray, dict]:
+    """The hologram ``name`` of `HOLOGRAMS` and its truth, made (temp name, then rename) when missing."""
+    import tifffile
+
+    count, seed, how = HOLOGRAMS[name]
+    image_path, truth_path = folder / f"{name}.tif", folder / f"{name}_truth.csv"
+    if not (image_path.is_file() and truth_path.is_file()):
+        start = time.perf_counter()
+        if how == "wide":
+            image, truth = wide_sizes(count, seed=seed)
+        else:
+            image, truth = pseudoreal.pseudo_real(count, seed=seed, **(DISTRACTORS if how == "distractors" else {}))
+        write_particles(truth_path, truth)
+        partial = image_path.with_name(image_path.name + ".partial.tif")
+        tifffile.imwrite(partial, image)
+        os.replace(partial, image_path)
+        print(f"{name}: {count} Lorenz-Mie spheres made in {time.perf_counter() - start:.0f} s", flush=True)
+    return read_hologram(image_path), read_particles(truth_path)
+
+
+def _core_seconds() -> float:
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
+def _median(values) -> float | None:
+    values = np.asarray(values, dtype=np.float64)
+    return float(np.median(values)) if values.size else None
+
+
+def score(table: dict, truth: dict) -> tuple[dict, np.ndarray]:
+    """One-to-one scores of ``table`` and its (table row, truth row) matches."""
+    metrics = score_particles(table, truth)
+    pairs = np.array(match_particles(table, truth), dtype=np.int64).reshape(-1, 2)
+    p, t = pairs[:, 0], pairs[:, 1]
+    z_error = np.asarray(table["z_um"])[p] - np.asarray(truth["z_um"])[t]
+    d_error = np.asarray(table["diameter_um"])[p] - np.asarray(truth["diameter_um"])[t]
+    row = {
+        "er": metrics["er"], "ji": metrics["ji"], "tp": metrics["tp"], "fp": metrics["fp"], "fn": metrics["fn"],
+        "median_abs_dz_um": _median(np.abs(z_error)), "median_abs_dd_um": _median(np.abs(d_error)),
+        "median_dd_um": _median(d_error), "p90_abs_dd_um": float(np.percentile(np.abs(d_error), 90)) if d_error.size else None,
+    }
+    if "index_contrast" in table:
+        index = np.asarray(table["index_contrast"], dtype=np.float64)[p]
+        row["median_index_contrast"] = _median(index)
+        row["median_abs_index_error"] = _median(np.abs(index - INDEX_CONTRAST))
+    return row, pairs
+
+
+def evaluate(name: str, image: np.ndarray, truth: dict, model, config, *, tables: Path | None = None) -> dict:
+    import pandas as pd
+
+    start, core = time.perf_counter(), _core_seconds()
+    network = predict_particles(image, model, config, device="cpu").particles
+    predict_s, predict_core_s = time.perf_counter() - start, _core_seconds() - core
+    network = {k: np.asarray(v) for k, v in network.items()}
+    count = len(network["x_um"])
+    frame = pd.DataFrame(network)
+    frame["network_row"] = np.arange(count)
+    normalised = np.asarray(image, dtype=np.float64) / float(np.mean(image))  # as predict --refine
+    start, core = time.perf_counter(), _core_seconds()
+    refined_frame = refine_particles(normalised, frame, config)
+    refine_s, refine_core_s = time.perf_counter() - start, _core_seconds() - core
+    refined = {c: refined_frame[c].to_numpy() for c in refined_frame.columns}
+
+    before, net_pairs = score(network, truth)
+    after, ref_pairs = score(refined, truth)
+    kept = set(refined["network_row"].astype(int).tolist())
+    net_tp = set(net_pairs[:, 0].tolist())
+    net_fp = set(range(count)) - net_tp
+    ref_tp_rows = set(refined["network_row"][ref_pairs[:, 0]].astype(int).tolist())
+    truth_of = dict(net_pairs.tolist())
+    refined_row = {int(r): i for i, r in enumerate(refined["network_row"].astype(int))}
+
+    def describe(row: int) -> dict:
+        """A network row: its guess, its fit and the truth it matched (if any), for the rows refinement changed."""
+        i = refined_row.get(row)
+        entry = {"network": {c: float(network[c][row]) for c in ("x_um", "y_um", "z_um", "diameter_um")}}
+        if i is not None:
+            entry["refined"] = {c: float(refined[c][i]) for c in ("x_um", "y_um", "z_um", "diameter_um", "index_contrast", "fit_residual")}
+        if row in truth_of:
+            entry["truth"] = {c: float(truth[c][truth_of[row]]) for c in ("x_um", "y_um", "z_um", "diameter_um")}
+        return entry
+
+    moved = sorted((net_tp & kept) - ref_tp_rows)
+    result = {
+        "hologram": name, "truth": len(truth["x_um"]), "detections": count, "kept": len(kept),
+        "not_fitted": int(np.sum(~refined["refined"].astype(bool))),
+        "network": before, "refined": after,
+        "fp_dropped": len(net_fp - kept), "fp_kept": len(net_fp & kept),
+        "tp_dropped": len(net_tp - kept),
+        "tp_lost_by_moving": len((net_tp & kept) - ref_tp_rows),  # kept, but refit beyond the match tolerance
+        "fp_turned_tp": len(net_fp & ref_tp_rows),
+        "moved_tp": [describe(r) for r in moved], "kept_fp": [describe(r) for r in sorted(net_fp & kept)],
+        "index_contrast_of_kept_fp": sorted(float(v) for v in refined["index_contrast"][[r in net_fp for r in refined["network_row"].astype(int)]]),
+        "predict_s": predict_s, "predict_core_s": predict_core_s, "refine_s": refine_s, "refine_core_s": refine_core_s,
+        "refine_s_per_particle": refine_s / max(count, 1), "refine_core_s_per_particle": refine_core_s / max(count, 1),
+        "refine_over_predict": refine_s / predict_s,
+    }
+    if tables is not None:
+        tables.mkdir(parents=True, exist_ok=True)
+        write_particles(tables / f"{name}_network.csv", network)
+        write_particles(tables / f"{name}_refined.csv", refined)
+    return result
+
+
+def _line(label: str, s: dict) -> str:
+    index = f" n-n_m {s['median_index_contrast']:.3f}" if "median_index_contrast" in s else ""
+    dz = "-" if s["median_abs_dz_um"] is None else f"{s['median_abs_dz_um']:.1f}"
+    dd = "-" if s["median_abs_dd_um"] is None else f"{s['median_abs_dd_um']:.2f}"
+    return f"  {label:8s} ER {100 * s['er']:6.2f} % JI {s['ji']:.3f} TP {s['tp']:3d} FP {s['fp']:3d} FN {s['fn']:3d} |dz| {dz} um |dd| {dd} um{index}"
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--model", required=True, type=Path, help="trained model (.pt)")
+    parser.add_argument("--holograms", required=True, type=Path, help="folder of the holograms and their *_truth.csv (missing ones are made)")
+    parser.add_argument("--only", nargs="+", choices=list(HOLOGRAMS), help="holograms to run (default: all, in the listed order)")
+    parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "results" / "refine" / f"detection_{datetime.date.today().isoformat()}.json")
+    parser.add_argument("--tables", type=Path, help="folder for each hologram's network and refined tables (CSV)")
+    args = parser.parse_args(argv)
+    args.holograms.mkdir(parents=True, exist_ok=True)
+    config = load_config(None)
+    model = load_model(args.model, device="cpu")
+    report = {"model": str(args.model), "holograms": str(args.holograms), "threads": {k: os.environ.get(k) for k in ("OMP_NUM_THREADS", "NAPARI_LBS_THREADS")},
+              "index_contrast_truth": INDEX_CONTRAST, "results": []}
+    for name in args.only or list(HOLOGRAMS):
+        image, truth = hologram(args.holograms, name)
+        load_before = os.getloadavg()
+        result = evaluate(name, image, truth, model, config, tables=args.tables)
+        result["load_average"] = [load_before, os.getloadavg()]
+        report["results"].append(result)
+        print(f"{name}: {result['truth']} spheres, {result['detections']} detections, {result['kept']} kept by the fit "
+              f"({result['not_fitted']} outside the hologram, not fitted)", flush=True)
+        print(_line("network", result["network"]), flush=True)
+        print(_line("refined", result["refined"]), flush=True)
+        print(f"  FP dropped {result['fp_dropped']}/{result['fp_dropped'] + result['fp_kept']}, TP dropped {result['tp_dropped']}, "
+              f"TP moved out of tolerance {result['tp_lost_by_moving']}, FP turned TP {result['fp_turned_tp']}; "
+              f"refine {result['refine_s_per_particle']:.2f} s/particle wall, {result['refine_core_s_per_particle']:.2f} core-s/particle, "
+              f"{result['refine_over_predict']:.0f}x the network's {result['predict_s']:.1f} s; load {load_before[0]:.2f}", flush=True)
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        write_json(args.out, report)
+    print(f"-> {args.out}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
