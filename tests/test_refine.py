@@ -370,3 +370,23 @@ def test_a_depth_shifted_twin_is_merged_into_its_particle():
     out = refine_particles(_scene([truth]), starts, _config(), fixed={"absorption": 0.0, "index_contrast": 0.26},
                            settings=RefineSettings(**{**FAST, "depth_window_um": 400.0, "rounds": 1}))
     assert len(out) == 1 and abs(out.z_um[0] - truth[2]) < 2.0
+
+
+def test_a_fit_on_a_bound_of_a_free_parameter_is_not_a_fit():
+    """An index on its bound found no minimum inside the model's range; zero absorption (transparent) and fixed parameters on a bound are fine."""
+    import torch
+
+    from napari_lbs._core._refine import _on_bound
+
+    low = torch.tensor([[0.0, 0.0, 1.0, 0.05, -0.9, 0.0, -1e9]], dtype=torch.float64)
+    high = torch.tensor([[100.0, 100.0, 5000.0, 500.0, 2.5, 5.0, 1e9]], dtype=torch.float64)
+    fit = torch.tensor([[50.0, 50.0, 3000.0, 25.0, 0.26, 0.0, 1.0]], dtype=torch.float64)
+    free = torch.ones_like(fit, dtype=torch.bool)
+    assert not _on_bound(fit, free, low, high).item()  # transparent: absorption 0 is a value, not a bound hit
+    for axis, value in ((4, -0.9), (4, 2.5), (2, 5000.0), (3, 0.05), (0, 0.0), (5, 5.0)):
+        ended = fit.clone()
+        ended[0, axis] = value
+        assert _on_bound(ended, free, low, high).item(), axis
+        held = free.clone()
+        held[0, axis] = False
+        assert not _on_bound(ended, held, low, high).item(), axis

@@ -887,7 +887,7 @@ def demo(request: DemoRequest, *, progress_for: Callable[[str], ProgressCallback
     else:
         # A fixed amount of work, so that the model depends on the seed and not on the machine's
         # speed or load: 5 epochs of the focus formulation, the last 2 validated (the best of them
-        # kept), about 3 minutes on 2 idle cores. On the Lorenz-Mie pseudo-real holograms
+        # kept), about 6 minutes on 2 idle cores. On the Lorenz-Mie pseudo-real holograms
         # (benchmarks/results/learning/demo_epochs_pseudoreal.log) it finds as many spheres as 8
         # epochs did (JI 1.000 / 0.975 at 4x / 0.935 with distractors, against 1.000 / 0.978 /
         # 0.917); its diameters are less sharp (median error 0.9-1.3 um against 0.7-0.8 um).

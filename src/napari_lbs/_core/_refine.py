@@ -935,9 +935,14 @@ def _valley_profile(fine: _Patches, model: _Model, coarse_model: _Model, final: 
     return final, cost, profile
 
 
-def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of, *, search: bool, settings: RefineSettings, config: ExperimentConfig,
-               terms: int, device, steps: Steps) -> dict[str, np.ndarray]:
+def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of, *, anchor: np.ndarray, search: bool, settings: RefineSettings,
+               config: ExperimentConfig, terms: int, device, steps: Steps) -> dict[str, np.ndarray]:
     """Fit one batch of particles from (B, 6) physical starting parameters; arrays per particle.
+
+    Positions and depths are bounded about ``anchor`` (B, 6), the table's guesses, in every
+    round: a later round starts from the earlier fit but may not wander further from the
+    detection than the first could. A fit that ends on a bound of a free parameter (other than
+    zero absorption) found no minimum inside the model's range: not ``ok``.
 
     With ``search``: symmetric centre, ring-profile searches (`_ring_search`) and the valley
     profile (`_ring_profile`, which also picks the start), then the fit on every pixel.
@@ -959,12 +964,13 @@ def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of
     low = torch.full_like(params, -math.inf)
     high = torch.full_like(params, math.inf)
     half = torch.as_tensor(edges, dtype=torch.float64, device=device) * optics.pixel_um / 4.0
+    centre = torch.as_tensor(anchor, dtype=torch.float64, device=device)
     for axis in (0, 1):
-        low[:, axis] = params[:, axis] - half
-        high[:, axis] = params[:, axis] + half
+        low[:, axis] = centre[:, axis] - half
+        high[:, axis] = centre[:, axis] + half
     z_window = settings.depth_window_um * settings.medium_index / optics.medium_index
-    low[:, 2] = torch.clamp(params[:, 2] - 1.5 * z_window, min=1.0)
-    high[:, 2] = params[:, 2] + 1.5 * z_window
+    low[:, 2] = torch.clamp(centre[:, 2] - 1.5 * z_window, min=1.0)
+    high[:, 2] = centre[:, 2] + 1.5 * z_window
     for axis, name in ((3, "diameter_um"), (4, "index_contrast"), (5, "absorption")):
         low[:, axis], high[:, axis] = _BOUNDS[name]
     flat_residual, scale = _flat_model(fine)
@@ -1027,8 +1033,17 @@ def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of
         "spread": spread.cpu().numpy(),
         "gain": (free_cost - fit_cost).cpu().numpy(),
         "residual": residual_rms.cpu().numpy(),
-        "ok": torch.isfinite(final).all(dim=1).cpu().numpy() & np.array([s[0] > 0 for s in fine.shape]),
+        "ok": torch.isfinite(final).all(dim=1).cpu().numpy() & np.array([s[0] > 0 for s in fine.shape]) & ~_on_bound(final, free_t, low, high).cpu().numpy(),
     }
+
+
+def _on_bound(params: torch.Tensor, free: torch.Tensor, low: torch.Tensor, high: torch.Tensor) -> torch.Tensor:
+    """(B,) whether a free physical parameter ended on its bound (zero absorption, a transparent sphere, excepted)."""
+    p, lo, hi = params[:, :_PHYSICAL], low[:, :_PHYSICAL], high[:, :_PHYSICAL]
+    tolerance = 1e-6 * (1.0 + p.abs())
+    at = ((p - lo).abs() <= tolerance) | ((hi - p).abs() <= tolerance)
+    at[:, 5] = (hi[:, 5] - p[:, 5]).abs() <= tolerance[:, 5]
+    return (at & free[:, :_PHYSICAL]).any(dim=1)
 
 
 def _neighbour_fields(all_params: np.ndarray, index: np.ndarray, *, settings: RefineSettings, config: ExperimentConfig, terms: int, device):
@@ -1180,8 +1195,8 @@ def refine_particles(
             steps.check()
             others = _neighbour_fields(snapshot, index, settings=settings, config=config, terms=terms, device=device) if round_index > 0 else None
             begin = snapshot[index] if round_index > 0 else start[index]
-            outputs.append(_fit_batch(image, begin, free[index], others, search=round_index == 0, settings=settings, config=config, terms=terms,
-                                      device=device, steps=steps))
+            outputs.append(_fit_batch(image, begin, free[index], others, anchor=start[index], search=round_index == 0, settings=settings, config=config,
+                                      terms=terms, device=device, steps=steps))
             steps.advance()
         if outputs:
             part = {key: np.concatenate([o[key] for o in outputs]) for key in outputs[0]}
