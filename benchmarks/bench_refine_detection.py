@@ -103,6 +103,7 @@ def _core_seconds() -> float:
 
 def _median(values) -> float | None:
     values = np.asarray(values, dtype=np.float64)
+    values = values[np.isfinite(values)]  # rows the fit did not refine have no index
     return float(np.median(values)) if values.size else None
 
 
@@ -209,7 +210,7 @@ def main(argv: list[str] | None = None) -> None:
         result["load_average"] = [load_before, os.getloadavg()]
         report["results"].append(result)
         print(f"{name}: {result['truth']} spheres, {result['detections']} detections, {result['kept']} kept by the fit "
-              f"({result['not_fitted']} outside the hologram, not fitted)", flush=True)
+              f"({result['not_fitted']} not refined: outside the hologram or no fit inside the bounds)", flush=True)
         print(_line("network", result["network"]), flush=True)
         print(_line("refined", result["refined"]), flush=True)
         print(f"  FP dropped {result['fp_dropped']}/{result['fp_dropped'] + result['fp_kept']}, TP dropped {result['tp_dropped']}, "
