@@ -187,6 +187,14 @@ def radial_step(z_um: torch.Tensor, diameter_um: torch.Tensor, *, wavelength_um:
     return torch.clamp(lobe_um / samples_per_lobe, min=1e-3)
 
 
+def _recurrence_start(k: float, z_um: torch.Tensor, rho_um: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """``k r``, ``1 / k r``, ``cos θ``, ``sin θ`` and the recurrences' first terms (``ξ_{-1}, ξ_0, π_0, π_1``) at each (z, ρ)."""
+    r = torch.sqrt(rho_um**2 + z_um**2)
+    kr = k * r
+    xi_prev2 = torch.ones_like(kr, dtype=torch.complex128)
+    return kr, 1.0 / kr, z_um / r, rho_um / r, xi_prev2, torch.full_like(xi_prev2, -1j), torch.zeros_like(kr), torch.ones_like(kr)
+
+
 def _radial_profiles(a: torch.Tensor, b: torch.Tensor, k: float, z_um: torch.Tensor, rho_um: torch.Tensor) -> torch.Tensor:
     """``A, B, C`` (module docstring) on radial samples: (3, B, R) complex, carrier removed.
 
@@ -194,16 +202,7 @@ def _radial_profiles(a: torch.Tensor, b: torch.Tensor, k: float, z_um: torch.Ten
     angular recurrences; the Riccati–Hankel functions ``ξ_n(kr)`` are started at
     ``e^{ikr}``-free values (``ξ_{-1} = 1, ξ_0 = -i``), which the linear recurrence keeps.
     """
-    z = z_um[:, None]
-    r = torch.sqrt(rho_um**2 + z**2)
-    kr = k * r
-    inv_kr = 1.0 / kr
-    cos_t = z / r
-    sin_t = rho_um / r
-    xi_prev2 = torch.ones_like(kr, dtype=torch.complex128)
-    xi_prev = torch.full_like(xi_prev2, -1j)
-    pi_prev = torch.zeros_like(kr)
-    pi_n = torch.ones_like(kr)
+    kr, inv_kr, cos_t, sin_t, xi_prev2, xi_prev, pi_prev, pi_n = _recurrence_start(k, z_um[:, None], rho_um)
     s0 = torch.zeros_like(xi_prev2)
     s1 = torch.zeros_like(xi_prev2)
     s2 = torch.zeros_like(xi_prev2)
@@ -403,16 +402,7 @@ def _profile_sums(a_eff: torch.Tensor, b_eff: torch.Tensor, k: float, z_um: torc
     scan costs little more than one model.
     """
     terms = a_eff.shape[-1]
-    z = z_um[..., None]
-    r = torch.sqrt(rho_um**2 + z**2)
-    kr = k * r
-    inv_kr = 1.0 / kr
-    cos_t = z / r
-    sin_t = rho_um / r
-    xi_prev2 = torch.ones_like(kr, dtype=torch.complex128)
-    xi_prev = torch.full_like(xi_prev2, -1j)
-    pi_prev = torch.zeros_like(kr)
-    pi_n = torch.ones_like(kr)
+    kr, inv_kr, cos_t, sin_t, xi_prev2, xi_prev, pi_prev, pi_n = _recurrence_start(k, z_um[..., None], rho_um)
     s0 = s1 = s2 = 0
     width = max(1, min(terms, block // max(1, rho_um.numel())))
     single = a_eff.shape[-2] == 1
