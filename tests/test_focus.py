@@ -303,3 +303,38 @@ def test_the_inference_network_folds_batch_norm_without_changing_the_outputs():
     assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in fused.modules())
     assert torch.allclose(got, expected, atol=1e-5, rtol=1e-5) and expected.abs().max() > 0.1
     assert sum(isinstance(m, torch.nn.BatchNorm2d) for m in network.modules()) == 2 * len(network.widths) * 2 - 2  # the original keeps its norms
+
+
+def test_bfloat16_runs_the_network_close_to_float32_with_float32_outputs():
+    import torch
+
+    from napari_lbs._core._network import build_network, inference_network
+
+    torch.manual_seed(0)
+    network = build_network("small", in_channels=9, out_channels=3).eval()
+    inputs = torch.rand(2, 9, 64, 48)
+    with torch.inference_mode():
+        expected = network(inputs)
+        network.precision = "bfloat16"
+        got = network(inputs)
+    assert got.dtype == torch.float32 and inference_network(network).precision == "bfloat16"
+    assert not torch.equal(got, expected)  # the body really ran in bfloat16
+    assert (got - expected).abs().max() < 0.05 * expected.abs().max()
+
+
+def test_precision_auto_follows_the_hardware_and_unknown_values_are_refused(monkeypatch):
+    import torch
+
+    from napari_lbs._core import TrainingSettings
+    from napari_lbs._core._network import resolve_precision
+
+    cpu = torch.device("cpu")
+    assert [resolve_precision(name, cpu) for name in ("float32", "bfloat16")] == ["float32", "bfloat16"]
+    for native, expected in ((False, "float32"), (True, "bfloat16")):
+        for probe in ("_is_amx_tile_supported", "_is_avx512_bf16_supported"):
+            monkeypatch.setattr(torch.cpu, probe, lambda native=native: native, raising=False)
+        assert resolve_precision("auto", cpu) == expected
+    with pytest.raises(InputError, match="precision: expected one of auto, float32, bfloat16, got 'half'"):
+        resolve_precision("half", cpu)
+    with pytest.raises(InputError, match="precision"):
+        TrainingSettings(precision="half")

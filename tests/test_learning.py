@@ -286,6 +286,8 @@ def test_prediction_runs_on_a_hologram_larger_than_a_tile_and_carries_provenance
     assert np.all((table["x_um"] >= 0) & (table["x_um"] <= 90 * 2.2)) and np.all((table["score"] >= 0) & (table["score"] <= 1))
     assert result.provenance["model_sha256"] == hashlib.sha256(tiny_model.model_path.read_bytes()).hexdigest()
     assert result.provenance["tiles"] == [4, 3, 48, 12]  # quarter-tile margin: rows start 0, 24, 48, 52; cols 0, 24, 42
+    assert result.provenance["precision"] in ("float32", "bfloat16")
+    assert predict_particles(hologram, tiny_model.model_path, precision="float32").provenance["precision"] == "float32"
     with pytest.raises(Stopped):
         predict_particles(hologram, tiny_model.model_path, should_stop=lambda: True)
     with pytest.raises(InputError, match="larger than the image"):

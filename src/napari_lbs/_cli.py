@@ -26,7 +26,7 @@ import traceback
 from pathlib import Path
 
 from napari_lbs import __version__
-from napari_lbs._core import InputError, load_config
+from napari_lbs._core import InputError, load_config, write_config
 from napari_lbs._core import _pipeline as pipeline
 from napari_lbs._core._files import json_safe
 from napari_lbs._core._threads import size_threads
@@ -118,8 +118,6 @@ def _run(step, request, label: str | None = None, **callbacks):
 
 
 def _cmd_config(args) -> None:
-    from napari_lbs._core import load_config, write_config
-
     if args.check:
         load_config(args.check)
         _summary(f"{args.check}: valid experiment config")
@@ -185,7 +183,7 @@ def _cmd_train(args) -> None:
         check_output_path(companion, flag="--out", inputs=_inputs(args))
     settings = _settings(TrainingSettings, formulation=args.formulation, preset=args.preset, epochs=args.epochs, minutes=args.minutes, patience=args.patience,
                          augment=not args.no_augment, batch_size=args.batch_size, learning_rate=args.learning_rate, device=args.device, seed=args.seed,
-                         validation_groups=args.validation_groups, patch_size=args.patch_size, foreground_weight=args.foreground_weight)
+                         validation_groups=args.validation_groups, patch_size=args.patch_size, foreground_weight=args.foreground_weight, precision=args.precision)
     _run(pipeline.train, pipeline.TrainRequest(args.data, out, settings=settings, resume=args.resume), "train", log=_summary)
 
 
@@ -193,7 +191,7 @@ def _cmd_predict(args) -> None:
     for path in pipeline.prediction_outputs(args.out):
         check_output_path(path, flag="--out", inputs=_inputs(args))
     request = pipeline.PredictRequest(args.holo, args.model, Path(args.out), load_config(args.config) if args.config else None, background_path=args.background,
-                                      device=args.device, force=args.force, sequence_background=args.sequence_background, background_window=args.background_window,
+                                      device=args.device, precision=args.precision, force=args.force, sequence_background=args.sequence_background, background_window=args.background_window,
                                       workers=args.workers, scheduler=args.scheduler, refine=args.refine)
     _run(pipeline.predict, request, "predict", log=_summary)
 
@@ -316,6 +314,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--batch-size", type=_integer(1), default=8)
     p.add_argument("--learning-rate", type=_number(0.0, 1.0, above=True), help="AdamW's peak rate (default: 2e-3 small, 1e-3 medium, 3e-4 paper)")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
+    p.add_argument("--precision", choices=("float32", "auto", "bfloat16"), default="float32", help="the network's arithmetic (bfloat16: faster where native, learns more slowly)")
     p.add_argument("--seed", type=_SEED, default=0)
     p.add_argument("--validation-groups", type=_integer(0), default=0, help="held-out groups (default: one eighth)")
     p.add_argument("--patch-size", type=_integer(0), default=0, help="train on square crops (default: 128 focus, whole tiles seed)")
@@ -331,6 +330,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--config", help="optics and depths (default: the model's)")
     p.add_argument("--background", metavar="BG", help="a hologram taken without particles, divided out of every frame")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
+    p.add_argument("--precision", choices=("auto", "float32", "bfloat16"), default="auto", help="bfloat16 where the CPU (AMX, AVX-512 BF16) or GPU has it natively, else float32 (auto)")
     p.add_argument("--force", action="store_true", help="run a model made for other optics or depths than the config's (without it such a run exits 2 naming both values)")
     p.add_argument("--sequence-background", choices=("auto", "global", "running", "flat", "none"), default="auto",
                    help="recordings without --background: divide every frame by the median of the frames (global), of the frames around it (running), its own smooth illumination (flat), the median if the recording shows it particle-free else flat (auto, default), or nothing")

@@ -55,13 +55,14 @@ from napari_lbs._core._files import atomic_write_bytes
 from napari_lbs._core._io import InputError
 from napari_lbs._core._validation import check_model_payload
 
-__all__ = ["PRESETS", "FORMULATIONS", "UNet", "build_network", "save_model", "load_model", "LoadedModel", "resolve_device", "check_model_matches", "model_mismatches", "network_outputs", "focus_maps", "inference_network", "MODEL_FORMAT"]
+__all__ = ["PRESETS", "FORMULATIONS", "UNet", "build_network", "save_model", "load_model", "LoadedModel", "resolve_device", "resolve_precision", "PRECISIONS", "check_model_matches", "model_mismatches", "network_outputs", "focus_maps", "inference_network", "MODEL_FORMAT"]
 
 MODEL_FORMAT = "napari-lbs-model"
 _MODEL_VERSION = 2
 _READABLE_VERSIONS = (1, 2)
 PRESETS: dict[str, tuple[int, ...]] = {"paper": (64, 128, 256, 512, 512), "medium": (16, 32, 64, 128, 128), "small": (8, 16, 32, 64, 64)}
 FORMULATIONS = ("focus", "seed")
+PRECISIONS = ("auto", "float32", "bfloat16")
 
 
 def _conv_block(in_channels: int, out_channels: int) -> nn.Sequential:
@@ -84,6 +85,8 @@ class UNet(nn.Module):
         self.head = nn.Conv2d(self.widths[0], int(out_channels), 1)
         self.pool = nn.MaxPool2d(2)
         self.up = nn.Upsample(scale_factor=2, mode="nearest")
+        # a run-time choice (`resolve_precision`), not part of the model: weights stay float32
+        self.precision = "float32"
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         rows, cols = x.shape[-2:]
@@ -91,13 +94,19 @@ class UNet(nn.Module):
         pad_rows, pad_cols = -rows % multiple, -cols % multiple
         if pad_rows or pad_cols:
             x = nn.functional.pad(x, (0, pad_cols, 0, pad_rows), mode="replicate")
+        # The first convolution in float32: bfloat16's 8-bit mantissa would round the input planes
+        # (values in [0, 1]) to about their 8-bit steps, and the small differences between
+        # context planes with them. It is 5 % of the small network's multiplications.
+        x = self.encoder[0][0](x)
         skips = []
-        for level, block in enumerate(self.encoder):
-            x = block(x if level == 0 else self.pool(x))
-            skips.append(x)
-        for block, skip in zip(self.decoder, reversed(skips[:-1]), strict=True):
-            x = block(torch.cat([self.up(x), skip], dim=1))
-        return self.head(x)[..., :rows, :cols]
+        with torch.autocast(x.device.type, dtype=torch.bfloat16, enabled=self.precision == "bfloat16"):
+            for level, block in enumerate(self.encoder):
+                x = block[1:](x) if level == 0 else block(self.pool(x))
+                skips.append(x)
+            for block, skip in zip(self.decoder, reversed(skips[:-1]), strict=True):
+                x = block(torch.cat([self.up(x), skip], dim=1))
+        # the 1x1 head in float32: the maps' values (depth offsets, diameters) keep full precision
+        return self.head(x.float())[..., :rows, :cols]
 
 
 def build_network(preset: str, *, in_channels: int = 1, out_channels: int = 1) -> UNet:
@@ -115,6 +124,33 @@ def resolve_device(device: str) -> torch.device:
     if device == "cuda" and not torch.cuda.is_available():
         raise InputError("device: cuda requested but no CUDA GPU is available (use --device cpu or auto)")
     return torch.device("cuda" if device == "cuda" or (device == "auto" and torch.cuda.is_available()) else "cpu")
+
+
+def _native_bfloat16(device: torch.device) -> bool:
+    if device.type == "cuda":
+        return torch.cuda.is_bf16_supported()
+    # oneDNN runs bfloat16 convolutions on AMX tiles or AVX-512 BF16 instructions; without them it emulates (slower than float32)
+    cpu = torch.cpu
+    return torch.backends.mkldnn.is_available() and any(getattr(cpu, probe, lambda: False)() for probe in ("_is_amx_tile_supported", "_is_avx512_bf16_supported"))
+
+
+def resolve_precision(precision: str, device: torch.device) -> str:
+    """The network's arithmetic on ``device``: ``float32`` or ``bfloat16``.
+
+    ``bfloat16`` runs the convolutions (and the layers between them) in bfloat16 with float32
+    weights, optimiser and loss (``torch.autocast``), and the output layer in float32. ``auto``
+    is ``bfloat16`` where the device multiplies it natively (CPUs with AMX or AVX-512 BF16,
+    CUDA GPUs that support it) and ``float32`` elsewhere, where bfloat16 is emulated and slower.
+    On a 2-core AMX CPU the ``small`` network trains 1.9x and predicts 2.2x faster in bfloat16.
+
+    Results are reproducible for one precision on one kind of machine; the precision used is
+    recorded in training logs, model files and prediction provenance.
+    """
+    if precision not in PRECISIONS:
+        raise InputError(f"precision: expected one of {', '.join(PRECISIONS)}, got {precision!r}")
+    if precision != "auto":
+        return precision
+    return "bfloat16" if _native_bfloat16(device) else "float32"
 
 
 @dataclass

@@ -486,6 +486,8 @@ class PredictRequest:
     background_path : path, optional
         A hologram taken without particles, divided out of every frame.
     device : str
+    precision : str
+        The network's arithmetic: ``auto``, ``float32`` or ``bfloat16`` (`resolve_precision`).
     force : bool
         Run a model made for other optics or depths than the config's.
     sequence_background : str
@@ -508,6 +510,7 @@ class PredictRequest:
     config: ExperimentConfig | None = None
     background_path: str | Path | None = None
     device: str = "auto"
+    precision: str = "auto"
     force: bool = False
     sequence_background: str = "auto"
     background_window: int = 21
@@ -563,7 +566,8 @@ def predict(request: PredictRequest, *, progress: ProgressCallback | None = None
         source, hologram = _source("array", request.source), request.inputs
     background = _background(request.background_path, hologram.shape, log=log)
     model = request.model if not isinstance(request.model, (str, Path)) else load_model(request.model, device=request.device)
-    result = predict_particles(hologram, model, request.config, background=background, device=request.device, force=request.force, progress=progress, should_stop=should_stop)
+    result = predict_particles(hologram, model, request.config, background=background, device=request.device, precision=request.precision, force=request.force,
+                               progress=progress, should_stop=should_stop)
     particles, provenance, refined = result.particles, result.provenance, ""
     if request.refine:
         import numpy as np
@@ -622,7 +626,8 @@ def _predict_recording(request: PredictRequest, frames, out: Path, record_path: 
     background = read_hologram(request.background_path, log=log) if request.background_path else request.sequence_background
     model = load_model(request.model, device="cpu")  # each worker moves it to the device
     result = predict_sequence(frames, model, request.config, background=background, background_window=request.background_window, workers=request.workers,
-                              scheduler=request.scheduler, force=request.force, work_dir=work_dir, device=request.device, progress=progress, should_stop=should_stop)
+                              scheduler=request.scheduler, force=request.force, work_dir=work_dir, device=request.device, precision=request.precision,
+                              progress=progress, should_stop=should_stop)
     particles, provenance = result.particles, dict(result.provenance)
     if request.refine:
         particles, provenance["refine"] = _refined_frames(frames, particles, request.config or model.config, background=background, device=request.device, log=log,

@@ -33,7 +33,7 @@ from napari_lbs._core._calibration import experimental_planes
 from napari_lbs._core._config import ExperimentConfig
 from napari_lbs._core._detection import PeakDecoder, PlaneLinker, suppress
 from napari_lbs._core._io import InputError, as_hologram
-from napari_lbs._core._network import LoadedModel, check_model_matches, inference_network, load_model, network_outputs
+from napari_lbs._core._network import LoadedModel, check_model_matches, inference_network, load_model, network_outputs, resolve_precision
 from napari_lbs._core._optics import backpropagate, backpropagated_blocks
 from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
 from napari_lbs._core._validation import check_prediction_meta
@@ -81,6 +81,7 @@ def predict_particles(
     margin_px: int = 32,
     window_px: int | None = None,
     device: str = "auto",
+    precision: str = "auto",
     force: bool = False,
     progress: ProgressCallback | None = None,
     should_stop: StopCallback | None = None,
@@ -113,6 +114,8 @@ def predict_particles(
         pixels. On 2 CPU cores, windows of 512-640 pixels cost the least per image (fewer
         overlaps than tile-size windows, activations that still fit the caches).
     device : {"auto", "cpu", "cuda"}
+    precision : {"auto", "float32", "bfloat16"}
+        The network's arithmetic (`resolve_precision`; recorded in the provenance).
     force : bool
         Run a model made for other optics or depths anyway (the config's optics are used).
     progress, should_stop
@@ -129,6 +132,7 @@ def predict_particles(
     meta = loaded.meta
     check_prediction_meta(meta, name=str(loaded.path or "model"))
     loaded = replace(loaded, network=inference_network(loaded.network))  # the caller's model stays as it is
+    loaded.network.precision = resolve_precision(precision, next(loaded.network.parameters()).device)
     config = config if config is not None else loaded.config
     planes = [float(z) for z in (planes_um if planes_um is not None else config.volume.planes_um())]
     check_model_matches(meta, config, planes_um=planes, force=force)
@@ -153,6 +157,7 @@ def predict_particles(
         "model_preset": meta["preset"],
         "model_epoch": meta.get("epoch"),
         "formulation": loaded.formulation,
+        "precision": loaded.network.precision,
         "threshold": meta["threshold"],
         **details,
         "processing": meta["processing"],

@@ -70,7 +70,8 @@ class SequenceResult:
     resumed: int
 
 
-def _frame_particles(hologram: np.ndarray, model, config: ExperimentConfig, background: np.ndarray | None, device: str, should_stop: StopCallback | None = None) -> tuple[dict, dict]:
+def _frame_particles(hologram: np.ndarray, model, config: ExperimentConfig, background: np.ndarray | None, device: str, precision: str,
+                     should_stop: StopCallback | None = None) -> tuple[dict, dict]:
     """One frame's `predict_particles` (the dask task). ``model`` is the worker's copy, moved to ``device`` on first use; ``should_stop`` (threads of this process only) ends it between planes."""
     from napari_lbs._core._network import resolve_device
     from napari_lbs._core._prediction import predict_particles
@@ -80,7 +81,7 @@ def _frame_particles(hologram: np.ndarray, model, config: ExperimentConfig, back
     if next(model.network.parameters()).device != target:
         model.network.to(target)
     # predict_sequence checked the model against the config once, before any frame
-    result = predict_particles(hologram, model, config, background=background, force=True, should_stop=should_stop)
+    result = predict_particles(hologram, model, config, background=background, precision=precision, force=True, should_stop=should_stop)
     return result.particles, result.provenance
 
 
@@ -195,9 +196,9 @@ class _Scheduler:
         """``value`` as every task will receive it: sent once to each worker (distributed), else as it is."""
         return value if self.client is None or value is None else self.client.scatter(value, broadcast=True, hash=False)
 
-    def submit(self, index: int, hologram: np.ndarray, config: ExperimentConfig, background, device: str, should_stop: StopCallback | None = None):
+    def submit(self, index: int, hologram: np.ndarray, config: ExperimentConfig, background, device: str, precision: str, should_stop: StopCallback | None = None):
         """Frame ``index``'s task: a future (distributed) or a delayed call (local, which ``should_stop`` can end between planes)."""
-        arguments = (hologram, self.model, config, background, device)
+        arguments = (hologram, self.model, config, background, device, precision)
         if self.client is not None:
             return self.client.submit(_frame_particles, *arguments, key=f"napari-lbs-frame-{index}-{id(self)}", pure=False)
         import dask
@@ -239,6 +240,7 @@ def predict_sequence(
     local_processes: bool = True,
     work_dir: str | Path | None = None,
     device: str = "auto",
+    precision: str = "auto",
     force: bool = False,
     progress: ProgressCallback | None = None,
     should_stop: StopCallback | None = None,
@@ -277,6 +279,8 @@ def predict_sequence(
         The folder is left in place (remove it once the table is written).
     device : {"auto", "cpu", "cuda"}
         Where each worker runs the network (``auto``: a worker's GPU when it has one).
+    precision : {"auto", "float32", "bfloat16"}
+        The network's arithmetic on each worker (`resolve_precision`).
     force : bool
         Run a model made for other optics or depths anyway (`predict_particles`).
     progress, should_stop
@@ -289,13 +293,15 @@ def predict_sequence(
     -------
     SequenceResult
     """
-    from napari_lbs._core._network import LoadedModel, check_model_matches, load_model
+    from napari_lbs._core._network import PRECISIONS, LoadedModel, check_model_matches, load_model
 
     start_time = time.perf_counter()
     if workers is not None and scheduler is not None:
         raise InputError("workers: give either a number of local workers or a scheduler address, not both")
     if workers is not None and workers < 1:
         raise InputError(f"workers: expected at least 1, got {workers}")
+    if precision not in PRECISIONS:
+        raise InputError(f"precision: expected one of {', '.join(PRECISIONS)}, got {precision!r}")
     static = None
     if isinstance(background, np.ndarray):
         static, mode = as_hologram(background, name="background"), "file"
@@ -319,6 +325,7 @@ def predict_sequence(
             "sources": frames.describe(),
             "frames": count,
             "model_sha256": loaded.sha256,
+            "precision": precision,
             "config": config.to_dict(),
             "background": mode,
             "background_window": background_window if mode == "running" else None,
@@ -356,7 +363,7 @@ def predict_sequence(
                     frame_background = flat_field(hologram)
                 else:
                     hologram, frame_background = frames.read(index), shared_background
-                pending[index] = runner.submit(index, hologram, config, frame_background, device, should_stop)
+                pending[index] = runner.submit(index, hologram, config, frame_background, device, precision, should_stop)
                 if len(pending) >= runner.slots:
                     break
             if not pending:

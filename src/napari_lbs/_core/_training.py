@@ -59,7 +59,7 @@ from napari_lbs._core._heatmaps import FocusSpec, context_indices, focus_targets
 from napari_lbs._core._files import atomic_write_bytes, write_json
 from napari_lbs._core._io import InputError
 from napari_lbs._core._metrics import depth_errors_um, diameter_errors_um, score_particles
-from napari_lbs._core._network import FORMULATIONS, PRESETS, build_network, focus_maps, network_outputs, resolve_device, save_model
+from napari_lbs._core._network import FORMULATIONS, PRESETS, build_network, focus_maps, network_outputs, resolve_device, resolve_precision, save_model
 from napari_lbs._core._progress import ProgressCallback, ReportCallback, Steps, StopCallback
 from napari_lbs._core._synthesis import LABEL_SCALE
 from napari_lbs._core._threads import process_threads
@@ -108,6 +108,11 @@ class TrainingSettings:
         Validate (and keep the best of) only the last this many epochs; 0 = every epoch. A
         validation pass costs about a fifth of an epoch, and with the cosine decay the best
         epoch is nearly always among the last.
+    precision : {"float32", "auto", "bfloat16"}
+        The network's arithmetic (`resolve_precision`). Training in bfloat16 ran 1.6x faster per
+        epoch on an AMX CPU but learned more slowly (demo recipe, two runs: training loss 4-5 %
+        higher at every epoch, validation JI 0.90 instead of 0.95 after 5 epochs), so float32
+        is the default; prediction runs bfloat16 where it is native (the same detections).
     augment : bool
         ``focus``: random gamma, contrast, noise and quantisation of the inputs.
     diameter_weight : float
@@ -133,6 +138,7 @@ class TrainingSettings:
     validate_last: int = 0
     augment: bool = True
     diameter_weight: float = 4.0
+    precision: str = "float32"
 
     def __post_init__(self) -> None:
         if self.formulation not in FORMULATIONS:
@@ -153,7 +159,7 @@ class TrainingSettings:
         if self.minutes < 0 or self.patience < 0 or self.validate_last < 0:
             raise InputError(f"minutes / patience / validate_last: expected >= 0, got {self.minutes} / {self.patience} / {self.validate_last}")
         FocusSpec(context=tuple(self.context))
-        resolve_device(self.device)
+        resolve_precision(self.precision, resolve_device(self.device))
 
     @property
     def rate(self) -> float:
@@ -450,6 +456,7 @@ def train_model(
     rng = np.random.default_rng(settings.seed)
     formulation = (_FocusFormulation if settings.formulation == "focus" else _SeedFormulation)(dataset, training, settings)
     network = formulation.network().to(device)
+    network.precision = resolve_precision(settings.precision, device)
     batches = -(-formulation.samples // settings.batch_size)
     optimizer = torch.optim.AdamW(network.parameters(), lr=settings.rate, weight_decay=1e-4)
     total_steps = settings.epochs * batches
@@ -461,6 +468,7 @@ def train_model(
         "settings": asdict(settings),
         "learning_rate": settings.rate,
         "device": str(device),
+        "precision": network.precision,
         "threads": threads,
         "dataset": dataset_summary(dataset),
         "training_groups": training,
@@ -494,6 +502,7 @@ def train_model(
         "merge_lateral_um": merge_lateral_um(config),
         "dataset": dataset_summary(dataset),
         "settings": asdict(settings),
+        "precision": network.precision,
         "napari_lbs": __version__,
         **formulation.meta(),
     }
