@@ -190,8 +190,9 @@ def test_training_is_deterministic_and_resumes_to_the_same_weights(tiny_data, ti
 
     from napari_lbs._core import load_model
 
-    straight, continued = load_model(tiny_model.model_path).network.state_dict(), load_model(tmp_path / "a.pt").network.state_dict()
-    assert all(torch.equal(straight[key], continued[key]) for key in straight)
+    straight, continued = load_model(tiny_model.model_path), load_model(tmp_path / "a.pt")
+    assert all(torch.equal(value, continued.network.state_dict()[key]) for key, value in straight.network.state_dict().items())
+    assert straight.weights_sha256 == continued.weights_sha256 == resumed.log["best"]["weights_sha256"]
 
 
 def test_validating_only_the_last_epochs_trains_the_same_weights(tiny_data, tiny_model, tmp_path):

@@ -949,6 +949,7 @@ def demo(request: DemoRequest, *, progress_for: Callable[[str], ProgressCallback
         "groups": groups,
         "model": str(trained.model_path),
         "model_sha256": best["sha256"],
+        "weights_sha256": best["weights_sha256"],
         "training": {"formulation": training.formulation, "preset": training.preset, "epochs_done": len(trained.log["epochs"]), "epochs_planned": training.epochs,
                      "stop_reason": trained.log["stop_reason"], "threads": trained.log["threads"],
                      "data": f"{data}, the last {len(trained.log['validation_groups'])} held out", "effects": effects,

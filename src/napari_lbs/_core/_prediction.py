@@ -154,6 +154,7 @@ def predict_particles(
         "napari_lbs": __version__,
         "model": str(loaded.path) if loaded.path else None,
         "model_sha256": loaded.sha256,
+        "weights_sha256": loaded.weights_sha256,
         "model_preset": meta["preset"],
         "model_epoch": meta.get("epoch"),
         "formulation": loaded.formulation,

@@ -59,7 +59,7 @@ from napari_lbs._core._heatmaps import FocusSpec, context_indices, focus_targets
 from napari_lbs._core._files import atomic_write_bytes, write_json
 from napari_lbs._core._io import InputError
 from napari_lbs._core._metrics import depth_errors_um, diameter_errors_um, score_particles
-from napari_lbs._core._network import FORMULATIONS, PRESETS, build_network, focus_maps, network_outputs, resolve_device, resolve_precision, save_model
+from napari_lbs._core._network import FORMULATIONS, PRESETS, build_network, focus_maps, network_outputs, resolve_device, resolve_precision, save_model, weights_sha256
 from napari_lbs._core._progress import ProgressCallback, ReportCallback, Steps, StopCallback
 from napari_lbs._core._synthesis import LABEL_SCALE
 from napari_lbs._core._threads import process_threads
@@ -524,7 +524,7 @@ def train_model(
             decoding = formulation.decoding(validation_metrics)
             meta = meta_base | decoding | {"epoch": epoch, "validation": {k: v for k, v in validation_metrics.items() if k != "by_threshold"}}
             digest = save_model(out, network, meta)
-            log["best"] = {"epoch": epoch, "score": list(score), **decoding, "sha256": digest}
+            log["best"] = {"epoch": epoch, "score": list(score), **decoding, "sha256": digest, "weights_sha256": weights_sha256(network)}
         if report is not None:
             report(record)
         write_json(log_path, log)
