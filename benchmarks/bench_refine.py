@@ -142,14 +142,16 @@ def timed_refine(hologram, start, *, threads: int) -> tuple[object, float, float
 
 
 def scores(refined, truth) -> dict:
-    """Medians and 2σ coverage (fraction and count) of refined particles against the truth, matched by order (all kept)."""
+    """Medians over the refined particles and 2σ coverage over all (a fit left unrefined counts as outside) against the truth, matched by order."""
     dz = refined.z_um.to_numpy() - truth.z_um.to_numpy()
     dd = refined.diameter_um.to_numpy() - truth.diameter_um.to_numpy()
     dn = refined.index_contrast.to_numpy() - CONTRAST
+    ok = refined.refined.to_numpy(bool)
     inside = {"z": np.abs(dz) <= 2 * refined.z_err_um.to_numpy(), "diameter": np.abs(dd) <= 2 * refined.diameter_err_um.to_numpy(),
               "index": np.abs(dn) <= 2 * refined.index_err.to_numpy()}
     return {
-        "median_abs_dz_um": float(np.median(np.abs(dz))), "median_abs_dd_um": float(np.median(np.abs(dd))), "median_abs_dn": float(np.median(np.abs(dn))),
+        "refined": f"{int(ok.sum())}/{ok.size}",
+        "median_abs_dz_um": float(np.median(np.abs(dz[ok]))), "median_abs_dd_um": float(np.median(np.abs(dd[ok]))), "median_abs_dn": float(np.median(np.abs(dn[ok]))),
         "within_2sigma": {k: float(np.mean(v)) for k, v in inside.items()}, "within_2sigma_count": {k: f"{int(v.sum())}/{v.size}" for k, v in inside.items()},
         "index_within_0.01": float(np.mean(np.abs(dn) <= 0.01)),
         "rows": [{"truth_z_um": float(t.z_um), "truth_d_um": float(t.diameter_um), "dz_um": float(a), "dd_um": float(b), "dn": float(c),
