@@ -293,15 +293,14 @@ def predict_sequence(
     -------
     SequenceResult
     """
-    from napari_lbs._core._network import PRECISIONS, LoadedModel, check_model_matches, load_model
+    from napari_lbs._core._network import LoadedModel, check_model_matches, load_model, resolve_device, resolve_precision
 
     start_time = time.perf_counter()
     if workers is not None and scheduler is not None:
         raise InputError("workers: give either a number of local workers or a scheduler address, not both")
     if workers is not None and workers < 1:
         raise InputError(f"workers: expected at least 1, got {workers}")
-    if precision not in PRECISIONS:
-        raise InputError(f"precision: expected one of {', '.join(PRECISIONS)}, got {precision!r}")
+    resolve_precision(precision, resolve_device("cpu"))  # an unknown name refused before any frame
     static = None
     if isinstance(background, np.ndarray):
         static, mode = as_hologram(background, name="background"), "file"
