@@ -144,7 +144,10 @@ def test_azimuthal_moments_match_the_hologram_averaged_over_the_azimuth(pixel_um
 
 
 def test_ring_moments_through_the_coarse_radial_grid_match_the_direct_sums():
-    """Summing A, B, C on 12 samples per lobe and interpolating them to 1-pixel rings changes the ring moments by < 1e-4 of the modulation."""
+    """Summing A, B, C on 6 samples per lobe and interpolating them to 1-pixel rings changes the ring moments by < 1e-3 of the modulation.
+
+    An 8-bit camera's rounding alone is 1/256 of its range, four times that.
+    """
     import math
 
     from napari_lbs._core._lorenz_mie import _mean_intensity, _weighted_coefficients, mie_coefficients, term_count
@@ -160,7 +163,7 @@ def test_ring_moments_through_the_coarse_radial_grid_match_the_direct_sums():
     coarse = _mean_intensity(a_eff, b_eff, z, rho, k=k, pixel_um=PIXEL_UM, annulus_um=PIXEL_UM, lobe_diameter_um=torch.full((1, 2), 35.0))
     modulation = float((direct[..., 0] - 1.0).abs().max())
     assert modulation > 0.1
-    assert float((coarse - direct).abs().max()) < 1e-4 * modulation
+    assert float((coarse - direct).abs().max()) < 1e-3 * modulation
 
 
 def test_valley_interval_widens_with_the_rings_unexplained_chi_square():
@@ -214,6 +217,44 @@ def test_forward_models_are_differentiable_in_every_parameter():
     disc = [torch.tensor([v], dtype=torch.float64, requires_grad=True) for v in (15.2, 16.7, 2000.0, 25.0)]
     disc_holograms(*disc, shape=(32, 32), wavelength_um=WAVELENGTH_UM, pixel_um=2.2).var().backward()
     assert all(torch.isfinite(p.grad).all() and p.grad.abs().sum() > 0 for p in disc)
+
+
+
+def test_radial_interpolation_is_differentiable_in_the_profiles_and_the_radii():
+    """The sparse Catmull–Rom product passes torch's numerical gradient check in its table and its positions."""
+    from napari_lbs._core._lorenz_mie import _CatmullRom
+
+    generator = torch.Generator().manual_seed(0)
+    table = torch.randn(2, 12, 4, dtype=torch.float64, generator=generator, requires_grad=True)
+    position = (torch.rand(2, 30, dtype=torch.float64, generator=generator) * 8 + 1.5).requires_grad_(True)
+    assert torch.autograd.gradcheck(_CatmullRom.apply, (table, position))
+
+
+@pytest.mark.parametrize("pixel_um", [None, 2.2])
+def test_lateral_derivatives_match_central_differences(pixel_um):
+    """The analytic ∂I/∂x, ∂I/∂y (a neighbour's field added) agree with central differences of the hologram to 1e-6 of their scale."""
+    from napari_lbs._core._lorenz_mie import fields_from_profiles, holograms_from_fields, lateral_derivatives, radial_profiles
+
+    optics = {"wavelength_um": WAVELENGTH_UM, "medium_index": WATER}
+    dx, dy = _grid(40, 2.2, (19.6, 20.3))
+    z, spheres = torch.tensor([2600.0, 4100.0], dtype=torch.float64), [torch.tensor(v, dtype=torch.float64) for v in ([24.0, 31.0], [0.26, 0.1], [0.0, 0.02])]
+    dx, dy = dx.expand(2, -1), dy.expand(2, -1)
+    profiles, step = radial_profiles(z, *spheres, rho_max_um=float(torch.sqrt(dx**2 + dy**2).max()) + 1.0, **optics)
+    others = tuple(0.05 * torch.polar(torch.ones_like(dx), 0.3 * dx + 0.1 * dy * (1 + axis)) for axis in range(3))
+
+    def hologram(shift_x, shift_y):
+        fields = fields_from_profiles(profiles, step, dx + shift_x, dy + shift_y, z, **optics)
+        own = holograms_from_fields(fields, dx + shift_x, dy + shift_y, z, pixel_um=pixel_um, **optics)
+        return own + 2.0 * sum((f * o.conj()).real for f, o in zip(fields, others, strict=True))
+
+    along_x, along_y = lateral_derivatives(profiles, step, dx, dy, z, others=others, pixel_um=pixel_um, **optics)
+    h = 1e-4
+    numeric_x = (hologram(h, 0.0) - hologram(-h, 0.0)) / (2 * h)
+    numeric_y = (hologram(0.0, h) - hologram(0.0, -h)) / (2 * h)
+    scale = float(numeric_x.abs().max())
+    assert scale > 1e-3
+    assert float((along_x - numeric_x).abs().max()) < 1e-6 * scale
+    assert float((along_y - numeric_y).abs().max()) < 1e-6 * scale
 
 
 # --- the fit ------------------------------------------------------------------------------------

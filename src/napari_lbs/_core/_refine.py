@@ -55,6 +55,7 @@ from napari_lbs._core._lorenz_mie import (
     _weighted_coefficients,
     fields_from_profiles,
     holograms_from_fields,
+    lateral_derivatives,
     mie_coefficients,
     radial_profiles,
     radial_step,
@@ -238,9 +239,9 @@ def _cut_patches(image: np.ndarray, x_um: np.ndarray, y_um: np.ndarray, edges: n
 
 
 _FIT_SAMPLES_PER_LOBE = 6  # radial samples per scattering lobe in the fit (see radial_step)
-# Finite-difference steps of the Jacobian (x, y, z in µm, diameter µm, index, κ): far below
-# every parameter's precision and far above round-off in complex128.
-_JACOBIAN_STEPS = (1e-4, 1e-4, 1e-3, 1e-5, 1e-7, 1e-7)
+# Finite-difference steps of the Jacobian's depth-like columns (z µm, diameter µm, index, κ):
+# far below every parameter's precision and far above round-off in complex128.
+_JACOBIAN_STEPS = {2: 1e-3, 3: 1e-5, 4: 1e-7, 5: 1e-7}
 
 
 class _Model:
@@ -259,33 +260,50 @@ class _Model:
         self.pixel_um = pixel_um
         self.terms = terms
 
-    def sphere(self, params: torch.Tensor, *, step: torch.Tensor | None = None, lateral: tuple[float, float] | None = None,
-               lateral_rows: int = 0) -> torch.Tensor:
-        """Holograms (B, P); with ``lateral``, after them those of the first ``lateral_rows`` rows moved by ``dx`` then by ``dy`` (µm), from the same profiles."""
+    def sphere(self, params: torch.Tensor, *, step: torch.Tensor | None = None) -> torch.Tensor:
+        """Holograms (K·B, P) of K stacked copies of the batch's parameters (K·B rows); the copies share the first one's centre."""
         x, y, z, d, dn, kappa = params[:, :_PHYSICAL].unbind(-1)
         p = self.patches
-        copies = params.shape[0] // p.x_um.shape[0]  # stacked perturbations of the same patches
-        dx, dy = p.x_um.repeat(copies, 1) - x[:, None], p.y_um.repeat(copies, 1) - y[:, None]
-        rho_max = float(torch.sqrt(dx**2 + dy**2).max()) + (math.hypot(*lateral) if lateral else 0.0)
+        count = p.x_um.shape[0]
+        copies = params.shape[0] // count
+        dx, dy = p.x_um - x[:count, None], p.y_um - y[:count, None]
+        rho_max = float(torch.sqrt(dx**2 + dy**2).max())
         if step is None:
-            step = radial_step(z, d, samples_per_lobe=_FIT_SAMPLES_PER_LOBE, **self.optics)
-        profiles, step = radial_profiles(z, d, dn, kappa, rho_max_um=rho_max, terms=self.terms, radial_step_um=step, **self.optics)
-        if lateral:
-            n = lateral_rows
-            dx = torch.cat([dx, dx[:n] - lateral[0], dx[:n]], dim=0)
-            dy = torch.cat([dy, dy[:n], dy[:n] - lateral[1]], dim=0)
-            z = torch.cat([z, z[:n], z[:n]])
-            step = torch.cat([step, step[:n], step[:n]])
-            profiles = torch.cat([profiles, profiles[:, :n], profiles[:, :n]], dim=1)
+            step = radial_step(z[:count], d[:count], samples_per_lobe=_FIT_SAMPLES_PER_LOBE, **self.optics)
+        # copies at the same depths share the partial-wave sums' angular and radial functions
+        depths = z.reshape(copies, count)
+        groups: list[list[int]] = []
+        for copy in range(copies):
+            group = next((g for g in groups if torch.equal(depths[g[0]], depths[copy])), None)
+            if group is None:
+                groups.append([copy])
+            else:
+                group.append(copy)
+        parts = {}
+        for group in groups:
+            spheres = [t.reshape(copies, count)[group] for t in (d, dn, kappa)]
+            profiles, _ = radial_profiles(depths[group[0]], *spheres, rho_max_um=rho_max, terms=self.terms, radial_step_um=step, **self.optics)
+            parts.update({copy: profiles[:, j * count : (j + 1) * count] for j, copy in enumerate(group)})
+        profiles = torch.cat([parts[copy] for copy in range(copies)], dim=1)
         fields = fields_from_profiles(profiles, step, dx, dy, z, **self.optics)
         own = holograms_from_fields(fields, dx, dy, z, pixel_um=self.pixel_um, **self.optics)
         if self.others is None:
             return own
         others = self.others.repeat(1, copies, 1)
-        if lateral:
-            others = torch.cat([others, others[:, :lateral_rows], others[:, :lateral_rows]], dim=1)
         cross = sum(f * o.conj() for f, o in zip(fields, others[1:], strict=True))
         return own + others[0].real + 2.0 * cross.real
+
+    def lateral(self, params: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``∂/∂x`` and ``∂/∂y`` (B, P) of the holograms of `sphere` (unit illumination) in the particles' x and y (µm)."""
+        x, y, z, d, dn, kappa = params[:, :_PHYSICAL].unbind(-1)
+        p = self.patches
+        dx, dy = p.x_um - x[:, None], p.y_um - y[:, None]
+        step = radial_step(z, d, samples_per_lobe=_FIT_SAMPLES_PER_LOBE, **self.optics)
+        profiles, step = radial_profiles(z, d, dn, kappa, rho_max_um=float(torch.sqrt(dx**2 + dy**2).max()), terms=self.terms, radial_step_um=step, **self.optics)
+        others = None if self.others is None else tuple(self.others[1:])
+        along_x, along_y = lateral_derivatives(profiles, step, dx, dy, z, others=others, pixel_um=self.pixel_um, **self.optics)
+        # the pattern moves with the particle: moving the points by +h is moving the particle by -h
+        return -along_x, -along_y
 
     def select(self, rows: torch.Tensor) -> _Model:
         """The model of some of the batch's patches (their rows)."""
@@ -304,11 +322,12 @@ class _Model:
     def jacobian(self, params: torch.Tensor, free: torch.Tensor, *, envelope: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
         """``(model, J)``: (B, P) and (B, P, 9); columns of parameters fixed everywhere are zero.
 
-        The physical columns are finite differences of the differentiable model with every
-        perturbation stacked in one batch: its partial-wave recurrences then run once for
-        all of them (forward-mode differentiation pays their per-operation overhead once
-        per parameter: measured 60 times slower), and the lateral shifts reuse the
-        unshifted radial profiles.
+        The depth, size, index and absorption columns are finite differences of the
+        differentiable model with every perturbation stacked in one batch: its partial-wave
+        recurrences then run once for all of them (forward-mode differentiation pays their
+        per-operation overhead once per parameter: measured 60 times slower), and the
+        perturbed copies share the pixels' interpolation weights. The lateral columns are
+        analytic (`lateral_derivatives`).
 
         With ``envelope`` the diameter and index columns are central differences over a
         size parameter (``Δ(k a) = ±0.5``, ``Δ(m x) = ±0.5``): a transparent sphere's
@@ -330,26 +349,20 @@ class _Model:
         stacked = params.repeat(1 + len(signs), 1)
         for slot, (k, sign) in enumerate(signs, start=1):
             stacked[slot * count : (slot + 1) * count, k] += sign * steps[k]
-        lateral = (_JACOBIAN_STEPS[0], _JACOBIAN_STEPS[1])
         # one radial grid per particle for all its perturbations: the differences see the model, not a moved grid
-        step = radial_step(params[:, 2], params[:, 3], samples_per_lobe=_FIT_SAMPLES_PER_LOBE, **self.optics).repeat(1 + len(signs))
-        holograms = self.sphere(stacked, step=step, lateral=lateral, lateral_rows=count)
-        rows = 1 + len(signs)
-        unshifted = holograms[: rows * count].reshape(rows, count, -1)
-        base = unshifted[0]
+        step = radial_step(params[:, 2], params[:, 3], samples_per_lobe=_FIT_SAMPLES_PER_LOBE, **self.optics)
+        holograms = self.sphere(stacked, step=step).reshape(1 + len(signs), count, -1)
+        base = holograms[0]
         gain = self.illumination(params)
         columns = [torch.zeros_like(base)] * _PHYSICAL
-        for axis in (0, 1):
-            if bool(free[:, axis].any()):
-                shifted = holograms[(rows + axis) * count : (rows + axis + 1) * count]
-                # the pattern moves with the particle: a shift of the points by -h is one of the particle by +h
-                columns[axis] = (shifted - unshifted[0]) * (gain / lateral[axis])
+        if bool(free[:, :2].any()):
+            columns[0], columns[1] = (c * gain for c in self.lateral(params))
         for slot, (k, sign) in enumerate(signs, start=1):
             if sign < 0:
                 continue
-            lower = unshifted[1 + len(depth_like) + central.index(k)] if k in central else unshifted[0]
+            lower = holograms[1 + len(depth_like) + central.index(k)] if k in central else base
             width = steps[k] * (2.0 if k in central else 1.0)
-            columns[k] = (unshifted[slot] - lower) * (gain / width[:, None])
+            columns[k] = (holograms[slot] - lower) * (gain / width[:, None])
         p = self.patches
         return gain * base, torch.stack(columns + [base, base * p.u, base * p.v], dim=-1)
 
