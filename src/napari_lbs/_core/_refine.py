@@ -202,9 +202,9 @@ def _patch_edge(z_um: float, *, settings: RefineSettings, wavelength_um: float, 
     return int(max(16, min(settings.patch_px, 2 * round(radius_px))))
 
 
-def _cut_patches(image: np.ndarray, x_um: np.ndarray, y_um: np.ndarray, edges: np.ndarray, *, pixel_um: float, device, stride: int = 1) -> _Patches:
+def _cut_patches(image: np.ndarray, x_um: np.ndarray, y_um: np.ndarray, edges: np.ndarray, *, pixel_um: float, device) -> _Patches:
     rows, cols = image.shape
-    length = int((-(-int(max(edges)) // stride)) ** 2)
+    length = int(max(edges)) ** 2
     count = len(x_um)
     data = np.ones((count, length))
     mask = np.zeros((count, length))
@@ -221,8 +221,8 @@ def _cut_patches(image: np.ndarray, x_um: np.ndarray, y_um: np.ndarray, edges: n
         if r_lo >= r_hi or c_lo >= c_hi:
             shapes.append((0, 0))
             continue
-        block = image[r_lo:r_hi:stride, c_lo:c_hi:stride]
-        rr, cc = np.mgrid[r_lo:r_hi:stride, c_lo:c_hi:stride]
+        block = image[r_lo:r_hi, c_lo:c_hi]
+        rr, cc = np.mgrid[r_lo:r_hi, c_lo:c_hi]
         n = block.size
         data[i, :n] = block.ravel()
         mask[i, :n] = 1.0
@@ -236,6 +236,24 @@ def _cut_patches(image: np.ndarray, x_um: np.ndarray, y_um: np.ndarray, edges: n
         shapes.append(block.shape)
     as_tensor = lambda a: torch.as_tensor(a, dtype=torch.float64, device=device)
     return _Patches(as_tensor(data), as_tensor(mask), as_tensor(xs), as_tensor(ys), as_tensor(us), as_tensor(vs), shapes)
+
+
+def _every_other_pixel(patches: _Patches) -> tuple[_Patches, torch.Tensor]:
+    """The patches' every other row and column (padded as `_cut_patches` pads) and their indices (B, P') in ``patches``' pixels."""
+    length = max((-(-rows // 2)) * (-(-cols // 2)) for rows, cols in patches.shape) if patches.shape else 0
+    count = len(patches.shape)
+    index = torch.zeros((count, max(length, 1)), dtype=torch.long, device=patches.data.device)
+    real = torch.zeros(index.shape, dtype=torch.bool, device=patches.data.device)
+    shapes = []
+    for i, (rows, cols) in enumerate(patches.shape):
+        picked = (torch.arange(0, rows, 2, device=index.device)[:, None] * cols + torch.arange(0, cols, 2, device=index.device)).reshape(-1)
+        index[i, : picked.numel()] = picked
+        real[i, : picked.numel()] = True
+        shapes.append((-(-rows // 2), -(-cols // 2)))
+    take = lambda t, padding: torch.where(real, torch.gather(t, 1, index), torch.full_like(index, padding, dtype=t.dtype))
+    coarse = _Patches(take(patches.data, 1.0), take(patches.mask, 0.0), torch.gather(patches.x_um, 1, index), torch.gather(patches.y_um, 1, index),
+                      take(patches.u, 0.0), take(patches.v, 0.0), shapes)
+    return coarse, index
 
 
 _FIT_SAMPLES_PER_LOBE = 6  # radial samples per scattering lobe in the fit (see radial_step)
@@ -996,8 +1014,9 @@ def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of
     early = free_t.clone()
     early[:, 5] = False
     # most iterations on every other pixel (a quarter of the work), the last ones on all
-    coarse = _cut_patches(image, start[:, 0], start[:, 1], edges, pixel_um=optics.pixel_um, device=device, stride=2)
-    coarse_model = _Model(coarse, others_of(coarse) if others_of is not None else None, **model_optics)
+    coarse, picked = _every_other_pixel(fine)
+    others = None if model.others is None else torch.gather(model.others, 2, picked[None].expand(model.others.shape[0], -1, -1))
+    coarse_model = _Model(coarse, others, **model_optics)
     coarse_fit, _ = _levenberg_marquardt(coarse_model, params, early, low, high, scale=scale, settings=settings, iterations=1, steps=steps)
     fit_scale = _robust_scale(coarse.data - coarse_model(coarse_fit), coarse.mask)
     final, final_cost = _levenberg_marquardt(coarse_model, coarse_fit, free_t, low, high, scale=fit_scale, settings=settings, iterations=settings.iterations,
