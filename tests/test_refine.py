@@ -287,6 +287,22 @@ def _table(rows):
     return pd.DataFrame(rows, columns=["x_um", "y_um", "z_um", "diameter_um"])
 
 
+
+def test_coarse_patches_are_every_other_row_and_column_of_the_full_ones():
+    """Patches cut at the image's edges too: the coarse pixels are the full patch's [::2, ::2], the padding masked."""
+    from napari_lbs._core import _refine
+
+    image = np.random.default_rng(1).random((90, 70))
+    x_um, y_um, edges = np.array([10.0, 80.0, 150.0]), np.array([5.0, 100.0, 190.0]), np.array([40, 33, 48])
+    fine = _refine._cut_patches(image, x_um, y_um, edges, pixel_um=PIXEL_UM, device="cpu")
+    coarse, _ = _refine._every_other_pixel(fine)
+    for i, (rows, cols) in enumerate(fine.shape):
+        block = fine.data[i, : rows * cols].reshape(rows, cols)[::2, ::2]
+        assert coarse.shape[i] == tuple(block.shape)
+        assert torch.equal(coarse.data[i, : block.numel()], block.reshape(-1))
+        assert float(coarse.mask[i].sum()) == block.numel()
+        assert torch.equal(coarse.x_um[i, : block.numel()], fine.x_um[i, : rows * cols].reshape(rows, cols)[::2, ::2].reshape(-1))
+
 def test_fit_recovers_depth_size_and_index_from_offset_starts():
     from napari_lbs._core import RefineSettings, refine_particles
 
