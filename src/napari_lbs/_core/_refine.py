@@ -278,8 +278,8 @@ class _Model:
         self.pixel_um = pixel_um
         self.terms = terms
 
-    def sphere(self, params: torch.Tensor, *, step: torch.Tensor | None = None) -> torch.Tensor:
-        """Holograms (K·B, P) of K stacked copies of the batch's parameters (K·B rows); the copies share the first one's centre."""
+    def _profiles(self, params: torch.Tensor, *, step: torch.Tensor | None = None) -> tuple[torch.Tensor, ...]:
+        """``(profiles, step, dx, dy, z)`` of K stacked copies of the batch's parameters (K·B rows), which share the first copy's centre."""
         x, y, z, d, dn, kappa = params[:, :_PHYSICAL].unbind(-1)
         p = self.patches
         count = p.x_um.shape[0]
@@ -302,26 +302,20 @@ class _Model:
             spheres = [t.reshape(copies, count)[group] for t in (d, dn, kappa)]
             profiles, _ = radial_profiles(depths[group[0]], *spheres, rho_max_um=rho_max, terms=self.terms, radial_step_um=step, **self.optics)
             parts.update({copy: profiles[:, j * count : (j + 1) * count] for j, copy in enumerate(group)})
-        profiles = torch.cat([parts[copy] for copy in range(copies)], dim=1)
+        return torch.cat([parts[copy] for copy in range(copies)], dim=1), step, dx, dy, z
+
+    def _holograms(self, profiles: torch.Tensor, step: torch.Tensor, dx: torch.Tensor, dy: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         fields = fields_from_profiles(profiles, step, dx, dy, z, **self.optics)
         own = holograms_from_fields(fields, dx, dy, z, pixel_um=self.pixel_um, **self.optics)
         if self.others is None:
             return own
-        others = self.others.repeat(1, copies, 1)
+        others = self.others.repeat(1, z.shape[0] // dx.shape[0], 1)
         cross = sum(f * o.conj() for f, o in zip(fields, others[1:], strict=True))
         return own + others[0].real + 2.0 * cross.real
 
-    def lateral(self, params: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``∂/∂x`` and ``∂/∂y`` (B, P) of the holograms of `sphere` (unit illumination) in the particles' x and y (µm)."""
-        x, y, z, d, dn, kappa = params[:, :_PHYSICAL].unbind(-1)
-        p = self.patches
-        dx, dy = p.x_um - x[:, None], p.y_um - y[:, None]
-        step = radial_step(z, d, samples_per_lobe=_FIT_SAMPLES_PER_LOBE, **self.optics)
-        profiles, step = radial_profiles(z, d, dn, kappa, rho_max_um=float(torch.sqrt(dx**2 + dy**2).max()), terms=self.terms, radial_step_um=step, **self.optics)
-        others = None if self.others is None else tuple(self.others[1:])
-        along_x, along_y = lateral_derivatives(profiles, step, dx, dy, z, others=others, pixel_um=self.pixel_um, **self.optics)
-        # the pattern moves with the particle: moving the points by +h is moving the particle by -h
-        return -along_x, -along_y
+    def sphere(self, params: torch.Tensor, *, step: torch.Tensor | None = None) -> torch.Tensor:
+        """Holograms (K·B, P) of K stacked copies of the batch's parameters (K·B rows); the copies share the first one's centre."""
+        return self._holograms(*self._profiles(params, step=step))
 
     def select(self, rows: torch.Tensor) -> _Model:
         """The model of some of the batch's patches (their rows)."""
@@ -369,12 +363,16 @@ class _Model:
             stacked[slot * count : (slot + 1) * count, k] += sign * steps[k]
         # one radial grid per particle for all its perturbations: the differences see the model, not a moved grid
         step = radial_step(params[:, 2], params[:, 3], samples_per_lobe=_FIT_SAMPLES_PER_LOBE, **self.optics)
-        holograms = self.sphere(stacked, step=step).reshape(1 + len(signs), count, -1)
+        profiles, step, dx, dy, z = self._profiles(stacked, step=step)
+        holograms = self._holograms(profiles, step, dx, dy, z).reshape(1 + len(signs), count, -1)
         base = holograms[0]
         gain = self.illumination(params)
         columns = [torch.zeros_like(base)] * _PHYSICAL
         if bool(free[:, :2].any()):
-            columns[0], columns[1] = (c * gain for c in self.lateral(params))
+            others = None if self.others is None else tuple(self.others[1:])
+            along_x, along_y = lateral_derivatives(profiles[:, :count], step, dx, dy, z[:count], others=others, pixel_um=self.pixel_um, **self.optics)
+            # the pattern moves with the particle: moving the points by +h is moving the particle by -h
+            columns[0], columns[1] = -along_x * gain, -along_y * gain
         for slot, (k, sign) in enumerate(signs, start=1):
             if sign < 0:
                 continue
@@ -919,15 +917,15 @@ def _flat_model(patches: _Patches) -> tuple[torch.Tensor, torch.Tensor]:
 _FINE_ITERATIONS = 1
 
 
-def _valley_profile(fine: _Patches, coarse_model: _Model, final: torch.Tensor, cost: torch.Tensor, free: torch.Tensor, low: torch.Tensor, high: torch.Tensor,
+def _valley_profile(fine: _Patches, model: _Model, final: torch.Tensor, cost: torch.Tensor, free: torch.Tensor, low: torch.Tensor, high: torch.Tensor,
                     scale: torch.Tensor, *, pixel_um: float, start_index: torch.Tensor, settings: RefineSettings, steps: Steps) -> tuple[torch.Tensor, torch.Tensor, _Profile]:
     """The valley profile (`_ring_profile`) about each fit, and the fit moved to its deepest point where that lies elsewhere.
 
     Where the profile's best point (the valley prior included) is another ripple minimum
     (more than a profile step away) or another valley, the fit is restarted there and the
-    better of the two fits (robust cost on every other pixel plus the valley prior) is kept.
+    better of the two fits (robust cost plus the valley prior) is kept. ``model``: the
+    patches' model on every other pixel, where the restarts run.
     """
-    model = coarse_model
     optics = model.optics
     count = final.shape[0]
     device = final.device
