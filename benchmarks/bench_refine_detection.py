@@ -20,7 +20,7 @@ made in the holograms folder when missing:
 Usage::
 
     OMP_NUM_THREADS=1 NAPARI_LBS_THREADS=1 python benchmarks/bench_refine_detection.py \\
-        --model MODEL.pt --holograms FOLDER [--only real_density ...]
+        --model MODEL.pt --holograms FOLDER [--only real_density ...] [--rounds 3]
 """
 
 from __future__ import annotations
@@ -39,6 +39,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import pseudoreal
 
 from napari_lbs._core import (
+    RefineSettings,
     load_config,
     load_model,
     predict_particles,
@@ -126,7 +127,7 @@ def score(table: dict, truth: dict) -> tuple[dict, np.ndarray]:
     return row, pairs
 
 
-def evaluate(name: str, image: np.ndarray, truth: dict, model, config, *, tables: Path | None = None) -> dict:
+def evaluate(name: str, image: np.ndarray, truth: dict, model, config, *, tables: Path | None = None, rounds: int = RefineSettings().rounds) -> dict:
     import pandas as pd
 
     start, core = time.perf_counter(), _core_seconds()
@@ -138,7 +139,7 @@ def evaluate(name: str, image: np.ndarray, truth: dict, model, config, *, tables
     frame["network_row"] = np.arange(count)
     normalised = np.asarray(image, dtype=np.float64) / float(np.mean(image))  # as predict --refine
     start, core = time.perf_counter(), _core_seconds()
-    refined_frame = refine_particles(normalised, frame, config)
+    refined_frame = refine_particles(normalised, frame, config, settings=RefineSettings(rounds=rounds))
     refine_s, refine_core_s = time.perf_counter() - start, _core_seconds() - core
     refined = {c: refined_frame[c].to_numpy() for c in refined_frame.columns}
 
@@ -197,16 +198,17 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--only", nargs="+", choices=list(HOLOGRAMS), help="holograms to run (default: all, in the listed order)")
     parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "results" / "refine" / f"detection_{datetime.date.today().isoformat()}.json")
     parser.add_argument("--tables", type=Path, help="folder for each hologram's network and refined tables (CSV)")
+    parser.add_argument("--rounds", type=int, default=RefineSettings().rounds, help="fitting rounds (RefineSettings.rounds)")
     args = parser.parse_args(argv)
     args.holograms.mkdir(parents=True, exist_ok=True)
     config = load_config(None)
     model = load_model(args.model, device="cpu")
     report = {"model": str(args.model), "holograms": str(args.holograms), "threads": {k: os.environ.get(k) for k in ("OMP_NUM_THREADS", "NAPARI_LBS_THREADS")},
-              "index_contrast_truth": INDEX_CONTRAST, "results": []}
+              "index_contrast_truth": INDEX_CONTRAST, "rounds": args.rounds, "results": []}
     for name in args.only or list(HOLOGRAMS):
         image, truth = hologram(args.holograms, name)
         load_before = os.getloadavg()
-        result = evaluate(name, image, truth, model, config, tables=args.tables)
+        result = evaluate(name, image, truth, model, config, tables=args.tables, rounds=args.rounds)
         result["load_average"] = [load_before, os.getloadavg()]
         report["results"].append(result)
         print(f"{name}: {result['truth']} spheres, {result['detections']} detections, {result['kept']} kept by the fit "

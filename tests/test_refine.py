@@ -343,6 +343,41 @@ def test_two_overlapping_particles_are_both_recovered():
         assert abs(row.z_um - z) < 3.0 and abs(row.diameter_um - d) < 0.4 and abs(row.x_um - x) < 0.3
 
 
+def test_worker_processes_give_the_same_table_report_progress_and_stop_at_once():
+    """Batches fitted in two spawned processes: the same table as in this one, progress at least every second, a stop within 2 s."""
+    import multiprocessing
+    import time
+
+    from napari_lbs._core import RefineSettings, Stopped, refine_particles
+
+    truths = [(30.2 * PIXEL_UM, 33.7 * PIXEL_UM, 850.0, 17.0), (44.6 * PIXEL_UM, 39.1 * PIXEL_UM, 1000.0, 19.0)]
+    hologram = _scene(truths, (80, 80))
+    starts = _table([(x + 0.8, y - 0.6, z - 40.0, d - 0.5) for x, y, z, d in truths])
+    settings = {**FAST, "batch": 1}
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # as each worker runs
+    try:
+        alone = refine_particles(hologram, starts, _config(), fixed={"absorption": 0.0}, settings=RefineSettings(**settings))
+    finally:
+        torch.set_num_threads(threads)
+    calls = []
+    pooled = refine_particles(hologram, starts, _config(), fixed={"absorption": 0.0}, settings=RefineSettings(**settings, workers=2),
+                              progress=lambda done, total: calls.append((time.perf_counter(), done, total)))
+    np.testing.assert_allclose(pooled[["x_um", "y_um", "z_um", "diameter_um", "index_contrast", "z_err_um"]].to_numpy(),
+                               alone[["x_um", "y_um", "z_um", "diameter_um", "index_contrast", "z_err_um"]].to_numpy(), rtol=1e-9, atol=1e-9)
+    times = [t for t, _, _ in calls]
+    assert calls[-1][1:] == (4, 4) and max(np.diff(times)) < 1.0
+    asked = []
+
+    def stop_soon() -> bool:
+        asked.append(time.perf_counter())
+        return len(asked) > 3  # after the workers started fitting
+
+    with pytest.raises(Stopped):
+        refine_particles(hologram, starts, _config(), settings=RefineSettings(**settings, workers=2), should_stop=stop_soon)
+    assert time.perf_counter() - asked[-1] < 2.0 and not multiprocessing.active_children()
+
+
 def test_a_detection_on_an_empty_patch_is_dropped():
     from napari_lbs._core import RefineSettings, refine_particles
 
@@ -399,7 +434,9 @@ def test_predict_refine_writes_the_refined_columns(tmp_path, monkeypatch):
     monkeypatch.setattr(_refine, "RefineSettings", lambda **options: made.append(options) or settings(**{**FAST, **options}))
     assert _cli.main(["predict", str(tmp_path / "holo.tif"), "--model", str(tmp_path / "model.pt"), "--out", str(tmp_path / "p.csv"), "--refine",
                       "--device", "cpu"]) == 0
-    assert made == [{"device": "cpu"}]  # the fit runs where the prediction did
+    from napari_lbs._core._threads import available_threads
+
+    assert made == [{"device": "cpu", "workers": available_threads()}]  # the fit runs where the prediction did, a process per core
     header = (tmp_path / "p.csv").read_text().splitlines()[0].split(",")
     assert header[:12] == ["x_um", "y_um", "z_um", "diameter_um", "index_contrast", "absorption", "z_err_um", "diameter_err_um", "index_err", "fit_residual",
                            "refined", "outside_training"]

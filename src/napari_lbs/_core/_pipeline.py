@@ -609,7 +609,10 @@ def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, *,
 
     from napari_lbs._core._refine import RefineSettings, refine_particles
 
-    settings = RefineSettings(device=device)  # the prediction's device: CUDA where it ran there
+    from napari_lbs._core._threads import available_threads
+
+    # the prediction's device (CUDA where it ran there); on the CPU one fitting process per core
+    settings = RefineSettings(device=device, workers=available_threads())
     started = time.perf_counter()
     table = refine_particles(hologram, pd.DataFrame(particles), config, settings=settings, progress=progress, should_stop=should_stop)
     record = {"settings": asdict(settings), "detections": len(particles["x_um"]), "kept": len(table), "seconds": time.perf_counter() - started}

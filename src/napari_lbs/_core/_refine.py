@@ -63,6 +63,7 @@ from napari_lbs._core._lorenz_mie import (
     term_count,
 )
 from napari_lbs._core._progress import ProgressCallback, Steps, StopCallback
+from napari_lbs._core._threads import size_threads
 
 __all__ = ["FIT_PARAMETERS", "REFINE_COLUMNS", "RefineSettings", "refine_particles"]
 
@@ -107,9 +108,16 @@ class RefineSettings:
     pixel_integration : bool
         Model each pixel integrating its area (True) or point-sampled (pylorenzmie's).
     batch : int
-        Particles fitted together (memory).
+        Most particles fitted together (memory); a round's particles are split into the
+        fewest batches of at most this many, of equal sizes.
     device : str
         ``cpu``, ``cuda`` or ``auto``.
+    workers : int
+        Processes fitting batches side by side on the CPU, one thread each (the batches
+        are independent: the table is the one a single process on one thread gives). More
+        than 1 spawns processes,
+        so a script must start its work under ``if __name__ == "__main__":``;
+        ``napari-lbs predict --refine`` uses one per available core.
     """
 
     medium_index: float = 1.33
@@ -123,15 +131,16 @@ class RefineSettings:
     huber: float = 2.5
     min_gain: float = 50.0
     pixel_integration: bool = True
-    batch: int = 32
+    batch: int = 16
     device: str = "cpu"
+    workers: int = 1
 
     def __post_init__(self) -> None:
         for name in ("medium_index", "depth_window_um", "huber", "min_gain"):
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
                 raise InputError(f"refine settings: {name} must be a finite number >= 0, got {value!r}")
-        for name in ("depth_candidates", "patch_px", "iterations", "rounds", "batch"):
+        for name in ("depth_candidates", "patch_px", "iterations", "rounds", "batch", "workers"):
             value = getattr(self, name)
             if not (isinstance(value, int) and value >= 1):
                 raise InputError(f"refine settings: {name} must be a positive integer, got {value!r}")
@@ -1102,6 +1111,42 @@ def _neighbour_fields(all_params: np.ndarray, index: np.ndarray, *, settings: Re
     return others
 
 
+def _fit_task(image: np.ndarray, begin: np.ndarray, free: np.ndarray, anchor: np.ndarray, neighbours: np.ndarray | None, index: np.ndarray,
+              settings: RefineSettings, config: ExperimentConfig, terms: int, device: str, steps: Steps | None = None) -> dict[str, np.ndarray]:
+    """`_fit_batch` of the particles ``index``: the first round's search without ``neighbours``, else the fit with their fields (a worker's task too)."""
+    others = None if neighbours is None else _neighbour_fields(neighbours, index, settings=settings, config=config, terms=terms, device=device)
+    return _fit_batch(image, begin, free, others, anchor=anchor, search=neighbours is None, settings=settings, config=config, terms=terms,
+                      device=torch.device(device), steps=steps or Steps(1, progress=None, should_stop=None))
+
+
+_HEARTBEAT_S = 0.5
+
+
+def _run_tasks(tasks: list[tuple], pool, steps: Steps) -> list[dict[str, np.ndarray]]:
+    """`_fit_task` of every task, in order: in this process, or in ``pool``'s workers (progress every `_HEARTBEAT_S`, stop checked as often)."""
+    if pool is None:
+        outputs = []
+        for task in tasks:
+            steps.check()
+            outputs.append(_fit_task(*task, steps=steps))
+            steps.advance()
+        return outputs
+    import multiprocessing
+
+    pending = [pool.apply_async(_fit_task, task) for task in tasks]
+    outputs = []
+    for job in pending:
+        while True:
+            steps.check()
+            try:
+                outputs.append(job.get(timeout=_HEARTBEAT_S))
+                break
+            except multiprocessing.TimeoutError:
+                steps.advance(0)  # the fits go on: the same count, reported again
+        steps.advance()
+    return outputs
+
+
 def _duplicates(result: dict[str, np.ndarray]) -> np.ndarray:
     """Fits that converged onto a particle another detection fitted better (a network's depth-shifted twin, a double click).
 
@@ -1206,31 +1251,39 @@ def refine_particles(
     # the internal field, not the scattered one
     terms = term_count(size * 1.15, 1.0)
     reach = 1.5 * settings.patch_px * optics.pixel_um
-    for round_index in range(settings.rounds if count else 0):
-        if round_index == 0:
-            todo = np.arange(count)
-        else:  # only particles with a neighbour in reach change when neighbours join the model
-            distance = np.hypot(current[:, None, 0] - current[None, :, 0], current[:, None, 1] - current[None, :, 1])
-            todo = np.flatnonzero(((distance < reach).sum(axis=1) > 1) & result["ok"])
-        snapshot = current.copy()
-        outputs = []
-        for first in range(0, todo.size, settings.batch):
-            index = todo[first : first + settings.batch]
-            steps.check()
-            others = _neighbour_fields(snapshot, index, settings=settings, config=config, terms=terms, device=device) if round_index > 0 else None
-            begin = snapshot[index] if round_index > 0 else start[index]
-            outputs.append(_fit_batch(image, begin, free[index], others, anchor=start[index], search=round_index == 0, settings=settings, config=config,
-                                      terms=terms, device=device, steps=steps))
-            steps.advance()
-        if outputs:
-            part = {key: np.concatenate([o[key] for o in outputs]) for key in outputs[0]}
+    pool = None
+    if settings.workers > 1 and device.type == "cpu" and chunks > 1:
+        import multiprocessing
+
+        # spawned, not forked: a forked child inherits torch's and the BLAS's thread pools mid-use
+        pool = multiprocessing.get_context("spawn").Pool(min(settings.workers, chunks), initializer=size_threads, initargs=(1,))
+    try:
+        for round_index in range(settings.rounds if count else 0):
             if round_index == 0:
-                result = part
-            else:
-                for key, values in part.items():
-                    result[key][todo] = values
-            current = np.where(result["ok"][:, None], result["params"], start)
-        steps.advance(chunks - len(outputs))
+                todo = np.arange(count)
+            else:  # only particles with a neighbour in reach change when neighbours join the model
+                distance = np.hypot(current[:, None, 0] - current[None, :, 0], current[:, None, 1] - current[None, :, 1])
+                todo = np.flatnonzero(((distance < reach).sum(axis=1) > 1) & result["ok"])
+            snapshot = current.copy()
+            parts = -(-todo.size // settings.batch)
+            tasks = []
+            for index in np.array_split(todo, parts) if parts else []:
+                begin = snapshot[index] if round_index > 0 else start[index]
+                tasks.append((image, begin, free[index], start[index], snapshot if round_index > 0 else None, index, settings, config, terms, device.type))
+            outputs = _run_tasks(tasks, pool, steps)
+            if outputs:
+                part = {key: np.concatenate([o[key] for o in outputs]) for key in outputs[0]}
+                if round_index == 0:
+                    result = part
+                else:
+                    for key, values in part.items():
+                        result[key][todo] = values
+                current = np.where(result["ok"][:, None], result["params"], start)
+            steps.advance(chunks - len(outputs))
+    finally:
+        if pool is not None:
+            pool.terminate()  # a stop ends the running fits at once; nothing they wrote is kept
+            pool.join()
     out = frame.copy()
     if count:
         keep = np.where(result["ok"], result["gain"] >= settings.min_gain, True) & ~_duplicates(result)
