@@ -115,9 +115,9 @@ class RefineSettings:
     workers : int
         Processes fitting batches side by side on the CPU, one thread each (the batches
         are independent: the table is the one a single process on one thread gives). More
-        than 1 spawns processes,
-        so a script must start its work under ``if __name__ == "__main__":``;
-        ``napari-lbs predict --refine`` uses one per available core.
+        than 1 spawns processes, so a script must start its work under
+        ``if __name__ == "__main__":``; ``napari-lbs predict --refine`` uses one per
+        available core.
     """
 
     medium_index: float = 1.33
