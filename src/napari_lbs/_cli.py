@@ -339,7 +339,7 @@ def _parser() -> argparse.ArgumentParser:
     engine.add_argument("--workers", type=_integer(1), help="recordings: run on a local dask cluster of N worker processes (default: the local threaded scheduler)")
     engine.add_argument("--scheduler", metavar="ADDRESS", help="recordings: run on an existing dask.distributed scheduler (tcp://host:8786)")
     p.add_argument("--refine", action="store_true", help="refine every detection by a Lorenz-Mie fit (spheres in water): the table gains index_contrast, absorption, "
-                   "z_err_um, diameter_err_um, index_err, fit_residual, refined, outside_training (docs/refinement.md)")
+                   "z_err_um, diameter_err_um, index_err, fit_residual, refined, outside_training; one fitting process per core (docs/refinement.md)")
     p.set_defaults(run=_cmd_predict)
 
     p = sub.add_parser("track", help="link the particles of a recording into 3-D tracks (trackpy)")
