@@ -114,10 +114,10 @@ class RefineSettings:
         ``cpu``, ``cuda`` or ``auto``.
     workers : int
         Processes fitting batches side by side on the CPU, one thread each (the batches
-        are independent: the table is the one a single process on one thread gives). More
-        than 1 spawns processes, so a script must start its work under
-        ``if __name__ == "__main__":``; ``napari-lbs predict --refine`` uses one per
-        available core.
+        are independent: the table is the one a single process on one thread gives, up to
+        the arithmetic's rounding). More than 1 spawns processes, so a script must start
+        its work under ``if __name__ == "__main__":``; ``napari-lbs predict --refine`` uses
+        one per available core.
     """
 
     medium_index: float = 1.33
