@@ -143,11 +143,16 @@ def mie_coefficients(size_parameter: torch.Tensor, relative_index: torch.Tensor,
 
 
 def _mie_coefficients_numpy(x: np.ndarray, m: np.ndarray, terms: int) -> tuple[np.ndarray, np.ndarray]:
-    """`mie_coefficients` in numpy (complex128 (B,) size parameters and relative indices): the same recurrences, no gradient."""
+    """`mie_coefficients` in numpy (complex128 (B,) size parameters and relative indices): the same recurrences, no gradient.
+
+    ``D_n(x)``, ``ψ_n / ξ_n`` and ``D_n^{(3)}(x)`` depend on the size parameter alone, so they
+    run once per distinct ``x`` (a size–index scan repeats each size for many indices).
+    """
+    sizes, which = np.unique(x, return_inverse=True)
     mx = m * x
     largest = float(np.max(np.abs(mx))) if mx.size else 0.0
     start = max(terms, int(largest)) + 16 + int(4.0 * largest ** (1 / 3))
-    z = np.stack([mx, x])
+    z = np.concatenate([mx, sizes])
     inverse = 1.0 / z
     log_derivative = np.zeros_like(z)
     kept = np.zeros((terms + 1, *z.shape), dtype=np.complex128)
@@ -156,23 +161,24 @@ def _mie_coefficients_numpy(x: np.ndarray, m: np.ndarray, terms: int) -> tuple[n
         log_derivative = t - 1.0 / (log_derivative + t)
         if n - 1 <= terms:
             kept[n - 1] = log_derivative
-    inv_x = inverse[1]
-    psi_xi = 0.5 * (1.0 - np.exp(2j * x))
-    ratio = 1j * np.sin(x) * np.exp(-1j * x)
-    d3 = np.full_like(x, 1j)
-    ratios = np.empty((terms, *x.shape), dtype=np.complex128)
+    inner, outer = kept[:, : mx.size], kept[:, mx.size :]  # D_n(m x) per sphere, D_n(x) per size
+    inv_x = inverse[mx.size :]
+    psi_xi = 0.5 * (1.0 - np.exp(2j * sizes))
+    ratio = 1j * np.sin(sizes) * np.exp(-1j * sizes)
+    d3 = np.full_like(sizes, 1j)
+    ratios = np.empty((terms, *sizes.shape), dtype=np.complex128)
     d3s = np.empty_like(ratios)
     for n in range(1, terms + 1):
         n_over_x = n * inv_x
-        up_psi = n_over_x - kept[n - 1, 1]
+        up_psi = n_over_x - outer[n - 1]
         up_xi = n_over_x - d3
         psi_xi = psi_xi * up_psi * up_xi
         ratio = ratio * up_psi / up_xi
-        d3 = kept[n, 1] + 1j / psi_xi
+        d3 = outer[n] + 1j / psi_xi
         ratios[n - 1] = ratio
         d3s[n - 1] = d3
-    ratio, d3 = ratios.T, d3s.T
-    inner, outer = kept[1:, 0].T, kept[1:, 1].T
+    ratio, d3, outer = ratios.T[which], d3s.T[which], outer[1:].T[which]
+    inner = inner[1:].T
     ha = inner / m[:, None]
     hb = inner * m[:, None]
     return np.ascontiguousarray(ratio * (ha - outer) / (ha - d3)), np.ascontiguousarray(ratio * (hb - outer) / (hb - d3))
@@ -187,14 +193,6 @@ def radial_step(z_um: torch.Tensor, diameter_um: torch.Tensor, *, wavelength_um:
     """
     lobe_um = (wavelength_um / medium_index) * z_um.detach().to(torch.float64) / diameter_um.detach().to(torch.float64)
     return torch.clamp(lobe_um / samples_per_lobe, min=1e-3)
-
-
-def _recurrence_start(k: float, z_um: torch.Tensor, rho_um: torch.Tensor) -> tuple[torch.Tensor, ...]:
-    """``k r``, ``1 / k r``, ``cos θ``, ``sin θ`` and the recurrences' first terms (``ξ_{-1}, ξ_0, π_0, π_1``) at each (z, ρ)."""
-    r = torch.sqrt(rho_um**2 + z_um**2)
-    kr = k * r
-    xi_prev2 = torch.ones_like(kr, dtype=torch.complex128)
-    return kr, 1.0 / kr, z_um / r, rho_um / r, xi_prev2, torch.full_like(xi_prev2, -1j), torch.zeros_like(kr), torch.ones_like(kr)
 
 
 def _catmull_rom_weights(position: torch.Tensor, last: int, *, derivative: bool = False) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
@@ -536,12 +534,37 @@ def _profile_sums(a_eff: torch.Tensor, b_eff: torch.Tensor, k: float, z_um: torc
     once per row and the partial-wave sums of all S sets are matrix products: a size–index
     scan costs little more than one model.
     """
+    r = torch.sqrt(rho_um**2 + z_um[..., None] ** 2)
+    kr, cos_t = k * r, z_um[..., None] / r
+    if rho_um.device.type == "cpu" and not (torch.is_grad_enabled() and any(t.requires_grad for t in (a_eff, b_eff, z_um, rho_um))):
+        # no gradient wanted: the recurrences in numpy, whose per-operation cost on these
+        # short rows is under half of torch's (hundreds of orders, tens of operations each)
+        arrays = (t.detach().resolve_conj().numpy() for t in (a_eff, b_eff, kr, cos_t))
+        s0, s1, s2 = (torch.from_numpy(s) for s in _partial_wave_sums(np, *arrays, block=block))
+    else:
+        s0, s1, s2 = _partial_wave_sums(torch, a_eff, b_eff, kr, cos_t, block=block)
+    sin_t, cos_t, kr = (rho_um / r)[..., None, :], cos_t[..., None, :], kr[..., None, :]
+    radial = s0 * sin_t / kr
+    return (radial * sin_t + s1 * cos_t) / kr, -s2 / kr, (radial * cos_t - s1 * sin_t) / kr
+
+
+def _partial_wave_sums(xp, a_eff, b_eff, kr, cos_t, *, block: int) -> tuple:
+    """``Σ n(n+1) a_n π_n ξ_n``, ``-Σ (a_n τ_n ξ_n' + b_n π_n ξ_n)``, ``Σ (a_n π_n ξ_n' + b_n τ_n ξ_n)``: (..., S, R) each.
+
+    ``xp``: numpy (arrays) or torch (tensors, differentiable). ``ξ_n`` (Riccati–Hankel,
+    carrier removed: ``ξ_{-1} = 1``, ``ξ_0 = -i``), ``π_n`` and ``τ_n`` by upward recurrence
+    (Bohren & Huffman, Ch. 4). With several sets per row the functions of ``width``
+    orders are stacked and multiplied by the sets' coefficients (``block`` values at most).
+    """
+    stack = np.stack if xp is np else torch.stack
     terms = a_eff.shape[-1]
-    kr, inv_kr, cos_t, sin_t, xi_prev2, xi_prev, pi_prev, pi_n = _recurrence_start(k, z_um[..., None], rho_um)
+    inv_kr = 1.0 / kr
+    xi_prev2, xi_prev = 1.0 + 0.0 * inv_kr + 0j, -1j + 0.0 * inv_kr
+    pi_prev, pi_n = 0.0 * inv_kr, 1.0 + 0.0 * inv_kr
     s0 = s1 = s2 = 0
-    width = max(1, min(terms, block // max(1, rho_um.numel())))
+    width = max(1, min(terms, block // max(1, math.prod(kr.shape))))
     single = a_eff.shape[-2] == 1
-    basis: list[list[torch.Tensor]] = [[], [], [], []]
+    basis: list[list] = [[], [], [], []]
     first = 0
     for n in range(1, terms + 1):
         swisc = pi_n * cos_t
@@ -561,17 +584,16 @@ def _profile_sums(a_eff: torch.Tensor, b_eff: torch.Tensor, k: float, z_um: torc
         for store, value in zip(basis, (pi_now * xi, tau * dxi, pi_now * dxi, tau * xi), strict=True):
             store.append(value)
         if len(basis[0]) == width or n == terms:
-            p_xi, t_dxi, p_dxi, t_xi = (torch.stack(store, dim=-2) for store in basis)  # (..., width, R)
-            orders = torch.arange(first + 1, n + 1, dtype=torch.float64, device=rho_um.device)
+            p_xi, t_dxi, p_dxi, t_xi = (stack(store, -2) for store in basis)  # (..., width, R)
+            orders = np.arange(first + 1, n + 1, dtype=np.float64)
+            weight = orders * orders + orders if xp is np else torch.as_tensor(orders * orders + orders, device=kr.device)
             a_block, b_block = a_eff[..., first:n], b_eff[..., first:n]
-            s0 = s0 + (a_block * (orders * orders + orders)) @ p_xi
+            s0 = s0 + (a_block * weight) @ p_xi
             s1 = s1 - a_block @ t_dxi - b_block @ p_xi
             s2 = s2 + a_block @ p_dxi + b_block @ t_xi
             basis = [[], [], [], []]
             first = n
-    sin_t, cos_t, kr = sin_t[..., None, :], cos_t[..., None, :], kr[..., None, :]
-    radial = s0 * sin_t / kr
-    return (radial * sin_t + s1 * cos_t) / kr, -s2 / kr, (radial * cos_t - s1 * sin_t) / kr
+    return s0, s1, s2
 
 
 _RING_SAMPLES_PER_LOBE = 6  # as the pixel model's in the fit (`radial_step`)
@@ -590,13 +612,12 @@ def _coarse_profile_sums(a_eff: torch.Tensor, b_eff: torch.Tensor, k: float, z_u
         return _profile_sums(a_eff, b_eff, k, z_um, rho_um)
     grid = ((torch.arange(samples, dtype=torch.float64, device=rho_um.device) - 1.0) * step[..., None]).abs()  # (..., Rc), first mirrored
     coarse = torch.stack(_profile_sums(a_eff, b_eff, k, z, grid))  # (3, ..., S, Rc)
-    # Catmull–Rom weights once per row (every set shares the radii), then four gathers
-    first, weights = _catmull_rom_weights(rho_um / step[..., None] + 1.0, samples - 1)
-    shape = (3, *coarse.shape[1:-1], rho_um.shape[-1])
-    out = 0
-    for offset, weight in enumerate(weights):
-        index = (first + offset)[..., None, :].expand(shape[1:]).unsqueeze(0).expand(shape)
-        out = out + torch.gather(coarse, -1, index) * weight[..., None, :]
+    rows, sets = math.prod(coarse.shape[1:-2]), coarse.shape[-2]
+    # every set of a row shares its radii: the sets are the channels of one interpolation
+    table = torch.view_as_real(coarse.reshape(3, rows, sets, samples)).permute(1, 3, 0, 2, 4).reshape(rows, samples, 6 * sets)
+    values = _CatmullRom.apply(table, (rho_um / step[..., None] + 1.0).reshape(rows, -1))  # (rows, R, 3·S·2)
+    out = torch.view_as_complex(values.reshape(rows, -1, 3, sets, 2).permute(2, 0, 3, 1, 4).contiguous())  # (3, rows, S, R)
+    out = out.reshape(3, *coarse.shape[1:-1], rho_um.shape[-1])
     return out[0], out[1], out[2]
 
 
