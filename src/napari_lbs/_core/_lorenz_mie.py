@@ -557,6 +557,9 @@ def _partial_wave_sums(xp, a_eff, b_eff, kr, cos_t, *, block: int) -> tuple:
     orders are stacked and multiplied by the sets' coefficients (``block`` values at most).
     """
     stack = np.stack if xp is np else torch.stack
+    # the sets' products in torch either way: its MKL rounds the same in every process
+    # (`MKL_CBWR`), numpy's BLAS by the buffers' memory alignment
+    product = (lambda a, b: (torch.from_numpy(a) @ torch.from_numpy(b)).numpy()) if xp is np else (lambda a, b: a @ b)
     terms = a_eff.shape[-1]
     inv_kr = 1.0 / kr
     xi_prev2, xi_prev = 1.0 + 0.0 * inv_kr + 0j, -1j + 0.0 * inv_kr
@@ -588,9 +591,9 @@ def _partial_wave_sums(xp, a_eff, b_eff, kr, cos_t, *, block: int) -> tuple:
             orders = np.arange(first + 1, n + 1, dtype=np.float64)
             weight = orders * orders + orders if xp is np else torch.as_tensor(orders * orders + orders, device=kr.device)
             a_block, b_block = a_eff[..., first:n], b_eff[..., first:n]
-            s0 = s0 + (a_block * weight) @ p_xi
-            s1 = s1 - a_block @ t_dxi - b_block @ p_xi
-            s2 = s2 + a_block @ p_dxi + b_block @ t_xi
+            s0 = s0 + product(a_block * weight, p_xi)
+            s1 = s1 - product(a_block, t_dxi) - product(b_block, p_xi)
+            s2 = s2 + product(a_block, p_dxi) + product(b_block, t_xi)
             basis = [[], [], [], []]
             first = n
     return s0, s1, s2

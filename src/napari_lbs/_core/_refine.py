@@ -131,7 +131,7 @@ class RefineSettings:
     huber: float = 2.5
     min_gain: float = 50.0
     pixel_integration: bool = True
-    batch: int = 16
+    batch: int = 8
     device: str = "cpu"
     workers: int = 1
 
@@ -968,7 +968,7 @@ def _valley_profile(fine: _Patches, model: _Model, final: torch.Tensor, cost: to
 
 
 def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of, *, anchor: np.ndarray, search: bool, settings: RefineSettings,
-               config: ExperimentConfig, terms: int, device, steps: Steps) -> dict[str, np.ndarray]:
+               config: ExperimentConfig, terms: int, device, steps: Steps, settle: bool = True) -> dict[str, np.ndarray]:
     """Fit one batch of particles from (B, 6) physical starting parameters; arrays per particle.
 
     Positions and depths are bounded about ``anchor`` (B, 6), the table's guesses, in every
@@ -979,7 +979,9 @@ def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of
     With ``search``: symmetric centre, ring-profile searches (`_ring_search`) and the valley
     profile (`_ring_profile`, which also picks the start), then the fit on every pixel.
     Without: the fit from ``start``. Either way the valley profile about the fit widens the
-    diameter's and index's uncertainties (``spread``).
+    diameter's and index's uncertainties (``spread``). Without ``settle`` (a fit the next
+    round starts from) the fit stops after the valley profile, on every other pixel: no step
+    on every pixel, no uncertainties, no gain (NaN).
     """
     optics = config.optics
     count = start.shape[0]
@@ -1042,6 +1044,11 @@ def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of
         cleaned = _Patches(data, fine.mask, fine.x_um, fine.y_um, fine.u, fine.v, fine.shape)
         final, final_cost, profile = _valley_profile(cleaned, coarse_model, final, final_cost, free_t, low, high, fit_scale, pixel_um=optics.pixel_um,
                                                      start_index=start_index, settings=settings, steps=steps)
+    fitted = lambda p: torch.isfinite(p).all(dim=1).cpu().numpy() & np.array([s[0] > 0 for s in fine.shape]) & ~_on_bound(p, free_t, low, high).cpu().numpy()
+    if not settle:
+        unknown = np.full(count, np.nan)
+        return {"params": final[:, :_PHYSICAL].cpu().numpy(), "errors": np.full((count, _PHYSICAL), np.nan), "spread": np.full((count, 2), np.nan),
+                "gain": unknown, "residual": unknown, "ok": fitted(final)}
     final, _ = _levenberg_marquardt(model, final, free_t, low, high, scale=fit_scale, settings=settings, iterations=_FINE_ITERATIONS, steps=steps)
     prediction, jac = model.jacobian(final, free_t, envelope=True)
     residual = (fine.data - prediction) * fine.mask
@@ -1066,7 +1073,7 @@ def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of
         "spread": spread.cpu().numpy(),
         "gain": (free_cost - fit_cost).cpu().numpy(),
         "residual": residual_rms.cpu().numpy(),
-        "ok": torch.isfinite(final).all(dim=1).cpu().numpy() & np.array([s[0] > 0 for s in fine.shape]) & ~_on_bound(final, free_t, low, high).cpu().numpy(),
+        "ok": fitted(final),
     }
 
 
@@ -1112,11 +1119,11 @@ def _neighbour_fields(all_params: np.ndarray, index: np.ndarray, *, settings: Re
 
 
 def _fit_task(image: np.ndarray, begin: np.ndarray, free: np.ndarray, anchor: np.ndarray, neighbours: np.ndarray | None, index: np.ndarray,
-              settings: RefineSettings, config: ExperimentConfig, terms: int, device: str, steps: Steps | None = None) -> dict[str, np.ndarray]:
+              settings: RefineSettings, config: ExperimentConfig, terms: int, device: str, settle: bool, steps: Steps | None = None) -> dict[str, np.ndarray]:
     """`_fit_batch` of the particles ``index``: the first round's search without ``neighbours``, else the fit with their fields (a worker's task too)."""
     others = None if neighbours is None else _neighbour_fields(neighbours, index, settings=settings, config=config, terms=terms, device=device)
     return _fit_batch(image, begin, free, others, anchor=anchor, search=neighbours is None, settings=settings, config=config, terms=terms,
-                      device=torch.device(device), steps=steps or Steps(1, progress=None, should_stop=None))
+                      device=torch.device(device), steps=steps or Steps(1, progress=None, should_stop=None), settle=settle)
 
 
 _HEARTBEAT_S = 0.5
@@ -1259,22 +1266,31 @@ def refine_particles(
         pool = multiprocessing.get_context("spawn").Pool(min(settings.workers, chunks), initializer=size_threads, initargs=(1,))
     try:
         for round_index in range(settings.rounds if count else 0):
+            distance = np.hypot(current[:, None, 0] - current[None, :, 0], current[:, None, 1] - current[None, :, 1])
+            crowded = (distance < reach).sum(axis=1) > 1
             if round_index == 0:
-                todo = np.arange(count)
+                # a particle with a neighbour in reach is fitted again with it: its first fit
+                # only has to start the second, so it stops short of the uncertainties
+                settle = ~crowded if settings.rounds > 1 else np.ones(count, dtype=bool)
+                todo = np.concatenate([np.flatnonzero(settle), np.flatnonzero(~settle)])
             else:  # only particles with a neighbour in reach change when neighbours join the model
-                distance = np.hypot(current[:, None, 0] - current[None, :, 0], current[:, None, 1] - current[None, :, 1])
-                todo = np.flatnonzero(((distance < reach).sum(axis=1) > 1) & result["ok"])
+                todo = np.flatnonzero((crowded | ~settled) & result["ok"])
             snapshot = current.copy()
             parts = -(-todo.size // settings.batch)
             tasks = []
             for index in np.array_split(todo, parts) if parts else []:
                 begin = snapshot[index] if round_index > 0 else start[index]
-                tasks.append((image, begin, free[index], start[index], snapshot if round_index > 0 else None, index, settings, config, terms, device.type))
+                tasks.append((image, begin, free[index], start[index], snapshot if round_index > 0 else None, index, settings, config, terms, device.type,
+                              bool(settle[index].any()) if round_index == 0 else True))
             outputs = _run_tasks(tasks, pool, steps)
             if outputs:
                 part = {key: np.concatenate([o[key] for o in outputs]) for key in outputs[0]}
                 if round_index == 0:
-                    result = part
+                    result = {key: np.empty_like(values) for key, values in part.items()}
+                    for key, values in part.items():
+                        result[key][todo] = values
+                    settled = np.zeros(count, dtype=bool)
+                    settled[todo] = np.concatenate([np.full(len(o["ok"]), t[-1]) for o, t in zip(outputs, tasks, strict=True)])
                 else:
                     for key, values in part.items():
                         result[key][todo] = values
