@@ -980,9 +980,8 @@ def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of
     profile (`_ring_profile`, which also picks the start), then the fit on every pixel.
     Without: the fit from ``start``. Either way the valley profile about the fit widens the
     diameter's and index's uncertainties (``spread``). Without ``settle`` (a fit the next
-    round starts from) the fit stops after the fit on every other pixel: no valley profile
-    (the next round's, with the neighbours taken out, picks the valley), no step on every
-    pixel, no uncertainties, no gain (NaN).
+    round starts from) the fit stops after the valley profile, on every other pixel: no step
+    on every pixel, no uncertainties, no gain (NaN).
     """
     optics = config.optics
     count = start.shape[0]
@@ -1032,7 +1031,7 @@ def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of
     final, final_cost = _levenberg_marquardt(coarse_model, coarse_fit, free_t, low, high, scale=fit_scale, settings=settings, iterations=settings.iterations,
                                              steps=steps)
     profile = None
-    if settle and bool((free_t[:, 3] | free_t[:, 4]).any()):
+    if bool((free_t[:, 3] | free_t[:, 4]).any()):
         # the rings see the neighbours' holograms (fitted in the first round) taken out of the data
         # (and their interference with this particle, at its fit), and the data divided by the
         # illumination's slope, which the rings' means do not fit (only its level)
@@ -1271,7 +1270,7 @@ def refine_particles(
             crowded = (distance < reach).sum(axis=1) > 1
             if round_index == 0:
                 # a particle with a neighbour in reach is fitted again with it: its first fit
-                # only has to start the second, so it stops before the valley profile
+                # only has to start the second, so it stops short of the uncertainties
                 settle = ~crowded if settings.rounds > 1 else np.ones(count, dtype=bool)
                 todo = np.concatenate([np.flatnonzero(settle), np.flatnonzero(~settle)])
             else:  # only particles with a neighbour in reach change when neighbours join the model
