@@ -380,6 +380,26 @@ def test_worker_processes_give_the_same_table_report_progress_and_stop_at_once()
     assert time.perf_counter() - asked[-1] < 2.0 and not multiprocessing.active_children()
 
 
+def test_steps_longer_than_the_heartbeat_report_the_count_again_when_checked():
+    """Refinement's batches take seconds in one process: `Steps.check` repeats the count once a heartbeat is due, not more often."""
+    import time
+
+    from napari_lbs._core._progress import Steps
+
+    calls = []
+    steps = Steps(3, progress=lambda done, total: calls.append((done, total)), should_stop=None, heartbeat_s=0.05)
+    steps.check()
+    assert calls == []
+    time.sleep(0.06)
+    steps.check()
+    steps.check()
+    assert calls == [(0, 3)]
+    steps.advance()
+    time.sleep(0.03)
+    steps.check()
+    assert calls == [(0, 3), (1, 3)]
+
+
 def test_a_detection_on_an_empty_patch_is_dropped():
     from napari_lbs._core import RefineSettings, refine_particles
 

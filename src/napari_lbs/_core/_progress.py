@@ -14,6 +14,7 @@ and epoch (training) or GA generation (calibration), for live plots.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 
 __all__ = ["ProgressCallback", "StopCallback", "ReportCallback", "Stopped", "Steps"]
@@ -36,25 +37,33 @@ class Steps:
         Number of steps the job will report.
     progress, should_stop : callable or None
         The caller's callbacks (see the module docstring).
+    heartbeat_s : float, optional
+        For steps longer than this: `check` also reports the count again once this many
+        seconds have passed since the last report, so a caller hears at least that often.
     """
 
-    def __init__(self, total: int, *, progress: ProgressCallback | None, should_stop: StopCallback | None) -> None:
+    def __init__(self, total: int, *, progress: ProgressCallback | None, should_stop: StopCallback | None, heartbeat_s: float | None = None) -> None:
         self.total = int(total)
         self.done = 0
         self._progress = progress
         self._should_stop = should_stop
+        self._heartbeat_s = heartbeat_s
+        self._reported = time.monotonic()
 
     def stop_requested(self) -> bool:
         """True once the caller asked to stop."""
         return bool(self._should_stop is not None and self._should_stop())
 
     def check(self) -> None:
-        """Raise `Stopped` if the caller asked to stop."""
+        """Raise `Stopped` if the caller asked to stop (and report the count again when a heartbeat is due)."""
         if self.stop_requested():
             raise Stopped(f"stopped after {self.done} of {self.total} steps")
+        if self._heartbeat_s is not None and time.monotonic() - self._reported >= self._heartbeat_s:
+            self.advance(0)
 
     def advance(self, count: int = 1) -> None:
         """Record ``count`` finished steps and report them."""
         self.done += count
+        self._reported = time.monotonic()
         if self._progress is not None:
             self._progress(self.done, self.total)

@@ -1130,7 +1130,7 @@ _HEARTBEAT_S = 0.5
 
 
 def _run_tasks(tasks: list[tuple], pool, steps: Steps) -> list[dict[str, np.ndarray]]:
-    """`_fit_task` of every task, in order: in this process, or in ``pool``'s workers (progress every `_HEARTBEAT_S`, stop checked as often)."""
+    """`_fit_task` of every task, in order: in this process, or in ``pool``'s workers (``steps`` reports at least every `_HEARTBEAT_S`)."""
     if pool is None:
         outputs = []
         for task in tasks:
@@ -1149,7 +1149,7 @@ def _run_tasks(tasks: list[tuple], pool, steps: Steps) -> list[dict[str, np.ndar
                 outputs.append(job.get(timeout=_HEARTBEAT_S))
                 break
             except multiprocessing.TimeoutError:
-                steps.advance(0)  # the fits go on: the same count, reported again
+                continue  # the fits go on: `check` reports the same count again
         steps.advance()
     return outputs
 
@@ -1249,7 +1249,7 @@ def refine_particles(
         start[:, axis] = value * to_physical if name == "z_um" else value
         free[:, axis] = False
     chunks = max(1, -(-count // settings.batch))
-    steps = Steps(chunks * settings.rounds, progress=progress, should_stop=should_stop)
+    steps = Steps(chunks * settings.rounds, progress=progress, should_stop=should_stop, heartbeat_s=_HEARTBEAT_S)
     current = start.copy()
     result: dict[str, np.ndarray] = {}
     size = 2.0 * math.pi * settings.medium_index / optics.wavelength_um * (np.max(start[:, 3]) if count else 1.0) / 2.0
