@@ -756,7 +756,7 @@ def _parabola_vertex(costs: torch.Tensor, best: torch.Tensor) -> torch.Tensor:
 
 
 def _ring_search(rings: _Rings, params: torch.Tensor, free: torch.Tensor, scale: torch.Tensor, *, model: _Model, window_um: float,
-                 start_index: torch.Tensor, settings: RefineSettings) -> torch.Tensor:
+                 start_index: torch.Tensor, settings: RefineSettings, steps: Steps) -> torch.Tensor:
     """Depth, diameter and index contrast (B, 3) from the ring profiles: depth scan, size–index grid, fine depth scan.
 
     The depth is scanned over ``±window_um`` in steps that move the outermost ring's fringe
@@ -790,6 +790,7 @@ def _ring_search(rings: _Rings, params: torch.Tensor, free: torch.Tensor, scale:
         offsets = torch.arange(-window_um, window_um + 0.5 * step, step, dtype=torch.float64, device=device)
         trials = torch.where(free[:, 2:3], torch.clamp(z[:, None] + offsets, min=1.0), z[:, None])
         costs = _ring_costs(rings, trials, here, scale, model=model)[:, :, 0]
+        steps.check()
         pick = _best(costs, settings.depth_candidates, local=True)
         depths = refine_depth(torch.gather(trials, 1, pick), here.expand(-1, pick.shape[1], -1))
     kk = depths.shape[1]
@@ -800,6 +801,7 @@ def _ring_search(rings: _Rings, params: torch.Tensor, free: torch.Tensor, scale:
         diameters = torch.where(free[:, 3:4], torch.clamp(d[:, None] + d_steps, min=_BOUNDS["diameter_um"][0]), d[:, None])  # (B, D)
         contrasts = torch.where(free[:, 4:5, None], ((d * n)[:, None, None] + delays) / diameters[:, :, None], n[:, None, None])  # (B, D, N)
         spheres = torch.stack([diameters[:, :, None].expand_as(contrasts), contrasts, kappa[:, None, None].expand_as(contrasts)], dim=-1).reshape(count, -1, 3)
+        steps.check()
         costs = _ring_costs(rings, depths, spheres, scale, model=model)  # (B, K, S)
         valleys = (spheres[:, :, 1] - start_index[:, None]) / (wavelength / spheres[:, :, 0])
         costs = costs + _VALLEY_PRIOR * (valleys**2 * free[:, 4:5].to(torch.float64))[:, None, :]
@@ -813,6 +815,7 @@ def _ring_search(rings: _Rings, params: torch.Tensor, free: torch.Tensor, scale:
                             torch.full_like(z, _BOUNDS["index_contrast"][0])], dim=-1))
     high = grow(torch.stack([z + 1.5 * window_um, torch.full_like(z, _BOUNDS["diameter_um"][1]), torch.full_like(z, _BOUNDS["index_contrast"][1])], dim=-1))
     ring_rows = rings.map(grow)
+    steps.check()
     fitted, cost = _ring_fit(ring_rows, candidates.reshape(count * kk, 3), flat_free, grow(kappa), grow(scale), low, high, model=model,
                              iterations=_RING_ITERATIONS, depth_reach_um=step / 2.0)
     valleys = (fitted[:, 2] - grow(start_index)) / (wavelength / fitted[:, 1])
@@ -990,6 +993,7 @@ def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of
                     "pixel_um": optics.pixel_um if settings.pixel_integration else None, "terms": terms}
     fine = _cut_patches(image, start[:, 0], start[:, 1], edges, pixel_um=optics.pixel_um, device=device)
     model = _Model(fine, others_of(fine) if others_of is not None else None, **model_optics)
+    steps.check()
     params = torch.zeros((count, _PHYSICAL + _NUISANCE), dtype=torch.float64, device=device)
     params[:, :_PHYSICAL] = torch.as_tensor(start, dtype=torch.float64, device=device)
     params[:, _PHYSICAL] = torch.sum(fine.data * fine.mask, dim=1) / torch.clamp(fine.mask.sum(dim=1), min=1.0)
@@ -1015,7 +1019,8 @@ def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of
         params[:, 0] = torch.where(free_t[:, 0], torch.as_tensor(centre_x, device=device), params[:, 0])
         params[:, 1] = torch.where(free_t[:, 1], torch.as_tensor(centre_y, device=device), params[:, 1])
         rings = _cut_rings(fine, params[:, 0], params[:, 1], pixel_um=optics.pixel_um)
-        params[:, 2:5] = _ring_search(rings, params, free_t, scale, model=model, window_um=z_window, start_index=start_index, settings=settings)
+        params[:, 2:5] = _ring_search(rings, params, free_t, scale, model=model, window_um=z_window, start_index=start_index, settings=settings,
+                                      steps=steps)
         params = _clamp(params, low, high)
     steps.check()
     # absorption stays at its start for the first step: free early, it lets a wrong
@@ -1051,6 +1056,7 @@ def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of
                 "gain": unknown, "residual": unknown, "ok": fitted(final)}
     final, _ = _levenberg_marquardt(model, final, free_t, low, high, scale=fit_scale, settings=settings, iterations=_FINE_ITERATIONS, steps=steps)
     prediction, jac = model.jacobian(final, free_t, envelope=True)
+    steps.check()
     residual = (fine.data - prediction) * fine.mask
     sigma = _robust_scale(residual, fine.mask)
     weight, _ = _huber(residual, sigma, fine.mask, settings.huber)
