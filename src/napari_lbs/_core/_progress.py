@@ -39,7 +39,8 @@ class Steps:
         The caller's callbacks (see the module docstring).
     heartbeat_s : float, optional
         For steps longer than this: `check` also reports the count again once this many
-        seconds have passed since the last report, so a caller hears at least that often.
+        seconds have passed since the last report, so a caller hears from a long step as
+        often as the work checks, but not more than once per ``heartbeat_s``.
     """
 
     def __init__(self, total: int, *, progress: ProgressCallback | None, should_stop: StopCallback | None, heartbeat_s: float | None = None) -> None:

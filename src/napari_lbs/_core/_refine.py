@@ -971,7 +971,7 @@ def _valley_profile(fine: _Patches, model: _Model, final: torch.Tensor, cost: to
 
 
 def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of, *, anchor: np.ndarray, search: bool, settings: RefineSettings,
-               config: ExperimentConfig, terms: int, device, steps: Steps, settle: bool = True) -> dict[str, np.ndarray]:
+               config: ExperimentConfig, terms: int, device, steps: Steps, settle: bool) -> dict[str, np.ndarray]:
     """Fit one batch of particles from (B, 6) physical starting parameters; arrays per particle.
 
     Positions and depths are bounded about ``anchor`` (B, 6), the table's guesses, in every
@@ -1136,7 +1136,7 @@ _HEARTBEAT_S = 0.5
 
 
 def _run_tasks(tasks: list[tuple], pool, steps: Steps) -> list[dict[str, np.ndarray]]:
-    """`_fit_task` of every task, in order: in this process, or in ``pool``'s workers (``steps`` reports at least every `_HEARTBEAT_S`)."""
+    """`_fit_task` of every task, in order: in this process, or in ``pool``'s workers (``steps`` repeats its count at the fits' checks once `_HEARTBEAT_S` has passed)."""
     if pool is None:
         outputs = []
         for task in tasks:
