@@ -1278,6 +1278,7 @@ def refine_particles(
                 # a particle with a neighbour in reach is fitted again with it: its first fit
                 # only has to start the second, so it stops short of the uncertainties
                 settle = ~crowded if settings.rounds > 1 else np.ones(count, dtype=bool)
+                settled = np.zeros(count, dtype=bool)
                 todo = np.concatenate([np.flatnonzero(settle), np.flatnonzero(~settle)])
             else:  # only particles with a neighbour in reach change when neighbours join the model
                 todo = np.flatnonzero((crowded | ~settled) & result["ok"])
@@ -1286,20 +1287,18 @@ def refine_particles(
             tasks = []
             for index in np.array_split(todo, parts) if parts else []:
                 begin = snapshot[index] if round_index > 0 else start[index]
+                final = bool(settle[index].any()) if round_index == 0 else True
+                if round_index == 0:
+                    settled[index] = final  # a batch holding one particle to settle settles all of it
                 tasks.append((image, begin, free[index], start[index], snapshot if round_index > 0 else None, index, settings, config, terms, device.type,
-                              bool(settle[index].any()) if round_index == 0 else True))
+                              final))
             outputs = _run_tasks(tasks, pool, steps)
             if outputs:
                 part = {key: np.concatenate([o[key] for o in outputs]) for key in outputs[0]}
                 if round_index == 0:
                     result = {key: np.empty_like(values) for key, values in part.items()}
-                    for key, values in part.items():
-                        result[key][todo] = values
-                    settled = np.zeros(count, dtype=bool)
-                    settled[todo] = np.concatenate([np.full(len(o["ok"]), t[-1]) for o, t in zip(outputs, tasks, strict=True)])
-                else:
-                    for key, values in part.items():
-                        result[key][todo] = values
+                for key, values in part.items():
+                    result[key][todo] = values
                 current = np.where(result["ok"][:, None], result["params"], start)
             steps.advance(chunks - len(outputs))
     finally:
