@@ -191,7 +191,7 @@ def test_symmetric_centre_is_found_within_a_tenth_of_a_pixel():
     hologram = _scene([truth])
     guess_x, guess_y = np.array([truth[0] + 1.9]), np.array([truth[1] - 1.4])
     patches = _refine._cut_patches(hologram, guess_x, guess_y, np.array([48]), pixel_um=PIXEL_UM, device="cpu")
-    residual, _ = _refine._flat_model(patches)
+    residual, _, _ = _refine._flat_model(patches)
     x, y = _refine._symmetric_centres(residual, patches, guess_x, guess_y, pixel_um=PIXEL_UM)
     assert abs(x[0] - truth[0]) < 0.1 * PIXEL_UM and abs(y[0] - truth[1]) < 0.1 * PIXEL_UM
 
@@ -333,15 +333,18 @@ def test_fixed_parameters_stay_put():
     assert abs(out.z_um[0] - truth[2]) < 2.0
 
 
-def test_two_overlapping_particles_are_both_recovered():
+@pytest.mark.parametrize("rounds", [1, 2])
+def test_two_overlapping_particles_are_both_recovered(rounds):
+    """One round (each with the other at its guess): within the reported 2σ; a second (with the other's fit): within 3 µm in depth."""
     from napari_lbs._core import RefineSettings, refine_particles
 
     truths = [(30.2 * PIXEL_UM, 33.7 * PIXEL_UM, 850.0, 17.0), (44.6 * PIXEL_UM, 39.1 * PIXEL_UM, 1000.0, 19.0)]
     starts = _table([(x + 0.8, y - 0.6, z - 40.0, d - 0.5) for x, y, z, d in truths])
-    out = refine_particles(_scene(truths, (80, 80)), starts, _config(), fixed={"absorption": 0.0, "index_contrast": 0.26}, settings=RefineSettings(**FAST))
+    out = refine_particles(_scene(truths, (80, 80)), starts, _config(), fixed={"absorption": 0.0, "index_contrast": 0.26},
+                           settings=RefineSettings(**FAST, rounds=rounds))
     assert len(out) == 2
     for row, (x, y, z, d) in zip(out.itertuples(), truths, strict=True):
-        assert abs(row.z_um - z) < 3.0 and abs(row.diameter_um - d) < 0.4 and abs(row.x_um - x) < 0.3
+        assert abs(row.z_um - z) < (3.0 if rounds == 2 else 2.0 * row.z_err_um) and abs(row.diameter_um - d) < 0.4 and abs(row.x_um - x) < 0.4
 
 
 def test_worker_processes_give_the_same_table_report_progress_and_stop_at_once():
@@ -354,7 +357,7 @@ def test_worker_processes_give_the_same_table_report_progress_and_stop_at_once()
     truths = [(30.2 * PIXEL_UM, 33.7 * PIXEL_UM, 850.0, 17.0), (44.6 * PIXEL_UM, 39.1 * PIXEL_UM, 1000.0, 19.0)]
     hologram = _scene(truths, (80, 80))
     starts = _table([(x + 0.8, y - 0.6, z - 40.0, d - 0.5) for x, y, z, d in truths])
-    settings = {**FAST, "batch": 1}
+    settings = {**FAST, "batch": 1, "rounds": 2}
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # as each worker runs
     try:
