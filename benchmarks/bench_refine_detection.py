@@ -17,10 +17,16 @@ made in the holograms folder when missing:
 - ``wide_sizes``: 100 spheres of 16–36 µm, beyond the 20–30 µm the network trains on (seed 23);
 - ``4x_density``: 400 spheres of 20–30 µm (seed 8).
 
+These four are the development set (``--set development``, the default). The frozen test
+set (``--set frozen``) is made the same way from other seeds — ``frozen_real_density``,
+``frozen_distractors`` (seed 107), ``frozen_wide_sizes`` (seed 123) and
+``frozen_2.5x_density`` (250 spheres, seed 108) — and only ever scores a design chosen on
+the development set.
+
 Usage::
 
     OMP_NUM_THREADS=1 NAPARI_LBS_THREADS=1 python benchmarks/bench_refine_detection.py \\
-        --model MODEL.pt --holograms FOLDER [--only real_density ...] [--rounds 3]
+        --model MODEL.pt --holograms FOLDER [--set frozen] [--only real_density ...] [--rounds 2]
 """
 
 from __future__ import annotations
@@ -60,7 +66,13 @@ HOLOGRAMS = {  # name: (spheres, seed, how)
     "real_density_distractors": (100, 7, "distractors"),
     "wide_sizes": (100, 23, "wide"),
     "4x_density": (400, 8, "plain"),
+    # the frozen test set: written before its first run, never used to choose anything
+    "frozen_real_density": (100, 107, "plain"),
+    "frozen_distractors": (100, 107, "distractors"),
+    "frozen_wide_sizes": (100, 123, "wide"),
+    "frozen_2.5x_density": (250, 108, "plain"),
 }
+SETS = {"development": [n for n in HOLOGRAMS if not n.startswith("frozen_")], "frozen": [n for n in HOLOGRAMS if n.startswith("frozen_")]}
 
 
 def wide_sizes(count: int, *, seed: int, size: int = 1024, z_air_um: tuple[float, float] = (1900.0, 4700.0)) -> tuple[np.ndarray, dict]:
@@ -195,7 +207,8 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--model", required=True, type=Path, help="trained model (.pt)")
     parser.add_argument("--holograms", required=True, type=Path, help="folder of the holograms and their *_truth.csv (missing ones are made)")
-    parser.add_argument("--only", nargs="+", choices=list(HOLOGRAMS), help="holograms to run (default: all, in the listed order)")
+    parser.add_argument("--set", choices=list(SETS), default="development", help="the development holograms or the frozen test set")
+    parser.add_argument("--only", nargs="+", choices=list(HOLOGRAMS), help="holograms to run (default: the set's, in the listed order)")
     parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "results" / "refine" / f"detection_{datetime.date.today().isoformat()}.json")
     parser.add_argument("--tables", type=Path, help="folder for each hologram's network and refined tables (CSV)")
     parser.add_argument("--rounds", type=int, default=RefineSettings().rounds, help="fitting rounds (RefineSettings.rounds)")
@@ -205,7 +218,7 @@ def main(argv: list[str] | None = None) -> None:
     model = load_model(args.model, device="cpu")
     report = {"model": str(args.model), "holograms": str(args.holograms), "threads": {k: os.environ.get(k) for k in ("OMP_NUM_THREADS", "NAPARI_LBS_THREADS")},
               "index_contrast_truth": INDEX_CONTRAST, "rounds": args.rounds, "results": []}
-    for name in args.only or list(HOLOGRAMS):
+    for name in args.only or SETS[args.set]:
         image, truth = hologram(args.holograms, name)
         load_before = os.getloadavg()
         result = evaluate(name, image, truth, model, config, tables=args.tables, rounds=args.rounds)
