@@ -1,9 +1,10 @@
 """Detection and sizing with and without Lorenz–Mie refinement, on pseudo-real holograms.
 
-For each hologram the network's table (`predict_particles`) is refined by
-`refine_particles` (default `RefineSettings`, the hologram divided by its mean as
-``napari-lbs predict --refine`` does), and both tables are scored one-to-one against the
-truth (`score_particles`): ER, JI, TP/FP/FN, median |Δz| and |Δd| of the matches, the fitted
+For each hologram the network's proposals (`predict_particles` down to
+`REFINE_PROPOSAL_FRACTION` of the model's threshold) are refined by `refine_particles`
+(default `RefineSettings`, the hologram divided by its mean), as ``napari-lbs predict
+--refine`` does; the network's table (the proposals at its threshold) and the refined one
+are scored one-to-one against the truth (`score_particles`): ER, JI, TP/FP/FN, median |Δz| and |Δd| of the matches, the fitted
 index contrast of the matches (polystyrene 1.59 in water 1.33: 0.26), which of the
 network's false positives the fit dropped and which true positives it dropped wrongly, and
 the time per particle (wall and core seconds, beside the network's own time in the same run).
@@ -57,6 +58,7 @@ from napari_lbs._core import (
 )
 from napari_lbs._core._files import write_json
 from napari_lbs._core._metrics import match_particles
+from napari_lbs._core._pipeline import REFINE_PROPOSAL_FRACTION
 
 INDEX_CONTRAST = round(pseudoreal.N_PARTICLE - pseudoreal.N_MEDIUM, 3)
 WIDE_SIZES_UM = (16.0, 36.0)
@@ -143,11 +145,15 @@ def evaluate(name: str, image: np.ndarray, truth: dict, model, config, *, tables
     import pandas as pd
 
     start, core = time.perf_counter(), _core_seconds()
-    network = predict_particles(image, model, config, device="cpu").particles
+    # as predict --refine: proposals down to a fraction of the model's threshold; the network's
+    # own table is their rows at its threshold (one suppression, strongest first, for both)
+    proposals = predict_particles(image, model, config, device="cpu", threshold=REFINE_PROPOSAL_FRACTION * float(model.meta["threshold"])).particles
     predict_s, predict_core_s = time.perf_counter() - start, _core_seconds() - core
-    network = {k: np.asarray(v) for k, v in network.items()}
-    count = len(network["x_um"])
-    frame = pd.DataFrame(network)
+    proposals = {k: np.asarray(v) for k, v in proposals.items()}
+    at_threshold = proposals["score"] >= float(model.meta["threshold"])
+    network = {k: v[at_threshold] for k, v in proposals.items()}
+    count = len(proposals["x_um"])
+    frame = pd.DataFrame(proposals)
     frame["network_row"] = np.arange(count)
     normalised = np.asarray(image, dtype=np.float64) / float(np.mean(image))  # as predict --refine
     start, core = time.perf_counter(), _core_seconds()
@@ -157,17 +163,19 @@ def evaluate(name: str, image: np.ndarray, truth: dict, model, config, *, tables
 
     before, net_pairs = score(network, truth)
     after, ref_pairs = score(refined, truth)
+    net_ids = np.flatnonzero(at_threshold)  # the network table's rows among the proposals
     kept = set(refined["network_row"].astype(int).tolist())
-    net_tp = set(net_pairs[:, 0].tolist())
-    net_fp = set(range(count)) - net_tp
+    net_tp = set(net_ids[net_pairs[:, 0]].tolist())
+    net_fp = set(net_ids.tolist()) - net_tp
+    below = set(range(count)) - set(net_ids.tolist())
     ref_tp_rows = set(refined["network_row"][ref_pairs[:, 0]].astype(int).tolist())
-    truth_of = dict(net_pairs.tolist())
+    truth_of = {int(net_ids[r]): int(t) for r, t in net_pairs.tolist()}
     refined_row = {int(r): i for i, r in enumerate(refined["network_row"].astype(int))}
 
     def describe(row: int) -> dict:
-        """A network row: its guess, its fit and the truth it matched (if any), for the rows refinement changed."""
+        """A proposal: its guess, its fit and the truth the network's table matched it to (if any), for the rows refinement changed."""
         i = refined_row.get(row)
-        entry = {"network": {c: float(network[c][row]) for c in ("x_um", "y_um", "z_um", "diameter_um")}}
+        entry = {"network": {c: float(proposals[c][row]) for c in ("x_um", "y_um", "z_um", "diameter_um", "score")}}
         if i is not None:
             entry["refined"] = {c: float(refined[c][i]) for c in ("x_um", "y_um", "z_um", "diameter_um", "index_contrast", "fit_residual")}
         if row in truth_of:
@@ -176,13 +184,14 @@ def evaluate(name: str, image: np.ndarray, truth: dict, model, config, *, tables
 
     moved = sorted((net_tp & kept) - ref_tp_rows)
     result = {
-        "hologram": name, "truth": len(truth["x_um"]), "detections": count, "kept": len(kept),
+        "hologram": name, "truth": len(truth["x_um"]), "detections": len(net_ids), "proposals": count, "kept": len(kept),
         "not_fitted": int(np.sum(~refined["refined"].astype(bool))),
         "network": before, "refined": after,
         "fp_dropped": len(net_fp - kept), "fp_kept": len(net_fp & kept),
         "tp_dropped": len(net_tp - kept),
         "tp_lost_by_moving": len((net_tp & kept) - ref_tp_rows),  # kept, but refit beyond the match tolerance
         "fp_turned_tp": len(net_fp & ref_tp_rows),
+        "below_threshold_kept": len(below & kept), "below_threshold_tp": len(below & ref_tp_rows),
         "moved_tp": [describe(r) for r in moved], "kept_fp": [describe(r) for r in sorted(net_fp & kept)],
         "index_contrast_of_kept_fp": sorted(float(v) for v in refined["index_contrast"][[r in net_fp for r in refined["network_row"].astype(int)]]),
         "predict_s": predict_s, "predict_core_s": predict_core_s, "refine_s": refine_s, "refine_core_s": refine_core_s,
@@ -224,12 +233,13 @@ def main(argv: list[str] | None = None) -> None:
         result = evaluate(name, image, truth, model, config, tables=args.tables, rounds=args.rounds)
         result["load_average"] = [load_before, os.getloadavg()]
         report["results"].append(result)
-        print(f"{name}: {result['truth']} spheres, {result['detections']} detections, {result['kept']} kept by the fit "
+        print(f"{name}: {result['truth']} spheres, {result['detections']} detections ({result['proposals']} proposals), {result['kept']} kept by the fit "
               f"({result['not_fitted']} not refined: outside the hologram or no fit inside the bounds)", flush=True)
         print(_line("network", result["network"]), flush=True)
         print(_line("refined", result["refined"]), flush=True)
         print(f"  FP dropped {result['fp_dropped']}/{result['fp_dropped'] + result['fp_kept']}, TP dropped {result['tp_dropped']}, "
-              f"TP moved out of tolerance {result['tp_lost_by_moving']}, FP turned TP {result['fp_turned_tp']}; "
+              f"TP moved out of tolerance {result['tp_lost_by_moving']}, FP turned TP {result['fp_turned_tp']}, "
+              f"proposals below the threshold kept {result['below_threshold_kept']} ({result['below_threshold_tp']} TP); "
               f"refine {result['refine_s_per_particle']:.2f} s/particle wall, {result['refine_core_s_per_particle']:.2f} core-s/particle, "
               f"{result['refine_over_predict']:.0f}x the network's {result['predict_s']:.1f} s; load {load_before[0]:.2f}", flush=True)
         args.out.parent.mkdir(parents=True, exist_ok=True)

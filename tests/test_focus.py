@@ -222,6 +222,31 @@ def test_diameters_are_positive_and_scores_are_probabilities(focus_model):
         predict_particles(hologram, model, other)
 
 
+def test_a_lower_threshold_keeps_the_same_detections_and_more(focus_model):
+    """A score threshold below the model's: every detection of the model's threshold, plus the weaker peaks; the provenance says which was used."""
+    import torch
+
+    from napari_lbs._core import load_model, predict_particles
+
+    field = random_particle_field((100, 90), count=8, diameter_min_um=20, diameter_max_um=30, layers_um=(1800.0, 2200.0), continuous=True, pixel_um=2.2, seed=1)
+    hologram = simulate_hologram(field, wavelength_um=0.66)
+    model = load_model(focus_model.model_path)
+    with torch.no_grad():
+        model.network.head.bias[0] = 3.0  # a network that sees particles everywhere: peaks of many scores
+    trained = model.meta["threshold"]
+    loose = predict_particles(hologram, model, tiny_config(), threshold=0.1)
+    assert loose.provenance["threshold"] == 0.1 and loose.provenance["model_threshold"] == trained
+    model.meta["threshold"] = float(np.median(loose.particles["score"]))
+    strict = predict_particles(hologram, model, tiny_config())
+    assert strict.provenance["threshold"] == strict.provenance["model_threshold"] == model.meta["threshold"]
+    kept = loose.particles["score"] >= model.meta["threshold"]
+    assert 0 < kept.sum() < len(kept)
+    for name in ("x_um", "y_um", "z_um", "score"):
+        np.testing.assert_array_equal(np.sort(loose.particles[name][kept]), np.sort(strict.particles[name]))
+    with pytest.raises(InputError, match="threshold: expected a positive score"):
+        predict_particles(hologram, model, tiny_config(), threshold=0.0)
+
+
 def test_the_focus_formulation_refuses_a_layers_data_set(tmp_path):
     from napari_lbs._core import TrainingSettings, train_model
 

@@ -456,9 +456,12 @@ def test_predict_refine_writes_the_refined_columns(tmp_path, monkeypatch):
 
     class Model:
         config = _config()
+        meta = {"threshold": 0.5}
 
+    thresholds = []
     monkeypatch.setattr(_network, "load_model", lambda *a, **k: Model())
-    monkeypatch.setattr(_prediction, "predict_particles", lambda *a, **k: _prediction.PredictionResult(guesses, {"model_sha256": "stub"}, 0.1))
+    monkeypatch.setattr(_prediction, "predict_particles",
+                        lambda *a, **k: thresholds.append(k["threshold"]) or _prediction.PredictionResult(guesses, {"model_sha256": "stub"}, 0.1))
     from napari_lbs._core import _refine
 
     made, settings = [], _refine.RefineSettings
@@ -468,6 +471,7 @@ def test_predict_refine_writes_the_refined_columns(tmp_path, monkeypatch):
     from napari_lbs._core._threads import available_threads
 
     assert made == [{"device": "cpu", "workers": available_threads()}]  # the fit runs where the prediction did, a process per core
+    assert thresholds == [0.4]  # the network proposes down to 0.8 of its threshold: the fit checks them
     header = (tmp_path / "p.csv").read_text().splitlines()[0].split(",")
     assert header[:12] == ["x_um", "y_um", "z_um", "diameter_um", "index_contrast", "absorption", "z_err_um", "diameter_err_um", "index_err", "fit_residual",
                            "refined", "outside_training"]

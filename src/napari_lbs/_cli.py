@@ -192,7 +192,7 @@ def _cmd_predict(args) -> None:
         check_output_path(path, flag="--out", inputs=_inputs(args))
     request = pipeline.PredictRequest(args.holo, args.model, Path(args.out), load_config(args.config) if args.config else None, background_path=args.background,
                                       device=args.device, precision=args.precision, force=args.force, sequence_background=args.sequence_background, background_window=args.background_window,
-                                      workers=args.workers, scheduler=args.scheduler, refine=args.refine)
+                                      workers=args.workers, scheduler=args.scheduler, refine=args.refine, threshold=args.threshold)
     _run(pipeline.predict, request, "predict", log=_summary)
 
 
@@ -340,6 +340,7 @@ def _parser() -> argparse.ArgumentParser:
     engine.add_argument("--scheduler", metavar="ADDRESS", help="recordings: run on an existing dask.distributed scheduler (tcp://host:8786)")
     p.add_argument("--refine", action="store_true", help="refine every detection by a Lorenz-Mie fit (spheres in water): the table gains index_contrast, absorption, "
                    "z_err_um, diameter_err_um, index_err, fit_residual, refined, outside_training; one fitting process per core (docs/refinement.md)")
+    p.add_argument("--threshold", type=_number(0.0, above=True), help="smallest detection score kept (default: the model's; with --refine 0.8 of it, the fit checks the rest)")
     p.set_defaults(run=_cmd_predict)
 
     p = sub.add_parser("track", help="link the particles of a recording into 3-D tracks (trackpy)")

@@ -20,6 +20,7 @@ reaches them is through the network, so a 4096² hologram needs a few GB, not it
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -83,6 +84,7 @@ def predict_particles(
     device: str = "auto",
     precision: str = "auto",
     force: bool = False,
+    threshold: float | None = None,
     progress: ProgressCallback | None = None,
     should_stop: StopCallback | None = None,
 ) -> PredictionResult:
@@ -118,6 +120,11 @@ def predict_particles(
         The network's arithmetic (`resolve_precision`; recorded in the provenance).
     force : bool
         Run a model made for other optics or depths anyway (the config's optics are used).
+    threshold : float, optional
+        The smallest score a detection keeps (``focus``: the peak probability; ``seed``: the
+        output value); default the model's, the one that scored best on its validation data.
+        A lower one finds more particles and more false ones: a table that a fit then checks
+        (`refine_particles`) can afford it.
     progress, should_stop
         One step per reconstruction plane (``focus``: also one per back-propagated plane,
         context included, first); a stop raises `Stopped`.
@@ -131,6 +138,9 @@ def predict_particles(
     loaded = model if isinstance(model, LoadedModel) else load_model(model, device=device)
     meta = loaded.meta
     check_prediction_meta(meta, name=str(loaded.path or "model"))
+    threshold = float(meta["threshold"]) if threshold is None else float(threshold)
+    if not (math.isfinite(threshold) and threshold > 0):
+        raise InputError(f"threshold: expected a positive score, got {threshold}")
     loaded = replace(loaded, network=inference_network(loaded.network))  # the caller's model stays as it is
     loaded.network.precision = resolve_precision(precision, next(loaded.network.parameters()).device)
     config = config if config is not None else loaded.config
@@ -145,9 +155,10 @@ def predict_particles(
         window_px = _WINDOW_PX if window_px is None else int(window_px)
         if window_px < size:
             raise InputError(f"window_px: expected at least the model's tile size {size}, got {window_px}")
-        particles, details = _decode_focus(hologram, loaded, planes, layout, background=background, optics=optics, steps=steps, margin_px=margin_px, window_px=window_px)
+        particles, details = _decode_focus(hologram, loaded, planes, layout, background=background, optics=optics, steps=steps, margin_px=margin_px, window_px=window_px,
+                                           threshold=threshold)
     else:
-        particles, details = _decode_seed(hologram, loaded, planes, layout, background=background, optics=optics, steps=steps)
+        particles, details = _decode_seed(hologram, loaded, planes, layout, background=background, optics=optics, steps=steps, threshold=threshold)
     rows, cols = layout
     seconds = time.perf_counter() - start_time
     provenance = {
@@ -159,7 +170,8 @@ def predict_particles(
         "model_epoch": meta.get("epoch"),
         "formulation": loaded.formulation,
         "precision": loaded.network.precision,
-        "threshold": meta["threshold"],
+        "threshold": threshold,
+        "model_threshold": meta["threshold"],
         **details,
         "processing": meta["processing"],
         "config": config.to_dict(),
@@ -251,12 +263,12 @@ class _TileNormaliser:
             np.subtract(1.0, plane, out=plane)
 
 
-def _decode_seed(hologram, loaded: LoadedModel, planes, layout, *, background, optics, steps) -> tuple[dict, dict]:
+def _decode_seed(hologram, loaded: LoadedModel, planes, layout, *, background, optics, steps, threshold: float) -> tuple[dict, dict]:
     """The seed formulation: each plane's tiles through the network, `PlaneLinker` through depth."""
     meta = loaded.meta
     size = int(meta["tile_size"])
     invert, mode = bool(meta["processing"]["invert_experiment"]), meta["processing"]["mode"]
-    linker = PlaneLinker(planes, pixel_um=optics["pixel_um"], threshold=float(meta["threshold"]), full_value=float(meta["full_value"]), merge_lateral_um=float(meta.get("merge_lateral_um", 0.0)))
+    linker = PlaneLinker(planes, pixel_um=optics["pixel_um"], threshold=threshold, full_value=float(meta["full_value"]), merge_lateral_um=float(meta.get("merge_lateral_um", 0.0)))
     for first in range(0, len(planes), _PLANES_PER_CHUNK):
         steps.check()
         chunk = planes[first : first + _PLANES_PER_CHUNK]
@@ -297,7 +309,7 @@ def window_layout(length: int, *, most: int, margin: int) -> list[tuple[int, int
     return [(start, stop, bounds[i], bounds[i + 1]) for i, (start, stop) in enumerate(zip(starts, stops, strict=True))]
 
 
-def _decode_focus(hologram, loaded: LoadedModel, planes, layout, *, background, optics, steps, margin_px: int, window_px: int) -> tuple[dict, dict]:
+def _decode_focus(hologram, loaded: LoadedModel, planes, layout, *, background, optics, steps, margin_px: int, window_px: int, threshold: float) -> tuple[dict, dict]:
     """The focus formulation: context planes in, 3-D peaks of the centre probability, one particle per peak.
 
     The stack is streamed: planes are back-propagated batch by batch (`backpropagated_blocks`)
@@ -357,5 +369,5 @@ def _decode_focus(hologram, loaded: LoadedModel, planes, layout, *, background, 
     for _ in blocks:  # none is left: resuming lets the last batch report its progress
         pass
     axial_um = meta.get("axial_um")
-    particles = suppress(decoder.candidates(), threshold=float(meta["threshold"]), lateral_um=float(meta["lateral_um"]), axial_um=float(axial_um) if axial_um is not None else np.inf)
+    particles = suppress(decoder.candidates(), threshold=threshold, lateral_um=float(meta["lateral_um"]), axial_um=float(axial_um) if axial_um is not None else np.inf)
     return particles, {"axial_um": axial_um, "lateral_um": meta["lateral_um"], "context": context, "step_um": step, "windows": [len(windows[0]), len(windows[1]), *window_size]}

@@ -71,7 +71,7 @@ class SequenceResult:
 
 
 def _frame_particles(hologram: np.ndarray, model, config: ExperimentConfig, background: np.ndarray | None, device: str, precision: str,
-                     should_stop: StopCallback | None = None) -> tuple[dict, dict]:
+                     threshold: float | None, should_stop: StopCallback | None = None) -> tuple[dict, dict]:
     """One frame's `predict_particles` (the dask task). ``model`` is the worker's copy, moved to ``device`` on first use; ``should_stop`` (threads of this process only) ends it between planes."""
     from napari_lbs._core._network import resolve_device
     from napari_lbs._core._prediction import predict_particles
@@ -81,7 +81,7 @@ def _frame_particles(hologram: np.ndarray, model, config: ExperimentConfig, back
     if next(model.network.parameters()).device != target:
         model.network.to(target)
     # predict_sequence checked the model against the config once, before any frame
-    result = predict_particles(hologram, model, config, background=background, precision=precision, force=True, should_stop=should_stop)
+    result = predict_particles(hologram, model, config, background=background, precision=precision, force=True, threshold=threshold, should_stop=should_stop)
     return result.particles, result.provenance
 
 
@@ -196,9 +196,10 @@ class _Scheduler:
         """``value`` as every task will receive it: sent once to each worker (distributed), else as it is."""
         return value if self.client is None or value is None else self.client.scatter(value, broadcast=True, hash=False)
 
-    def submit(self, index: int, hologram: np.ndarray, config: ExperimentConfig, background, device: str, precision: str, should_stop: StopCallback | None = None):
+    def submit(self, index: int, hologram: np.ndarray, config: ExperimentConfig, background, device: str, precision: str, threshold: float | None,
+               should_stop: StopCallback | None = None):
         """Frame ``index``'s task: a future (distributed) or a delayed call (local, which ``should_stop`` can end between planes)."""
-        arguments = (hologram, self.model, config, background, device, precision)
+        arguments = (hologram, self.model, config, background, device, precision, threshold)
         if self.client is not None:
             return self.client.submit(_frame_particles, *arguments, key=f"napari-lbs-frame-{index}-{id(self)}", pure=False)
         import dask
@@ -242,6 +243,7 @@ def predict_sequence(
     device: str = "auto",
     precision: str = "auto",
     force: bool = False,
+    threshold: float | None = None,
     progress: ProgressCallback | None = None,
     should_stop: StopCallback | None = None,
 ) -> SequenceResult:
@@ -283,6 +285,8 @@ def predict_sequence(
         The network's arithmetic on each worker (`resolve_precision`).
     force : bool
         Run a model made for other optics or depths anyway (`predict_particles`).
+    threshold : float, optional
+        The smallest score a detection keeps (`predict_particles`; default the model's).
     progress, should_stop
         One step per frame (resumed frames count as done at once). A stop raises `Stopped`:
         on the local threaded scheduler within a plane of the frames in flight, on dask
@@ -325,6 +329,7 @@ def predict_sequence(
             "frames": count,
             "model_sha256": loaded.sha256,
             "precision": precision,
+            "threshold": threshold,
             "config": config.to_dict(),
             "background": mode,
             "background_window": background_window if mode == "running" else None,
@@ -362,7 +367,7 @@ def predict_sequence(
                     frame_background = flat_field(hologram)
                 else:
                     hologram, frame_background = frames.read(index), shared_background
-                pending[index] = runner.submit(index, hologram, config, frame_background, device, precision, should_stop)
+                pending[index] = runner.submit(index, hologram, config, frame_background, device, precision, threshold, should_stop)
                 if len(pending) >= runner.slots:
                     break
             if not pending:
