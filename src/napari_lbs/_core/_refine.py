@@ -11,7 +11,7 @@ batched in torch.
 1. **Patch**: a square of at most ``patch_px`` pixels, and no wider than the disc inside
    which the fringes are sampled (their frequency below the pixel's Nyquist limit).
 2. **Searches on ring profiles**: about the patch's centre of symmetry, the ring means of
-   ``I`` and ``I cos2φ`` are exact functions of the sphere's radial profiles
+   ``I`` and ``I cos2φ`` (of the data less the neighbours' hologram, 5.) are exact functions of the sphere's radial profiles
    (`azimuthal_mean_holograms`), so the depth is scanned over ``±depth_window_um`` (steps
    that move the outermost fringe by one radian), the size and index on a grid at the best
    depths, and each start followed down its valley, at the cost of rings, not pixels.
@@ -23,11 +23,14 @@ batched in torch.
    and its hologram ripples with its size; the ring cost along the line of constant phase
    delay and in the neighbouring valleys (`_ring_profile`) restarts the fit at a deeper
    point, and bounds the diameter's and index's intervals (`_interval_threshold`).
-5. **Neighbours**: after a first round, each patch with other particles in reach is fitted
-   again with their summed fields (fixed at their first-round values) in its model.
+5. **Neighbours**: each patch's model holds the summed fields of the other detections in
+   reach, fixed at their guesses (in later rounds, at the previous round's fits); two
+   detections a quarter diameter apart laterally may be one particle twice and stay out of
+   each other's model.
 6. **False detections and twins**: a particle whose best fit does not lower the robust cost
-   of the particle-free model (the illumination alone) by ``min_gain`` noise variances is
-   dropped, and so is one that converged onto a particle another detection fitted better.
+   of the model without it (its neighbours and the illumination) by ``min_gain`` noise
+   variances is dropped, and so is one that converged onto a particle another detection
+   fitted better.
 7. **Uncertainties**: ``σ² (JᵀWJ)⁻¹`` at the optimum (Gauss–Newton), ``σ`` the residuals'
    scale, inflated by the residuals' pixel-to-pixel correlation (what model error and
    neighbours leave is not white); for the diameter and index, at least half the valley
@@ -103,7 +106,7 @@ class RefineSettings:
         other detections in reach at their guesses; each later one refits the particles with
         neighbours, holding them at the previous round's fits (more precise in crowded
         fields: two rounds halved the median depth error at four times the seed's density,
-        at about 1.5 times the time).
+        at about 1.6 times the time).
     huber : float
         Residuals beyond this many noise scales get a Huber weight below 1.
     min_gain : float
