@@ -111,7 +111,8 @@ class RefineSettings:
         Residuals beyond this many noise scales get a Huber weight below 1.
     min_gain : float
         Lowering of the robust cost (in noise variances) that the fit must achieve over
-        the particle-free model to keep a detection.
+        the model without the particle (its neighbours and the illumination) to keep a
+        detection.
     pixel_integration : bool
         Model each pixel integrating its area (True) or point-sampled (pylorenzmie's).
     batch : int
@@ -1237,8 +1238,8 @@ def refine_particles(
     -------
     pandas.DataFrame
         ``x_um, y_um, z_um, diameter_um`` (refined), then `REFINE_COLUMNS`, then the
-        table's other columns. Detections whose fit does not beat the particle-free model
-        are dropped, and so is a detection whose fit converged onto a particle another
+        table's other columns. Detections whose fit does not beat the model without them
+        (their neighbours and the illumination) are dropped, and so is a detection whose fit converged onto a particle another
         fitted better (`_duplicates`); a particle whose patch lies outside the hologram keeps its guesses
         with ``refined`` False. Errors are one standard deviation (µm; ``index_err`` for
         ``index_contrast``); ``fit_residual`` is the residual's rms relative to the
