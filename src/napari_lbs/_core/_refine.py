@@ -106,7 +106,7 @@ class RefineSettings:
         other detections in reach at their guesses; each later one refits the particles with
         neighbours, holding them at the previous round's fits (more precise in crowded
         fields: two rounds halved the median depth error at four times the seed's density,
-        at about 1.6 times the time).
+        at about 1.8 times the time).
     huber : float
         Residuals beyond this many noise scales get a Huber weight below 1.
     min_gain : float
