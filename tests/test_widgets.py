@@ -148,6 +148,16 @@ def test_generate_train_predict_widgets_from_data_to_points(make_napari_viewer, 
     points = viewer.layers["holo particles"]
     assert set(points.features.columns) >= {"diameter_um", "z_um", "score"}
     assert points.metadata["provenance"]["model_sha256"] and points.metadata["metrics"]["n_truth"] == 6
+    # refined: the fit's columns become features to colour by, the provenance says how
+    predict.refine.value = True
+    run_to_end(qtbot, predict)
+    refined = viewer.layers[-1]
+    assert refined is not points and {"index_contrast", "z_err_um", "refined"} <= set(refined.features.columns)
+    assert refined.metadata["provenance"]["refine"]["detections"] >= len(refined.data)
+    assert refined.metadata["provenance"]["threshold"] == 0.8 * refined.metadata["provenance"]["model_threshold"]
+    predict.colour_by.value = "index_contrast"
+    assert refined.border_color.shape == (len(refined.data), 4)
+    predict.refine.value = False
     # a model for other optics is a warning to confirm; declined, nothing runs and the widget stays usable
     from qtpy.QtWidgets import QMessageBox
 

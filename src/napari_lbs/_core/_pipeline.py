@@ -52,6 +52,7 @@ __all__ = [
     "train",
     "PredictRequest",
     "prediction_outputs",
+    "refined_prediction",
     "predict",
     "TrackRequest",
     "track",
@@ -538,6 +539,31 @@ def _score_threshold(request: PredictRequest, meta: dict) -> float | None:
     return REFINE_PROPOSAL_FRACTION * float(meta["threshold"]) if request.refine else None
 
 
+def refined_prediction(hologram: np.ndarray, model, config: ExperimentConfig | None = None, *, background: np.ndarray | None = None, device: str = "auto",
+                       precision: str = "auto", force: bool = False, threshold: float | None = None, progress: ProgressCallback | None = None,
+                       should_stop: StopCallback | None = None):
+    """`predict_particles` down to `REFINE_PROPOSAL_FRACTION` of the model's threshold (or ``threshold``), then `refine_particles`.
+
+    The fit sees the hologram divided by ``background``, else by its mean. Returns a
+    `PredictionResult` whose particles are the refined table (`REFINE_COLUMNS` after the
+    first four) and whose provenance gains ``refine`` (settings, counts, seconds).
+    ``progress`` counts the prediction's planes, then the fit's batches.
+    """
+    import numpy as np
+
+    from napari_lbs._core._network import LoadedModel, load_model
+    from napari_lbs._core._prediction import PredictionResult, predict_particles
+
+    started = time.perf_counter()
+    model = model if isinstance(model, LoadedModel) else load_model(model, device=device)
+    proposals = REFINE_PROPOSAL_FRACTION * float(model.meta["threshold"]) if threshold is None else threshold
+    result = predict_particles(hologram, model, config, background=background, device=device, precision=precision, force=force, threshold=proposals,
+                               progress=progress, should_stop=should_stop)
+    normalised = np.asarray(hologram, dtype=np.float64) / (background if background is not None else float(np.mean(hologram)))
+    particles, record = _refined(normalised, result.particles, config or model.config, device=device, progress=progress, should_stop=should_stop)
+    return PredictionResult(particles, {**result.provenance, "refine": record}, time.perf_counter() - started)
+
+
 def prediction_outputs(out_path) -> tuple[Path, Path]:
     """The particle table and its provenance JSON, refused where they would overwrite something else."""
     from napari_lbs._core._io import check_table_name
@@ -584,18 +610,14 @@ def predict(request: PredictRequest, *, progress: ProgressCallback | None = None
         source, hologram = _source("array", request.source), request.inputs
     background = _background(request.background_path, hologram.shape, log=log)
     model = request.model if not isinstance(request.model, (str, Path)) else load_model(request.model, device=request.device)
-    result = predict_particles(hologram, model, request.config, background=background, device=request.device, precision=request.precision, force=request.force,
-                               threshold=_score_threshold(request, model.meta), progress=progress, should_stop=should_stop)
+    options = {"background": background, "device": request.device, "precision": request.precision, "force": request.force, "threshold": request.threshold,
+               "progress": progress, "should_stop": should_stop}
+    result = (refined_prediction if request.refine else predict_particles)(hologram, model, request.config, **options)
     particles, provenance, refined = result.particles, result.provenance, ""
     if request.refine:
-        import numpy as np
-
-        normalised = np.asarray(hologram, dtype=np.float64) / (background if background is not None else float(np.mean(hologram)))
-        particles, provenance["refine"] = _refined(normalised, particles, request.config or model.config, device=request.device, progress=progress,
-                                                     should_stop=should_stop)
         refined = f", {len(particles['x_um'])} kept by the fit in {provenance['refine']['seconds']:.1f} s"
     _write_table(out, record_path, particles, {**provenance, "source": str(source), "background_file": request.background_path, "particles": str(out)})
-    count = len(result.particles["x_um"])
+    count = provenance["refine"]["detections"] if request.refine else len(particles["x_um"])
     return StepResult(f"found {count} particles in {source} in {result.seconds:.1f} s{refined} -> {out} (provenance: {record_path})", result, (out, record_path))
 
 

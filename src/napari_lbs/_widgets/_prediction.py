@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
-from magicgui.widgets import ComboBox, create_widget
+from magicgui.widgets import CheckBox, ComboBox, create_widget
 
 from napari_lbs._core import match_particles, predict_particles, read_particles, score_particles
+from napari_lbs._core._pipeline import refined_prediction
 from napari_lbs._layers import PlaneGrid, particle_points
 from napari_lbs._widgets._backprop import HOLOGRAM_TOOLTIP
 from napari_lbs._widgets._base import StepWidget, chosen, config_problem, doc_of, hologram_data, hologram_problem, missing, model_config, model_problem, path_edit
@@ -31,13 +32,17 @@ class PredictionWidget(StepWidget):
         self.model = path_edit(label="model file", name="model", filter="*.pt", value="lbs-model.pt", tooltip=doc_of(predict_particles, "model"))
         self.config = path_edit(label="config", name="config", placeholder="empty: the model's", filter="*.toml", tooltip=doc_of(predict_particles, "config"))
         self.device = ComboBox(label="device", name="device", choices=["auto", "cpu", "cuda"], value="auto", tooltip="auto: CUDA when available, else the CPU")
+        self.refine = CheckBox(label="refine", text="Lorenz-Mie fit of every detection", name="refine", value=False,
+                               tooltip="Fit every detection with the exact scattering of a sphere (in water): depth, diameter, index contrast, "
+                                       "absorption and their uncertainties as features (colour by them); the network proposes down to 0.8 of "
+                                       "its threshold and the fit keeps the particles (docs/refinement.md)")
         self.reference = path_edit(label="truth CSV", name="reference", placeholder="optional", filter="*.csv",
                                    tooltip="A true particle table: predictions are then coloured true (green) / false (red) positives, misses shown, ER and JI reported")
         self._points = None  # the last result's layer and its match colours
         self._match_colours = None
         self.colour_by = ComboBox(label="colour by", name="colour_by", choices=self._colour_choices, value=_MATCH,
                                   tooltip="The particles' rims: match (found cyan; with a truth CSV true green, false red) or a feature of the table, low to high (viridis)")
-        super().__init__(napari_viewer, [self.hologram, self.model, self.config, self.device, self.reference, self.colour_by])
+        super().__init__(napari_viewer, [self.hologram, self.model, self.config, self.device, self.refine, self.reference, self.colour_by])
         self.colour_by.changed.connect(self._recolour)
 
     def problem(self):
@@ -47,14 +52,15 @@ class PredictionWidget(StepWidget):
         layer = self.hologram.value
         config, warning = model_setup(chosen(self.model), model_config(self.config), layer)
         reference = read_particles(chosen(self.reference)) if chosen(self.reference) is not None else None
-        return hologram_data(layer), chosen(self.model), config, warning, self.device.value, reference, layer.name, tuple(layer.translate[-2:])
+        return hologram_data(layer), chosen(self.model), config, warning, self.device.value, self.refine.value, reference, layer.name, tuple(layer.translate[-2:])
 
     def caution(self, job):
         return job[3]
 
     def work(self, job, *, progress, should_stop, report):
-        hologram, model, config, warning, device, reference, name, origin = job
-        result = predict_particles(hologram, model, config, device=device, force=warning is not None, progress=progress, should_stop=should_stop)
+        hologram, model, config, warning, device, refine, reference, name, origin = job
+        result = (refined_prediction if refine else predict_particles)(hologram, model, config, device=device, force=warning is not None, progress=progress,
+                                                                        should_stop=should_stop)
         return result, reference, name, origin
 
     def show(self, outcome):
@@ -63,7 +69,7 @@ class PredictionWidget(StepWidget):
         data, keywords = particle_points(result.particles, grid)
         metadata = {"provenance": result.provenance, "source": name}
         colours = np.tile(np.array([_FOUND]), (len(data), 1))
-        message = f"{len(data)} particles in {result.seconds:.1f} s"
+        message = f"{len(data)} particles in {result.seconds:.1f} s" + (" (refined: colour by index_contrast, z_err_um, ...)" if "refine" in result.provenance else "")
         if reference is not None:
             metrics = score_particles(result.particles, reference)
             matched = match_particles(result.particles, reference)
