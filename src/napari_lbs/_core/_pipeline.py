@@ -532,11 +532,9 @@ class PredictRequest:
 REFINE_PROPOSAL_FRACTION = 0.8
 
 
-def _score_threshold(request: PredictRequest, meta: dict) -> float | None:
-    """The detection threshold the prediction uses: the request's, else the refinement's proposals', else the model's (None)."""
-    if request.threshold is not None:
-        return float(request.threshold)
-    return REFINE_PROPOSAL_FRACTION * float(meta["threshold"]) if request.refine else None
+def _proposal_threshold(meta: dict, threshold: float | None) -> float:
+    """The score down to which a refined prediction proposes: ``threshold``, else `REFINE_PROPOSAL_FRACTION` of the model's."""
+    return float(threshold) if threshold is not None else REFINE_PROPOSAL_FRACTION * float(meta["threshold"])
 
 
 def refined_prediction(hologram: np.ndarray, model, config: ExperimentConfig | None = None, *, background: np.ndarray | None = None, device: str = "auto",
@@ -556,9 +554,8 @@ def refined_prediction(hologram: np.ndarray, model, config: ExperimentConfig | N
 
     started = time.perf_counter()
     model = model if isinstance(model, LoadedModel) else load_model(model, device=device)
-    proposals = REFINE_PROPOSAL_FRACTION * float(model.meta["threshold"]) if threshold is None else threshold
-    result = predict_particles(hologram, model, config, background=background, device=device, precision=precision, force=force, threshold=proposals,
-                               progress=progress, should_stop=should_stop)
+    result = predict_particles(hologram, model, config, background=background, device=device, precision=precision, force=force,
+                               threshold=_proposal_threshold(model.meta, threshold), progress=progress, should_stop=should_stop)
     normalised = np.asarray(hologram, dtype=np.float64) / (background if background is not None else float(np.mean(hologram)))
     particles, record = _refined(normalised, result.particles, config or model.config, device=device, progress=progress, should_stop=should_stop)
     return PredictionResult(particles, {**result.provenance, "refine": record}, time.perf_counter() - started)
@@ -670,7 +667,8 @@ def _predict_recording(request: PredictRequest, frames, out: Path, record_path: 
     model = load_model(request.model, device="cpu")  # each worker moves it to the device
     result = predict_sequence(frames, model, request.config, background=background, background_window=request.background_window, workers=request.workers,
                               scheduler=request.scheduler, force=request.force, work_dir=work_dir, device=request.device, precision=request.precision,
-                              threshold=_score_threshold(request, model.meta), progress=progress, should_stop=should_stop)
+                              threshold=_proposal_threshold(model.meta, request.threshold) if request.refine else request.threshold, progress=progress,
+                              should_stop=should_stop)
     particles, provenance = result.particles, dict(result.provenance)
     if request.refine:
         particles, provenance["refine"] = _refined_frames(frames, particles, request.config or model.config, background=background, device=request.device, log=log,
