@@ -1024,8 +1024,9 @@ def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of
     high[:, 2] = centre[:, 2] + 1.5 * z_window
     for axis, name in ((3, "diameter_um"), (4, "index_contrast"), (5, "absorption")):
         low[:, axis], high[:, axis] = _BOUNDS[name]
-    _, scale, _ = _flat_model(fine)
-    alone_residual, _, alone_light = _flat_model(fine, model.others)  # the model without this particle
+    flat = _flat_model(fine)
+    scale = flat[1]
+    alone_residual, _, alone_light = flat if model.others is None else _flat_model(fine, model.others)  # the model without this particle
     start_index = torch.as_tensor(anchor[:, 4], dtype=torch.float64, device=device)
     if search:
         # the rings of the data less the neighbours' hologram: theirs would pull the depth scan
@@ -1053,7 +1054,7 @@ def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of
                                              steps=steps)
     profile = None
     if bool((free_t[:, 3] | free_t[:, 4]).any()):
-        # the rings see the neighbours' holograms (fitted in the first round) taken out of the data
+        # the rings see the neighbours' holograms (at their guesses, or the previous round's fits) taken out of the data
         # (and their interference with this particle, at its fit), and the data divided by the
         # illumination's slope, which the rings' means do not fit (only its level)
         gain = model.illumination(final)
@@ -1105,13 +1106,14 @@ def _on_bound(params: torch.Tensor, free: torch.Tensor, low: torch.Tensor, high:
 
 def _neighbour_fields(all_params: np.ndarray, index: np.ndarray, *, present: np.ndarray, settings: RefineSettings, config: ExperimentConfig, terms: int,
                       device):
-    """A function giving, for the patches of particles ``index``, the ``present`` other particles' terms near them (`_Model`'s ``others``)."""
+    """A function giving, for the patches of particles ``index``, the ``present`` other particles' terms near them (`_Model`'s ``others``; None when none has any)."""
     optics = config.optics
     pixel = optics.pixel_um if settings.pixel_integration else None
     reach = 1.5 * settings.patch_px * optics.pixel_um
 
     def others(patches: _Patches) -> torch.Tensor:
         out = torch.zeros((4,) + tuple(patches.data.shape), dtype=torch.complex128, device=device)
+        crowded = False
         for row, i in enumerate(index):
             distance = np.hypot(all_params[:, 0] - all_params[i, 0], all_params[:, 1] - all_params[i, 1])
             # detections nearer than a quarter diameter laterally may be one particle twice (a
@@ -1120,6 +1122,7 @@ def _neighbour_fields(all_params: np.ndarray, index: np.ndarray, *, present: np.
             near = np.flatnonzero((distance < reach) & present & ~same_line)
             if near.size == 0:
                 continue
+            crowded = True
             p = torch.as_tensor(all_params[near], dtype=torch.float64, device=device)
             dx = patches.x_um[row : row + 1] - p[:, :1]
             dy = patches.y_um[row : row + 1] - p[:, 1:2]
@@ -1134,7 +1137,7 @@ def _neighbour_fields(all_params: np.ndarray, index: np.ndarray, *, present: np.
             out[0, row] = total * patches.mask[row]
             for axis in range(3):
                 out[1 + axis, row] = summed[axis][0] * patches.mask[row]
-        return out
+        return out if crowded else None  # a batch of particles alone: no cross terms to carry
 
     return others
 
