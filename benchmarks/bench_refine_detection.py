@@ -7,7 +7,9 @@ For each hologram the network's proposals (`predict_particles` down to
 are scored one-to-one against the truth (`score_particles`): ER, JI, TP/FP/FN, median |Δz| and |Δd| of the matches, the fitted
 index contrast of the matches (polystyrene 1.59 in water 1.33: 0.26), which of the
 network's false positives the fit dropped and which true positives it dropped wrongly, and
-the time per particle (wall and core seconds, beside the network's own time in the same run).
+the time per particle (wall and core seconds, beside the network's own time in the same run),
+and the refined table of the spheres' material alone (`same_material` at 0.26, as
+``napari-lbs predict --material 0.26``).
 
 Holograms (`pseudoreal`: Lorenz–Mie polystyrene spheres in water, 1024², 8-bit camera),
 made in the holograms folder when missing:
@@ -53,6 +55,7 @@ from napari_lbs._core import (
     read_hologram,
     read_particles,
     refine_particles,
+    same_material,
     score_particles,
     write_particles,
 )
@@ -163,6 +166,11 @@ def evaluate(name: str, image: np.ndarray, truth: dict, model, config, *, tables
 
     before, net_pairs = score(network, truth)
     after, ref_pairs = score(refined, truth)
+    # as predict --material: the spheres' material kept, the rest set apart
+    member = same_material(refined, index_contrast=INDEX_CONTRAST)
+    gated, _ = score({c: v[member] for c, v in refined.items()}, truth)
+    matched = np.zeros(len(member), dtype=bool)
+    matched[ref_pairs[:, 0]] = True
     net_ids = np.flatnonzero(at_threshold)  # the network table's rows among the proposals
     kept = set(refined["network_row"].astype(int).tolist())
     net_tp = set(net_ids[net_pairs[:, 0]].tolist())
@@ -186,7 +194,10 @@ def evaluate(name: str, image: np.ndarray, truth: dict, model, config, *, tables
     result = {
         "hologram": name, "truth": len(truth["x_um"]), "detections": len(net_ids), "proposals": count, "kept": len(kept),
         "not_fitted": int(np.sum(~refined["refined"].astype(bool))),
-        "network": before, "refined": after,
+        "network": before, "refined": after, "material": gated,
+        "other_material": int(np.sum(~member)), "other_material_tp": int(np.sum(~member & matched)),
+        "other_material_rows": [{c: float(refined[c][i]) for c in ("x_um", "y_um", "z_um", "diameter_um", "index_contrast", "index_err")}
+                                for i in np.flatnonzero(~member)],
         "fp_dropped": len(net_fp - kept), "fp_kept": len(net_fp & kept),
         "tp_dropped": len(net_tp - kept),
         "tp_lost_by_moving": len((net_tp & kept) - ref_tp_rows),  # kept, but refit beyond the match tolerance
@@ -237,6 +248,8 @@ def main(argv: list[str] | None = None) -> None:
               f"({result['not_fitted']} not refined: outside the hologram or no fit inside the bounds)", flush=True)
         print(_line("network", result["network"]), flush=True)
         print(_line("refined", result["refined"]), flush=True)
+        print(_line("material", result["material"]) + f" ({result['other_material']} of another material set apart, {result['other_material_tp']} of them matched)",
+              flush=True)
         print(f"  FP dropped {result['fp_dropped']}/{result['fp_dropped'] + result['fp_kept']}, TP dropped {result['tp_dropped']}, "
               f"TP moved out of tolerance {result['tp_lost_by_moving']}, FP turned TP {result['fp_turned_tp']}, "
               f"proposals below the threshold kept {result['below_threshold_kept']} ({result['below_threshold_tp']} TP); "

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -272,12 +274,12 @@ def _config():
 
 
 def _scene(particles, shape=(72, 72), *, noise=0.01, seed=0, contrast=0.26):
-    """A Lorenz–Mie hologram (water, pixel-integrated) of ``(x_um, y_um, z_um, d_um)`` particles, z air-equivalent as the config's."""
+    """A Lorenz–Mie hologram (water, pixel-integrated) of ``(x_um, y_um, z_um, d_um[, index contrast])`` particles, z air-equivalent as the config's."""
     rows, cols = np.mgrid[0 : shape[0], 0 : shape[1]] * PIXEL_UM
     hologram = np.ones(shape)
-    for x, y, z, d in particles:
+    for x, y, z, d, *own in particles:
         h = sphere_holograms(torch.tensor(cols.ravel() - x)[None], torch.tensor(rows.ravel() - y)[None], torch.tensor([z * WATER]), torch.tensor([d]),
-                             torch.tensor([contrast]), torch.tensor([0.0]), wavelength_um=WAVELENGTH_UM, medium_index=WATER, pixel_um=PIXEL_UM)
+                             torch.tensor([own[0] if own else contrast]), torch.tensor([0.0]), wavelength_um=WAVELENGTH_UM, medium_index=WATER, pixel_um=PIXEL_UM)
         hologram += h[0].numpy().reshape(shape) - 1.0
     return hologram + np.random.default_rng(seed).normal(0.0, noise, shape)
 
@@ -441,8 +443,13 @@ def test_bad_tables_and_fixed_names_are_refused_in_one_line(change, culprit):
         refine_particles(np.ones((40, 40)), _table([(40.0, 40.0, 900.0, 18.0)]), _config(), fixed={"radius": 1.0})
 
 
-def test_predict_refine_writes_the_refined_columns(tmp_path, monkeypatch):
-    """``napari-lbs predict --refine``: the network's table refined, the contract's columns after the first four (the network stubbed)."""
+@pytest.mark.parametrize("flags", [["--refine"], ["--material", "0.26"]])
+def test_predict_refine_writes_the_refined_columns(tmp_path, monkeypatch, flags):
+    """``napari-lbs predict --refine``: the network's table refined, the contract's columns after the first four (the network stubbed).
+
+    ``--material`` refines too, starting every fit at that index contrast, and records the
+    gate in the provenance (this polystyrene sphere is of the material 0.26).
+    """
     import tifffile
 
     from napari_lbs import _cli
@@ -466,18 +473,20 @@ def test_predict_refine_writes_the_refined_columns(tmp_path, monkeypatch):
 
     made, settings = [], _refine.RefineSettings
     monkeypatch.setattr(_refine, "RefineSettings", lambda **options: made.append(options) or settings(**{**FAST, **options}))
-    assert _cli.main(["predict", str(tmp_path / "holo.tif"), "--model", str(tmp_path / "model.pt"), "--out", str(tmp_path / "p.csv"), "--refine",
+    assert _cli.main(["predict", str(tmp_path / "holo.tif"), "--model", str(tmp_path / "model.pt"), "--out", str(tmp_path / "p.csv"), *flags,
                       "--device", "cpu"]) == 0
     from napari_lbs._core._threads import available_threads
 
-    assert made == [{"device": "cpu", "workers": available_threads()}]  # the fit runs where the prediction did, a process per core
+    material = {"index_contrast": 0.26} if "--material" in flags else {}
+    assert made == [{"device": "cpu", "workers": available_threads(), **material}]  # the fit runs where the prediction did, a process per core
     assert thresholds == [0.4]  # the network proposes down to 0.8 of its threshold: the fit checks them
     header = (tmp_path / "p.csv").read_text().splitlines()[0].split(",")
     assert header[:12] == ["x_um", "y_um", "z_um", "diameter_um", "index_contrast", "absorption", "z_err_um", "diameter_err_um", "index_err", "fit_residual",
                            "refined", "outside_training"]
     assert "score" in header
-    table = read_particles(tmp_path / "p.csv")
-    assert abs(table["z_um"][0] - truth[2]) < 3.0
+    table, record = read_particles(tmp_path / "p.csv"), json.loads((tmp_path / "p.json").read_text())["refine"]
+    assert len(table["x_um"]) == 1 and abs(table["z_um"][0] - truth[2]) < 3.0 and abs(table["index_contrast"][0] - 0.26) < 0.02
+    assert record.get("material", {}).get("other_material") == (0 if material else None)
 
 
 @pytest.mark.parametrize("offset_um", [300.0, -300.0])

@@ -157,7 +157,19 @@ def test_generate_train_predict_widgets_from_data_to_points(make_napari_viewer, 
     assert refined.metadata["provenance"]["threshold"] == 0.8 * refined.metadata["provenance"]["model_threshold"]
     predict.colour_by.value = "index_contrast"
     assert refined.border_color.shape == (len(refined.data), 4)
+    # the size-index scatter: the refined particles, or (this small model's detections all dropped by the fit) a line saying so
+    assert len(predict._plot.axes.containers) == 1 if len(refined.data) else "no particle" in predict._plot.axes.texts[0].get_text()
+    # the sample's material: the gate is recorded and drawn; a bad value or one without refine is refused in one line
+    predict.material.value = "0.26"
+    run_to_end(qtbot, predict)
+    gate = viewer.layers[-1].metadata["provenance"]["refine"]["material"]
+    assert gate["index_contrast"] == 0.26 and gate["other_material"] == len(gate["other_particles"]["x_um"])
+    predict.material.value = "polystyrene"
+    assert not predict._run.enabled and "material" in predict._status.value
+    predict.material.value = "0.26"
     predict.refine.value = False
+    assert not predict._run.enabled and "tick refine" in predict._status.value
+    predict.material.value = ""
     # a model for other optics is a warning to confirm; declined, nothing runs and the widget stays usable
     from qtpy.QtWidgets import QMessageBox
 
@@ -340,3 +352,18 @@ def test_batch_widget_refuses_workers_with_a_scheduler_and_resumes_a_stopped_run
     assert f"dask.distributed at {cluster.scheduler_address}" in widget._status.value
     np.testing.assert_array_equal(points.data, expected)
     assert_frame_equal(points.features, features)
+
+
+def test_size_index_plot_shows_the_particles_the_other_materials_and_the_band(qtbot):
+    from napari_lbs._widgets._plots import SizeIndexPlot
+
+    plot = SizeIndexPlot()
+    assert "refine" in plot.axes.texts[0].get_text()  # nothing refined yet: says how to get the plot
+    particles = {"diameter_um": [24.0, 25.5, 26.0], "index_contrast": [0.25, 0.26, 0.27], "index_err": [0.02, 0.01, np.nan]}
+    others = {"diameter_um": [13.0], "index_contrast": [0.42], "index_err": [0.04]}
+    plot.show(particles, others=others, material={"index_contrast": 0.26, "tolerance": 0.08})
+    assert len(plot.axes.containers) == 2 and [t.get_text() for t in plot.axes.get_legend().get_texts()] == ["3 particles", "1 another material"]
+    (band,) = plot.axes.patches
+    assert np.allclose(band.get_path().get_extents(band.get_transform()).transformed(plot.axes.transData.inverted()).intervaly, [0.18, 0.34])
+    plot.show(particles)  # no material declared: no band
+    assert not plot.axes.patches and len(plot.axes.containers) == 1

@@ -143,8 +143,7 @@ def _cmd_simulate(args) -> None:
 
 
 def _cmd_backprop(args) -> None:
-    config = load_config(args.config)
-    out = check_output_path(args.out, flag="--out", inputs=_inputs(args))
+    config, out = load_config(args.config), check_output_path(args.out, flag="--out", inputs=_inputs(args))
     _run(pipeline.backprop, pipeline.BackpropRequest(args.holo, out, config, background_path=args.background), "backprop", log=_summary)
 
 
@@ -192,13 +191,14 @@ def _cmd_predict(args) -> None:
         check_output_path(path, flag="--out", inputs=_inputs(args))
     request = pipeline.PredictRequest(args.holo, args.model, Path(args.out), load_config(args.config) if args.config else None, background_path=args.background,
                                       device=args.device, precision=args.precision, force=args.force, sequence_background=args.sequence_background, background_window=args.background_window,
-                                      workers=args.workers, scheduler=args.scheduler, refine=args.refine, threshold=args.threshold)
+                                      workers=args.workers, scheduler=args.scheduler, refine=args.refine or args.material is not None, threshold=args.threshold,
+                                      material_index_contrast=args.material)
     _run(pipeline.predict, request, "predict", log=_summary)
 
 
 def _cmd_track(args) -> None:
-    request = pipeline.TrackRequest(args.particles, Path(args.out), search_range_um=args.search_range_um, axial_search_range_um=args.axial_search_range_um, memory=args.memory)
-    _run(pipeline.track, request)
+    _run(pipeline.track, pipeline.TrackRequest(args.particles, Path(args.out), search_range_um=args.search_range_um, axial_search_range_um=args.axial_search_range_um,
+                                               memory=args.memory))
 
 
 def _cmd_diagnose(args) -> None:
@@ -341,6 +341,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--refine", action="store_true", help="refine every detection by a Lorenz-Mie fit (spheres in water): the table gains index_contrast, absorption, "
                    "z_err_um, diameter_err_um, index_err, fit_residual, refined, outside_training; one fitting process per core (docs/refinement.md)")
     p.add_argument("--threshold", type=_number(0.0, above=True), help="smallest detection score kept (default: the model's; with --refine 0.8 of it, the fit checks the rest)")
+    p.add_argument("--material", type=_number(-1.0), metavar="N", help="refine, and keep the particles of index contrast n_p - n_m = N (0.26: polystyrene in water)")
     p.set_defaults(run=_cmd_predict)
 
     p = sub.add_parser("track", help="link the particles of a recording into 3-D tracks (trackpy)")
@@ -381,8 +382,7 @@ def _parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="run the whole pipeline on the built-in real hologram")
     p.add_argument("--out", default="napari-lbs-demo", metavar="DIR")
     p.add_argument("--quick", action="store_true", help="a token run on one tile (about a minute)")
-    p.add_argument("--calibrated", action="store_true",
-                   help="train on the seed's LBS data (calibrated Holo-processing of opaque discs) instead of transparent spheres (docs/learning.md: pseudo-real benchmark)")
+    p.add_argument("--calibrated", action="store_true", help="train on the seed's LBS data (calibrated Holo-processing of opaque discs), not transparent spheres")
     p.add_argument("--seed", type=_SEED, default=0)
     p.set_defaults(run=_cmd_demo)
     return parser

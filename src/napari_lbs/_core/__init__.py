@@ -28,6 +28,7 @@ _NAMES = {
     "_network": ("load_model", "LoadedModel"),
     "_prediction": ("predict_particles", "PredictionResult"),
     "_refine": ("RefineSettings", "refine_particles"),
+    "_material": ("same_material",),
     "_metrics": ("match_particles", "score_particles"),
     "_gap": ("DiagnosisSettings", "Diagnosis", "diagnose_hologram", "write_report"),
     "_effects": ("EFFECTS", "parse_effects", "effects_from_report"),

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["ColourBarPlot", "FitnessPlot", "LossPlot", "PosteriorPlot"]
+__all__ = ["ColourBarPlot", "FitnessPlot", "LossPlot", "PosteriorPlot", "SizeIndexPlot"]
 
 _BACKGROUND = "#262930"  # napari's dark theme
 _FOREGROUND = "#d6d0ce"
@@ -146,4 +146,39 @@ class ColourBarPlot:
         bar.set_label(label, fontsize=8, color=_FOREGROUND)
         bar.outline.set_edgecolor(_FOREGROUND)
         self.axes.tick_params(colors=_FOREGROUND, labelsize=8)
+        self.canvas.draw_idle()
+
+
+class SizeIndexPlot:
+    """Refined particles' diameter against index contrast: one material is one cluster (debris lie apart), the declared material's band shaded."""
+
+    def __init__(self) -> None:
+        self.canvas, self.axes = _dark_canvas(height_px=190)
+        self.show(None)
+
+    def show(self, particles: dict | None, *, others: dict | None = None, material: dict | None = None) -> None:
+        """Plot a refined table's ``diameter_um`` and ``index_contrast`` (± ``index_err``); ``others``: the particles of another material than ``material``."""
+        self.axes.clear()
+        _style(self.axes)
+        self.axes.set_xlabel("diameter (µm)", fontsize=8)
+        self.axes.set_ylabel("index contrast n_p − n_m", fontsize=8)
+        if particles is None or "index_contrast" not in particles:
+            self.axes.text(0.5, 0.5, "refine to measure each particle's size and index", ha="center", va="center", fontsize=8, color=_FOREGROUND,
+                           transform=self.axes.transAxes)
+            self.canvas.draw_idle()
+            return
+        if material is not None:
+            centre, width = material["index_contrast"], material["tolerance"]
+            self.axes.axhspan(centre - width, centre + width, color=_FOREGROUND, alpha=0.12, lw=0)
+        handles = []
+        for table, colour, marker, label in ((particles, _LOSS_COLOUR, "o", "particles"), (others, _SCORE_COLOUR, "x", "another material")):
+            if table is None or not len(table["diameter_um"]):
+                continue
+            diameter, contrast = np.asarray(table["diameter_um"], dtype=float), np.asarray(table["index_contrast"], dtype=float)
+            error = np.nan_to_num(np.asarray(table["index_err"], dtype=float), nan=0.0)
+            handles.append(self.axes.errorbar(diameter, contrast, yerr=error, fmt=marker, ms=3, lw=0.6, color=colour, label=f"{len(diameter)} {label}"))
+        if handles:
+            _legend(self.axes, handles)
+        else:
+            self.axes.text(0.5, 0.5, "no particle kept by the fit", ha="center", va="center", fontsize=8, color=_FOREGROUND, transform=self.axes.transAxes)
         self.canvas.draw_idle()

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import numpy as np
-from magicgui.widgets import CheckBox, ComboBox, create_widget
+from magicgui.widgets import CheckBox, ComboBox, LineEdit, create_widget
 
 from napari_lbs._core import match_particles, predict_particles, read_particles, score_particles
 from napari_lbs._core._pipeline import refined_prediction
 from napari_lbs._layers import PlaneGrid, particle_points
 from napari_lbs._widgets._backprop import HOLOGRAM_TOOLTIP
 from napari_lbs._widgets._base import StepWidget, chosen, config_problem, doc_of, hologram_data, hologram_problem, missing, model_config, model_problem, path_edit
+from napari_lbs._widgets._plots import SizeIndexPlot
 from napari_lbs._widgets._setup import model_setup
 
 __all__ = ["PredictionWidget"]
@@ -36,31 +37,54 @@ class PredictionWidget(StepWidget):
                                tooltip="Fit every detection with the exact scattering of a sphere (in water): depth, diameter, index contrast, "
                                        "absorption and their uncertainties as features (colour by them); the network proposes down to 0.8 of "
                                        "its threshold and the fit keeps the particles (docs/refinement.md)")
+        self.material = LineEdit(label="material n_p − n_m", name="material", value="",
+                                 tooltip="Optional, with refine: the sample's index contrast (polystyrene in water: 0.26). Every fit starts there, and the "
+                                         "particles whose fitted index contrast differs by more than 0.08 and 2 standard deviations (debris) are set apart")
+        self.material.native.setPlaceholderText("optional, with refine: e.g. 0.26")
         self.reference = path_edit(label="truth CSV", name="reference", placeholder="optional", filter="*.csv",
                                    tooltip="A true particle table: predictions are then coloured true (green) / false (red) positives, misses shown, ER and JI reported")
         self._points = None  # the last result's layer and its match colours
         self._match_colours = None
         self.colour_by = ComboBox(label="colour by", name="colour_by", choices=self._colour_choices, value=_MATCH,
                                   tooltip="The particles' rims: match (found cyan; with a truth CSV true green, false red) or a feature of the table, low to high (viridis)")
-        super().__init__(napari_viewer, [self.hologram, self.model, self.config, self.device, self.refine, self.reference, self.colour_by])
+        super().__init__(napari_viewer, [self.hologram, self.model, self.config, self.device, self.refine, self.material, self.reference, self.colour_by])
         self.colour_by.changed.connect(self._recolour)
+        self._plot = SizeIndexPlot()
+        self.add_view(self._plot.canvas)
 
     def problem(self):
-        return model_problem(self.model) or hologram_problem(self.hologram.value) or missing(self.reference, "reference") or config_problem(self.config)
+        return (model_problem(self.model) or hologram_problem(self.hologram.value) or missing(self.reference, "reference") or config_problem(self.config)
+                or self._material_problem())
+
+    def _material_problem(self) -> str | None:
+        text = self.material.value.strip()
+        if not text:
+            return None
+        try:
+            value = float(text)
+        except ValueError:
+            return f"material: expected the index contrast n_p − n_m as a number (polystyrene in water: 0.26), got {text!r}"
+        if not -1.0 <= value <= 2.5:
+            return f"material: expected an index contrast between -1 and 2.5, got {value:g}"
+        return None if self.refine.value else "material: tick refine (the fit measures each particle's index contrast)"
 
     def prepare(self):
         layer = self.hologram.value
         config, warning = model_setup(chosen(self.model), model_config(self.config), layer)
         reference = read_particles(chosen(self.reference)) if chosen(self.reference) is not None else None
-        return hologram_data(layer), chosen(self.model), config, warning, self.device.value, self.refine.value, reference, layer.name, tuple(layer.translate[-2:])
+        material = float(self.material.value) if self.material.value.strip() else None
+        return hologram_data(layer), chosen(self.model), config, warning, self.device.value, self.refine.value, material, reference, layer.name, tuple(layer.translate[-2:])
 
     def caution(self, job):
         return job[3]
 
     def work(self, job, *, progress, should_stop, report):
-        hologram, model, config, warning, device, refine, reference, name, origin = job
-        result = (refined_prediction if refine else predict_particles)(hologram, model, config, device=device, force=warning is not None, progress=progress,
-                                                                        should_stop=should_stop)
+        hologram, model, config, warning, device, refine, material, reference, name, origin = job
+        options = {"device": device, "force": warning is not None, "progress": progress, "should_stop": should_stop}
+        if refine:
+            result = refined_prediction(hologram, model, config, material_index_contrast=material, **options)
+        else:
+            result = predict_particles(hologram, model, config, **options)
         return result, reference, name, origin
 
     def show(self, outcome):
@@ -69,7 +93,13 @@ class PredictionWidget(StepWidget):
         data, keywords = particle_points(result.particles, grid)
         metadata = {"provenance": result.provenance, "source": name}
         colours = np.tile(np.array([_FOUND]), (len(data), 1))
-        message = f"{len(data)} particles in {result.seconds:.1f} s" + (" (refined: colour by index_contrast, z_err_um, ...)" if "refine" in result.provenance else "")
+        refined = result.provenance.get("refine")
+        gate = refined.get("material") if refined else None
+        message = f"{len(data)} particles in {result.seconds:.1f} s"
+        if refined:
+            apart = f", {gate['other_material']} of another material set apart" if gate else ""
+            message += f" (refined{apart}: colour by index_contrast, z_err_um, ...)"
+        self._plot.show(result.particles if refined else None, others=gate["other_particles"] if gate else None, material=gate)
         if reference is not None:
             metrics = score_particles(result.particles, reference)
             matched = match_particles(result.particles, reference)
