@@ -489,6 +489,37 @@ def test_predict_refine_writes_the_refined_columns(tmp_path, monkeypatch, flags)
     assert record.get("material", {}).get("other_material") == (0 if material else None)
 
 
+def test_predict_material_refines_every_frame_of_a_recording(tmp_path, monkeypatch):
+    """A recording's rows are refined on their own frame; the material's gate adds up over the frames (the network stubbed)."""
+    import tifffile
+
+    from napari_lbs import _cli
+    from napari_lbs._core import _network, _refine, _sequence
+    from napari_lbs._core._io import read_particles
+
+    spheres = [(36.3 * PIXEL_UM, 35.6 * PIXEL_UM, 900.0, 18.0), (34.8 * PIXEL_UM, 37.1 * PIXEL_UM, 880.0, 18.0)]  # the sphere in frame 0, then 1
+    tifffile.imwrite(tmp_path / "rec.tif", np.stack([_scene([sphere], seed=i) for i, sphere in enumerate(spheres)]).astype(np.float32))
+    guesses = {"x_um": np.array([s[0] + 1.0 for s in spheres]), "y_um": np.array([s[1] for s in spheres]), "z_um": np.array([930.0, 910.0]),
+               "diameter_um": np.array([18.4, 18.4]), "score": np.array([0.8, 0.8]), "frame": np.array([0, 1])}
+
+    class Model:
+        config = _config()
+        meta = {"threshold": 0.5}
+
+    def sequence(frames, model, config, **options):
+        options["work_dir"].mkdir()
+        return _sequence.SequenceResult(guesses, {"frames": 2, "scheduler": "stub", "model_sha256": "stub"}, 0.1, 0)
+
+    monkeypatch.setattr(_network, "load_model", lambda *a, **k: Model())
+    monkeypatch.setattr(_sequence, "predict_sequence", sequence)
+    settings = _refine.RefineSettings
+    monkeypatch.setattr(_refine, "RefineSettings", lambda **options: settings(**{**FAST, **options}))
+    assert _cli.main(["predict", str(tmp_path / "rec.tif"), "--model", "m.pt", "--out", str(tmp_path / "p.csv"), "--material", "0.26", "--device", "cpu"]) == 0
+    table, record = read_particles(tmp_path / "p.csv"), json.loads((tmp_path / "p.json").read_text())["refine"]
+    assert table["frame"].tolist() == [0, 1] and np.allclose(table["z_um"], [900.0, 880.0], atol=3.0)
+    assert record["detections"] == 2 and record["kept"] == 2 and record["material"]["other_material"] == 0 and record["material"]["index_contrast"] == 0.26
+
+
 @pytest.mark.parametrize("offset_um", [300.0, -300.0])
 def test_a_depth_300_um_off_is_recovered_by_the_depth_scan(offset_um):
     from napari_lbs._core import RefineSettings, refine_particles

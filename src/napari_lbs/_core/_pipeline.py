@@ -620,15 +620,19 @@ def predict(request: PredictRequest, *, progress: ProgressCallback | None = None
     if request.refine:
         options["material_index_contrast"] = request.material_index_contrast
     result = (refined_prediction if request.refine else predict_particles)(hologram, model, request.config, **options)
-    particles, provenance, refined = result.particles, result.provenance, ""
-    if request.refine:
-        record = provenance["refine"]
-        refined = f", {record['kept']} kept by the fit in {record['seconds']:.1f} s"
-        if "material" in record:
-            refined += f", {record['material']['other_material']} of another material than {record['material']['index_contrast']:g} left out"
+    particles, provenance = result.particles, result.provenance
+    refined = _refine_summary(provenance["refine"]) if request.refine else ""
     _write_table(out, record_path, particles, {**provenance, "source": str(source), "background_file": request.background_path, "particles": str(out)})
     count = provenance["refine"]["detections"] if request.refine else len(particles["x_um"])
     return StepResult(f"found {count} particles in {source} in {result.seconds:.1f} s{refined} -> {out} (provenance: {record_path})", result, (out, record_path))
+
+
+def _refine_summary(record: dict) -> str:
+    """What the fit did, for a prediction's one-line summary."""
+    line = f", {record['kept']} kept by the fit in {record['seconds']:.1f} s"
+    if "material" in record:
+        line += f", {record['material']['other_material']} of another material than {record['material']['index_contrast']:g} left out"
+    return line
 
 
 def _refined_frames(frames, particles: dict, config: ExperimentConfig, *, background, material: float | None, device: str, log: Log, progress,
@@ -703,8 +707,9 @@ def _predict_recording(request: PredictRequest, frames, out: Path, record_path: 
     shutil.rmtree(work_dir)
     count, done = len(result.particles["x_um"]), result.provenance["frames"]
     resumed = f"; {result.resumed} frames resumed from {work_dir}" if result.resumed else ""
-    return StepResult(f"found {count} particles in {done} frames in {result.seconds:.1f} s ({result.provenance['scheduler']}{resumed}) -> {out} (provenance: {record_path})",
-                      result, (out, record_path))
+    refined = _refine_summary(provenance["refine"]) if request.refine else ""
+    return StepResult(f"found {count} particles in {done} frames in {result.seconds:.1f} s ({result.provenance['scheduler']}{resumed}){refined} -> {out} "
+                      f"(provenance: {record_path})", result, (out, record_path))
 
 
 # --- track ---------------------------------------------------------------------------------
