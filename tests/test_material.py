@@ -8,7 +8,7 @@ from napari_lbs._core import InputError, same_material
 
 def test_a_particle_is_of_another_material_beyond_the_tolerance_and_two_sigma():
     table = {"index_contrast": np.array([0.26, 0.33, 0.35, 0.35, 0.12, np.nan, 0.45]), "index_err": np.array([0.01, 0.01, 0.01, 0.06, 0.01, np.nan, np.nan])}
-    # within 0.08 / beyond it / beyond it but within 2 sigma / far / not measured / measured without an uncertainty
+    # within 0.01 / within 0.08 / beyond both / within 2 sigma / far / not measured / measured without an uncertainty
     assert same_material(table, index_contrast=0.26).tolist() == [True, True, False, True, False, True, True]
     assert same_material(table, index_contrast=0.26, tolerance=0.0, sigmas=0.0).tolist() == [True, False, False, False, False, True, False]
 

@@ -362,7 +362,7 @@ def test_size_index_plot_shows_the_particles_the_other_materials_and_the_band(qt
     particles = {"diameter_um": [24.0, 25.5, 26.0], "index_contrast": [0.25, 0.26, 0.27], "index_err": [0.02, 0.9, np.nan]}
     others = {"diameter_um": [13.0], "index_contrast": [0.42], "index_err": [0.04]}
     plot.show(particles, others=others, material={"index_contrast": 0.26, "tolerance": 0.08})
-    assert len(plot.axes.containers) == 2 and [t.get_text() for t in plot.axes.get_legend().get_texts()] == ["3 particles", "1 another material"]
+    assert len(plot.axes.containers) == 2 and [t.get_text() for t in plot.axes.get_legend().get_texts()] == ["3 particles", "1 of another material"]
     (band,) = plot.axes.patches
     assert np.allclose(band.get_path().get_extents(band.get_transform()).transformed(plot.axes.transData.inverted()).intervaly, [0.18, 0.34])
     assert 0.0 < plot.axes.get_ylim()[0] < 0.18 and 0.42 < plot.axes.get_ylim()[1] < 0.6  # the values set the scale, not the widest error bar (±0.9)

@@ -21,16 +21,17 @@ import numpy as np
 
 from napari_lbs._core._errors import InputError
 
-__all__ = ["MATERIAL_TOLERANCE", "same_material"]
+__all__ = ["MATERIAL_SIGMAS", "MATERIAL_TOLERANCE", "same_material"]
 
 # The spread of one material's fitted index contrasts: on the development holograms of
-# docs/refinement.md, 99 % of the polystyrene spheres of 16-36 um fitted 0.24-0.29 and the
-# lowest 0.20 (the largest, a phase-delay period or more low), the debris (index 1.45,
-# 3-12 um) 0.34-0.57 as 10-15 um spheres.
+# docs/refinement.md, polystyrene spheres of 16-36 um fitted 0.185-0.30 (the largest, beyond
+# the fit's valleys, lowest), and the debris (index 1.45, 3-12 um) 0.30-0.55 as 10-18 um spheres.
 MATERIAL_TOLERANCE = 0.08
+# and a particle's own uncertainty: differences within this many index_err are one material
+MATERIAL_SIGMAS = 2.0
 
 
-def same_material(table, *, index_contrast: float, tolerance: float = MATERIAL_TOLERANCE, sigmas: float = 2.0) -> np.ndarray:
+def same_material(table, *, index_contrast: float, tolerance: float = MATERIAL_TOLERANCE, sigmas: float = MATERIAL_SIGMAS) -> np.ndarray:
     """True for each particle whose fitted index contrast is consistent with the sample's.
 
     A particle is of another material when its ``index_contrast`` differs from
@@ -42,8 +43,8 @@ def same_material(table, *, index_contrast: float, tolerance: float = MATERIAL_T
     starts in (`RefineSettings.index_contrast`, the valley prior of `refine_particles`):
     a sphere of another material whose phase delay differs by whole periods fits in the
     sample's valley. What the gate sets apart is what does not fit the sample's material:
-    debris and small scatterers (on the development holograms, 10 of 16 false detections,
-    and 1 of 694 polystyrene spheres: a misfit at the window's edge).
+    debris and small scatterers (on the development holograms, 9 of 12 debris, none of 694
+    polystyrene spheres but one misfit at the window's edge).
 
     Parameters
     ----------
@@ -60,7 +61,7 @@ def same_material(table, *, index_contrast: float, tolerance: float = MATERIAL_T
     -------
     numpy.ndarray of bool, one per row.
     """
-    if not np.isfinite(index_contrast):
+    if not isinstance(index_contrast, (int, float, np.number)) or not np.isfinite(index_contrast):
         raise InputError(f"index_contrast must be a number, got {index_contrast!r}")
     if not (tolerance >= 0 and sigmas >= 0):
         raise InputError(f"tolerance and sigmas must be >= 0, got {tolerance!r} and {sigmas!r}")

@@ -507,7 +507,7 @@ class PredictRequest:
         The smallest score a detection keeps (`predict_particles`); default the model's, and
         with ``refine`` `REFINE_PROPOSAL_FRACTION` of it.
     material_index_contrast : float, optional
-        With ``refine``: the sample's ``n_p - n_m``; particles of another material
+        The sample's ``n_p - n_m`` (implies ``refine``); particles of another material
         (`same_material`) are listed in the provenance instead of the table.
     """
 
@@ -617,13 +617,14 @@ def predict(request: PredictRequest, *, progress: ProgressCallback | None = None
     model = request.model if not isinstance(request.model, (str, Path)) else load_model(request.model, device=request.device)
     options = {"background": background, "device": request.device, "precision": request.precision, "force": request.force, "threshold": request.threshold,
                "progress": progress, "should_stop": should_stop}
-    if request.refine:
+    refine = request.refine or request.material_index_contrast is not None  # the fit measures the material
+    if refine:
         options["material_index_contrast"] = request.material_index_contrast
-    result = (refined_prediction if request.refine else predict_particles)(hologram, model, request.config, **options)
+    result = (refined_prediction if refine else predict_particles)(hologram, model, request.config, **options)
     particles, provenance = result.particles, result.provenance
-    refined = _refine_summary(provenance["refine"]) if request.refine else ""
+    refined = _refine_summary(provenance["refine"]) if refine else ""
     _write_table(out, record_path, particles, {**provenance, "source": str(source), "background_file": request.background_path, "particles": str(out)})
-    count = provenance["refine"]["detections"] if request.refine else len(particles["x_um"])
+    count = provenance["refine"]["detections"] if refine else len(particles["x_um"])
     return StepResult(f"found {count} particles in {source} in {result.seconds:.1f} s{refined} -> {out} (provenance: {record_path})", result, (out, record_path))
 
 
@@ -653,11 +654,13 @@ def _refined_frames(frames, particles: dict, config: ExperimentConfig, *, backgr
     merged = {name: np.concatenate([part[name] for part in parts]) for name in parts[0]} if parts else particles
     summary = {"settings": records[0]["settings"] if records else None, "detections": sum(r["detections"] for r in records),
                "kept": sum(r["kept"] for r in records), "seconds": sum(r["seconds"] for r in records)}
-    if material is not None and records:
+    if material is not None:
+        from napari_lbs._core._material import MATERIAL_SIGMAS, MATERIAL_TOLERANCE
+
         others = [r["material"]["other_particles"] for r in records]
-        summary["material"] = {**{key: records[0]["material"][key] for key in ("index_contrast", "tolerance", "sigmas")},
+        summary["material"] = {"index_contrast": float(material), "tolerance": MATERIAL_TOLERANCE, "sigmas": MATERIAL_SIGMAS,
                                "other_material": sum(r["material"]["other_material"] for r in records),
-                               "other_particles": {name: [value for table in others for value in table[name]] for name in others[0]}}
+                               "other_particles": {name: [value for table in others for value in table[name]] for name in (others[0] if others else particles)}}
     return merged, summary
 
 
@@ -667,7 +670,7 @@ def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, *,
 
     import pandas as pd
 
-    from napari_lbs._core._material import MATERIAL_TOLERANCE, same_material
+    from napari_lbs._core._material import MATERIAL_SIGMAS, MATERIAL_TOLERANCE, same_material
     from napari_lbs._core._refine import RefineSettings, refine_particles
     from napari_lbs._core._threads import available_threads
 
@@ -678,8 +681,8 @@ def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, *,
     table = refine_particles(hologram, pd.DataFrame(particles), config, settings=settings, progress=progress, should_stop=should_stop)
     record = {"settings": asdict(settings), "detections": len(particles["x_um"]), "kept": len(table), "seconds": time.perf_counter() - started}
     if material is not None:
-        member = same_material(table, index_contrast=material)
-        record["material"] = {"index_contrast": float(material), "tolerance": MATERIAL_TOLERANCE, "sigmas": 2.0, "other_material": int((~member).sum()),
+        member = same_material(table, index_contrast=material, tolerance=MATERIAL_TOLERANCE, sigmas=MATERIAL_SIGMAS)
+        record["material"] = {"index_contrast": float(material), "tolerance": MATERIAL_TOLERANCE, "sigmas": MATERIAL_SIGMAS, "other_material": int((~member).sum()),
                               "other_particles": {name: table[name].to_numpy()[~member].tolist() for name in table.columns}}
         table = table[member]
     return {name: table[name].to_numpy() for name in table.columns}, record
@@ -694,12 +697,13 @@ def _predict_recording(request: PredictRequest, frames, out: Path, record_path: 
     work_dir = check_output_path(out.with_name(out.name + ".parts"), flag="--out", folder=True)
     background = read_hologram(request.background_path, log=log) if request.background_path else request.sequence_background
     model = load_model(request.model, device="cpu")  # each worker moves it to the device
+    refine = request.refine or request.material_index_contrast is not None  # the fit measures the material
     result = predict_sequence(frames, model, request.config, background=background, background_window=request.background_window, workers=request.workers,
                               scheduler=request.scheduler, force=request.force, work_dir=work_dir, device=request.device, precision=request.precision,
-                              threshold=_proposal_threshold(model.meta, request.threshold) if request.refine else request.threshold, progress=progress,
+                              threshold=_proposal_threshold(model.meta, request.threshold) if refine else request.threshold, progress=progress,
                               should_stop=should_stop)
     particles, provenance = result.particles, dict(result.provenance)
-    if request.refine:
+    if refine:
         particles, provenance["refine"] = _refined_frames(frames, particles, request.config or model.config, background=background,
                                                           material=request.material_index_contrast, device=request.device, log=log,
                                                           progress=progress, should_stop=should_stop)
@@ -707,7 +711,7 @@ def _predict_recording(request: PredictRequest, frames, out: Path, record_path: 
     shutil.rmtree(work_dir)
     count, done = len(result.particles["x_um"]), result.provenance["frames"]
     resumed = f"; {result.resumed} frames resumed from {work_dir}" if result.resumed else ""
-    refined = _refine_summary(provenance["refine"]) if request.refine else ""
+    refined = _refine_summary(provenance["refine"]) if refine else ""
     return StepResult(f"found {count} particles in {done} frames in {result.seconds:.1f} s ({result.provenance['scheduler']}{resumed}){refined} -> {out} "
                       f"(provenance: {record_path})", result, (out, record_path))
 

@@ -517,10 +517,9 @@ def _residual_inflation(residual: torch.Tensor, mask: torch.Tensor, shapes: list
 
 _CENTRE_REACH_PX = 3.0  # the symmetric centre is looked for this far around the guess
 _VALLEY_PRIOR = 16.0  # robust-cost units (half noise variances) per squared phase-delay period from the starting index
-# size–index grid at each candidate depth: diameters ±8 um around the start (a network
-# guesses within its training range: 25-29 um for spheres of 35 um), and for each the index
-# contrasts whose phase delay k0 d Δn steps through one period on each side
-_GRID_DIAMETER_UM = tuple(0.4 * j for j in range(-20, 21))
+# size–index grid at each candidate depth: diameters around the start, and for each the
+# index contrasts whose phase delay k0 d Δn steps through one period on each side
+_GRID_DIAMETER_UM = tuple(0.4 * j for j in range(-9, 10))
 _GRID_DELAY_PERIODS = tuple(j / 4 for j in range(-4, 5))
 # the valley profile: size parameter k a along the line of constant phase delay, the
 # neighbouring valleys, and the delay and depth offsets each point is minimised over
@@ -770,7 +769,7 @@ def _ring_search(rings: _Rings, params: torch.Tensor, free: torch.Tensor, scale:
 
     The depth is scanned over ``±window_um`` in steps that move the outermost ring's fringe
     by one radian; its ``depth_candidates`` best local minima are refined by a scan a
-    quarter step apart; at each, diameters ±8 µm and index contrasts one phase-delay
+    quarter step apart; at each, diameters ±3.6 µm and index contrasts one phase-delay
     period on each side (quarter periods) are compared, the valleys away from the starting
     index paying `_VALLEY_PRIOR` per period²; at the best, the depth is scanned finely again.
     """

@@ -171,11 +171,11 @@ class SizeIndexPlot:
             centre, width = material["index_contrast"], material["tolerance"]
             self.axes.axhspan(centre - width, centre + width, color=_FOREGROUND, alpha=0.12, lw=0)
         handles, shown = [], [] if material is None else [material["index_contrast"] - material["tolerance"], material["index_contrast"] + material["tolerance"]]
-        for table, colour, marker, label in ((particles, _LOSS_COLOUR, "o", "particles"), (others, _SCORE_COLOUR, "x", "another material")):
+        for table, colour, marker, label in ((particles, _LOSS_COLOUR, "o", "particles"), (others, _SCORE_COLOUR, "x", "of another material")):
             if table is None or not len(table["diameter_um"]):
                 continue
             diameter, contrast = np.asarray(table["diameter_um"], dtype=float), np.asarray(table["index_contrast"], dtype=float)
-            error = np.nan_to_num(np.asarray(table["index_err"], dtype=float), nan=0.0)
+            error = np.nan_to_num(np.asarray(table["index_err"], dtype=float), nan=0.0, posinf=0.0)
             handles.append(self.axes.errorbar(diameter, contrast, yerr=error, fmt=marker, ms=3, lw=0.6, color=colour, label=f"{len(diameter)} {label}"))
             shown += contrast[np.isfinite(contrast)].tolist()
         if shown:  # the values, not the widest error bar, set the scale

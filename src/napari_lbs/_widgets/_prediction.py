@@ -64,8 +64,8 @@ class PredictionWidget(StepWidget):
             value = float(text)
         except ValueError:
             return f"material: expected the index contrast n_p − n_m as a number (polystyrene in water: 0.26), got {text!r}"
-        if not -1.0 <= value <= 2.5:
-            return f"material: expected an index contrast between -1 and 2.5, got {value:g}"
+        if not -0.9 <= value <= 2.5:
+            return f"material: expected an index contrast between -0.9 and 2.5 (the fit's range), got {value:g}"
         return None if self.refine.value else "material: tick refine (the fit measures each particle's index contrast)"
 
     def prepare(self):
