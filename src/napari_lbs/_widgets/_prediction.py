@@ -6,6 +6,7 @@ import numpy as np
 from magicgui.widgets import CheckBox, ComboBox, LineEdit, create_widget
 
 from napari_lbs._core import match_particles, predict_particles, read_particles, score_particles
+from napari_lbs._core._material import MATERIAL_SIGMAS, MATERIAL_TOLERANCE
 from napari_lbs._core._pipeline import refined_prediction
 from napari_lbs._layers import PlaneGrid, particle_points
 from napari_lbs._widgets._backprop import HOLOGRAM_TOOLTIP
@@ -39,7 +40,8 @@ class PredictionWidget(StepWidget):
                                        "its threshold and the fit keeps the particles (docs/refinement.md)")
         self.material = LineEdit(label="material n_p − n_m", name="material", value="",
                                  tooltip="Optional, with refine: the sample's index contrast (polystyrene in water: 0.26). Every fit starts there, and the "
-                                         "particles whose fitted index contrast differs by more than 0.08 and 2 standard deviations (debris) are set apart")
+                                         f"particles whose fitted index contrast differs by more than {MATERIAL_TOLERANCE:g} and {MATERIAL_SIGMAS:g} standard "
+                                         "deviations (debris) are set apart")
         self.material.native.setPlaceholderText("optional, with refine: e.g. 0.26")
         self.reference = path_edit(label="truth CSV", name="reference", placeholder="optional", filter="*.csv",
                                    tooltip="A true particle table: predictions are then coloured true (green) / false (red) positives, misses shown, ER and JI reported")
