@@ -122,8 +122,8 @@ class RefineSettings:
         ``cpu``, ``cuda`` or ``auto``.
     workers : int
         Processes fitting batches side by side on the CPU, one thread each (the batches
-        are independent: the table is the one a single process on one thread gives, up to
-        the arithmetic's rounding). More than 1 spawns processes, so a script must start
+        are independent: the table is the one a single process on one thread gives, bit
+        for bit). More than 1 spawns processes, so a script must start
         its work under ``if __name__ == "__main__":``; ``napari-lbs predict --refine`` uses
         one per available core.
     """
@@ -931,7 +931,12 @@ def _flat_model(patches: _Patches, others: torch.Tensor | None = None) -> tuple[
     """
     plane = torch.stack([patches.mask, patches.u * patches.mask, patches.v * patches.mask], dim=-1)
     basis = plane if others is None else plane * (1.0 + others[0].real)[:, :, None]
-    solution = torch.linalg.lstsq(basis, (patches.data * patches.mask)[:, :, None]).solution
+    # the normal equations, not `torch.linalg.lstsq`: LAPACK's least squares rounds by the
+    # buffers' memory alignment, so one patch would fit differently from call to call
+    normal = basis.transpose(1, 2) @ basis
+    empty = torch.diagonal(normal, dim1=1, dim2=2) == 0.0  # a column no pixel reaches: held at 0
+    normal = normal + torch.diag_embed(empty.to(normal.dtype))
+    solution = torch.linalg.solve(normal, basis.transpose(1, 2) @ (patches.data * patches.mask)[:, :, None])
     residual = (patches.data - (basis @ solution)[:, :, 0]) * patches.mask
     return residual, _robust_scale(residual, patches.mask), (plane @ solution)[:, :, 0]
 
