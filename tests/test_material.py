@@ -25,13 +25,13 @@ def test_bad_gates_are_refused_in_one_line(table, options, culprit):
 
 def test_refined_spheres_of_two_materials_are_told_apart():
     """A polystyrene sphere (0.26) and a smaller one of a denser material (0.35) in water: the gate keeps the polystyrene one."""
-    from test_refine import FAST, PIXEL_UM, _config, _scene, _table
+    from sphere_scenes import FAST, PIXEL_UM, default_config, guess_table, sphere_scene
 
     from napari_lbs._core import RefineSettings, refine_particles
 
     polystyrene, dense = (36.0 * PIXEL_UM, 36.0 * PIXEL_UM, 900.0, 18.0, 0.26), (160.0 * PIXEL_UM, 36.0 * PIXEL_UM, 900.0, 10.0, 0.35)
-    hologram = _scene([polystyrene, dense], shape=(72, 196), noise=0.005)
-    guesses = _table([(x + 1.0, y - 1.0, z + 20.0, 19.0) for x, y, z, _, _ in (polystyrene, dense)])  # the network's usual size for both
-    refined = refine_particles(hologram, guesses, _config(), settings=RefineSettings(**FAST))
+    hologram = sphere_scene([polystyrene, dense], shape=(72, 196), noise=0.005)
+    guesses = guess_table([(x + 1.0, y - 1.0, z + 20.0, 19.0) for x, y, z, _, _ in (polystyrene, dense)])  # the network's usual size for both
+    refined = refine_particles(hologram, guesses, default_config(), settings=RefineSettings(**FAST))
     assert len(refined) == 2 and abs(refined["index_contrast"][0] - 0.26) < 0.01 and refined["index_contrast"][1] > 0.34
     assert same_material(refined, index_contrast=0.26).tolist() == [True, False]

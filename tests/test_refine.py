@@ -8,11 +8,9 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+from sphere_scenes import FAST, PIXEL_UM, WATER, WAVELENGTH_UM, default_config, guess_table, sphere_scene
 
 from napari_lbs._core._lorenz_mie import disc_holograms, mie_coefficients, sphere_fields, sphere_holograms, term_count
-
-WAVELENGTH_UM = 0.66
-WATER = 1.33
 
 
 @pytest.fixture(autouse=True)
@@ -190,7 +188,7 @@ def test_symmetric_centre_is_found_within_a_tenth_of_a_pixel():
     from napari_lbs._core import _refine
 
     truth = (36.3 * PIXEL_UM, 35.6 * PIXEL_UM, 900.0, 18.0)
-    hologram = _scene([truth])
+    hologram = sphere_scene([truth])
     guess_x, guess_y = np.array([truth[0] + 1.9]), np.array([truth[1] - 1.4])
     patches = _refine._cut_patches(hologram, guess_x, guess_y, np.array([48]), pixel_um=PIXEL_UM, device="cpu")
     residual, _, _ = _refine._flat_model(patches)
@@ -262,35 +260,6 @@ def test_lateral_derivatives_match_central_differences(pixel_um):
 
 # --- the fit ------------------------------------------------------------------------------------
 
-PIXEL_UM = 2.2
-# small patches keep each test within seconds; the benchmark uses the defaults
-FAST = {"patch_px": 48, "depth_window_um": 120.0, "iterations": 8, "depth_candidates": 2}
-
-
-def _config():
-    from napari_lbs._core import ExperimentConfig
-
-    return ExperimentConfig.from_dict({})
-
-
-def _scene(particles, shape=(72, 72), *, noise=0.01, seed=0, contrast=0.26):
-    """A Lorenz–Mie hologram (water, pixel-integrated) of ``(x_um, y_um, z_um, d_um[, index contrast])`` particles, z air-equivalent as the config's."""
-    rows, cols = np.mgrid[0 : shape[0], 0 : shape[1]] * PIXEL_UM
-    hologram = np.ones(shape)
-    for x, y, z, d, *own in particles:
-        h = sphere_holograms(torch.tensor(cols.ravel() - x)[None], torch.tensor(rows.ravel() - y)[None], torch.tensor([z * WATER]), torch.tensor([d]),
-                             torch.tensor([own[0] if own else contrast]), torch.tensor([0.0]), wavelength_um=WAVELENGTH_UM, medium_index=WATER, pixel_um=PIXEL_UM)
-        hologram += h[0].numpy().reshape(shape) - 1.0
-    return hologram + np.random.default_rng(seed).normal(0.0, noise, shape)
-
-
-def _table(rows):
-    import pandas as pd
-
-    return pd.DataFrame(rows, columns=["x_um", "y_um", "z_um", "diameter_um"])
-
-
-
 def test_coarse_patches_are_every_other_row_and_column_of_the_full_ones():
     """Patches cut at the image's edges too: the coarse pixels are the full patch's [::2, ::2], the padding masked."""
     from napari_lbs._core import _refine
@@ -310,10 +279,10 @@ def test_fit_recovers_depth_size_and_index_from_offset_starts():
     from napari_lbs._core import RefineSettings, refine_particles
 
     truth = (36.3 * PIXEL_UM, 35.6 * PIXEL_UM, 900.0, 18.0)
-    hologram = _scene([truth])
-    start = _table([(truth[0] + 1.2, truth[1] - 0.9, truth[2] + 60.0, truth[3] + 0.6)])
+    hologram = sphere_scene([truth])
+    start = guess_table([(truth[0] + 1.2, truth[1] - 0.9, truth[2] + 60.0, truth[3] + 0.6)])
     start["score"] = 0.7
-    out = refine_particles(hologram, start, _config(), fixed={"absorption": 0.0}, settings=RefineSettings(**FAST))
+    out = refine_particles(hologram, start, default_config(), fixed={"absorption": 0.0}, settings=RefineSettings(**FAST))
     assert list(out.columns[:11]) == ["x_um", "y_um", "z_um", "diameter_um", "index_contrast", "absorption", "z_err_um", "diameter_err_um", "index_err",
                                       "fit_residual", "refined"]
     assert "score" in out.columns and len(out) == 1 and bool(out.refined[0])
@@ -329,7 +298,7 @@ def test_fixed_parameters_stay_put():
     from napari_lbs._core import RefineSettings, refine_particles
 
     truth = (36.0 * PIXEL_UM, 36.0 * PIXEL_UM, 900.0, 18.0)
-    out = refine_particles(_scene([truth]), _table([(truth[0], truth[1], truth[2] + 20.0, 18.0)]), _config(), fixed={"index_contrast": 0.26, "diameter_um": 18.0},
+    out = refine_particles(sphere_scene([truth]), guess_table([(truth[0], truth[1], truth[2] + 20.0, 18.0)]), default_config(), fixed={"index_contrast": 0.26, "diameter_um": 18.0},
                            settings=RefineSettings(**{**FAST, "rounds": 1}))
     assert out.index_contrast[0] == 0.26 and out.diameter_um[0] == 18.0 and out.index_err[0] == 0.0
     assert abs(out.z_um[0] - truth[2]) < 2.0
@@ -341,8 +310,8 @@ def test_two_overlapping_particles_are_both_recovered(rounds):
     from napari_lbs._core import RefineSettings, refine_particles
 
     truths = [(30.2 * PIXEL_UM, 33.7 * PIXEL_UM, 850.0, 17.0), (44.6 * PIXEL_UM, 39.1 * PIXEL_UM, 1000.0, 19.0)]
-    starts = _table([(x + 0.8, y - 0.6, z - 40.0, d - 0.5) for x, y, z, d in truths])
-    out = refine_particles(_scene(truths, (80, 80)), starts, _config(), fixed={"absorption": 0.0, "index_contrast": 0.26},
+    starts = guess_table([(x + 0.8, y - 0.6, z - 40.0, d - 0.5) for x, y, z, d in truths])
+    out = refine_particles(sphere_scene(truths, (80, 80)), starts, default_config(), fixed={"absorption": 0.0, "index_contrast": 0.26},
                            settings=RefineSettings(**FAST, rounds=rounds))
     assert len(out) == 2
     for row, (x, y, z, d) in zip(out.itertuples(), truths, strict=True):
@@ -357,19 +326,19 @@ def test_worker_processes_give_the_same_table_report_progress_and_stop_at_once()
     from napari_lbs._core import RefineSettings, Stopped, refine_particles
 
     truths = [(30.2 * PIXEL_UM, 33.7 * PIXEL_UM, 850.0, 17.0), (44.6 * PIXEL_UM, 39.1 * PIXEL_UM, 1000.0, 19.0)]
-    hologram = _scene(truths, (80, 80))
-    starts = _table([(x + 0.8, y - 0.6, z - 40.0, d - 0.5) for x, y, z, d in truths])
+    hologram = sphere_scene(truths, (80, 80))
+    starts = guess_table([(x + 0.8, y - 0.6, z - 40.0, d - 0.5) for x, y, z, d in truths])
     settings = {**FAST, "batch": 1, "rounds": 2}
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # as each worker runs
     try:
-        alone = refine_particles(hologram, starts, _config(), fixed={"absorption": 0.0}, settings=RefineSettings(**settings))
+        alone = refine_particles(hologram, starts, default_config(), fixed={"absorption": 0.0}, settings=RefineSettings(**settings))
     finally:
         torch.set_num_threads(threads)
     calls = []
-    pooled = refine_particles(hologram, starts, _config(), fixed={"absorption": 0.0}, settings=RefineSettings(**settings, workers=2),
+    pooled = refine_particles(hologram, starts, default_config(), fixed={"absorption": 0.0}, settings=RefineSettings(**settings, workers=2),
                               progress=lambda done, total: calls.append((time.perf_counter(), done, total)))
-    again = refine_particles(hologram, starts, _config(), fixed={"absorption": 0.0}, settings=RefineSettings(**settings, workers=2))
+    again = refine_particles(hologram, starts, default_config(), fixed={"absorption": 0.0}, settings=RefineSettings(**settings, workers=2))
     # run after run, and against one process on one thread: bit for bit
     pd.testing.assert_frame_equal(pooled, again, check_exact=True)
     pd.testing.assert_frame_equal(pooled, alone, check_exact=True)
@@ -383,7 +352,7 @@ def test_worker_processes_give_the_same_table_report_progress_and_stop_at_once()
         return len(asked) > 3  # after the workers started fitting
 
     with pytest.raises(Stopped):
-        refine_particles(hologram, starts, _config(), settings=RefineSettings(**settings, workers=2), should_stop=stop_soon)
+        refine_particles(hologram, starts, default_config(), settings=RefineSettings(**settings, workers=2), should_stop=stop_soon)
     assert time.perf_counter() - asked[-1] < 2.0 and not multiprocessing.active_children()
 
 
@@ -426,9 +395,9 @@ def test_a_detection_on_an_empty_patch_is_dropped():
     from napari_lbs._core import RefineSettings, refine_particles
 
     truth = (20.0 * PIXEL_UM, 20.0 * PIXEL_UM, 900.0, 18.0)
-    hologram = _scene([truth], (64, 140))
-    starts = _table([truth, (110.0 * PIXEL_UM, 30.0 * PIXEL_UM, 1000.0, 20.0)])  # the second sees only noise
-    out = refine_particles(hologram, starts, _config(), fixed={"absorption": 0.0}, settings=RefineSettings(**{**FAST, "rounds": 1}))
+    hologram = sphere_scene([truth], (64, 140))
+    starts = guess_table([truth, (110.0 * PIXEL_UM, 30.0 * PIXEL_UM, 1000.0, 20.0)])  # the second sees only noise
+    out = refine_particles(hologram, starts, default_config(), fixed={"absorption": 0.0}, settings=RefineSettings(**{**FAST, "rounds": 1}))
     assert len(out) == 1 and abs(out.x_um[0] - truth[0]) < 0.5
 
 
@@ -437,7 +406,7 @@ def test_bad_holograms_are_refused_in_one_line(hologram, culprit):
     from napari_lbs._core import InputError, refine_particles
 
     with pytest.raises(InputError) as error:
-        refine_particles(hologram, _table([(40.0, 40.0, 900.0, 18.0)]), _config())
+        refine_particles(hologram, guess_table([(40.0, 40.0, 900.0, 18.0)]), default_config())
     assert str(error.value).startswith(culprit) and "\n" not in str(error.value)
 
 
@@ -445,13 +414,26 @@ def test_bad_holograms_are_refused_in_one_line(hologram, culprit):
 def test_bad_tables_and_fixed_names_are_refused_in_one_line(change, culprit):
     from napari_lbs._core import InputError, refine_particles
 
-    table = _table([(40.0, 40.0, 900.0, 18.0)])
+    table = guess_table([(40.0, 40.0, 900.0, 18.0)])
     for name, values in change.items():
         table[name] = values
     with pytest.raises(InputError, match=culprit):
-        refine_particles(np.ones((40, 40)), table, _config())
+        refine_particles(np.ones((40, 40)), table, default_config())
     with pytest.raises(InputError, match="radius"):
-        refine_particles(np.ones((40, 40)), _table([(40.0, 40.0, 900.0, 18.0)]), _config(), fixed={"radius": 1.0})
+        refine_particles(np.ones((40, 40)), guess_table([(40.0, 40.0, 900.0, 18.0)]), default_config(), fixed={"radius": 1.0})
+
+
+@pytest.mark.parametrize(("settings", "fixed", "culprit"), [({"index_contrast": 3.0}, None, "refine settings: index_contrast"),
+                                                       ({"absorption": -0.1}, None, "refine settings: absorption"),
+                                                       ({"index_contrast": float("nan")}, None, "refine settings: index_contrast"),
+                                                       ({}, {"index_contrast": -1.2}, "fixed: index_contrast"),
+                                                       ({}, {"diameter_um": 0.0}, "fixed: diameter_um")])
+def test_starts_and_fixed_values_outside_the_fits_range_are_refused_in_one_line(settings, fixed, culprit):
+    from napari_lbs._core import InputError, RefineSettings, refine_particles
+
+    with pytest.raises(InputError) as error:
+        refine_particles(np.ones((40, 40)), guess_table([(40.0, 40.0, 900.0, 18.0)]), default_config(), fixed=fixed, settings=RefineSettings(**settings))
+    assert str(error.value).startswith(culprit) and "fit's range" in str(error.value) and "\n" not in str(error.value)
 
 
 @pytest.mark.parametrize("flags", [["--refine"], ["--material", "0.26"]])
@@ -468,12 +450,12 @@ def test_predict_refine_writes_the_refined_columns(tmp_path, monkeypatch, flags)
     from napari_lbs._core._io import read_particles
 
     truth = (36.3 * PIXEL_UM, 35.6 * PIXEL_UM, 900.0, 18.0)
-    tifffile.imwrite(tmp_path / "holo.tif", _scene([truth]).astype(np.float32))
+    tifffile.imwrite(tmp_path / "holo.tif", sphere_scene([truth]).astype(np.float32))
     guesses = {"x_um": np.array([truth[0] + 1.0]), "y_um": np.array([truth[1]]), "z_um": np.array([930.0]), "diameter_um": np.array([18.4]),
                "score": np.array([0.8]), "planes": np.array([3.0])}
 
     class Model:
-        config = _config()
+        config = default_config()
         meta = {"threshold": 0.5}
 
     thresholds = []
@@ -509,12 +491,12 @@ def test_predict_material_refines_every_frame_of_a_recording(tmp_path, monkeypat
     from napari_lbs._core._io import read_particles
 
     spheres = [(36.3 * PIXEL_UM, 35.6 * PIXEL_UM, 900.0, 18.0), (34.8 * PIXEL_UM, 37.1 * PIXEL_UM, 880.0, 18.0)]  # the sphere in frame 0, then 1
-    tifffile.imwrite(tmp_path / "rec.tif", np.stack([_scene([sphere], seed=i) for i, sphere in enumerate(spheres)]).astype(np.float32))
+    tifffile.imwrite(tmp_path / "rec.tif", np.stack([sphere_scene([sphere], seed=i) for i, sphere in enumerate(spheres)]).astype(np.float32))
     guesses = {"x_um": np.array([s[0] + 1.0 for s in spheres]), "y_um": np.array([s[1] for s in spheres]), "z_um": np.array([930.0, 910.0]),
                "diameter_um": np.array([18.4, 18.4]), "score": np.array([0.8, 0.8]), "frame": np.array([0, 1])}
 
     class Model:
-        config = _config()
+        config = default_config()
         meta = {"threshold": 0.5}
 
     def sequence(frames, model, config, **options):
@@ -536,8 +518,8 @@ def test_a_depth_300_um_off_is_recovered_by_the_depth_scan(offset_um):
     from napari_lbs._core import RefineSettings, refine_particles
 
     truth = (36.3 * PIXEL_UM, 35.6 * PIXEL_UM, 1500.0, 22.0)
-    start = _table([(truth[0] + 1.0, truth[1] - 0.8, truth[2] + offset_um, truth[3] + 0.8)])
-    out = refine_particles(_scene([truth]), start, _config(), fixed={"absorption": 0.0, "index_contrast": 0.26},
+    start = guess_table([(truth[0] + 1.0, truth[1] - 0.8, truth[2] + offset_um, truth[3] + 0.8)])
+    out = refine_particles(sphere_scene([truth]), start, default_config(), fixed={"absorption": 0.0, "index_contrast": 0.26},
                            settings=RefineSettings(**{**FAST, "depth_window_um": 400.0}))
     assert abs(out.z_um[0] - truth[2]) < 2.0 and abs(out.diameter_um[0] - truth[3]) < 0.3
 
@@ -546,8 +528,8 @@ def test_a_depth_shifted_twin_is_merged_into_its_particle():
     from napari_lbs._core import RefineSettings, refine_particles
 
     truth = (36.3 * PIXEL_UM, 35.6 * PIXEL_UM, 1500.0, 22.0)
-    starts = _table([(truth[0] + 0.5, truth[1], truth[2] + 10.0, 22.5), (truth[0] - 0.5, truth[1] + 0.4, truth[2] + 300.0, 21.5)])
-    out = refine_particles(_scene([truth]), starts, _config(), fixed={"absorption": 0.0, "index_contrast": 0.26},
+    starts = guess_table([(truth[0] + 0.5, truth[1], truth[2] + 10.0, 22.5), (truth[0] - 0.5, truth[1] + 0.4, truth[2] + 300.0, 21.5)])
+    out = refine_particles(sphere_scene([truth]), starts, default_config(), fixed={"absorption": 0.0, "index_contrast": 0.26},
                            settings=RefineSettings(**{**FAST, "depth_window_um": 400.0, "rounds": 1}))
     assert len(out) == 1 and abs(out.z_um[0] - truth[2]) < 2.0
 
