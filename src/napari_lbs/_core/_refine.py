@@ -154,6 +154,15 @@ class RefineSettings:
                 raise InputError(f"refine settings: {name} must be a positive integer, got {value!r}")
         if self.patch_px < 16:
             raise InputError(f"refine settings: patch_px must be at least 16, got {self.patch_px}")
+        for name in ("index_contrast", "absorption"):
+            _check_bounded(f"refine settings: {name}", name, getattr(self, name))
+
+
+def _check_bounded(label: str, name: str, value) -> None:
+    """A start or fixed value of a bounded parameter (`_BOUNDS`) inside the fit's range."""
+    low, high = _BOUNDS[name]
+    if not (isinstance(value, int | float) and math.isfinite(value) and low <= value <= high):
+        raise InputError(f"{label} must be a number from {low:g} to {high:g} (the fit's range), got {value!r}")
 
 
 @dataclass
@@ -209,6 +218,8 @@ def _check_fixed(fixed: Mapping[str, float] | None) -> dict[str, float]:
             raise InputError(f"fixed: unknown parameter {name!r} (expected one of {', '.join(FIT_PARAMETERS)})")
         if not (isinstance(value, int | float) and math.isfinite(value)):
             raise InputError(f"fixed: {name} must be a finite number, got {value!r}")
+        if name in _BOUNDS:
+            _check_bounded(f"fixed: {name}", name, value)
     return fixed
 
 
