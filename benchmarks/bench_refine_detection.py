@@ -62,6 +62,7 @@ from napari_lbs._core import (
 from napari_lbs._core._files import write_json
 from napari_lbs._core._metrics import match_particles
 from napari_lbs._core._pipeline import REFINE_PROPOSAL_FRACTION
+from napari_lbs._core._scene import residual_particles
 
 INDEX_CONTRAST = round(pseudoreal.N_PARTICLE - pseudoreal.N_MEDIUM, 3)
 WIDE_SIZES_UM = (16.0, 36.0)
@@ -144,7 +145,8 @@ def score(table: dict, truth: dict) -> tuple[dict, np.ndarray]:
     return row, pairs
 
 
-def evaluate(name: str, image: np.ndarray, truth: dict, model, config, *, tables: Path | None = None, rounds: int = RefineSettings().rounds) -> dict:
+def evaluate(name: str, image: np.ndarray, truth: dict, model, config, *, tables: Path | None = None, rounds: int = RefineSettings().rounds,
+             look_in_residual: bool = False) -> dict:
     import pandas as pd
 
     start, core = time.perf_counter(), _core_seconds()
@@ -163,6 +165,17 @@ def evaluate(name: str, image: np.ndarray, truth: dict, model, config, *, tables
     refined_frame = refine_particles(normalised, frame, config, settings=RefineSettings(rounds=rounds))
     refine_s, refine_core_s = time.perf_counter() - start, _core_seconds() - core
     refined = {c: refined_frame[c].to_numpy() for c in refined_frame.columns}
+    residual = None
+    if look_in_residual:
+        # as predict --refine: the network's proposals in the residual of the refined table, refined there
+        start, core = time.perf_counter(), _core_seconds()
+        threshold = REFINE_PROPOSAL_FRACTION * float(model.meta["threshold"])
+        found = residual_particles(image, refined_frame, config, propose=lambda residual_image: predict_particles(
+            residual_image, model, config, device="cpu", threshold=threshold).particles)
+        union = pd.concat([refined_frame, found.assign(network_row=-1)], ignore_index=True)
+        residual = {"found": len(found), "seconds": time.perf_counter() - start, "core_seconds": _core_seconds() - core,
+                    "rows": [{c: float(found[c][i]) for c in ("x_um", "y_um", "z_um", "diameter_um", "index_contrast", "fit_residual")} for i in range(len(found))]}
+        refined = {c: union[c].to_numpy() for c in union.columns}
 
     before, net_pairs = score(network, truth)
     after, ref_pairs = score(refined, truth)
@@ -209,6 +222,8 @@ def evaluate(name: str, image: np.ndarray, truth: dict, model, config, *, tables
         "refine_s_per_particle": refine_s / max(count, 1), "refine_core_s_per_particle": refine_core_s / max(count, 1),
         "refine_over_predict": refine_s / predict_s,
     }
+    if residual is not None:
+        result["residual"] = residual
     if tables is not None:
         tables.mkdir(parents=True, exist_ok=True)
         write_particles(tables / f"{name}_network.csv", network)
@@ -232,6 +247,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "results" / "refine" / f"detection_{datetime.date.today().isoformat()}.json")
     parser.add_argument("--tables", type=Path, help="folder for each hologram's network and refined tables (CSV)")
     parser.add_argument("--rounds", type=int, default=RefineSettings().rounds, help="fitting rounds (RefineSettings.rounds)")
+    parser.add_argument("--residual", action="store_true", help="also the particles found in the residual of the refined table (residual_particles)")
     args = parser.parse_args(argv)
     args.holograms.mkdir(parents=True, exist_ok=True)
     config = load_config(None)
@@ -241,7 +257,7 @@ def main(argv: list[str] | None = None) -> None:
     for name in args.only or SETS[args.set]:
         image, truth = hologram(args.holograms, name)
         load_before = os.getloadavg()
-        result = evaluate(name, image, truth, model, config, tables=args.tables, rounds=args.rounds)
+        result = evaluate(name, image, truth, model, config, tables=args.tables, rounds=args.rounds, look_in_residual=args.residual)
         result["load_average"] = [load_before, os.getloadavg()]
         report["results"].append(result)
         print(f"{name}: {result['truth']} spheres, {result['detections']} detections ({result['proposals']} proposals), {result['kept']} kept by the fit "
@@ -255,6 +271,8 @@ def main(argv: list[str] | None = None) -> None:
               f"proposals below the threshold kept {result['below_threshold_kept']} ({result['below_threshold_tp']} TP); "
               f"refine {result['refine_s_per_particle']:.2f} s/particle wall, {result['refine_core_s_per_particle']:.2f} core-s/particle, "
               f"{result['refine_over_predict']:.0f}x the network's {result['predict_s']:.1f} s; load {load_before[0]:.2f}", flush=True)
+        if "residual" in result:
+            print(f"  residual: {result['residual']['found']} particles found in {result['residual']['seconds']:.1f} s (in the refined rows above)", flush=True)
         args.out.parent.mkdir(parents=True, exist_ok=True)
         write_json(args.out, report)
     print(f"-> {args.out}", flush=True)

@@ -1,0 +1,159 @@
+"""The Lorenz–Mie hologram of a whole particle table, and what a hologram holds beyond it.
+
+A refined table (`refine_particles`) describes every sphere it kept by its position, depth,
+diameter, index contrast and absorption: `particle_hologram` renders their hologram over a
+whole frame, the fields of all spheres added coherently, so that dividing it out of the
+data (`residual_hologram`) leaves what the table does not explain — a particle the network
+did not propose (hidden by a neighbour's fringes, or of a size it never saw) among the
+remains of the fits.
+
+Each sphere is rendered inside the disc where its fringes lie below the pixel's Nyquist
+frequency (`_refine._patch_edge`, at most ``2 * patch_px`` pixels wide): beyond it the
+camera aliases the fringes and the fit does not model them either.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from napari_lbs._core._config import ExperimentConfig
+from napari_lbs._core._io import PARTICLE_COLUMNS, InputError
+from napari_lbs._core._lorenz_mie import holograms_from_fields, sphere_fields, term_count
+from napari_lbs._core._progress import ProgressCallback, StopCallback
+from napari_lbs._core._refine import RefineSettings, _check_table, _patch_edge, refine_particles
+
+__all__ = ["particle_hologram", "residual_hologram", "residual_particles"]
+
+
+def particle_hologram(shape: tuple[int, int], table, config: ExperimentConfig, *, settings: RefineSettings | None = None) -> np.ndarray:
+    """The normalised Lorenz–Mie hologram of the spheres of ``table`` on a frame of ``shape``.
+
+    Parameters
+    ----------
+    shape : (rows, cols)
+        The frame (pixels of ``config.optics.pixel_um``).
+    table : pandas.DataFrame or dict of arrays
+        ``x_um, y_um, z_um, diameter_um`` (depths in the config's convention) and, when
+        present, ``index_contrast`` and ``absorption`` (else ``settings``' starts): a refined
+        table as `refine_particles` returns it.
+    config : ExperimentConfig
+    settings : RefineSettings, optional
+        The medium's index, the pixel integration and the largest patch, as the fit used
+        them.
+
+    Returns
+    -------
+    (rows, cols) float64 array: ``|x̂ + Σ E_s|²`` with unobstructed light 1. Each sphere's
+    interference with the plane wave goes through its pixel transfer; the intensity of the
+    summed field adds last, so overlapping spheres interfere as fields do.
+    """
+    import pandas as pd
+
+    settings = settings or RefineSettings()
+    rows, cols = (int(n) for n in shape)
+    if rows < 1 or cols < 1:
+        raise InputError(f"particle hologram: expected a frame of at least one pixel, got shape {tuple(shape)}")
+    frame = _check_table(table)
+    optics = config.optics
+    pixel = optics.pixel_um
+    to_physical = settings.medium_index / optics.medium_index
+    column = lambda name, default: (pd.to_numeric(frame[name], errors="coerce").fillna(default).to_numpy(np.float64)
+                                    if name in frame else np.full(len(frame), default))
+    x, y = frame["x_um"].to_numpy(np.float64), frame["y_um"].to_numpy(np.float64)
+    z, diameter = frame["z_um"].to_numpy(np.float64) * to_physical, frame["diameter_um"].to_numpy(np.float64)
+    contrast, absorption = column("index_contrast", settings.index_contrast), column("absorption", settings.absorption)
+    cross = np.zeros((rows, cols))
+    summed = np.zeros((3, rows, cols), dtype=np.complex128)
+    optics_kw = {"wavelength_um": optics.wavelength_um, "medium_index": settings.medium_index}
+    wide = RefineSettings(medium_index=settings.medium_index, patch_px=2 * settings.patch_px)
+    for i in range(len(frame)):
+        edge = _patch_edge(z[i], settings=wide, wavelength_um=optics.wavelength_um, pixel_um=pixel)
+        half = edge // 2
+        c0, r0 = round(x[i] / pixel) - half, round(y[i] / pixel) - half
+        r_lo, r_hi, c_lo, c_hi = max(r0, 0), min(r0 + edge, rows), max(c0, 0), min(c0 + edge, cols)
+        if r_lo >= r_hi or c_lo >= c_hi:
+            continue  # a sphere whose fringes miss the frame
+        rr, cc = np.mgrid[r_lo:r_hi, c_lo:c_hi]
+        dx = torch.as_tensor(cc.reshape(1, -1) * pixel - x[i], dtype=torch.float64)
+        dy = torch.as_tensor(rr.reshape(1, -1) * pixel - y[i], dtype=torch.float64)
+        sphere = [torch.tensor([value], dtype=torch.float64) for value in (z[i], diameter[i], contrast[i], absorption[i])]
+        size = math.pi * settings.medium_index / optics.wavelength_um * diameter[i]
+        fields = sphere_fields(dx, dy, *sphere, terms=term_count(size, 1.0), **optics_kw)
+        single = holograms_from_fields(fields, dx, dy, sphere[0], pixel_um=pixel if settings.pixel_integration else None, **optics_kw)
+        own = sum(f.real**2 + f.imag**2 for f in fields)
+        block = (slice(r_lo, r_hi), slice(c_lo, c_hi))
+        cross[block] += (single - 1.0 - own).reshape(rr.shape).numpy()
+        for axis in range(3):
+            summed[(axis, *block)] += fields[axis].reshape(rr.shape).numpy()
+    return 1.0 + cross + np.sum(summed.real**2 + summed.imag**2, axis=0)
+
+
+def residual_hologram(hologram: np.ndarray, table, config: ExperimentConfig, *, settings: RefineSettings | None = None,
+                      background: np.ndarray | None = None) -> np.ndarray:
+    """``hologram`` less the hologram of ``table``'s spheres, in its own units.
+
+    The data is divided by ``background`` (else by its mean, as `refine_particles` sees it
+    from ``napari-lbs predict --refine``); the spheres' terms, ``particle_hologram - 1``,
+    are taken away there and the result multiplied back, so a network or a fit sees the
+    hologram the table's spheres would leave without them.
+    """
+    image = np.asarray(hologram, dtype=np.float64)
+    if image.ndim != 2:
+        raise InputError(f"hologram: expected a 2-D image, got shape {image.shape}")
+    scale = np.asarray(background, dtype=np.float64) if background is not None else float(np.mean(image))
+    model = particle_hologram(image.shape, table, config, settings=settings)
+    return (image / scale - (model - 1.0)) * scale
+
+
+def residual_particles(hologram: np.ndarray, table, config: ExperimentConfig, *, propose, settings: RefineSettings | None = None,
+                       background: np.ndarray | None = None, progress: ProgressCallback | None = None, should_stop: StopCallback | None = None):
+    """Particles the residual of a refined ``table`` holds: proposed there, refined there.
+
+    Parameters
+    ----------
+    hologram : (rows, cols) array
+        The hologram ``table`` was refined on, in its own units.
+    table : pandas.DataFrame
+        A refined table (`refine_particles`), every scatterer it kept.
+    config : ExperimentConfig
+    propose : callable
+        ``propose(image)`` -> a particle table of guesses for a hologram in ``hologram``'s
+        units: the network's proposals (`predict_particles` down to its proposal threshold).
+    settings : RefineSettings, optional
+        How the table was refined; the new particles are refined the same way.
+    background : (rows, cols) array, optional
+        As `residual_hologram`.
+    progress, should_stop
+        Passed to the refinement (one step per batch).
+
+    Returns
+    -------
+    pandas.DataFrame
+        The new particles as `refine_particles` returns them, less those that refit onto a
+        particle of ``table`` (within a quarter of the smaller diameter laterally and two
+        diameters in depth: what the table's fit left of it). Their models hold the table's
+        spheres, as the residual has them taken out, so a particle hidden in a neighbour's
+        fringes or along its line of sight is fitted against the data its neighbours leave.
+    """
+    import pandas as pd
+
+    settings = settings or RefineSettings()
+    image = np.asarray(hologram, dtype=np.float64)
+    scale = np.asarray(background, dtype=np.float64) if background is not None else float(np.mean(image))
+    kept = pd.DataFrame(table).reset_index(drop=True)
+    residual = residual_hologram(image, kept, config, settings=settings, background=background)
+    guesses = pd.DataFrame({name: np.asarray(values) for name, values in dict(propose(residual)).items()})
+    if guesses.empty:
+        guesses = pd.DataFrame({name: np.empty(0) for name in PARTICLE_COLUMNS})
+    found = refine_particles(residual / scale, guesses, config, settings=settings, progress=progress, should_stop=should_stop)
+    if found.empty or kept.empty:
+        return found
+    lateral = np.hypot(found["x_um"].to_numpy()[:, None] - kept["x_um"].to_numpy()[None], found["y_um"].to_numpy()[:, None] - kept["y_um"].to_numpy()[None])
+    smaller = np.minimum(found["diameter_um"].to_numpy()[:, None], kept["diameter_um"].to_numpy()[None])
+    # the table's depths are in the config's convention, the diameters in the medium (as `_refine._duplicates` compares them)
+    depth = np.abs(found["z_um"].to_numpy()[:, None] - kept["z_um"].to_numpy()[None]) * settings.medium_index / config.optics.medium_index
+    twin = ((lateral < 0.25 * smaller) & (depth < 2.0 * smaller)).any(axis=1)
+    return found[~twin].reset_index(drop=True)

@@ -1,0 +1,60 @@
+"""The Lorenz–Mie hologram of a particle table over a whole frame, and the residual it leaves."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from sphere_scenes import PIXEL_UM, WATER, WAVELENGTH_UM, default_config, guess_table, sphere_scene
+
+from napari_lbs._core import InputError
+from napari_lbs._core._lorenz_mie import sphere_fields, sphere_holograms
+from napari_lbs._core._scene import particle_hologram, residual_hologram
+
+
+def test_one_sphere_is_its_lorenz_mie_hologram_inside_its_fringe_disc_and_light_outside():
+    shape = (300, 300)
+    x, y, z, d = 120.0 * PIXEL_UM, 150.0 * PIXEL_UM, 1500.0, 22.0
+    rendered = particle_hologram(shape, guess_table([(x, y, z, d)]), default_config())
+    rows, cols = np.mgrid[0 : shape[0], 0 : shape[1]] * PIXEL_UM
+    exact = sphere_holograms(torch.tensor(cols.ravel() - x)[None], torch.tensor(rows.ravel() - y)[None], torch.tensor([z * WATER]), torch.tensor([d]),
+                             torch.tensor([0.26]), torch.tensor([0.0]), wavelength_um=WAVELENGTH_UM, medium_index=WATER, pixel_um=PIXEL_UM)[0].numpy().reshape(shape)
+    inside = rendered != 1.0
+    assert inside[150, 120] and not inside[0, 299]  # the centre is rendered, a far corner is not
+    # the partial waves stop at the scattered field's count, not at the internal field's: 1e-7
+    np.testing.assert_allclose(rendered[inside], exact[inside], rtol=0, atol=1e-6)
+    assert np.max(np.abs(exact[~inside] - 1.0)) < 0.1  # what is left out: faint, aliased fringes
+
+
+def test_overlapping_spheres_add_as_fields():
+    table = guess_table([(60.0 * PIXEL_UM, 60.0 * PIXEL_UM, 900.0, 25.0), (70.0 * PIXEL_UM, 64.0 * PIXEL_UM, 1100.0, 20.0)])
+    rendered = particle_hologram((120, 120), table, default_config(), settings=None)
+    # near both centres: each sphere's own hologram, plus the cross term of their fields 2 Re(E1 · E2*)
+    rows, cols = np.mgrid[50:80, 50:80] * PIXEL_UM
+    fields = [sphere_fields(torch.tensor(cols.ravel() - x)[None], torch.tensor(rows.ravel() - y)[None], torch.tensor([z * WATER]), torch.tensor([d]),
+                            torch.tensor([0.26]), torch.tensor([0.0]), wavelength_um=WAVELENGTH_UM, medium_index=WATER)
+              for x, y, z, d in table.itertuples(index=False)]
+    singles = [particle_hologram((120, 120), table.iloc[[i]], default_config())[50:80, 50:80] for i in range(2)]
+    coherent = sum(2.0 * (f1 * f2.conj()).real for f1, f2 in zip(fields[0], fields[1], strict=True))[0].numpy().reshape(30, 30)
+    np.testing.assert_allclose(rendered[50:80, 50:80], singles[0] + singles[1] - 1.0 + coherent, rtol=0, atol=1e-6)
+    assert np.max(np.abs(coherent)) > 1e-3  # the field cross term is not negligible here
+
+
+def test_the_residual_of_a_scene_by_its_own_table_is_its_noise():
+    particles = [(70.0 * PIXEL_UM, 80.0 * PIXEL_UM, 900.0, 24.0)]
+    hologram = sphere_scene(particles, shape=(150, 150), noise=0.01, seed=4)
+    table = guess_table([p[:4] for p in particles])
+    residual = residual_hologram(hologram * 80.0, table, default_config(), background=np.full(hologram.shape, 80.0))
+    rendered = particle_hologram(hologram.shape, table, default_config()) != 1.0  # inside the spheres' fringe discs
+    assert np.std(hologram[rendered] - 1.0) > 0.05
+    assert np.std(residual[rendered] / 80.0 - 1.0) < 0.0105  # the noise's 0.01
+
+
+@pytest.mark.parametrize(("shape", "culprit"), [((0, 10), "shape"), ((10, 10, 3), "2-D")])
+def test_bad_frames_are_refused_in_one_line(shape, culprit):
+    table = guess_table([(1.0, 1.0, 800.0, 20.0)])
+    with pytest.raises(InputError, match=culprit):
+        if len(shape) == 2:
+            particle_hologram(shape, table, default_config())
+        else:
+            residual_hologram(np.ones(shape), table, default_config())
