@@ -472,7 +472,9 @@ def test_predict_refine_writes_the_refined_columns(tmp_path, monkeypatch, flags)
 
     material = {"index_contrast": 0.26} if "--material" in flags else {}
     assert made == [{"device": "cpu", "workers": available_threads(), **material}]  # the fit runs where the prediction did, a process per core
-    assert thresholds == [0.4]  # the network proposes down to 0.8 of its threshold: the fit checks them
+    # the network proposes down to 0.8 of its threshold (the fit checks them), then again in
+    # the refined table's residual, where the stub's same guess finds nothing more
+    assert thresholds == [0.4, 0.4]
     header = (tmp_path / "p.csv").read_text().splitlines()[0].split(",")
     assert header[:12] == ["x_um", "y_um", "z_um", "diameter_um", "index_contrast", "absorption", "z_err_um", "diameter_err_um", "index_err", "fit_residual",
                            "refined", "outside_training"]
@@ -480,6 +482,7 @@ def test_predict_refine_writes_the_refined_columns(tmp_path, monkeypatch, flags)
     table, record = read_particles(tmp_path / "p.csv"), json.loads((tmp_path / "p.json").read_text())["refine"]
     assert len(table["x_um"]) == 1 and abs(table["z_um"][0] - truth[2]) < 3.0 and abs(table["index_contrast"][0] - 0.26) < 0.02
     assert record.get("material", {}).get("other_material") == (0 if material else None)
+    assert record["residual"]["proposals"] == 1 and record["residual"]["found"] == 0
 
 
 def test_predict_material_refines_every_frame_of_a_recording(tmp_path, monkeypatch):
@@ -487,7 +490,7 @@ def test_predict_material_refines_every_frame_of_a_recording(tmp_path, monkeypat
     import tifffile
 
     from napari_lbs import _cli
-    from napari_lbs._core import _network, _refine, _sequence
+    from napari_lbs._core import _network, _prediction, _refine, _sequence
     from napari_lbs._core._io import read_particles
 
     spheres = [(36.3 * PIXEL_UM, 35.6 * PIXEL_UM, 900.0, 18.0), (34.8 * PIXEL_UM, 37.1 * PIXEL_UM, 880.0, 18.0)]  # the sphere in frame 0, then 1
@@ -505,12 +508,16 @@ def test_predict_material_refines_every_frame_of_a_recording(tmp_path, monkeypat
 
     monkeypatch.setattr(_network, "load_model", lambda *a, **k: Model())
     monkeypatch.setattr(_sequence, "predict_sequence", sequence)
+    # the second look, in each frame's residual: the first frame's guess again, explained there already
+    first = {name: values[:1] for name, values in guesses.items() if name != "frame"}
+    monkeypatch.setattr(_prediction, "predict_particles", lambda *a, **k: _prediction.PredictionResult(first, {"model_sha256": "stub"}, 0.1))
     settings = _refine.RefineSettings
     monkeypatch.setattr(_refine, "RefineSettings", lambda **options: settings(**{**FAST, **options}))
     assert _cli.main(["predict", str(tmp_path / "rec.tif"), "--model", "m.pt", "--out", str(tmp_path / "p.csv"), "--material", "0.26", "--device", "cpu"]) == 0
     table, record = read_particles(tmp_path / "p.csv"), json.loads((tmp_path / "p.json").read_text())["refine"]
     assert table["frame"].tolist() == [0, 1] and np.allclose(table["z_um"], [900.0, 880.0], atol=3.0)
     assert record["detections"] == 2 and record["kept"] == 2 and record["material"]["other_material"] == 0 and record["material"]["index_contrast"] == 0.26
+    assert record["residual"]["proposals"] == 2 and record["residual"]["found"] == 0
 
 
 @pytest.mark.parametrize("offset_um", [300.0, -300.0])

@@ -58,3 +58,27 @@ def test_bad_frames_are_refused_in_one_line(shape, culprit):
             particle_hologram(shape, table, default_config())
         else:
             residual_hologram(np.ones(shape), table, default_config())
+
+
+def test_a_sphere_the_table_misses_is_found_in_its_residual_and_the_tables_own_is_not_found_twice():
+    from sphere_scenes import FAST
+
+    from napari_lbs._core import RefineSettings, refine_particles
+    from napari_lbs._core._scene import residual_particles
+
+    known, missed = (40.0 * PIXEL_UM, 42.0 * PIXEL_UM, 900.0, 20.0), (78.0 * PIXEL_UM, 74.0 * PIXEL_UM, 1100.0, 24.0)
+    hologram = sphere_scene([known, missed], shape=(120, 120), noise=0.01, seed=5)
+    settings = RefineSettings(**FAST)
+    table = refine_particles(hologram, guess_table([(known[0] + 1.0, known[1] - 1.0, 920.0, 20.5)]), default_config(), settings=settings)
+    looked = []
+
+    def propose(image):  # a network that proposes both spheres in the residual
+        looked.append(image)
+        return {"x_um": np.array([known[0], missed[0] - 1.5]), "y_um": np.array([known[1], missed[1] + 1.0]), "z_um": np.array([900.0, 1080.0]),
+                "diameter_um": np.array([20.0, 23.0]), "score": np.array([0.5, 0.4])}
+
+    found = residual_particles(hologram, table, default_config(), propose=propose, settings=settings)
+    assert len(looked) == 1 and np.std(looked[0][20:60, 20:60]) < 0.5 * np.std(hologram[20:60, 20:60])  # the known sphere is taken out
+    assert len(found) == 1
+    assert abs(found.x_um[0] - missed[0]) < 0.5 and abs(found.y_um[0] - missed[1]) < 0.5 and abs(found.z_um[0] - missed[2]) < 5.0
+    assert abs(found.diameter_um[0] - missed[3]) < 0.5 and abs(found.index_contrast[0] - 0.26) < 0.02 and bool(found.refined[0])

@@ -153,7 +153,8 @@ def test_generate_train_predict_widgets_from_data_to_points(make_napari_viewer, 
     run_to_end(qtbot, predict)
     refined = viewer.layers[-1]
     assert refined is not points and {"index_contrast", "z_err_um", "refined"} <= set(refined.features.columns)
-    assert refined.metadata["provenance"]["refine"]["detections"] >= len(refined.data)
+    fit = refined.metadata["provenance"]["refine"]
+    assert fit["detections"] >= fit["kept"] and fit["kept"] + fit["residual"]["found"] == len(refined.data)
     assert refined.metadata["provenance"]["threshold"] == 0.8 * refined.metadata["provenance"]["model_threshold"]
     predict.colour_by.value = "index_contrast"
     assert refined.border_color.shape == (len(refined.data), 4)

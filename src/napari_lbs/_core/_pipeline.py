@@ -541,18 +541,30 @@ def _proposal_threshold(meta: dict, threshold: float | None) -> float:
     return float(threshold) if threshold is not None else REFINE_PROPOSAL_FRACTION * float(meta["threshold"])
 
 
+def _network_proposals(model, config: ExperimentConfig | None, *, threshold: float, device: str, precision: str, force: bool, progress, should_stop):
+    """``propose(image)``: the network's proposals (down to ``threshold``) in a background-normalised image, for `residual_particles`."""
+    from napari_lbs._core._prediction import predict_particles
+
+    return lambda image: predict_particles(image, model, config, device=device, precision=precision, force=force, threshold=threshold, progress=progress,
+                                           should_stop=should_stop).particles
+
+
 def refined_prediction(hologram: np.ndarray, model, config: ExperimentConfig | None = None, *, background: np.ndarray | None = None, device: str = "auto",
                        precision: str = "auto", force: bool = False, threshold: float | None = None, material_index_contrast: float | None = None,
                        progress: ProgressCallback | None = None, should_stop: StopCallback | None = None):
     """`predict_particles` down to `REFINE_PROPOSAL_FRACTION` of the model's threshold (or ``threshold``), then `refine_particles`.
 
-    The fit sees the hologram divided by ``background``, else by its mean. Returns a
-    `PredictionResult` whose particles are the refined table (`REFINE_COLUMNS` after the
-    first four) and whose provenance gains ``refine`` (settings, counts, seconds). With
+    The fit sees the hologram divided by ``background``, else by its mean. The network then
+    looks again in what the refined table leaves unexplained (`residual_particles`: spheres
+    hidden in their neighbours' fringes, sizes it scored low), and the sample's particles
+    the fit measures there join the table. Returns a `PredictionResult` whose particles are
+    the refined table (`REFINE_COLUMNS` after the first four) and whose provenance gains
+    ``refine`` (settings, counts, seconds; ``residual``: the second look's proposals, finds
+    and seconds). With
     ``material_index_contrast`` (the sample's ``n_p - n_m``) the fits start there and the
     particles of another material (`same_material`) leave the table for the provenance's
     ``refine.material.other_particles``. ``progress`` counts the prediction's planes, then
-    the fit's batches.
+    the fit's batches, then the same for the second look.
     """
     import numpy as np
 
@@ -561,11 +573,14 @@ def refined_prediction(hologram: np.ndarray, model, config: ExperimentConfig | N
 
     started = time.perf_counter()
     model = model if isinstance(model, LoadedModel) else load_model(model, device=device)
+    proposal = _proposal_threshold(model.meta, threshold)
     result = predict_particles(hologram, model, config, background=background, device=device, precision=precision, force=force,
-                               threshold=_proposal_threshold(model.meta, threshold), progress=progress, should_stop=should_stop)
+                               threshold=proposal, progress=progress, should_stop=should_stop)
     normalised = np.asarray(hologram, dtype=np.float64) / (background if background is not None else float(np.mean(hologram)))
-    particles, record = _refined(normalised, result.particles, config or model.config, material=material_index_contrast, device=device, progress=progress,
+    propose = _network_proposals(model, config, threshold=proposal, device=device, precision=precision, force=force, progress=progress,
                                  should_stop=should_stop)
+    particles, record = _refined(normalised, result.particles, config or model.config, material=material_index_contrast, device=device, propose=propose,
+                                 progress=progress, should_stop=should_stop)
     return PredictionResult(particles, {**result.provenance, "refine": record}, time.perf_counter() - started)
 
 
@@ -630,13 +645,13 @@ def predict(request: PredictRequest, *, progress: ProgressCallback | None = None
 
 def _refine_summary(record: dict) -> str:
     """What the fit did, for a prediction's one-line summary."""
-    line = f", {record['kept']} kept by the fit in {record['seconds']:.1f} s"
+    line = f", {record['kept']} kept by the fit in {record['seconds']:.1f} s, {record['residual']['found']} more found in its residual"
     if "material" in record:
         line += f", {record['material']['other_material']} of another material than {record['material']['index_contrast']:g} left out"
     return line
 
 
-def _refined_frames(frames, particles: dict, config: ExperimentConfig, *, background, material: float | None, device: str, log: Log, progress,
+def _refined_frames(frames, particles: dict, config: ExperimentConfig, *, background, material: float | None, device: str, propose, log: Log, progress,
                     should_stop) -> tuple[dict, dict]:
     """Each frame's rows of a recording's table refined on that frame (divided by the background file, else by its mean)."""
     import numpy as np
@@ -648,12 +663,15 @@ def _refined_frames(frames, particles: dict, config: ExperimentConfig, *, backgr
         hologram = np.asarray(frames.read(int(index), log=log), dtype=np.float64)
         divisor = background if isinstance(background, np.ndarray) else float(hologram.mean())
         table, record = _refined(hologram / divisor, {name: np.asarray(values)[rows] for name, values in particles.items()}, config, material=material, device=device,
-                                 progress=progress, should_stop=should_stop)
+                                 propose=propose, progress=progress, should_stop=should_stop)
+        if len(table["x_um"]) and "frame" in table:
+            table["frame"] = np.full(len(table["x_um"]), index, dtype=np.asarray(particles["frame"]).dtype)
         parts.append(table)
         records.append(record)
     merged = {name: np.concatenate([part[name] for part in parts]) for name in parts[0]} if parts else particles
     summary = {"settings": records[0]["settings"] if records else None, "detections": sum(r["detections"] for r in records),
-               "kept": sum(r["kept"] for r in records), "seconds": sum(r["seconds"] for r in records)}
+               "kept": sum(r["kept"] for r in records), "seconds": sum(r["seconds"] for r in records),
+               "residual": {key: sum(r["residual"][key] for r in records) for key in ("proposals", "found", "seconds")}}
     if material is not None:
         from napari_lbs._core._material import MATERIAL_SIGMAS, MATERIAL_TOLERANCE
 
@@ -664,14 +682,17 @@ def _refined_frames(frames, particles: dict, config: ExperimentConfig, *, backgr
     return merged, summary
 
 
-def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, *, material: float | None, device: str, progress, should_stop) -> tuple[dict, dict]:
-    """The particle table refined by `refine_particles` (as a dict of arrays), of the ``material`` where given, and its provenance."""
+def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, *, material: float | None, device: str, propose, progress,
+             should_stop) -> tuple[dict, dict]:
+    """The particle table refined by `refine_particles`, with the finds in its residual (`residual_particles`, ``propose``), of the ``material`` where given (as a dict of arrays), and its provenance."""
     from dataclasses import asdict
 
+    import numpy as np
     import pandas as pd
 
     from napari_lbs._core._material import MATERIAL_SIGMAS, MATERIAL_TOLERANCE, same_material
     from napari_lbs._core._refine import RefineSettings, refine_particles
+    from napari_lbs._core._scene import residual_particles
     from napari_lbs._core._threads import available_threads
 
     # the prediction's device (CUDA where it ran there); on the CPU one fitting process per core;
@@ -680,6 +701,18 @@ def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, *,
     started = time.perf_counter()
     table = refine_particles(hologram, pd.DataFrame(particles), config, settings=settings, progress=progress, should_stop=should_stop)
     record = {"settings": asdict(settings), "detections": len(particles["x_um"]), "kept": len(table), "seconds": time.perf_counter() - started}
+    started = time.perf_counter()
+    proposals = []
+
+    def counted(image):
+        proposals.append(propose(image))
+        return proposals[-1]
+
+    if len(table):  # with nothing refined, the residual is the hologram the network has seen
+        found = residual_particles(hologram, table, config, propose=counted, settings=settings, background=np.ones(hologram.shape), progress=progress,
+                                   should_stop=should_stop)
+        table = pd.concat([table, found], ignore_index=True) if len(found) else table
+    record["residual"] = {"proposals": len(proposals[0]["x_um"]) if proposals else 0, "found": len(table) - record["kept"], "seconds": time.perf_counter() - started}
     if material is not None:
         member = same_material(table, index_contrast=material, tolerance=MATERIAL_TOLERANCE, sigmas=MATERIAL_SIGMAS)
         record["material"] = {"index_contrast": float(material), "tolerance": MATERIAL_TOLERANCE, "sigmas": MATERIAL_SIGMAS, "other_material": int((~member).sum()),
@@ -704,8 +737,10 @@ def _predict_recording(request: PredictRequest, frames, out: Path, record_path: 
                               should_stop=should_stop)
     particles, provenance = result.particles, dict(result.provenance)
     if refine:
+        propose = _network_proposals(model, request.config, threshold=_proposal_threshold(model.meta, request.threshold), device=request.device,
+                                     precision=request.precision, force=request.force, progress=progress, should_stop=should_stop)
         particles, provenance["refine"] = _refined_frames(frames, particles, request.config or model.config, background=background,
-                                                          material=request.material_index_contrast, device=request.device, log=log,
+                                                          material=request.material_index_contrast, device=request.device, propose=propose, log=log,
                                                           progress=progress, should_stop=should_stop)
     _write_table(out, record_path, particles, {**provenance, "background_file": request.background_path, "particles": str(out)})
     shutil.rmtree(work_dir)
@@ -1020,8 +1055,9 @@ def demo(request: DemoRequest, *, progress_for: Callable[[str], ProgressCallback
                                        material_index_contrast=DEMO_SAMPLE_EFFECTS["particle_phase"]["index_contrast"]), progress=progress_for("predict"))
     result = predicted.value
     refined = result.provenance["refine"]
-    timings["predict"] = result.seconds - refined["seconds"]
+    timings["predict"] = result.seconds - refined["seconds"] - refined["residual"]["seconds"]
     timings["refine"] = refined["seconds"]
+    timings["residual"] = refined["residual"]["seconds"]
     best = trained.log["best"]
     validation = next(e for e in trained.log["epochs"] if e["epoch"] == best["epoch"])["validation"]
     z_um = stacked.value
@@ -1042,8 +1078,8 @@ def demo(request: DemoRequest, *, progress_for: Callable[[str], ProgressCallback
         "validation": {key: validation.get(key) for key in ("er", "ji", "tp", "fp", "fn", "threshold", "axial_um", "median_abs_dz_um", "median_abs_dd_um")},
         "particles": str(predicted.paths[0]),
         "particle_count": len(result.particles["x_um"]),
-        "refine": {"proposals": refined["detections"], "kept_by_fit": refined["kept"], "material_index_contrast": refined["material"]["index_contrast"],
-                   "other_material": refined["material"]["other_material"]},
+        "refine": {"proposals": refined["detections"], "kept_by_fit": refined["kept"], "found_in_residual": refined["residual"]["found"],
+                   "material_index_contrast": refined["material"]["index_contrast"], "other_material": refined["material"]["other_material"]},
         "seconds": {key: round(value, 2) for key, value in timings.items()},
         "sample": SAMPLE_PROVENANCE,
         "quick": bool(request.quick),
@@ -1052,6 +1088,6 @@ def demo(request: DemoRequest, *, progress_for: Callable[[str], ProgressCallback
     line = (f"demo: calibration SSIM {calibration['ssim']:.3f} ({'used' if request.calibrated else 'recorded; --calibrated trains on it'}), {data}, "
             f"trained the {training.formulation} formulation ({training.preset}, {trained.log['seconds']:.0f} s; "
             f"validated on {len(trained.log['validation_groups'])} held-out synthetic groups: ER {100 * validation['er']:.1f} %, JI {validation['ji']:.3f}), "
-            f"found {summary['particle_count']} particles in the built-in hologram ({refined['detections']} proposals fitted, {refined['material']['other_material']} "
-            f"of another material set apart) -> {out}")
+            f"found {summary['particle_count']} particles in the built-in hologram ({refined['detections']} proposals fitted, {refined['residual']['found']} more found "
+            f"in the fit's residual, {refined['material']['other_material']} of another material set apart) -> {out}")
     return StepResult(line, summary, (predicted.paths[0], out / "summary.json"))

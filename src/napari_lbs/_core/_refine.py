@@ -345,6 +345,10 @@ class _Model:
         """Holograms (K·B, P) of K stacked copies of the batch's parameters (K·B rows); the copies share the first one's centre."""
         return self._holograms(*self._profiles(params, step=step))
 
+    def with_terms(self, terms: int) -> _Model:
+        """The same model summing at least ``terms`` partial waves (for larger spheres than it was made for)."""
+        return self if terms <= self.terms else _Model(self.patches, self.others, pixel_um=self.pixel_um, terms=terms, **self.optics)
+
     def select(self, rows: torch.Tensor) -> _Model:
         """The model of some of the batch's patches (their rows)."""
         p = self.patches
@@ -531,6 +535,7 @@ _VALLEY_PRIOR = 16.0  # robust-cost units (half noise variances) per squared pha
 # size–index grid at each candidate depth: diameters around the start, and for each the
 # index contrasts whose phase delay k0 d Δn steps through one period on each side
 _GRID_DIAMETER_UM = tuple(0.4 * j for j in range(-9, 10))
+_GRID_OUTER_DIAMETER_UM = tuple(0.4 * j for j in (*range(-20, -9), *range(10, 21)))  # where a best size lies on the grid's edge
 _GRID_DELAY_PERIODS = tuple(j / 4 for j in range(-4, 5))
 # the valley profile: size parameter k a along the line of constant phase delay, the
 # neighbouring valleys, and the delay and depth offsets each point is minimised over
@@ -780,8 +785,9 @@ def _ring_search(rings: _Rings, params: torch.Tensor, free: torch.Tensor, scale:
 
     The depth is scanned over ``±window_um`` in steps that move the outermost ring's fringe
     by one radian; its ``depth_candidates`` best local minima are refined by a scan a
-    quarter step apart; at each, diameters ±3.6 µm and index contrasts one phase-delay
-    period on each side (quarter periods) are compared, the valleys away from the starting
+    quarter step apart; at each, diameters ±3.6 µm (±8 µm where the best lies on that
+    grid's edge) and index contrasts one phase-delay period on each side (quarter periods)
+    are compared, the valleys away from the starting
     index paying `_VALLEY_PRIOR` per period²; at the best, the depth is scanned finely again.
     """
     k = 2.0 * math.pi * model.optics["medium_index"] / model.optics["wavelength_um"]
@@ -815,17 +821,31 @@ def _ring_search(rings: _Rings, params: torch.Tensor, free: torch.Tensor, scale:
     kk = depths.shape[1]
     candidates = torch.stack([depths, d[:, None].expand(-1, kk), n[:, None].expand(-1, kk)], dim=-1)  # (B, K, 3)
     if bool(free[:, 3].any() or free[:, 4].any()):
-        d_steps = torch.tensor(_GRID_DIAMETER_UM, dtype=torch.float64, device=device)
         delays = torch.tensor(_GRID_DELAY_PERIODS, dtype=torch.float64, device=device) * wavelength
-        diameters = torch.where(free[:, 3:4], torch.clamp(d[:, None] + d_steps, min=_BOUNDS["diameter_um"][0]), d[:, None])  # (B, D)
-        contrasts = torch.where(free[:, 4:5, None], ((d * n)[:, None, None] + delays) / diameters[:, :, None], n[:, None, None])  # (B, D, N)
-        spheres = torch.stack([diameters[:, :, None].expand_as(contrasts), contrasts, kappa[:, None, None].expand_as(contrasts)], dim=-1).reshape(count, -1, 3)
-        steps.check()
-        costs = _ring_costs(rings, depths, spheres, scale, model=model)  # (B, K, S)
-        valleys = (spheres[:, :, 1] - start_index[:, None]) / (wavelength / spheres[:, :, 0])
-        costs = costs + _VALLEY_PRIOR * (valleys**2 * free[:, 4:5].to(torch.float64))[:, None, :]
+
+        def grid(offsets_um) -> tuple[torch.Tensor, torch.Tensor]:
+            """The spheres (B, S, 3) of the size–index grid at diameter offsets ``offsets_um`` and their costs (B, K, S), valley prior included."""
+            d_steps = torch.tensor(offsets_um, dtype=torch.float64, device=device)
+            diameters = torch.where(free[:, 3:4], torch.clamp(d[:, None] + d_steps, min=_BOUNDS["diameter_um"][0]), d[:, None])  # (B, D)
+            contrasts = torch.where(free[:, 4:5, None], ((d * n)[:, None, None] + delays) / diameters[:, :, None], n[:, None, None])  # (B, D, N)
+            spheres = torch.stack([diameters[:, :, None].expand_as(contrasts), contrasts, kappa[:, None, None].expand_as(contrasts)], dim=-1).reshape(count, -1, 3)
+            steps.check()
+            costs = _ring_costs(rings, depths, spheres, scale, model=model)  # (B, K, S)
+            valleys = (spheres[:, :, 1] - start_index[:, None]) / (wavelength / spheres[:, :, 0])
+            return spheres, costs + _VALLEY_PRIOR * (valleys**2 * free[:, 4:5].to(torch.float64))[:, None, :]
+
+        spheres, costs = grid(_GRID_DIAMETER_UM)
         best = torch.argmin(costs, dim=2)  # (B, K)
         chosen = torch.gather(spheres, 1, best[:, :, None].expand(-1, -1, 3))
+        # a best size on the grid's edge lies beyond it (a network's guess for a size it never
+        # saw is up to 8 µm off): the outer grid too, for the batch
+        edge = free[:, 3:4] & ((chosen[:, :, 0] - d[:, None]).abs() >= max(_GRID_DIAMETER_UM) - 1e-9)
+        if bool(edge.any()):
+            model = model.with_terms(_scattered_terms(float(d.max()) + max(_GRID_OUTER_DIAMETER_UM), **model.optics))
+            outer_spheres, outer_costs = grid(_GRID_OUTER_DIAMETER_UM)
+            outer_best = torch.argmin(outer_costs, dim=2)
+            better = torch.gather(outer_costs, 2, outer_best[:, :, None])[:, :, 0] < torch.gather(costs, 2, best[:, :, None])[:, :, 0]
+            chosen = torch.where(better[:, :, None], torch.gather(outer_spheres, 1, outer_best[:, :, None].expand(-1, -1, 3)), chosen)
         candidates = torch.stack([depths, chosen[:, :, 0], chosen[:, :, 1]], dim=-1)
     # every candidate followed down its valley, then the best (the valley prior as above)
     grow = lambda t: t.repeat_interleave(kk, dim=0)
@@ -999,6 +1019,17 @@ def _valley_profile(fine: _Patches, model: _Model, final: torch.Tensor, cost: to
     return final, cost, profile
 
 
+def _scattered_terms(diameter_um: float, *, wavelength_um: float, medium_index: float) -> int:
+    """Partial waves for spheres up to ``diameter_um``: Wiscombe's count for one 15 % larger.
+
+    A fit moves a sphere's size by a few per cent past its start; at the count's own size the
+    coefficients left out change the hologram by less than 2e-9, 2 µm beyond it by up to 4e-3
+    (measured, 30-44 µm polystyrene in water). The |m x| floor of `term_count` concerns the
+    internal field, not the scattered one.
+    """
+    return term_count(math.pi * medium_index / wavelength_um * diameter_um * 1.15, 1.0)
+
+
 def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of, *, anchor: np.ndarray, search: bool, settings: RefineSettings,
                config: ExperimentConfig, terms: int, device, steps: Steps) -> dict[str, np.ndarray]:
     """Fit one batch of particles from (B, 6) physical starting parameters; arrays per particle.
@@ -1055,6 +1086,9 @@ def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of
         params[:, 2:5] = _ring_search(rings, params, free_t, scale, model=model, window_um=z_window, start_index=start_index, settings=settings,
                                       steps=steps)
         params = _clamp(params, low, high)
+        # a size search beyond the largest start (a size the network never saw) needs more partial waves
+        model = model.with_terms(_scattered_terms(float(params[:, 3].max()), wavelength_um=optics.wavelength_um, medium_index=settings.medium_index))
+        model_optics["terms"] = model.terms
     steps.check()
     # absorption stays at its start for the first step: free early, it lets a wrong
     # size–index valley mimic the right one (measured on noise-free spheres)
@@ -1297,11 +1331,8 @@ def refine_particles(
     steps = Steps(chunks * settings.rounds, progress=progress, should_stop=should_stop, heartbeat_s=_HEARTBEAT_S)
     current = start.copy()
     result: dict[str, np.ndarray] = {}
-    size = 2.0 * math.pi * settings.medium_index / optics.wavelength_um * (np.max(start[:, 3]) if count else 1.0) / 2.0
-    # Wiscombe's count for a sphere 15 % larger than the largest start (the coefficients past
-    # it are below 1e-9 of the hologram, measured); the |m x| floor of `term_count` concerns
-    # the internal field, not the scattered one
-    terms = term_count(size * 1.15, 1.0)
+    # enough for the largest start; a batch whose size search goes further sums more (`_scattered_terms`)
+    terms = _scattered_terms(np.max(start[:, 3]) if count else 1.0, wavelength_um=optics.wavelength_um, medium_index=settings.medium_index)
     reach = 1.5 * settings.patch_px * optics.pixel_um
     pool = None
     if settings.workers > 1 and device.type == "cpu" and chunks > 1:

@@ -15,12 +15,14 @@ camera aliases the fringes and the fit does not model them either.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import torch
 
 from napari_lbs._core._config import ExperimentConfig
 from napari_lbs._core._io import PARTICLE_COLUMNS, InputError
+from napari_lbs._core._material import MATERIAL_TOLERANCE, same_material
 from napari_lbs._core._lorenz_mie import holograms_from_fields, sphere_fields, term_count
 from napari_lbs._core._progress import ProgressCallback, StopCallback
 from napari_lbs._core._refine import RefineSettings, _check_table, _patch_edge, refine_particles
@@ -68,7 +70,7 @@ def particle_hologram(shape: tuple[int, int], table, config: ExperimentConfig, *
     cross = np.zeros((rows, cols))
     summed = np.zeros((3, rows, cols), dtype=np.complex128)
     optics_kw = {"wavelength_um": optics.wavelength_um, "medium_index": settings.medium_index}
-    wide = RefineSettings(medium_index=settings.medium_index, patch_px=2 * settings.patch_px)
+    wide = replace(settings, patch_px=2 * settings.patch_px)
     for i in range(len(frame)):
         edge = _patch_edge(z[i], settings=wide, wavelength_um=optics.wavelength_um, pixel_um=pixel)
         half = edge // 2
@@ -144,11 +146,19 @@ def residual_particles(hologram: np.ndarray, table, config: ExperimentConfig, *,
     image = np.asarray(hologram, dtype=np.float64)
     scale = np.asarray(background, dtype=np.float64) if background is not None else float(np.mean(image))
     kept = pd.DataFrame(table).reset_index(drop=True)
-    residual = residual_hologram(image, kept, config, settings=settings, background=background)
-    guesses = pd.DataFrame({name: np.asarray(values) for name, values in dict(propose(residual)).items()})
+    # the rows the fit measured: an unrefined row is a guess, whose hologram may be far off
+    fitted = kept[kept["refined"].astype(bool)] if "refined" in kept else kept
+    residual = residual_hologram(image, fitted, config, settings=settings, background=background)
+    # the network sees an intensity: where a fit overshoots the data, none is left
+    guesses = pd.DataFrame({name: np.asarray(values) for name, values in dict(propose(np.maximum(residual, 0.0))).items()})
     if guesses.empty:
         guesses = pd.DataFrame({name: np.empty(0) for name in PARTICLE_COLUMNS})
     found = refine_particles(residual / scale, guesses, config, settings=settings, progress=progress, should_stop=should_stop)
+    # a find is a particle of the sample, measured as one: the residual also holds debris and
+    # what the fits left, which the network, seeing them without their context, proposes too
+    # (whatever their uncertainty, sigmas=0: a loose index does not make a find)
+    sample = same_material(found, index_contrast=settings.index_contrast, tolerance=MATERIAL_TOLERANCE, sigmas=0.0)
+    found = found[found["refined"].to_numpy(bool) & sample].reset_index(drop=True)
     if found.empty or kept.empty:
         return found
     lateral = np.hypot(found["x_um"].to_numpy()[:, None] - kept["x_um"].to_numpy()[None], found["y_um"].to_numpy()[:, None] - kept["y_um"].to_numpy()[None])

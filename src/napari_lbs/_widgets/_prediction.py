@@ -100,7 +100,7 @@ class PredictionWidget(StepWidget):
         message = f"{len(data)} particles in {result.seconds:.1f} s"
         if refined:
             apart = f", {gate['other_material']} of another material set apart" if gate else ""
-            message += f" (refined{apart}: colour by index_contrast, z_err_um, ...)"
+            message += f" (refined, {refined['residual']['found']} found in the fit's residual{apart}: colour by index_contrast, z_err_um, ...)"
         self._plot.show(result.particles if refined else None, others=gate["other_particles"] if gate else None, material=gate)
         if reference is not None:
             metrics = score_particles(result.particles, reference)
