@@ -9,7 +9,9 @@ index contrast of the matches (polystyrene 1.59 in water 1.33: 0.26), which of t
 network's false positives the fit dropped and which true positives it dropped wrongly, and
 the time per particle (wall and core seconds, beside the network's own time in the same run),
 and the refined table of the spheres' material alone (`same_material` at 0.26, as
-``napari-lbs predict --material 0.26``).
+``napari-lbs predict --material 0.26``). With ``--residual`` the refined table also holds the
+particles the network then finds in its residual (`residual_particles`), as ``predict
+--refine`` gives it; the fit's own table is scored beside it (``fit only``).
 
 Holograms (`pseudoreal`: Lorenz–Mie polystyrene spheres in water, 1024², 8-bit camera),
 made in the holograms folder when missing:
@@ -29,7 +31,7 @@ the development set.
 Usage::
 
     OMP_NUM_THREADS=1 NAPARI_LBS_THREADS=1 python benchmarks/bench_refine_detection.py \\
-        --model MODEL.pt --holograms FOLDER [--set frozen] [--only real_density ...] [--rounds 2]
+        --model MODEL.pt --holograms FOLDER [--set frozen] [--only real_density ...] [--rounds 2] [--residual]
 """
 
 from __future__ import annotations
@@ -174,6 +176,7 @@ def evaluate(name: str, image: np.ndarray, truth: dict, model, config, *, tables
             residual_image, model, config, device="cpu", threshold=threshold).particles)
         union = pd.concat([refined_frame, found.assign(network_row=-1)], ignore_index=True)
         residual = {"found": len(found), "seconds": time.perf_counter() - start, "core_seconds": _core_seconds() - core,
+                    "fit_only": score(refined, truth)[0],
                     "rows": [{c: float(found[c][i]) for c in ("x_um", "y_um", "z_um", "diameter_um", "index_contrast", "fit_residual")} for i in range(len(found))]}
         refined = {c: union[c].to_numpy() for c in union.columns}
 
@@ -272,7 +275,8 @@ def main(argv: list[str] | None = None) -> None:
               f"refine {result['refine_s_per_particle']:.2f} s/particle wall, {result['refine_core_s_per_particle']:.2f} core-s/particle, "
               f"{result['refine_over_predict']:.0f}x the network's {result['predict_s']:.1f} s; load {load_before[0]:.2f}", flush=True)
         if "residual" in result:
-            print(f"  residual: {result['residual']['found']} particles found in {result['residual']['seconds']:.1f} s (in the refined rows above)", flush=True)
+            print(_line("fit only", result["residual"]["fit_only"]) + f" (the refined rows above add the {result['residual']['found']} particles found in its "
+                  f"residual in {result['residual']['seconds']:.1f} s)", flush=True)
         args.out.parent.mkdir(parents=True, exist_ok=True)
         write_json(args.out, report)
     print(f"-> {args.out}", flush=True)

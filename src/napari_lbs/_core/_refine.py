@@ -787,8 +787,8 @@ def _ring_search(rings: _Rings, params: torch.Tensor, free: torch.Tensor, scale:
     by one radian; its ``depth_candidates`` best local minima are refined by a scan a
     quarter step apart; at each, diameters ±3.6 µm (±8 µm where the best lies on that
     grid's edge) and index contrasts one phase-delay period on each side (quarter periods)
-    are compared, the valleys away from the starting
-    index paying `_VALLEY_PRIOR` per period²; at the best, the depth is scanned finely again.
+    are compared, the valleys away from the starting index paying `_VALLEY_PRIOR` per
+    period²; at the best, the depth is scanned finely again.
     """
     k = 2.0 * math.pi * model.optics["medium_index"] / model.optics["wavelength_um"]
     wavelength = model.optics["wavelength_um"]
@@ -1331,8 +1331,6 @@ def refine_particles(
     steps = Steps(chunks * settings.rounds, progress=progress, should_stop=should_stop, heartbeat_s=_HEARTBEAT_S)
     current = start.copy()
     result: dict[str, np.ndarray] = {}
-    # enough for the largest start; a batch whose size search goes further sums more (`_scattered_terms`)
-    terms = _scattered_terms(np.max(start[:, 3]) if count else 1.0, wavelength_um=optics.wavelength_um, medium_index=settings.medium_index)
     reach = 1.5 * settings.patch_px * optics.pixel_um
     pool = None
     if settings.workers > 1 and device.type == "cpu" and chunks > 1:
@@ -1350,6 +1348,9 @@ def refine_particles(
                 crowded = ((distance < reach) & present[None, :]).sum(axis=1) > 1
                 todo = np.flatnonzero(crowded & present & result["ok"])
             snapshot = current.copy()
+            # enough for the largest sphere of the round's starts (a later round's fits may be larger
+            # than any guess); a batch whose size search goes further sums more (`_scattered_terms`)
+            terms = _scattered_terms(float(np.max(snapshot[:, 3])), wavelength_um=optics.wavelength_um, medium_index=settings.medium_index)
             parts = -(-todo.size // settings.batch)
             tasks = [(image, snapshot[index], free[index], start[index], snapshot, present, index, settings, config, terms, device.type, round_index == 0)
                      for index in (np.array_split(todo, parts) if parts else [])]

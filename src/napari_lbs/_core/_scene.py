@@ -134,7 +134,9 @@ def residual_particles(hologram: np.ndarray, table, config: ExperimentConfig, *,
     Returns
     -------
     pandas.DataFrame
-        The new particles as `refine_particles` returns them, less those that refit onto a
+        The new particles as `refine_particles` returns them: those the fit refined and
+        measured as the sample's material (an index contrast within `MATERIAL_TOLERANCE` of
+        ``settings.index_contrast``, whatever its uncertainty), less those that refit onto a
         particle of ``table`` (within a quarter of the smaller diameter laterally and two
         diameters in depth: what the table's fit left of it). Their models hold the table's
         spheres, as the residual has them taken out, so a particle hidden in a neighbour's

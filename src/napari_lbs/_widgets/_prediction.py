@@ -37,7 +37,8 @@ class PredictionWidget(StepWidget):
         self.refine = CheckBox(label="refine", text="Lorenz-Mie fit of every detection", name="refine", value=False,
                                tooltip="Fit every detection with the exact scattering of a sphere (in water): depth, diameter, index contrast, "
                                        "absorption and their uncertainties as features (colour by them); the network proposes down to 0.8 of "
-                                       "its threshold and the fit keeps the particles (docs/refinement.md)")
+                                       "its threshold and the fit keeps the particles, then it looks again in what the fit leaves unexplained "
+                                       "(docs/refinement.md)")
         self.material = LineEdit(label="material n_p − n_m", name="material", value="",
                                  tooltip="Optional, with refine: the sample's index contrast (polystyrene in water: 0.26). Every fit starts there, and the "
                                          f"particles whose fitted index contrast differs by more than {MATERIAL_TOLERANCE:g} and {MATERIAL_SIGMAS:g} standard "
