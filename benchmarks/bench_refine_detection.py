@@ -188,7 +188,7 @@ def evaluate(name: str, image: np.ndarray, truth: dict, model, config, *, tables
     matched = np.zeros(len(member), dtype=bool)
     matched[ref_pairs[:, 0]] = True
     net_ids = np.flatnonzero(at_threshold)  # the network table's rows among the proposals
-    kept = set(refined["network_row"].astype(int).tolist())
+    kept = set(refined["network_row"].astype(int).tolist()) - {-1}  # the proposals the fit kept (-1: found in its residual)
     net_tp = set(net_ids[net_pairs[:, 0]].tolist())
     net_fp = set(net_ids.tolist()) - net_tp
     below = set(range(count)) - set(net_ids.tolist())

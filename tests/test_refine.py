@@ -559,3 +559,14 @@ def test_a_fit_on_a_bound_of_a_free_parameter_is_not_a_fit():
         held = free.clone()
         held[0, axis] = False
         assert not _on_bound(ended, held, low, high).item(), axis
+
+
+def test_a_diameter_beyond_the_inner_size_grid_is_recovered_by_its_outer_part():
+    """A guess 6 µm too large (a network's guess for a size it never saw) lies beyond the ±3.6 µm grid: its edge sends the search on to ±8 µm."""
+    from napari_lbs._core import RefineSettings, refine_particles
+
+    truth = (36.3 * PIXEL_UM, 35.6 * PIXEL_UM, 900.0, 17.0)
+    hologram = sphere_scene([truth], seed=2)
+    refined = refine_particles(hologram, guess_table([(truth[0] + 0.5, truth[1], 910.0, 23.0)]), default_config(), fixed={"absorption": 0.0},
+                               settings=RefineSettings(**FAST))
+    assert len(refined) == 1 and abs(refined.diameter_um[0] - truth[3]) < 0.5 and abs(refined.index_contrast[0] - 0.26) < 0.02

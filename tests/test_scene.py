@@ -82,3 +82,11 @@ def test_a_sphere_the_table_misses_is_found_in_its_residual_and_the_tables_own_i
     assert len(found) == 1
     assert abs(found.x_um[0] - missed[0]) < 0.5 and abs(found.y_um[0] - missed[1]) < 0.5 and abs(found.z_um[0] - missed[2]) < 5.0
     assert abs(found.diameter_um[0] - missed[3]) < 0.5 and abs(found.index_contrast[0] - 0.26) < 0.02 and bool(found.refined[0])
+
+
+def test_rendering_stops_when_asked():
+    from napari_lbs._core import Stopped
+
+    table = guess_table([(50.0, 50.0, 900.0, 20.0), (120.0, 90.0, 1000.0, 24.0)])
+    with pytest.raises(Stopped):
+        particle_hologram((80, 80), table, default_config(), should_stop=lambda: True)

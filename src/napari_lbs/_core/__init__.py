@@ -29,7 +29,7 @@ _NAMES = {
     "_prediction": ("predict_particles", "PredictionResult"),
     "_refine": ("RefineSettings", "refine_particles"),
     "_material": ("same_material",),
-    "_scene": ("particle_hologram", "residual_particles"),
+    "_scene": ("particle_hologram", "residual_hologram", "residual_particles"),
     "_metrics": ("match_particles", "score_particles"),
     "_gap": ("DiagnosisSettings", "Diagnosis", "diagnose_hologram", "write_report"),
     "_effects": ("EFFECTS", "parse_effects", "effects_from_report"),

@@ -542,7 +542,7 @@ def _proposal_threshold(meta: dict, threshold: float | None) -> float:
 
 
 def _network_proposals(model, config: ExperimentConfig | None, *, threshold: float, device: str, precision: str, force: bool, progress, should_stop):
-    """``propose(image)``: the network's proposals (down to ``threshold``) in a background-normalised image, for `residual_particles`."""
+    """``propose(image)``: the network's proposals (down to ``threshold``) in an image as the fit sees it (divided by the background, else by its mean), for `residual_particles`."""
     from napari_lbs._core._prediction import predict_particles
 
     return lambda image: predict_particles(image, model, config, device=device, precision=precision, force=force, threshold=threshold, progress=progress,
@@ -708,11 +708,11 @@ def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, *,
         proposals.append(propose(image))
         return proposals[-1]
 
-    if len(table):  # with nothing refined, the residual is the hologram the network has seen
+    if len(table) and table["refined"].any():  # with nothing refined, the residual is the hologram the network has seen
         found = residual_particles(hologram, table, config, propose=counted, settings=settings, background=np.ones(hologram.shape), progress=progress,
                                    should_stop=should_stop)
         table = pd.concat([table, found], ignore_index=True) if len(found) else table
-    record["residual"] = {"proposals": len(proposals[0]["x_um"]) if proposals else 0, "found": len(table) - record["kept"], "seconds": time.perf_counter() - started}
+    record["residual"] = {"proposals": len(pd.DataFrame(dict(proposals[0]))) if proposals else 0, "found": len(table) - record["kept"], "seconds": time.perf_counter() - started}
     if material is not None:
         member = same_material(table, index_contrast=material, tolerance=MATERIAL_TOLERANCE, sigmas=MATERIAL_SIGMAS)
         record["material"] = {"index_contrast": float(material), "tolerance": MATERIAL_TOLERANCE, "sigmas": MATERIAL_SIGMAS, "other_material": int((~member).sum()),
@@ -737,7 +737,9 @@ def _predict_recording(request: PredictRequest, frames, out: Path, record_path: 
                               should_stop=should_stop)
     particles, provenance = result.particles, dict(result.provenance)
     if refine:
-        propose = _network_proposals(model, request.config, threshold=_proposal_threshold(model.meta, request.threshold), device=request.device,
+        # the second look runs in this process, on the prediction's device (the workers moved their own copies there)
+        looker = load_model(request.model, device=request.device) if isinstance(request.model, (str, Path)) else model
+        propose = _network_proposals(looker, request.config, threshold=_proposal_threshold(model.meta, request.threshold), device=request.device,
                                      precision=request.precision, force=request.force, progress=progress, should_stop=should_stop)
         particles, provenance["refine"] = _refined_frames(frames, particles, request.config or model.config, background=background,
                                                           material=request.material_index_contrast, device=request.device, propose=propose, log=log,

@@ -844,7 +844,8 @@ def _ring_search(rings: _Rings, params: torch.Tensor, free: torch.Tensor, scale:
             model = model.with_terms(_scattered_terms(float(d.max()) + max(_GRID_OUTER_DIAMETER_UM), **model.optics))
             outer_spheres, outer_costs = grid(_GRID_OUTER_DIAMETER_UM)
             outer_best = torch.argmin(outer_costs, dim=2)
-            better = torch.gather(outer_costs, 2, outer_best[:, :, None])[:, :, 0] < torch.gather(costs, 2, best[:, :, None])[:, :, 0]
+            # only a candidate whose best size lay on the edge moves: a fit does not depend on its batch-mates
+            better = edge & (torch.gather(outer_costs, 2, outer_best[:, :, None])[:, :, 0] < torch.gather(costs, 2, best[:, :, None])[:, :, 0])
             chosen = torch.where(better[:, :, None], torch.gather(outer_spheres, 1, outer_best[:, :, None].expand(-1, -1, 3)), chosen)
         candidates = torch.stack([depths, chosen[:, :, 0], chosen[:, :, 1]], dim=-1)
     # every candidate followed down its valley, then the best (the valley prior as above)

@@ -7,9 +7,9 @@ data (`residual_hologram`) leaves what the table does not explain — a particle
 did not propose (hidden by a neighbour's fringes, or of a size it never saw) among the
 remains of the fits.
 
-Each sphere is rendered inside the disc where its fringes lie below the pixel's Nyquist
-frequency (`_refine._patch_edge`, at most ``2 * patch_px`` pixels wide): beyond it the
-camera aliases the fringes and the fit does not model them either.
+Each sphere is rendered on the square around the disc where its fringes lie below the
+pixel's Nyquist frequency (`_refine._patch_edge`, at most ``2 * patch_px`` pixels wide):
+beyond it the camera aliases the fringes and the fit does not model them either.
 """
 
 from __future__ import annotations
@@ -24,13 +24,14 @@ from napari_lbs._core._config import ExperimentConfig
 from napari_lbs._core._io import PARTICLE_COLUMNS, InputError
 from napari_lbs._core._material import MATERIAL_TOLERANCE, same_material
 from napari_lbs._core._lorenz_mie import holograms_from_fields, sphere_fields, term_count
-from napari_lbs._core._progress import ProgressCallback, StopCallback
+from napari_lbs._core._progress import ProgressCallback, StopCallback, Stopped
 from napari_lbs._core._refine import RefineSettings, _check_table, _patch_edge, refine_particles
 
 __all__ = ["particle_hologram", "residual_hologram", "residual_particles"]
 
 
-def particle_hologram(shape: tuple[int, int], table, config: ExperimentConfig, *, settings: RefineSettings | None = None) -> np.ndarray:
+def particle_hologram(shape: tuple[int, int], table, config: ExperimentConfig, *, settings: RefineSettings | None = None,
+                      should_stop: StopCallback | None = None) -> np.ndarray:
     """The normalised Lorenz–Mie hologram of the spheres of ``table`` on a frame of ``shape``.
 
     Parameters
@@ -45,6 +46,8 @@ def particle_hologram(shape: tuple[int, int], table, config: ExperimentConfig, *
     settings : RefineSettings, optional
         The medium's index, the pixel integration and the largest patch, as the fit used
         them.
+    should_stop : callable, optional
+        Polled before each sphere; `Stopped` is raised when it returns True.
 
     Returns
     -------
@@ -55,6 +58,8 @@ def particle_hologram(shape: tuple[int, int], table, config: ExperimentConfig, *
     import pandas as pd
 
     settings = settings or RefineSettings()
+    if len(tuple(shape)) != 2:
+        raise InputError(f"particle hologram: expected a frame shape (rows, cols), got {tuple(shape)}")
     rows, cols = (int(n) for n in shape)
     if rows < 1 or cols < 1:
         raise InputError(f"particle hologram: expected a frame of at least one pixel, got shape {tuple(shape)}")
@@ -72,6 +77,8 @@ def particle_hologram(shape: tuple[int, int], table, config: ExperimentConfig, *
     optics_kw = {"wavelength_um": optics.wavelength_um, "medium_index": settings.medium_index}
     wide = replace(settings, patch_px=2 * settings.patch_px)
     for i in range(len(frame)):
+        if should_stop is not None and should_stop():
+            raise Stopped()
         edge = _patch_edge(z[i], settings=wide, wavelength_um=optics.wavelength_um, pixel_um=pixel)
         half = edge // 2
         c0, r0 = round(x[i] / pixel) - half, round(y[i] / pixel) - half
@@ -83,6 +90,7 @@ def particle_hologram(shape: tuple[int, int], table, config: ExperimentConfig, *
         dy = torch.as_tensor(rr.reshape(1, -1) * pixel - y[i], dtype=torch.float64)
         sphere = [torch.tensor([value], dtype=torch.float64) for value in (z[i], diameter[i], contrast[i], absorption[i])]
         size = math.pi * settings.medium_index / optics.wavelength_um * diameter[i]
+        # Wiscombe's count at the fitted size: what it leaves out is below 2e-9 of the hologram
         fields = sphere_fields(dx, dy, *sphere, terms=term_count(size, 1.0), **optics_kw)
         single = holograms_from_fields(fields, dx, dy, sphere[0], pixel_um=pixel if settings.pixel_integration else None, **optics_kw)
         own = sum(f.real**2 + f.imag**2 for f in fields)
@@ -94,7 +102,7 @@ def particle_hologram(shape: tuple[int, int], table, config: ExperimentConfig, *
 
 
 def residual_hologram(hologram: np.ndarray, table, config: ExperimentConfig, *, settings: RefineSettings | None = None,
-                      background: np.ndarray | None = None) -> np.ndarray:
+                      background: np.ndarray | None = None, should_stop: StopCallback | None = None) -> np.ndarray:
     """``hologram`` less the hologram of ``table``'s spheres, in its own units.
 
     The data is divided by ``background`` (else by its mean, as `refine_particles` sees it
@@ -106,7 +114,9 @@ def residual_hologram(hologram: np.ndarray, table, config: ExperimentConfig, *, 
     if image.ndim != 2:
         raise InputError(f"hologram: expected a 2-D image, got shape {image.shape}")
     scale = np.asarray(background, dtype=np.float64) if background is not None else float(np.mean(image))
-    model = particle_hologram(image.shape, table, config, settings=settings)
+    if np.shape(scale) not in ((), image.shape) or not np.all(np.asarray(scale) > 0):
+        raise InputError(f"background: expected positive values of the hologram's shape {image.shape}, got shape {np.shape(scale)}")
+    model = particle_hologram(image.shape, table, config, settings=settings, should_stop=should_stop)
     return (image / scale - (model - 1.0)) * scale
 
 
@@ -134,13 +144,14 @@ def residual_particles(hologram: np.ndarray, table, config: ExperimentConfig, *,
     Returns
     -------
     pandas.DataFrame
-        The new particles as `refine_particles` returns them: those the fit refined and
-        measured as the sample's material (an index contrast within `MATERIAL_TOLERANCE` of
+        The new particles as `refine_particles` returns them, fitted on the residual (the
+        table's spheres taken out of the data; their interference with a find is neither
+        taken out nor modelled): those the fit refined and measured as the sample's material (an index contrast within `MATERIAL_TOLERANCE` of
         ``settings.index_contrast``, whatever its uncertainty), less those that refit onto a
         particle of ``table`` (within a quarter of the smaller diameter laterally and two
-        diameters in depth: what the table's fit left of it). Their models hold the table's
-        spheres, as the residual has them taken out, so a particle hidden in a neighbour's
-        fringes or along its line of sight is fitted against the data its neighbours leave.
+        diameters in depth: what the table's fit left of it). A particle hidden in a
+        neighbour's fringes or along its line of sight is so fitted against the data its
+        neighbours leave.
     """
     import pandas as pd
 
@@ -150,9 +161,12 @@ def residual_particles(hologram: np.ndarray, table, config: ExperimentConfig, *,
     kept = pd.DataFrame(table).reset_index(drop=True)
     # the rows the fit measured: an unrefined row is a guess, whose hologram may be far off
     fitted = kept[kept["refined"].astype(bool)] if "refined" in kept else kept
-    residual = residual_hologram(image, fitted, config, settings=settings, background=background)
+    residual = residual_hologram(image, fitted, config, settings=settings, background=background, should_stop=should_stop)
     # the network sees an intensity: where a fit overshoots the data, none is left
-    guesses = pd.DataFrame({name: np.asarray(values) for name, values in dict(propose(np.maximum(residual, 0.0))).items()})
+    try:
+        guesses = pd.DataFrame({name: np.asarray(values) for name, values in dict(propose(np.maximum(residual, 0.0))).items()})
+    except (TypeError, ValueError) as error:
+        raise InputError(f"propose: expected a particle table (columns of equal length), got {error}") from None
     if guesses.empty:
         guesses = pd.DataFrame({name: np.empty(0) for name in PARTICLE_COLUMNS})
     found = refine_particles(residual / scale, guesses, config, settings=settings, progress=progress, should_stop=should_stop)
