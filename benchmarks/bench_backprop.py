@@ -20,8 +20,8 @@ import numpy as np
 import scipy.fft
 
 from napari_lbs._core import backpropagate, load_config, load_sample_hologram
-from napari_lbs._core._optics import _phase_rate, padded_shape, set_transfer_cache_limit, transfer_function
-from napari_lbs._core._threads import process_threads
+from napari_lbs._core.physics._optics import _phase_rate, padded_shape, set_transfer_cache_limit, transfer_function
+from napari_lbs._core.foundation._threads import process_threads
 
 CONFIG = load_config(None)
 OPTICS = {"wavelength_um": CONFIG.optics.wavelength_um, "pixel_um": CONFIG.optics.pixel_um}

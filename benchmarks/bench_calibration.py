@@ -17,7 +17,7 @@ import numpy as np
 from skimage.metrics import structural_similarity
 
 from napari_lbs._core import CalibrationSettings, ExperimentConfig, HoloParams, backpropagate, calibrate_hologram, load_sample_hologram
-from napari_lbs._core._calibration import experimental_reference, holo_processing, score_params
+from napari_lbs._core.calibration._calibrate import experimental_reference, holo_processing, score_params
 from napari_lbs._core import random_particle_field, simulate_hologram
 
 SEED_OPTIMUM = HoloParams(-0.3068, 0.2164, 0.8337)

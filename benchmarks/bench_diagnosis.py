@@ -30,11 +30,11 @@ from pathlib import Path
 import numpy as np
 
 from napari_lbs._core import ExperimentConfig, read_hologram
-from napari_lbs._core._effects import EFFECTS
-from napari_lbs._core._gap import DiagnosisSettings, amortized_diagnoser, diagnose_hologram, forest_posterior
-from napari_lbs._core._gap._diagnose import decide
-from napari_lbs._core._gap._amortized import _simulate
-from napari_lbs._core._gap._scenarios import ScenarioPrior, TileGrid, catalog_candidates
+from napari_lbs._core.physics._effects import EFFECTS
+from napari_lbs._core.gap import DiagnosisSettings, amortized_diagnoser, diagnose_hologram, forest_posterior
+from napari_lbs._core.gap._diagnose import decide
+from napari_lbs._core.gap._amortized import _simulate
+from napari_lbs._core.gap._scenarios import ScenarioPrior, TileGrid, catalog_candidates
 
 CONFIG = ExperimentConfig()
 

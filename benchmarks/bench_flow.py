@@ -19,7 +19,7 @@ takes part of the particle away. This benchmark measures it on the case users ch
   3-D, memory 0).
 - **a true track is recovered** when one predicted track holds at least ``--recovered-links``
   (6) detections matched to it: in each frame the predicted particles are matched one to
-  one to the true ones (`match_particles`, CONTRACT.md tolerances: 10 µm laterally, 100 µm
+  one to the true ones (`match_particles`, docs/formats.md tolerances: 10 µm laterally, 100 µm
   along z), and a predicted track counts the frames in which its detection matched that
   true track. The figure reported is the number of true tracks recovered (of 12).
 
@@ -42,8 +42,8 @@ import numpy as np
 import psutil
 
 from napari_lbs._core import ParticleField, link_tracks, load_config, load_model, match_particles, open_frames, predict_sequence, simulate_hologram
-from napari_lbs._core._background import choose_background
-from napari_lbs._core._flow import _UNIFORM_DIRECTION, flow_positions
+from napari_lbs._core.recordings._background import choose_background
+from napari_lbs._core.recordings._flow import _UNIFORM_DIRECTION, flow_positions
 
 
 def uniform_flow(config, *, frames: int, size: int, particles: int, speed_um: float, seed: int):

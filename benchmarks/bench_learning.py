@@ -53,8 +53,8 @@ from napari_lbs._core import (
     simulate_hologram,
     train_model,
 )
-from napari_lbs._core._metrics import depth_errors_um, seed_scores
-from napari_lbs._core._synthesis import count_for_ppp
+from napari_lbs._core.learning._metrics import depth_errors_um, seed_scores
+from napari_lbs._core.physics._synthesis import count_for_ppp
 
 SIM_CONFIG = ExperimentConfig.from_dict({
     "volume": {"z_min_um": 1800.0, "z_max_um": 3660.0, "z_step_um": 30.0},
@@ -66,7 +66,7 @@ SIM_CONFIG = ExperimentConfig.from_dict({
 def throughput() -> None:
     import torch
 
-    from napari_lbs._core._network import build_network
+    from napari_lbs._core.learning._network import build_network
 
     for preset in ("small", "paper"):
         rates = {}

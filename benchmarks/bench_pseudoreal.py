@@ -43,7 +43,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import pseudoreal  # noqa: E402
 
-from napari_lbs._core._pipeline import DEMO_SAMPLE_DISTRACTORS  # noqa: E402
+from napari_lbs._core.pipeline._pipeline import DEMO_SAMPLE_DISTRACTORS  # noqa: E402
 
 from napari_lbs._core import (
     CalibrationSettings,
@@ -65,8 +65,8 @@ from napari_lbs._core import (
     write_particles,
     write_report,
 )
-from napari_lbs._core._files import write_json
-from napari_lbs._core._metrics import depth_errors_um
+from napari_lbs._core.foundation._files import write_json
+from napari_lbs._core.learning._metrics import depth_errors_um
 
 DENSITIES = {"real density": 100, "4x density": 400}
 EDGE_BAND_UM = 200.0  # false positives this close to the window's edge are counted apart (neighbours' fringes)

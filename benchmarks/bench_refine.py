@@ -102,7 +102,7 @@ def forward_check(size: int = 160) -> list[dict]:
     from pylorenzmie.theory import LorenzMie, Sphere
     from pylorenzmie.theory.Instrument import Instrument
 
-    from napari_lbs._core._lorenz_mie import sphere_holograms
+    from napari_lbs._core.physics._lorenz_mie import sphere_holograms
 
     rows = []
     pixel, wavelength = 2.2, 0.66

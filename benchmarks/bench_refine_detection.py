@@ -61,10 +61,10 @@ from napari_lbs._core import (
     score_particles,
     write_particles,
 )
-from napari_lbs._core._files import write_json
-from napari_lbs._core._metrics import match_particles
-from napari_lbs._core._pipeline import REFINE_PROPOSAL_FRACTION
-from napari_lbs._core._scene import residual_particles
+from napari_lbs._core.foundation._files import write_json
+from napari_lbs._core.learning._metrics import match_particles
+from napari_lbs._core.pipeline._pipeline import REFINE_PROPOSAL_FRACTION
+from napari_lbs._core.refine._scene import residual_particles
 
 INDEX_CONTRAST = round(pseudoreal.N_PARTICLE - pseudoreal.N_MEDIUM, 3)
 WIDE_SIZES_UM = (16.0, 36.0)

@@ -13,7 +13,7 @@ about the window's centre at ``--speed-um`` per frame on the inscribed circle), 
 - the CPU time (user + system, this process and its workers) per frame in each case:
   core-seconds, which other jobs on a shared machine barely change, so the rate an idle
   machine of C cores would reach is about C / core-seconds per frame;
-- detection per frame (one-to-one ER and JI, CONTRACT.md tolerances), then the tracks
+- detection per frame (one-to-one ER and JI, docs/formats.md tolerances), then the tracks
   (`link_tracks`): the fraction of predicted links that join two detections of the same true
   particle in consecutive frames, the fraction of true links recovered, and the velocity
   error of the correct links (median relative error of the lateral velocity, and median
@@ -54,7 +54,7 @@ from napari_lbs._core import (
     simulate_sequence,
     train_model,
 )
-from napari_lbs._core._sequence import local_cluster
+from napari_lbs._core.recordings._sequence import local_cluster
 
 
 class PeakMemory:

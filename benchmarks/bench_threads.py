@@ -26,10 +26,10 @@ import time
 
 _JOB = """
 import time
-from napari_lbs._core._threads import size_threads
+from napari_lbs._core.foundation._threads import size_threads
 threads = size_threads()
 import torch
-from napari_lbs._core._network import build_network
+from napari_lbs._core.learning._network import build_network
 torch.manual_seed(0)
 network = build_network("small", in_channels=9, out_channels=3).to(memory_format=torch.channels_last)
 optimizer = torch.optim.AdamW(network.parameters(), lr=2e-3)

@@ -2,7 +2,7 @@
 
 Every hologram is made by an independent forward model — Lorenz–Mie theory (pylorenzmie,
 through `pseudoreal.mie_intensity`) for the particles, and the effects written here with
-their own parameterisation, none of it from `napari_lbs._core._effects` — as a camera would
+their own parameterisation, none of it from `napari_lbs._core.physics._effects` — as a camera would
 record it (8-bit counts, Gaussian read noise; photon noise only where it is the withheld effect). Absorbing spheres (n = 1.59 + 0.5i, opaque through 20 µm) are the
 particles of every case except the transparent-sphere cases (n = 1.59 and 1.38 in water).
 

@@ -2,10 +2,6 @@ from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
-SHARED = REPO.parent / "shared"
-REAL_HOLOGRAM_BMP = SHARED / "reference" / "lbs-experiment" / "cropped_hologram.bmp"
-
 
 @pytest.fixture(autouse=True)
 def diagnoser_cache(tmp_path_factory, monkeypatch):
@@ -17,10 +13,15 @@ def diagnoser_cache(tmp_path_factory, monkeypatch):
 
 
 @pytest.fixture(scope="session")
-def real_hologram_bmp() -> Path:
-    # CI runs with ../shared beside the clone; without it this is a failure, not a skip.
-    assert REAL_HOLOGRAM_BMP.is_file(), f"expected the seed's real hologram at {REAL_HOLOGRAM_BMP}"
-    return REAL_HOLOGRAM_BMP
+def real_hologram_bmp(tmp_path_factory) -> Path:
+    """The seed's real hologram as the RGB BMP it was published as, written from the shipped sample."""
+    from PIL import Image
+
+    from napari_lbs._core import load_sample_hologram
+
+    path = tmp_path_factory.mktemp("seed") / "cropped_hologram.bmp"
+    Image.fromarray(load_sample_hologram(rgb=True)).save(path)
+    return path
 
 
 # --- shared by the recordings' tests (test_sequence) and the Batch widget's (test_widgets) ---------
@@ -44,7 +45,7 @@ def detector(tmp_path_factory, tiny_config):
     import torch
 
     from napari_lbs._core import DatasetLayout, TrainingSettings, generate_dataset, load_model, train_model
-    from napari_lbs._core._network import save_model
+    from napari_lbs._core.learning._network import save_model
 
     folder = tmp_path_factory.mktemp("model")
     data = generate_dataset(folder / "data", tiny_config, groups=3, layout=DatasetLayout(kind="stack", context_planes=2), seed=5)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from napari_lbs._core._lorenz_mie import sphere_holograms
+from napari_lbs._core.physics._lorenz_mie import sphere_holograms
 
 WAVELENGTH_UM = 0.66
 WATER = 1.33

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from napari_lbs._core import ExperimentConfig, InputError, load_sample_hologram, random_particle_field, simulate_hologram
-from napari_lbs._core._calibration import (
+from napari_lbs._core.calibration._calibrate import (
     CalibrationSettings,
     HoloParams,
     _SSIM,
@@ -119,7 +119,7 @@ def test_reference_tile_choice_and_refusals():
     with pytest.raises(InputError, match="tile.size"):
         calibrate_hologram(hologram_image[:200, :200], config)
     from napari_lbs._core import backpropagate
-    from napari_lbs._core._calibration import choose_reference_tile
+    from napari_lbs._core.calibration._calibrate import choose_reference_tile
 
     stack = backpropagate(hologram_image, config.layer_depths_um(), wavelength_um=0.66, pixel_um=2.2)
     (x, y), reason = choose_reference_tile(stack, size=256)

@@ -11,14 +11,14 @@ import pytest
 import tifffile
 
 from napari_lbs._core import ExperimentConfig, InputError, read_hologram
-from napari_lbs._core._effects import optical_hologram, sensor_image
-from napari_lbs._core._gap import DiagnosisSettings, amortized_diagnoser, c2st, diagnose_hologram, mmd, forest_posterior, known_sensor, load_diagnoser, write_report
-from napari_lbs._core._gap._amortized import forest_answers
-from napari_lbs._core._gap._amortized import _simulate
-from napari_lbs._core._gap._forest import ForestArrays, train_forest
-from napari_lbs._core._gap._scenarios import ScenarioPrior, TileGrid, draw_scenario, simulate_tiles
-from napari_lbs._core._progress import Stopped
-from napari_lbs._core._synthesis import random_particle_field
+from napari_lbs._core.physics._effects import optical_hologram, sensor_image
+from napari_lbs._core.gap import DiagnosisSettings, amortized_diagnoser, c2st, diagnose_hologram, mmd, forest_posterior, known_sensor, load_diagnoser, write_report
+from napari_lbs._core.gap._amortized import forest_answers
+from napari_lbs._core.gap._amortized import _simulate
+from napari_lbs._core.gap._forest import ForestArrays, train_forest
+from napari_lbs._core.gap._scenarios import ScenarioPrior, TileGrid, draw_scenario, simulate_tiles
+from napari_lbs._core.foundation._progress import Stopped
+from napari_lbs._core.physics._synthesis import random_particle_field
 
 CONFIG = ExperimentConfig()
 GRID = TileGrid((256, 256), 64)
@@ -87,8 +87,8 @@ def test_c2st_is_chance_for_two_samples_of_one_distribution_and_near_one_for_dif
 
 
 def test_two_samples_of_one_simulator_are_not_told_apart_and_a_blurred_one_is():
-    from napari_lbs._core._gap._features import set_summaries
-    from napari_lbs._core._gap._scenarios import Scenario
+    from napari_lbs._core.gap._features import set_summaries
+    from napari_lbs._core.gap._scenarios import Scenario
 
     def tiles(effects, seed):
         scenario = Scenario((), effects, dict(TRUTH), {}, 1.0)
@@ -112,7 +112,7 @@ def test_mmd_is_near_zero_for_one_distribution_and_grows_with_the_difference():
 
 
 def test_a_scenario_has_its_nuisances_and_particle_phase_means_transparent_particles():
-    from napari_lbs._core._gap._scenarios import OPAQUE, TRANSPARENT
+    from napari_lbs._core.gap._scenarios import OPAQUE, TRANSPARENT
 
     rng = np.random.default_rng(2)
     prior = ScenarioPrior(candidates=("particle_phase", "sensor_blur"))
@@ -152,11 +152,11 @@ def test_the_same_input_gives_the_same_posterior_whatever_the_seed_and_the_cache
     image = hologram({"sensor_blur": {"sigma_px": 1.5}}, seed=5)
     # the module's diagnoser is the small setup's; a hologram's own setup has the whole catalog,
     # so the small prior is put in by hand here
-    import napari_lbs._core._gap._diagnose as diagnose_module
+    import napari_lbs._core.gap._diagnose as diagnose_module
 
     monkeypatch.setattr(diagnose_module, "catalog_candidates", lambda known: SMALL.candidates)
     monkeypatch.setattr(diagnose_module, "ScenarioPrior", lambda **kw: SMALL)
-    import napari_lbs._core._gap._amortized as amortized
+    import napari_lbs._core.gap._amortized as amortized
 
     def no_training(*args, **kwargs):
         raise AssertionError("the cached diagnoser was not reused")
@@ -228,7 +228,7 @@ def test_values_coarser_than_the_file_format_are_found_coarse():
 
 def test_a_diagnosis_pools_frames_states_what_is_known_and_writes_strict_json(small, tmp_path, monkeypatch):
     _, settings = small
-    import napari_lbs._core._gap._diagnose as diagnose_module
+    import napari_lbs._core.gap._diagnose as diagnose_module
 
     seen = {}
 
@@ -276,8 +276,8 @@ def test_diagnose_refuses_small_holograms_frames_of_different_shapes_and_unknown
 def test_tiles_are_summarised_on_threads_as_each_would_be_alone_also_after_a_fork():
     import multiprocessing
 
-    from napari_lbs._core._gap import tile_summaries
-    from napari_lbs._core._gap._summaries import _tiles_summaries
+    from napari_lbs._core.gap import tile_summaries
+    from napari_lbs._core.gap._summaries import _tiles_summaries
 
     rng = np.random.default_rng(4)
     tiles = [1.0 + 0.1 * rng.standard_normal((64, 64)) for _ in range(5)]

@@ -17,7 +17,7 @@ from napari_lbs._core import (
     random_particle_field,
     simulate_hologram,
 )
-from napari_lbs._core._synthesis import distractor_scene
+from napari_lbs._core.physics._synthesis import distractor_scene
 
 CONFIG = ExperimentConfig.from_dict({"tile": {"size": 64}, "particles": {"per_tile": 3}, "volume": {"z_min_um": 1800.0, "z_max_um": 2000.0, "z_step_um": 50.0}})
 OPTICS = {"wavelength_um": 0.66, "medium_index": 1.0}

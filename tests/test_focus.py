@@ -17,8 +17,8 @@ from napari_lbs._core import (
     random_particle_field,
     simulate_hologram,
 )
-from napari_lbs._core._detection import PeakDecoder, suppress
-from napari_lbs._core._heatmaps import FocusSpec, focus_targets
+from napari_lbs._core.learning._detection import PeakDecoder, suppress
+from napari_lbs._core.learning._heatmaps import FocusSpec, focus_targets
 
 CONTEXT = (-2, -1, 0, 1, 2)
 
@@ -171,7 +171,7 @@ def test_focal_loss_falls_on_a_tiny_set_and_validation_chooses_the_decoding(focu
 def test_the_loss_rewards_a_peak_at_the_particle_and_punishes_far_false_positives(stack_data):
     import torch
 
-    from napari_lbs._core._training import TrainingSettings, _FocusFormulation
+    from napari_lbs._core.learning._training import TrainingSettings, _FocusFormulation
 
     formulation = _FocusFormulation(stack_data, [0, 1], TrainingSettings(context=CONTEXT, patch_size=32))
     heat = torch.zeros(1, 8, 8)
@@ -274,7 +274,7 @@ def test_model_files_load_without_code_and_old_files_keep_their_formulation(focu
     payload = torch.load(io.BytesIO(focus_model.model_path.read_bytes()), weights_only=True)  # plain tensors and strings
     assert payload["version"] == 2 and json.loads(payload["meta"])["formulation"] == "focus"
     # a version-1 file (before the focus formulation) has no formulation: it is the seed's, and loads as such
-    from napari_lbs._core._network import build_network
+    from napari_lbs._core.learning._network import build_network
 
     network = build_network("small")
     meta = {"preset": "small", "widths": [8, 16, 32, 64, 64], "tile_size": 48, "config": tiny_config().to_dict()}
@@ -290,8 +290,8 @@ def test_model_files_load_without_code_and_old_files_keep_their_formulation(focu
 
 
 def test_tile_normalisation_is_each_tiles_own_at_its_centre_and_stays_in_range():
-    from napari_lbs._core._calibration import experimental_planes
-    from napari_lbs._core._prediction import tile_layout, tile_normalisation
+    from napari_lbs._core.calibration._calibrate import experimental_planes
+    from napari_lbs._core.learning._prediction import tile_layout, tile_normalisation
 
     rng = np.random.default_rng(4)
     raw = rng.gamma(4.0, 0.25, (3, 80, 70)).astype(np.float32)
@@ -315,7 +315,7 @@ def test_tile_normalisation_is_each_tiles_own_at_its_centre_and_stays_in_range()
 def test_the_inference_network_folds_batch_norm_without_changing_the_outputs():
     import torch
 
-    from napari_lbs._core._network import build_network, inference_network
+    from napari_lbs._core.learning._network import build_network, inference_network
 
     torch.manual_seed(0)
     network = build_network("small", in_channels=9, out_channels=3).eval()
@@ -333,7 +333,7 @@ def test_the_inference_network_folds_batch_norm_without_changing_the_outputs():
 def test_bfloat16_runs_the_network_close_to_float32_with_float32_outputs():
     import torch
 
-    from napari_lbs._core._network import build_network, inference_network
+    from napari_lbs._core.learning._network import build_network, inference_network
 
     torch.manual_seed(0)
     network = build_network("small", in_channels=9, out_channels=3).eval()
@@ -351,7 +351,7 @@ def test_precision_auto_follows_the_hardware_and_unknown_values_are_refused(monk
     import torch
 
     from napari_lbs._core import TrainingSettings
-    from napari_lbs._core._network import resolve_precision
+    from napari_lbs._core.learning._network import resolve_precision
 
     cpu = torch.device("cpu")
     assert [resolve_precision(name, cpu) for name in ("float32", "bfloat16")] == ["float32", "bfloat16"]

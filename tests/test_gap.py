@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from napari_lbs._core import EFFECTS, ExperimentConfig, InputError, random_particle_field, simulate_hologram
-from napari_lbs._core._effects import BASELINE, optical_hologram, sensor_image
-from napari_lbs._core._gap import SUMMARY_GROUPS, tile_summaries
+from napari_lbs._core.physics._effects import BASELINE, optical_hologram, sensor_image
+from napari_lbs._core.gap import SUMMARY_GROUPS, tile_summaries
 
 CONFIG = ExperimentConfig()
 NEUTRAL = dict(BASELINE.neutral)
@@ -74,7 +74,7 @@ def test_sensor_blur_acts_on_the_light_and_the_noise_added_after_it_stays_white(
 
 def test_transparent_spheres_conserve_light_where_opaque_discs_remove_it():
     from napari_lbs._core import ParticleField
-    from napari_lbs._core._synthesis import disc_coverage
+    from napari_lbs._core.physics._synthesis import disc_coverage
 
     one = ParticleField(np.array([140.8]), np.array([140.8]), np.array([2000.0]), np.array([30.0]), (128, 128), 2.2)
     area = disc_coverage((128, 128), one.x_um, one.y_um, one.diameter_um, pixel_um=2.2).mean()
@@ -126,7 +126,7 @@ def test_a_static_fringe_stands_out_of_its_ring_in_the_tile_summaries():
 
 
 def test_a_dust_grains_fresnel_shadow_has_the_arago_spot_and_conserves_light():
-    from napari_lbs._core._effects import _dust_mask, _dust_pattern, _fresnel_intensity
+    from napari_lbs._core.physics._effects import _dust_mask, _dust_pattern, _fresnel_intensity
 
     diffract = lambda opaque, zone_px: _fresnel_intensity(np.fft.fft2(opaque.astype(np.complex64)), zone_px)  # noqa: E731
     yy, xx = np.mgrid[-128:128, -128:128]
@@ -152,7 +152,7 @@ def test_a_dust_grains_fresnel_shadow_has_the_arago_spot_and_conserves_light():
 
 
 def test_dust_on_a_window_is_part_of_the_static_fringes_and_optional_in_a_stated_setting():
-    from napari_lbs._core._effects import parse_effect
+    from napari_lbs._core.physics._effects import parse_effect
 
     etalon = parse_effect("parasitic_fringes:amplitude=0.05,period_px=10,angle_rad=0")["parasitic_fringes"]
     assert etalon["dust_per_mpx"] == 0.0  # left out: that part is off
@@ -246,8 +246,8 @@ def test_a_tile_sees_the_envelope_and_fringe_of_its_place_on_the_sensor():
 
 def test_the_spectral_average_of_the_interference_term_matches_an_average_over_wavelengths():
     from napari_lbs._core import ParticleField
-    from napari_lbs._core._optics import superpose
-    from napari_lbs._core._synthesis import layer_images
+    from napari_lbs._core.physics._optics import superpose
+    from napari_lbs._core.physics._synthesis import layer_images
 
     one = ParticleField(np.array([280.5]), np.array([280.5]), np.array([3000.0]), np.array([25.0]), (256, 256), 2.2)
     depths, images = layer_images(one)

@@ -70,7 +70,7 @@ def run_to_end(qtbot, step):
 
 
 def write_config(path, config):
-    from napari_lbs._core._config import config_to_toml
+    from napari_lbs._core.foundation._config import config_to_toml
 
     path.write_text(config_to_toml(config))
     return path
@@ -317,7 +317,8 @@ def test_batch_stops_within_two_seconds_without_running_the_other_frames(make_na
 
     import tifffile
 
-    from napari_lbs._core import Stopped, _sequence, simulate_sequence
+    from napari_lbs._core import Stopped, simulate_sequence
+    from napari_lbs._core.recordings import _sequence
 
     recording = simulate_sequence(tiny_config, frames=8, flow="uniform", size=64, count=3, speed_um=6.0, seed=2)
     tifffile.imwrite(tmp_path / "run.tif", recording.frames, photometric="minisblack")

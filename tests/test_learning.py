@@ -24,8 +24,8 @@ from napari_lbs._core import (
     score_particles,
     simulate_hologram,
 )
-from napari_lbs._core._detection import detect_particles
-from napari_lbs._core._synthesis import LABEL_SCALE, label_planes
+from napari_lbs._core.learning._detection import detect_particles
+from napari_lbs._core.physics._synthesis import LABEL_SCALE, label_planes
 
 
 def tiny_config(**volume) -> ExperimentConfig:
@@ -148,7 +148,7 @@ def test_detections_through_neighbouring_planes_merge_into_one_particle_at_the_p
 def test_network_is_fully_convolutional_on_odd_sizes(preset):
     import torch
 
-    from napari_lbs._core._network import build_network
+    from napari_lbs._core.learning._network import build_network
 
     network = build_network(preset).eval()
     with torch.inference_mode():
@@ -236,7 +236,7 @@ def test_model_files_never_execute_code_and_bad_files_are_refused(tmp_path):
 
 def test_a_model_for_other_optics_or_tiles_or_depths_is_refused(tiny_model):
     from napari_lbs._core import load_model
-    from napari_lbs._core._network import check_model_matches
+    from napari_lbs._core.learning._network import check_model_matches
 
     meta = load_model(tiny_model.model_path).meta
     planes = [1800.0, 2000.0]
@@ -258,7 +258,7 @@ def test_a_model_for_other_optics_or_tiles_or_depths_is_refused(tiny_model):
 
 @pytest.mark.parametrize(("length", "size", "margin"), [(100, 48, 8), (48, 48, 8), (1024, 256, 32), (257, 256, 32)])
 def test_tiles_overlap_and_their_kept_parts_partition_the_axis(length, size, margin):
-    from napari_lbs._core._prediction import tile_layout
+    from napari_lbs._core.learning._prediction import tile_layout
 
     layout = tile_layout(length, size=size, margin=margin)
     kept = np.zeros(length, int)
@@ -303,7 +303,7 @@ def test_detections_of_one_particle_at_distant_depths_merge_laterally_only_when_
     outputs[5, 30:33, 30:33] = 90.0  # a different particle
     separate = detect_particles(outputs, planes, pixel_um=2.0, threshold=20.0, full_value=80.0)
     assert len(separate["x_um"]) == 3
-    from napari_lbs._core._detection import PlaneLinker
+    from napari_lbs._core.learning._detection import PlaneLinker
 
     linker = PlaneLinker(planes, pixel_um=2.0, threshold=20.0, full_value=80.0, merge_lateral_um=10.0)
     for plane, output in enumerate(outputs):

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from napari_lbs._core import InputError, match_particles, score_particles, write_particles
-from napari_lbs._core._metrics import depth_errors_um, diameter_errors_um, seed_scores
+from napari_lbs._core.learning._metrics import depth_errors_um, diameter_errors_um, seed_scores
 
 
 def table(*rows):

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from napari_lbs._core import ExperimentConfig, read_particles
-from napari_lbs._core._config import config_to_toml
+from napari_lbs._core.foundation._config import config_to_toml
 
 TIMEOUT_MS = 180_000
 TILE = 64
@@ -216,7 +216,7 @@ def test_workflow_dock_drives_the_whole_workflow_on_the_synthetic_sample(make_na
 
 def test_the_roi_shows_its_tile_reference_image_before_any_run(make_napari_viewer, qtbot, tmp_path, monkeypatch):
     from napari_lbs._core import load_config
-    from napari_lbs._core._calibration import experimental_reference, reference_planes
+    from napari_lbs._core.calibration._calibrate import experimental_reference, reference_planes
     from napari_lbs._widgets import _calibration
 
     planes_made, references_made = [], []
@@ -280,7 +280,7 @@ def test_particle_tables_are_saved_and_opened_without_choosing_a_plugin(make_nap
     from napari.plugins import _npe2
     from qtpy.QtWidgets import QFileDialog
 
-    from napari_lbs._core._io import PARTICLE_COLUMNS
+    from napari_lbs._core.foundation._io import PARTICLE_COLUMNS
 
     monkeypatch.setattr(napari.settings, "_SETTINGS", napari.settings.NapariSettings(config_path=tmp_path / "napari-settings.yaml"))
     viewer = make_napari_viewer()

@@ -5,8 +5,8 @@ import pytest
 import scipy.fft
 
 from napari_lbs._core import backpropagate, propagate
-from napari_lbs._core._optics import transfer_function
-from napari_lbs._core._synthesis import disc_coverage
+from napari_lbs._core.physics._optics import transfer_function
+from napari_lbs._core.physics._synthesis import disc_coverage
 
 PIXEL_UM = 2.2
 WAVELENGTH_UM = 0.66
@@ -203,7 +203,7 @@ def test_backpropagate_rejects_bad_input():
 
 def test_stop_request_interrupts_between_batches():
     from napari_lbs._core import Stopped
-    import napari_lbs._core._optics as optics
+    import napari_lbs._core.physics._optics as optics
 
     calls = []
     old = optics._WORKING_BYTES

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from napari_lbs._core import ExperimentConfig, HoloParams, InputProcessing, random_particle_field, simulate_hologram
-from napari_lbs._core._prediction import tile_layout, window_layout
+from napari_lbs._core.learning._prediction import tile_layout, window_layout
 
 CONTEXT = (-2, -1, 0, 1, 2)
 
@@ -76,10 +76,10 @@ def test_the_streamed_stack_gives_the_tables_of_the_whole_stack(focus_model_path
     """The previous path, all planes back-propagated and normalised first, then the network on the
     whole image, against the streamed one, in one batch of planes and one plane at a time."""
     from napari_lbs._core import backpropagate, predict_particles
-    from napari_lbs._core import _optics
-    from napari_lbs._core._detection import PeakDecoder, suppress
-    from napari_lbs._core._network import focus_maps, inference_network
-    from napari_lbs._core._prediction import tile_normalisation
+    from napari_lbs._core.physics import _optics
+    from napari_lbs._core.learning._detection import PeakDecoder, suppress
+    from napari_lbs._core.learning._network import focus_maps, inference_network
+    from napari_lbs._core.learning._prediction import tile_normalisation
 
     config, hologram = tiny_config(), hologram_of((100, 90))
     model = eager_model(focus_model_path, bias=3.0)
@@ -105,7 +105,7 @@ def test_windows_wider_than_the_networks_reach_give_the_whole_images_particles(f
     """A two-level network reaches 9 pixels: with 12-pixel margins on the pooling grid, its windows
     see all a kept pixel depends on, so tiling changes nothing but rounding."""
     from napari_lbs._core import LoadedModel, predict_particles
-    from napari_lbs._core._network import UNet
+    from napari_lbs._core.learning._network import UNet
 
     base = eager_model(focus_model_path, bias=0.0)
     torch.manual_seed(3)
@@ -124,7 +124,8 @@ def test_windows_wider_than_the_networks_reach_give_the_whole_images_particles(f
 
 def test_the_planes_held_at_once_are_the_contexts_whatever_the_depth(focus_model_path, monkeypatch):
     from napari_lbs._core import predict_particles
-    from napari_lbs._core import _optics, _prediction
+    from napari_lbs._core.physics import _optics
+    from napari_lbs._core.learning import _prediction
 
     live, most = [0], [0]
     normalise = _prediction._TileNormaliser.__call__

@@ -10,7 +10,7 @@ import pytest
 import torch
 from sphere_scenes import FAST, PIXEL_UM, WATER, WAVELENGTH_UM, default_config, guess_table, sphere_scene
 
-from napari_lbs._core._lorenz_mie import disc_holograms, mie_coefficients, sphere_fields, sphere_holograms, term_count
+from napari_lbs._core.physics._lorenz_mie import disc_holograms, mie_coefficients, sphere_fields, sphere_holograms, term_count
 
 
 @pytest.fixture(autouse=True)
@@ -127,7 +127,7 @@ def test_azimuthal_moments_match_the_hologram_averaged_over_the_azimuth(pixel_um
     """``⟨I⟩`` and ``⟨I cos2φ⟩`` of the ring model against `sphere_holograms` on 720 azimuths per radius (absorbing, so C and Q matter)."""
     import math
 
-    from napari_lbs._core._lorenz_mie import azimuthal_mean_holograms
+    from napari_lbs._core.physics._lorenz_mie import azimuthal_mean_holograms
 
     z, d, contrast, kappa = 1800.0, 24.0, 0.26, 0.02
     rho = torch.linspace(0.5, 160.0, 48, dtype=torch.float64)
@@ -151,17 +151,17 @@ def test_ring_moments_through_the_coarse_radial_grid_match_the_direct_sums():
     """
     import math
 
-    from napari_lbs._core._lorenz_mie import _mean_intensity, _weighted_coefficients, mie_coefficients, term_count
+    from napari_lbs._core.physics._lorenz_mie import mean_intensity, weighted_coefficients, mie_coefficients, term_count
 
     k = 2 * math.pi * WATER / WAVELENGTH_UM
     diameters = torch.tensor([33.0, 34.0, 35.0], dtype=torch.float64)
     a, b = mie_coefficients(k * diameters / 2, torch.full((3,), (WATER + 0.26 + 0.001j) / WATER, dtype=torch.complex128),
                             terms=term_count(k * 35.0 / 2 * 1.15, 1.0))
-    a_eff, b_eff = (c.reshape(1, 1, 3, -1) for c in _weighted_coefficients(a, b))
+    a_eff, b_eff = (c.reshape(1, 1, 3, -1) for c in weighted_coefficients(a, b))
     z = torch.tensor([[2500.0, 2520.0]], dtype=torch.float64)
     rho = ((torch.arange(90, dtype=torch.float64) + 0.5) * PIXEL_UM)[None, None, :].expand(1, 2, -1)
-    direct = _mean_intensity(a_eff, b_eff, z, rho, k=k, pixel_um=PIXEL_UM, annulus_um=PIXEL_UM)
-    coarse = _mean_intensity(a_eff, b_eff, z, rho, k=k, pixel_um=PIXEL_UM, annulus_um=PIXEL_UM, lobe_diameter_um=torch.full((1, 2), 35.0))
+    direct = mean_intensity(a_eff, b_eff, z, rho, k=k, pixel_um=PIXEL_UM, annulus_um=PIXEL_UM)
+    coarse = mean_intensity(a_eff, b_eff, z, rho, k=k, pixel_um=PIXEL_UM, annulus_um=PIXEL_UM, lobe_diameter_um=torch.full((1, 2), 35.0))
     modulation = float((direct[..., 0] - 1.0).abs().max())
     assert modulation > 0.1
     assert float((coarse - direct).abs().max()) < 1e-3 * modulation
@@ -169,7 +169,7 @@ def test_ring_moments_through_the_coarse_radial_grid_match_the_direct_sums():
 
 def test_valley_interval_widens_with_the_rings_unexplained_chi_square():
     """The profile's interval reaches as far as the cost stays within Δχ² = 4 plus the excess χ² of the minimum, in the valley and across."""
-    from napari_lbs._core import _refine
+    from napari_lbs._core.refine import _refine
 
     diameters = torch.linspace(29.0, 31.0, 41, dtype=torch.float64)[None]  # 0.05 µm apart
     contrast = torch.stack([torch.full((41,), 0.26 + j * 0.022, dtype=torch.float64) for j in (-1, 0, 1)], dim=-1)[None]
@@ -185,7 +185,7 @@ def test_valley_interval_widens_with_the_rings_unexplained_chi_square():
 
 
 def test_symmetric_centre_is_found_within_a_tenth_of_a_pixel():
-    from napari_lbs._core import _refine
+    from napari_lbs._core.refine import _refine
 
     truth = (36.3 * PIXEL_UM, 35.6 * PIXEL_UM, 900.0, 18.0)
     hologram = sphere_scene([truth])
@@ -197,7 +197,7 @@ def test_symmetric_centre_is_found_within_a_tenth_of_a_pixel():
 
 
 def test_opaque_disc_matches_the_angular_spectrum_simulator():
-    from napari_lbs._core._synthesis import ParticleField, simulate_hologram
+    from napari_lbs._core.physics._synthesis import ParticleField, simulate_hologram
 
     pixel, size, z, diameter = 2.2, 128, 2000.0, 25.0
     centre = (63.3, 64.6)
@@ -223,7 +223,7 @@ def test_forward_models_are_differentiable_in_every_parameter():
 
 def test_radial_interpolation_is_differentiable_in_the_profiles_and_the_radii():
     """The sparse Catmull–Rom product passes torch's numerical gradient check in its table and its positions."""
-    from napari_lbs._core._lorenz_mie import _CatmullRom
+    from napari_lbs._core.physics._lorenz_mie import _CatmullRom
 
     generator = torch.Generator().manual_seed(0)
     table = torch.randn(2, 12, 4, dtype=torch.float64, generator=generator, requires_grad=True)
@@ -234,7 +234,7 @@ def test_radial_interpolation_is_differentiable_in_the_profiles_and_the_radii():
 @pytest.mark.parametrize("pixel_um", [None, 2.2])
 def test_lateral_derivatives_match_central_differences(pixel_um):
     """The analytic ∂I/∂x, ∂I/∂y (a neighbour's field added) agree with central differences of the hologram to 1e-6 of their scale."""
-    from napari_lbs._core._lorenz_mie import fields_from_profiles, holograms_from_fields, lateral_derivatives, radial_profiles
+    from napari_lbs._core.physics._lorenz_mie import fields_from_profiles, holograms_from_fields, lateral_derivatives, radial_profiles
 
     optics = {"wavelength_um": WAVELENGTH_UM, "medium_index": WATER}
     dx, dy = _grid(40, 2.2, (19.6, 20.3))
@@ -262,7 +262,7 @@ def test_lateral_derivatives_match_central_differences(pixel_um):
 
 def test_coarse_patches_are_every_other_row_and_column_of_the_full_ones():
     """Patches cut at the image's edges too: the coarse pixels are the full patch's [::2, ::2], the padding masked."""
-    from napari_lbs._core import _refine
+    from napari_lbs._core.refine import _refine
 
     image = np.random.default_rng(1).random((90, 70))
     x_um, y_um, edges = np.array([10.0, 80.0, 150.0]), np.array([5.0, 100.0, 190.0]), np.array([40, 33, 48])
@@ -358,7 +358,7 @@ def test_worker_processes_give_the_same_table_report_progress_and_stop_at_once()
 
 def test_the_model_without_the_particle_rounds_the_same_wherever_its_buffers_lie():
     """The illumination's least squares gives the same bits for the same patches, whatever memory they were copied to (LAPACK's does not)."""
-    from napari_lbs._core import _refine
+    from napari_lbs._core.refine import _refine
 
     image = np.random.default_rng(3).random((200, 200))
     patches = _refine._cut_patches(image, np.arange(16) * 6.0 + 20.0, np.arange(16) * 5.0 + 30.0, np.full(16, 60), pixel_um=PIXEL_UM, device="cpu")
@@ -375,7 +375,7 @@ def test_steps_longer_than_the_heartbeat_report_the_count_again_when_checked():
     """Refinement's batches take seconds in one process: `Steps.check` repeats the count once a heartbeat is due, not more often."""
     import time
 
-    from napari_lbs._core._progress import Steps
+    from napari_lbs._core.foundation._progress import Steps
 
     calls = []
     steps = Steps(3, progress=lambda done, total: calls.append((done, total)), should_stop=None, heartbeat_s=0.05)
@@ -446,8 +446,9 @@ def test_predict_refine_writes_the_refined_columns(tmp_path, monkeypatch, flags)
     import tifffile
 
     from napari_lbs import _cli
-    from napari_lbs._core import _network, _prediction
-    from napari_lbs._core._io import read_particles
+    from napari_lbs._core.learning import _network
+    from napari_lbs._core.learning import _prediction
+    from napari_lbs._core.foundation._io import read_particles
 
     truth = (36.3 * PIXEL_UM, 35.6 * PIXEL_UM, 900.0, 18.0)
     tifffile.imwrite(tmp_path / "holo.tif", sphere_scene([truth]).astype(np.float32))
@@ -462,13 +463,13 @@ def test_predict_refine_writes_the_refined_columns(tmp_path, monkeypatch, flags)
     monkeypatch.setattr(_network, "load_model", lambda *a, **k: Model())
     monkeypatch.setattr(_prediction, "predict_particles",
                         lambda *a, **k: thresholds.append(k["threshold"]) or _prediction.PredictionResult(guesses, {"model_sha256": "stub"}, 0.1))
-    from napari_lbs._core import _refine
+    from napari_lbs._core.refine import _refine
 
     made, settings = [], _refine.RefineSettings
     monkeypatch.setattr(_refine, "RefineSettings", lambda **options: made.append(options) or settings(**{**FAST, **options}))
     assert _cli.main(["predict", str(tmp_path / "holo.tif"), "--model", str(tmp_path / "model.pt"), "--out", str(tmp_path / "p.csv"), *flags,
                       "--device", "cpu"]) == 0
-    from napari_lbs._core._threads import available_threads
+    from napari_lbs._core.foundation._threads import available_threads
 
     material = {"index_contrast": 0.26} if "--material" in flags else {}
     assert made == [{"device": "cpu", "workers": available_threads(), **material}]  # the fit runs where the prediction did, a process per core
@@ -490,8 +491,11 @@ def test_predict_material_refines_every_frame_of_a_recording(tmp_path, monkeypat
     import tifffile
 
     from napari_lbs import _cli
-    from napari_lbs._core import _network, _prediction, _refine, _sequence
-    from napari_lbs._core._io import read_particles
+    from napari_lbs._core.learning import _network
+    from napari_lbs._core.learning import _prediction
+    from napari_lbs._core.refine import _refine
+    from napari_lbs._core.recordings import _sequence
+    from napari_lbs._core.foundation._io import read_particles
 
     spheres = [(36.3 * PIXEL_UM, 35.6 * PIXEL_UM, 900.0, 18.0), (34.8 * PIXEL_UM, 37.1 * PIXEL_UM, 880.0, 18.0)]  # the sphere in frame 0, then 1
     tifffile.imwrite(tmp_path / "rec.tif", np.stack([sphere_scene([sphere], seed=i) for i, sphere in enumerate(spheres)]).astype(np.float32))
@@ -545,7 +549,7 @@ def test_a_fit_on_a_bound_of_a_free_parameter_is_not_a_fit():
     """An index on its bound found no minimum inside the model's range; zero absorption (transparent) and fixed parameters on a bound are fine."""
     import torch
 
-    from napari_lbs._core._refine import _on_bound
+    from napari_lbs._core.refine._refine import _on_bound
 
     low = torch.tensor([[0.0, 0.0, 1.0, 0.05, -0.9, 0.0, -1e9]], dtype=torch.float64)
     high = torch.tensor([[100.0, 100.0, 5000.0, 500.0, 2.5, 5.0, 1e9]], dtype=torch.float64)

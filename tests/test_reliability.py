@@ -18,8 +18,8 @@ from hypothesis import strategies as st
 
 from napari_lbs._cli import main
 from napari_lbs._core import InputError
-from napari_lbs._core._files import write_json
-from napari_lbs._core._io import PARTICLE_COLUMNS
+from napari_lbs._core.foundation._files import write_json
+from napari_lbs._core.foundation._io import PARTICLE_COLUMNS
 
 
 @pytest.fixture
@@ -374,7 +374,7 @@ def test_training_warns_of_an_incomplete_data_set_and_refuses_a_corrupt_resume_f
 
 @pytest.mark.parametrize("command", ["backprop", "calibrate", "diagnose"])
 def test_sigterm_during_a_long_command_leaves_nothing(tmp_path, command):
-    from napari_lbs._core._samples import sample_hologram_path
+    from napari_lbs._core.foundation._samples import sample_hologram_path
 
     config = tmp_path / "c.toml"
     assert main(["config", "--write", str(config)]) == 0

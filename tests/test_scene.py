@@ -8,8 +8,8 @@ import torch
 from sphere_scenes import PIXEL_UM, WATER, WAVELENGTH_UM, default_config, guess_table, sphere_scene
 
 from napari_lbs._core import InputError
-from napari_lbs._core._lorenz_mie import sphere_fields, sphere_holograms
-from napari_lbs._core._scene import particle_hologram, residual_hologram
+from napari_lbs._core.physics._lorenz_mie import sphere_fields, sphere_holograms
+from napari_lbs._core.refine._scene import particle_hologram, residual_hologram
 
 
 def test_one_sphere_is_its_lorenz_mie_hologram_inside_its_fringe_disc_and_light_outside():
@@ -64,7 +64,7 @@ def test_a_sphere_the_table_misses_is_found_in_its_residual_and_the_tables_own_i
     from sphere_scenes import FAST
 
     from napari_lbs._core import RefineSettings, refine_particles
-    from napari_lbs._core._scene import residual_particles
+    from napari_lbs._core.refine._scene import residual_particles
 
     known, missed = (40.0 * PIXEL_UM, 42.0 * PIXEL_UM, 900.0, 20.0), (78.0 * PIXEL_UM, 74.0 * PIXEL_UM, 1100.0, 24.0)
     hologram = sphere_scene([known, missed], shape=(120, 120), noise=0.01, seed=5)

@@ -20,7 +20,7 @@ from napari_lbs._core import (
     simulate_hologram,
     simulate_sequence,
 )
-from napari_lbs._core._flow import flow_positions
+from napari_lbs._core.recordings._flow import flow_positions
 
 
 @pytest.fixture(scope="module")
@@ -100,7 +100,7 @@ def test_the_median_background_removes_a_static_pattern(vortex, tiny_config):
 
 
 def test_the_flat_field_keeps_every_particle_and_removes_the_envelope(tiny_config):
-    from napari_lbs._core._background import flat_field
+    from napari_lbs._core.recordings._background import flat_field
 
     clean = simulate_sequence(tiny_config, frames=1, flow="uniform", size=256, count=4, speed_um=0.0, seed=3).frames[0]
     rows, cols = np.indices(clean.shape)
@@ -114,7 +114,7 @@ def test_the_flat_field_keeps_every_particle_and_removes_the_envelope(tiny_confi
 
 
 def test_auto_takes_the_median_only_when_it_has_static_structure_and_no_particles(tiny_config):
-    from napari_lbs._core._background import choose_background
+    from napari_lbs._core.recordings._background import choose_background
 
     rows, cols = np.indices((96, 96))
     pattern = (0.6 + 0.3 * np.sin(rows / 5.0) * np.cos(cols / 7.0) + 0.1 * (cols / 96)).astype(np.float32)  # a setup's static fringes
@@ -174,7 +174,7 @@ def test_the_same_table_from_one_worker_and_two(vortex, detector):
 
 
 def test_a_stopped_run_resumes_without_redoing_finished_frames(vortex, detector, tmp_path, monkeypatch):
-    import napari_lbs._core._sequence as sequence
+    import napari_lbs._core.recordings._sequence as sequence
 
     work = tmp_path / "p.csv.parts"
     seen = []
@@ -220,7 +220,7 @@ def test_a_killed_cli_run_resumes_where_it_stopped(tmp_path, detector, tiny_conf
     done = sorted(int(p.stem.split("_")[1]) for p in parts.glob("frame_*.npz"))
     assert 2 <= len(done) < 10 and not list(parts.glob("*.tmp*"))
     predicted = []
-    import napari_lbs._core._sequence as sequence
+    import napari_lbs._core.recordings._sequence as sequence
 
     original = sequence._frame_particles
     monkeypatch.setattr(sequence, "_frame_particles", lambda hologram, *rest: predicted.append(hologram) or original(hologram, *rest))
@@ -407,7 +407,7 @@ def test_a_bad_frame_late_in_a_recording_is_refused_before_any_work(tmp_path, de
 
 def test_the_packaged_sample_hologram_webp_reads_as_one_frame_like_the_sample_loader():
     from napari_lbs._core import load_sample_hologram, open_frames
-    from napari_lbs._core._samples import sample_hologram_path
+    from napari_lbs._core.foundation._samples import sample_hologram_path
 
     frames = open_frames([sample_hologram_path()])  # what `predict` does with one file
     assert len(frames) == 1

@@ -5,7 +5,7 @@ import pytest
 from scipy import integrate, special
 
 from napari_lbs._core import ParticleField, random_particle_field, simulate_hologram
-from napari_lbs._core._synthesis import LABEL_SCALE, count_for_ppp, disc_coverage, label_planes
+from napari_lbs._core.physics._synthesis import LABEL_SCALE, count_for_ppp, disc_coverage, label_planes
 
 PIXEL_UM = 2.2
 

@@ -9,7 +9,7 @@ import pytest
 # it reports what each library got.
 _PROBE = """
 import json, sys
-from napari_lbs._core._threads import process_threads, size_threads, thread_pool
+from napari_lbs._core.foundation._threads import process_threads, size_threads, thread_pool
 SIZING
 from threadpoolctl import threadpool_info
 from napari_lbs._core import backpropagate

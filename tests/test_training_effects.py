@@ -18,7 +18,7 @@ from napari_lbs._core import (
     random_particle_field,
     simulate_hologram,
 )
-from napari_lbs._core._effects import check_effects, effect_hologram, parse_effect
+from napari_lbs._core.physics._effects import check_effects, effect_hologram, parse_effect
 
 CONFIG = ExperimentConfig.from_dict({"tile": {"size": 64}, "particles": {"per_tile": 3}, "volume": {"z_min_um": 1800.0, "z_max_um": 2000.0, "z_step_um": 50.0}})
 
@@ -87,7 +87,7 @@ def test_effect_hologram_obeys_the_physics_of_each_effect():
 
 
 def test_a_spheres_phase_delay_is_proportional_to_its_diameter():
-    from napari_lbs._core._effects import _sphere_fields
+    from napari_lbs._core.physics._effects import _sphere_fields
 
     # φ0 = 2π Δn d / λ through the centre: 0.95 rad for 20 µm, 1.43 rad for 30 µm at Δn 0.005
     # (slow phases, so the band limit leaves the centre's value intact)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from napari_lbs._core import ExperimentConfig, random_particle_field, simulate_hologram, write_particles
-from napari_lbs._core._config import config_to_toml
+from napari_lbs._core.foundation._config import config_to_toml
 
 TIMEOUT_MS = 180_000
 

@@ -1,11 +1,11 @@
-"""The ``napari-lbs`` console script: one sub-command per pipeline step (`napari_lbs._core._pipeline`).
+"""The ``napari-lbs`` console script: one sub-command per pipeline step (`napari_lbs._core.pipeline._pipeline`).
 
 Each sub-command checks its flags and outputs, builds the step's request, runs it with a
 progress bar and prints the step's one-line summary.
 
 Bad input exits 2 with one line naming the culprit (a file or a flag); an unexpected error
 exits 1 with one line asking for a report (``--debug`` prints the traceback); success prints
-a one-line summary on stderr. See CONTRACT.md and docs/reliability.md.
+a one-line summary on stderr. See docs/formats.md and docs/reliability.md.
 
 Outputs are checked before any work (`check_output_path`). Everything heavy is imported
 inside the sub-commands, so ``napari-lbs --version`` or ``--help`` starts in a fraction of a
@@ -27,10 +27,10 @@ from pathlib import Path
 
 from napari_lbs import __version__
 from napari_lbs._core import InputError, load_config, write_config
-from napari_lbs._core import _pipeline as pipeline
-from napari_lbs._core._files import json_safe
-from napari_lbs._core._threads import size_threads
-from napari_lbs._core._validation import check_output_path
+from napari_lbs._core import pipeline
+from napari_lbs._core.foundation import json_safe
+from napari_lbs._core.foundation import size_threads
+from napari_lbs._core.foundation import check_output_path
 
 # Failures that are the input's or the machine's, not the program's: exit 2 with one line.
 _EXPECTED_ERRORS = (ValueError, OSError, MemoryError)
@@ -375,8 +375,8 @@ def _parser() -> argparse.ArgumentParser:
     p = sub.add_parser("evaluate", help="score a particle table against a reference, one-to-one")
     p.add_argument("pred", metavar="PRED.csv")
     p.add_argument("truth", metavar="TRUTH.csv")
-    p.add_argument("--lateral-tol-um", type=_number(0.0, above=True), help="lateral match radius (µm; default: CONTRACT.md's, 22)")
-    p.add_argument("--axial-tol-um", type=_number(0.0, above=True), help="axial match distance (µm; default: CONTRACT.md's, 150)")
+    p.add_argument("--lateral-tol-um", type=_number(0.0, above=True), help="lateral match radius (µm; default 22)")
+    p.add_argument("--axial-tol-um", type=_number(0.0, above=True), help="axial match distance (µm; default 150)")
     p.add_argument("--json", action="store_true", help="print the metrics JSON on stdout")
     p.set_defaults(run=_cmd_evaluate)
 

@@ -1,4 +1,4 @@
-"""napari reader (particle CSV → Points) and writer (Points → particle CSV), CONTRACT.md tables.
+"""napari reader (particle CSV → Points) and writer (Points → particle CSV), docs/formats.md tables.
 
 A table read here lands on the default config's plane grid (`napari_lbs._layers`), so its
 particles line up with a back-propagated stack of the default depths.
@@ -19,7 +19,7 @@ from pathlib import Path
 import napari
 
 from napari_lbs._core import load_config, read_particles, write_particles
-from napari_lbs._core._io import PARTICLE_COLUMNS
+from napari_lbs._core.foundation import PARTICLE_COLUMNS
 from napari_lbs._layers import PlaneGrid, particle_points, points_table, prefer_particle_writer
 
 

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from napari_lbs._core import load_config, load_sample_hologram, random_particle_field, simulate_hologram
-from napari_lbs._core._samples import SAMPLE_PROVENANCE
+from napari_lbs._core.foundation import SAMPLE_PROVENANCE
 from napari_lbs._layers import UNITS, PlaneGrid, particle_points, prefer_particle_writer
 
 SYNTHETIC_SEED = 2024

@@ -25,7 +25,7 @@ from qtpy.QtCore import Signal as QtSignal
 from qtpy.QtWidgets import QFormLayout, QFrame, QLabel, QScrollArea, QSizePolicy, QVBoxLayout, QWidget
 
 from napari_lbs._core import Stopped, load_config
-from napari_lbs._core._io import as_hologram
+from napari_lbs._core.foundation import as_hologram
 from napari_lbs._layers import prefer_particle_writer
 from napari_lbs._widgets._setup import restore_pixel_size
 

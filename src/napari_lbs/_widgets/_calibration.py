@@ -15,8 +15,8 @@ from magicgui.widgets import ComboBox, PushButton, SpinBox, create_widget
 from qtpy.QtCore import QTimer
 
 from napari_lbs._core import CalibrationSettings, calibrate_hologram
-from napari_lbs._core._calibration import experimental_reference, reference_planes
-from napari_lbs._core._files import write_json
+from napari_lbs._core.calibration import experimental_reference, reference_planes
+from napari_lbs._core.foundation import write_json
 from napari_lbs._layers import UNITS
 from napari_lbs._widgets._backprop import CONFIG_TOOLTIP, HOLOGRAM_TOOLTIP
 from napari_lbs._widgets._base import StepWidget, chosen, config_from, config_problem, doc_of, hologram_data, hologram_problem, output_problem, path_edit
@@ -50,7 +50,7 @@ class CalibrationWidget(StepWidget):
                              tooltip="robust: several simulated fields, common random numbers, finalists re-scored on fresh noise; seed: the seed paper's single field and fresh noise")
         self.seed = SpinBox(label="seed", name="seed", value=0, min=0, max=2**31 - 1, tooltip=doc_of(CalibrationSettings, "seed"))
         self.output = path_edit(label="save calibration", name="output", mode="w", filter="*.json", value="calibration.json",
-                                tooltip="The calibration JSON (CONTRACT.md): params, ssim, roi, history; Synthetic data reads it")
+                                tooltip="The calibration JSON (docs/formats.md): params, ssim, roi, history; Synthetic data reads it")
         self.add_roi = PushButton(text="Add reference ROI", tooltip="Put (or select) the one tile-sized rectangle on the hologram; drag it where the hologram is typical")
         super().__init__(napari_viewer, [self.hologram, self.roi, self.add_roi, self.config, self.generations, self.population, self.mode, self.seed, self.output])
         self._plot = FitnessPlot()

@@ -37,7 +37,7 @@ class DiagnosisWidget(StepWidget):
         self.known_effects = LineEdit(label="known effects", name="known_effects", value="",
                                       tooltip="Effects you know the experiment has, put into every simulation and not diagnosed, as on the command line, separated by ';' "
                                               "(polystyrene beads in water: particle_phase:index_contrast=0.26,transmission=1). Empty: only what the file states")
-        self.output = path_edit(label="report folder", name="output", mode="d", value="lbs-diagnosis", tooltip="report.json (CONTRACT.md), report.md and figures are written here")
+        self.output = path_edit(label="report folder", name="output", mode="d", value="lbs-diagnosis", tooltip="report.json (docs/formats.md), report.md and figures are written here")
         super().__init__(napari_viewer, [self.hologram, self.config, self.tile, self.simulations, self.level, self.seed, self.known_effects, self.output])
         self._plot = PosteriorPlot()
         self.add_view(self._plot.canvas)
@@ -58,7 +58,7 @@ class DiagnosisWidget(StepWidget):
         return output_problem(self.output, "report folder", folder=True)
 
     def prepare(self):
-        from napari_lbs._core._pipeline import DiagnoseRequest
+        from napari_lbs._core.pipeline import DiagnoseRequest
 
         layer = self.hologram.value
         place_hologram(layer, chosen(self.config))
@@ -68,7 +68,7 @@ class DiagnosisWidget(StepWidget):
         return request, layer
 
     def work(self, job, *, progress, should_stop, report):
-        from napari_lbs._core._pipeline import diagnose
+        from napari_lbs._core.pipeline import diagnose
 
         request, layer = job
         return diagnose(request, progress=progress, should_stop=should_stop), request, layer

@@ -8,7 +8,7 @@ import numpy as np
 from magicgui.widgets import ComboBox, LineEdit, SpinBox
 
 from napari_lbs._core import DatasetLayout, Distractors, generate_dataset
-from napari_lbs._core._pipeline import GenerateRequest, generate, requested_effects
+from napari_lbs._core.pipeline import GenerateRequest, generate, requested_effects
 from napari_lbs._layers import UNITS, PlaneGrid
 from napari_lbs._widgets._backprop import CONFIG_TOOLTIP
 from napari_lbs._widgets._base import StepWidget, config_from, config_problem, doc_of, effects_problem, missing, output_problem, path_edit

@@ -6,8 +6,8 @@ import numpy as np
 from magicgui.widgets import CheckBox, ComboBox, LineEdit, create_widget
 
 from napari_lbs._core import match_particles, predict_particles, read_particles, score_particles
-from napari_lbs._core._material import MATERIAL_SIGMAS, MATERIAL_TOLERANCE
-from napari_lbs._core._pipeline import refined_prediction
+from napari_lbs._core.refine import MATERIAL_SIGMAS, MATERIAL_TOLERANCE
+from napari_lbs._core.pipeline import refined_prediction
 from napari_lbs._layers import PlaneGrid, particle_points
 from napari_lbs._widgets._backprop import HOLOGRAM_TOOLTIP
 from napari_lbs._widgets._base import StepWidget, chosen, config_problem, doc_of, hologram_data, hologram_problem, missing, model_config, model_problem, path_edit

@@ -115,7 +115,7 @@ def model_setup(model_path: Path, config, layer=None):
         The mismatches (`model_mismatches`), one a line; None when the model fits.
     """
     from napari_lbs._core import ExperimentConfig, load_model
-    from napari_lbs._core._network import model_mismatches
+    from napari_lbs._core.learning import model_mismatches
 
     model = load_model(model_path)
     named = "the config"

@@ -1,0 +1,135 @@
+"""Files: atomic writes, strict JSON, and reading UTF-8 text and JSON objects.
+
+Every writer goes to a temporary name beside the target and renames it into place, so an
+interrupted write never leaves a half-written file where a good one was. Readers refuse a
+missing file, a folder or another encoding with one line naming the file.
+
+This module imports only the standard library, so every other module may use it.
+"""
+
+from __future__ import annotations
+
+import glob
+import json
+import math
+import os
+import re
+import tempfile
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+from napari_lbs._core.foundation._errors import InputError
+
+__all__ = ["atomic_path", "atomic_write_bytes", "json_safe", "write_json", "read_text", "read_json_object"]
+
+_RUN_STARTED = time.time()  # temporaries older than this are a killed run's leftovers
+
+
+def _new_file_mode() -> int:
+    """The mode a newly created file gets under the process's umask (0666 & ~umask)."""
+    try:  # Linux reports the umask without changing it (os.umask would, racing other threads)
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return 0o666 & ~int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
+def _remove_stale_temporaries(path: Path) -> None:
+    """Remove temporary files of ``path`` that a killed run (SIGKILL, power cut) left behind.
+
+    Only names `atomic_path` makes (``.NAME.XXXXXXXX.partSUFFIX``) last modified before this
+    process started using this module, so another process writing ``path`` now keeps its own.
+    """
+    pattern = re.compile(re.escape(f".{path.name}.") + r"[a-z0-9_]{8}" + re.escape(".part" + path.suffix))
+    for candidate in path.parent.glob(f".{glob.escape(path.name)}.*"):
+        try:
+            if pattern.fullmatch(candidate.name) and candidate.is_file() and candidate.stat().st_mtime < _RUN_STARTED:
+                candidate.unlink()
+        except OSError:  # gone already, or not ours to remove: leave it
+            pass
+
+
+@contextmanager
+def atomic_path(path: Path):
+    """Yield a temporary path beside ``path``; rename it onto ``path`` only if the block succeeds.
+
+    The result has the mode an ordinary write would give it: an existing file's own mode, else
+    0666 less the umask (a temporary file is created 0600, which would hide results from the
+    lab members sharing a folder). A folder at ``path`` is refused. Temporaries of ``path``
+    that a killed earlier run left are removed first.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder; expected a file name")
+    if path.parent and not path.parent.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+    _remove_stale_temporaries(path)
+    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part" + path.suffix, dir=path.parent)
+    os.close(handle)
+    temporary = Path(temporary)
+    try:
+        yield temporary
+        mode = path.stat().st_mode & 0o7777 if path.is_file() else _new_file_mode()
+        os.chmod(temporary, mode)
+        os.replace(temporary, path)
+    finally:
+        if temporary.exists():
+            temporary.unlink()
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically; return ``path``."""
+    with atomic_path(path) as temporary:
+        temporary.write_bytes(data)
+    return Path(path)
+
+
+def json_safe(value: object) -> object:
+    """``value`` with every NaN or infinite float replaced by ``None``: strict JSON (``null``), never ``NaN``."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {key: json_safe(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(item) for item in value]
+    return value
+
+
+def write_json(path: str | Path, payload: dict) -> Path:
+    """Write ``payload`` as indented strict JSON, atomically; non-finite numbers become ``null`` (`json_safe`)."""
+    text = json.dumps(json_safe(payload), indent=2, sort_keys=False, allow_nan=False)
+    return atomic_write_bytes(Path(path), (text + "\n").encode("utf-8"))
+
+
+def read_text(path: str | Path, *, what: str) -> str:
+    """The UTF-8 text of a file (a byte-order mark, as Excel writes, is dropped).
+
+    Raises
+    ------
+    InputError
+        Missing, a folder, or not UTF-8 (e.g. Latin-1 or UTF-16), naming the file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: {what} file not found" + (" (it is a folder)" if path.is_dir() else ""))
+    try:
+        return path.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError as error:
+        raise InputError(f"{path}: not UTF-8 text (byte {error.start}); save the {what} file as UTF-8") from None
+
+
+def read_json_object(path: str | Path, *, what: str) -> dict:
+    """A JSON object from a UTF-8 file; anything else (a list, invalid JSON, other encodings) is refused naming the file."""
+    path = Path(path)
+    try:
+        payload = json.loads(read_text(path, what=what))
+    except json.JSONDecodeError as error:
+        raise InputError(f"{path}: not valid JSON ({error})") from None
+    if not isinstance(payload, dict):
+        raise InputError(f"{path}: expected a JSON object ({what}), got a {type(payload).__name__}")
+    return payload

@@ -1,0 +1,26 @@
+"""The physics: angular-spectrum optics, Lorenz–Mie and disc holograms, synthetic particle fields, the effect catalog.
+
+Stands on the foundation only. Other wings import these names from ``napari_lbs._core.physics``, never from its
+private modules; each name is imported on first use.
+
+`_effects`
+    The effect catalog: parametric extensions of the seed"s simulator, for diagnosis and for data.
+`_lorenz_mie`
+    Holograms of single particles, batched and differentiable in torch: Lorenz–Mie spheres and opaque discs.
+`_optics`
+    Angular-spectrum propagation of scalar fields between parallel planes.
+`_synthesis`
+    Random particle fields, their layer images, holograms and ground-truth label planes (HCS).
+"""
+
+from napari_lbs._core.foundation import lazy_exports
+
+__getattr__, __dir__, __all__ = lazy_exports(
+    __name__,
+    {
+        "_effects": ("EFFECTS", "OPTICAL_EFFECTS", "check_effects", "effect_hologram", "effects_from_report", "optical_hologram", "parse_effects", "sensor_image"),
+        "_lorenz_mie": ("fields_from_profiles", "holograms_from_fields", "lateral_derivatives", "mean_intensity", "mie_coefficients", "radial_profiles", "radial_step", "sphere_fields", "term_count", "weighted_coefficients"),
+        "_optics": ("backpropagate", "backpropagated_blocks", "padded_shape", "propagate", "transfer_function"),
+        "_synthesis": ("Distractors", "LABEL_SCALE", "ParticleField", "distractor_scene", "label_planes", "random_particle_field", "simulate_hologram"),
+    },
+)

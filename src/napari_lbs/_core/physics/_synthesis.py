@@ -1,0 +1,315 @@
+"""Random particle fields, their layer images, holograms and ground-truth label planes (HCS).
+
+The seed paper's high-contrast simulation (Sec. 2.1): opaque particles on equally spaced
+layers, each layer's image diffracted to the sensor by angular-spectrum propagation and the
+fields superposed. Lengths in µm; positions follow docs/formats.md (``x_um = col * pixel_um``,
+pixel centres at integer indices; ``z_um`` = distance to the sensor).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.fft
+
+from napari_lbs._core.foundation import InputError
+from napari_lbs._core.physics._optics import propagation_grid, superpose, transfer_function
+from napari_lbs._core.foundation import process_threads
+
+__all__ = [
+    "ParticleField",
+    "Distractors",
+    "random_particle_field",
+    "distractor_scene",
+    "count_for_ppp",
+    "disc_coverage",
+    "layer_images",
+    "simulate_hologram",
+    "label_planes",
+    "LABEL_SCALE",
+]
+
+LABEL_SCALE = 4.0  # label value = LABEL_SCALE * diameter (µm), as in the seed paper
+_LABEL_HALF = 1  # 3x3 squares
+_SUPERSAMPLE = 8  # 8x8 sub-samples per pixel: coverage quantised to 1/64
+
+
+@dataclass(frozen=True)
+class ParticleField:
+    """Particles in a volume in front of a ``shape`` sensor of pitch ``pixel_um``.
+
+    Attributes
+    ----------
+    x_um, y_um, z_um, diameter_um : (n,) float64 arrays
+        Centres (µm; x along columns, y along rows, z = distance to the sensor) and diameters.
+    shape : (int, int)
+        Sensor window (rows, cols).
+    pixel_um : float
+        Sensor pitch (µm).
+    """
+
+    x_um: np.ndarray
+    y_um: np.ndarray
+    z_um: np.ndarray
+    diameter_um: np.ndarray
+    shape: tuple[int, int]
+    pixel_um: float
+
+    def __len__(self) -> int:
+        return int(self.x_um.size)
+
+    def table(self) -> dict[str, np.ndarray]:
+        """The particle table (docs/formats.md columns)."""
+        return {"x_um": self.x_um, "y_um": self.y_um, "z_um": self.z_um, "diameter_um": self.diameter_um}
+
+    def layers_um(self) -> np.ndarray:
+        """Distinct particle depths (µm), farthest first."""
+        return np.unique(self.z_um)[::-1]
+
+
+@dataclass(frozen=True)
+class Distractors:
+    """Scatterers a real sample holds besides the particles to report: in training data they are unlabelled.
+
+    Attributes
+    ----------
+    impurities_per_tile : int
+        Small scatterers (debris, dust or bubbles in the medium) per ``tile.size`` window, at
+        uniform positions and depths over the volume, with diameters uniform in
+        ``impurity_diameter_min_um`` … ``impurity_diameter_max_um`` (µm), below the particles'
+        size range. A real sample's back-propagation shows such small foci (the seed's real
+        hologram has dozens); a network that never saw them reports them as particles.
+    impurity_diameter_min_um, impurity_diameter_max_um : float
+        Their diameter range (µm).
+    neighbours_margin_px : int
+        The hologram is simulated over the window widened by this margin on every side, with
+        particles and impurities at the same density there, and only the window is kept. A
+        real hologram is a crop of a larger field: near its edges it holds fringes of
+        particles whose centres lie outside it, which are not to be reported.
+    """
+
+    impurities_per_tile: int = 0
+    impurity_diameter_min_um: float = 4.0
+    impurity_diameter_max_um: float = 14.0
+    neighbours_margin_px: int = 0
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.impurities_per_tile, int) and self.impurities_per_tile >= 0):
+            raise InputError(f"impurities_per_tile: expected a non-negative integer, got {self.impurities_per_tile!r}")
+        if not 0.0 < self.impurity_diameter_min_um <= self.impurity_diameter_max_um:
+            raise InputError(f"impurity_diameter_min_um: expected 0 < min <= impurity_diameter_max_um (um), got {self.impurity_diameter_min_um!r} and {self.impurity_diameter_max_um!r}")
+        if not (isinstance(self.neighbours_margin_px, int) and 0 <= self.neighbours_margin_px <= 4096):
+            raise InputError(f"neighbours_margin_px: expected 0..4096 pixels, got {self.neighbours_margin_px!r}")
+
+    @property
+    def active(self) -> bool:
+        return self.impurities_per_tile > 0 or self.neighbours_margin_px > 0
+
+    def to_dict(self) -> dict:
+        """The settings that shape the data (no impurity diameters without impurities)."""
+        sizes = {"impurity_diameter_min_um": float(self.impurity_diameter_min_um), "impurity_diameter_max_um": float(self.impurity_diameter_max_um)}
+        return {"impurities_per_tile": int(self.impurities_per_tile), **(sizes if self.impurities_per_tile else {}), "neighbours_margin_px": int(self.neighbours_margin_px)}
+
+    @classmethod
+    def from_dict(cls, payload: dict | None) -> Distractors:
+        return cls(**payload) if payload else cls()
+
+
+def distractor_scene(
+    field: ParticleField,
+    distractors: Distractors,
+    *,
+    tile_px: int,
+    depth_range_um: tuple[float, float],
+    diameter_range_um: tuple[float, float],
+    layers_um: Sequence[float] | None = None,
+    rng: np.random.Generator,
+) -> ParticleField:
+    """The scene the optics sees: ``field`` plus its distractors, on the window widened by the margin.
+
+    Coordinates are shifted by the margin, so ``field``'s particles keep their place in the
+    window ``[m:m + rows, m:m + cols]`` of the returned shape. Neighbours fill the margin at
+    ``field``'s particle density (per area), with its diameter range and depths (on
+    ``layers_um`` when given, else uniform over ``depth_range_um``); impurities fill the whole
+    widened window at ``impurities_per_tile`` per ``tile_px``² with depths uniform over
+    ``depth_range_um``. Nothing is drawn from ``rng`` when ``distractors`` is inactive.
+    """
+    if not distractors.active:
+        return field
+    margin = int(distractors.neighbours_margin_px)
+    rows, cols = field.shape
+    shape = (rows + 2 * margin, cols + 2 * margin)
+    extent_x, extent_y = (shape[1] - 1) * field.pixel_um, (shape[0] - 1) * field.pixel_um
+    window = (margin * field.pixel_um, (margin + cols - 1) * field.pixel_um, margin * field.pixel_um, (margin + rows - 1) * field.pixel_um)
+    area_ratio = shape[0] * shape[1] / (rows * cols)
+    neighbours = int(round(len(field) * (area_ratio - 1.0)))
+    x, y = [], []
+    while len(x) < neighbours:  # uniform over the margin: rejection of the window (at least 1 - 1/area_ratio accepted)
+        xi, yi = rng.uniform(0.0, extent_x), rng.uniform(0.0, extent_y)
+        if not (window[0] <= xi <= window[1] and window[2] <= yi <= window[3]):
+            x.append(xi)
+            y.append(yi)
+    neighbour_z = rng.choice(np.asarray(layers_um, np.float64), neighbours) if layers_um is not None else rng.uniform(*depth_range_um, neighbours)
+    neighbour_d = rng.uniform(*diameter_range_um, neighbours)
+    impurities = int(round(distractors.impurities_per_tile * shape[0] * shape[1] / tile_px**2))
+    impurity_x, impurity_y = rng.uniform(0.0, extent_x, impurities), rng.uniform(0.0, extent_y, impurities)
+    impurity_z = rng.uniform(*depth_range_um, impurities)
+    impurity_d = rng.uniform(distractors.impurity_diameter_min_um, distractors.impurity_diameter_max_um, impurities)
+    shift = margin * field.pixel_um
+    return ParticleField(
+        np.concatenate([field.x_um + shift, x, impurity_x]),
+        np.concatenate([field.y_um + shift, y, impurity_y]),
+        np.concatenate([field.z_um, neighbour_z, impurity_z]),
+        np.concatenate([field.diameter_um, neighbour_d, impurity_d]),
+        shape,
+        field.pixel_um,
+    )
+
+
+def count_for_ppp(ppp: float, shape: tuple[int, int], *, pixel_um: float, voxel_um: float) -> int:
+    """Particle count for a concentration in particles per lateral voxel.
+
+    The seed paper (Sec. 3.1) counts particles per voxel of ``voxel_um`` (26.82 µm there):
+    540 particles over 63 x 63 voxels is 0.136 ppp.
+    """
+    if ppp < 0:
+        raise InputError(f"ppp: expected a non-negative concentration, got {ppp}")
+    voxels = (shape[0] * pixel_um / voxel_um) * (shape[1] * pixel_um / voxel_um)
+    return int(round(ppp * voxels))
+
+
+def random_particle_field(
+    shape: tuple[int, int],
+    *,
+    count: int,
+    diameter_min_um: float,
+    diameter_max_um: float,
+    layers_um: Sequence[float],
+    pixel_um: float,
+    seed: int | np.random.Generator | None = None,
+    overlap: bool = True,
+    continuous: bool = False,
+) -> ParticleField:
+    """Draw a random particle field.
+
+    Diameters are uniform in ``[diameter_min_um, diameter_max_um]``, depths drawn uniformly
+    from ``layers_um`` (the seed's HCS layers) or, with ``continuous=True``, uniformly over
+    ``[min(layers_um), max(layers_um)]`` (every particle its own depth, as in a real volume),
+    centres uniform over the window. With ``overlap=False`` no two particles overlap in
+    projection along z (rejection sampling; raises when the window is too full).
+    """
+    rng = np.random.default_rng(seed)
+    if count < 0:
+        raise InputError(f"count: expected a non-negative integer, got {count}")
+    layers = np.asarray(layers_um, dtype=np.float64)
+    if layers.size == 0:
+        raise InputError("layers_um: expected at least one depth")
+    rows, cols = shape
+    diameters = rng.uniform(diameter_min_um, diameter_max_um, count)
+    depths = rng.uniform(layers.min(), layers.max(), count) if continuous else rng.choice(layers, size=count)
+    x = np.empty(count)
+    y = np.empty(count)
+    for i in range(count):
+        for _attempt in range(10_000):
+            xi, yi = rng.uniform(0.0, (cols - 1) * pixel_um), rng.uniform(0.0, (rows - 1) * pixel_um)
+            if overlap or i == 0 or np.all(np.hypot(x[:i] - xi, y[:i] - yi) >= (diameters[:i] + diameters[i]) / 2):
+                break
+        else:
+            raise InputError(f"count: {count} particles do not fit without overlap in a {rows}x{cols} window")
+        x[i], y[i] = xi, yi
+    return ParticleField(x, y, depths, diameters, (int(rows), int(cols)), float(pixel_um))
+
+
+def disc_coverage(shape: tuple[int, int], x_um, y_um, diameter_um, *, pixel_um: float) -> np.ndarray:
+    """Fraction of each pixel covered by discs (anti-aliased, 1/64 steps), float32 in [0, 1].
+
+    Pixel ``(r, c)`` spans ``[c - 0.5, c + 0.5) x [r - 0.5, r + 0.5)`` pixels; coverage is the
+    fraction of its 8x8 sub-samples that lie inside any disc.
+    """
+    coverage = np.zeros(shape, dtype=np.float32)
+    offsets = (np.arange(_SUPERSAMPLE) + 0.5) / _SUPERSAMPLE - 0.5
+    for xc, yc, d in zip(np.atleast_1d(x_um), np.atleast_1d(y_um), np.atleast_1d(diameter_um), strict=True):
+        col, row, radius = xc / pixel_um, yc / pixel_um, d / (2.0 * pixel_um)
+        r0, r1 = max(int(np.floor(row - radius - 1)), 0), min(int(np.ceil(row + radius + 1)), shape[0] - 1)
+        c0, c1 = max(int(np.floor(col - radius - 1)), 0), min(int(np.ceil(col + radius + 1)), shape[1] - 1)
+        if r0 > r1 or c0 > c1:
+            continue
+        sub_r = (np.arange(r0, r1 + 1)[:, None] + offsets[None, :]).ravel()
+        sub_c = (np.arange(c0, c1 + 1)[:, None] + offsets[None, :]).ravel()
+        inside = ((sub_r[:, None] - row) ** 2 + (sub_c[None, :] - col) ** 2) <= radius**2
+        fraction = inside.reshape(r1 - r0 + 1, _SUPERSAMPLE, c1 - c0 + 1, _SUPERSAMPLE).mean(axis=(1, 3))
+        box = coverage[r0 : r1 + 1, c0 : c1 + 1]
+        # Discs of one layer that overlap still block light only once.
+        np.maximum(box, np.minimum(box + fraction.astype(np.float32), 1.0), out=box)
+    return coverage
+
+
+def layer_images(field: ParticleField) -> tuple[np.ndarray, np.ndarray]:
+    """Coverage image of each particle layer: ``(depths_um farthest first, (n_layers, rows, cols) float32)``."""
+    depths = field.layers_um()
+    images = np.stack([
+        disc_coverage(field.shape, field.x_um[field.z_um == z], field.y_um[field.z_um == z], field.diameter_um[field.z_um == z], pixel_um=field.pixel_um)
+        for z in depths
+    ]) if depths.size else np.zeros((0,) + field.shape, np.float32)
+    return depths, images
+
+
+def simulate_hologram(field: ParticleField, *, wavelength_um: float, medium_index: float = 1.0, shadowing: bool = False) -> np.ndarray:
+    """Intensity hologram of opaque particles under a unit plane wave, float32, unobstructed light = 1.
+
+    Parameters
+    ----------
+    field : ParticleField
+        Particles; their depths are distances to the sensor.
+    wavelength_um, medium_index
+        Vacuum wavelength (µm) and medium index.
+    shadowing : bool
+        False (the seed's model): each layer's scattered field ``-coverage`` is propagated to
+        the sensor alone and the fields are superposed. True: the wave is propagated layer by
+        layer from the farthest, each layer multiplying it by its transmission ``1 - coverage``,
+        so nearer particles shadow the light scattered by farther ones.
+    """
+    depths, images = layer_images(field)
+    if depths.size == 0:
+        return np.ones(field.shape, dtype=np.float32)
+    optics = {"wavelength_um": wavelength_um, "pixel_um": field.pixel_um, "medium_index": medium_index}
+    if not shadowing:
+        scattered = superpose([-image for image in images], depths, **optics)
+        return np.abs(1.0 + scattered).astype(np.float32) ** 2
+    grid, spread_limit_um = propagation_grid(field.shape, z_max_um=float(depths[0]), **optics)
+    rows, cols = field.shape
+    wave = np.ones(grid, dtype=np.complex64)
+    transmission = np.ones(grid, dtype=np.float32)
+    for depth, next_depth, image in zip(depths, np.append(depths[1:], 0.0), images, strict=True):
+        transmission[:rows, :cols] = 1.0 - image
+        wave *= transmission
+        kernel = transfer_function(grid, float(depth - next_depth), spread_limit_um=spread_limit_um, **optics)
+        wave = scipy.fft.ifft2(scipy.fft.fft2(wave, workers=process_threads()) * kernel, workers=process_threads())
+    return (np.abs(wave[:rows, :cols]) ** 2).astype(np.float32)
+
+
+def label_planes(field: ParticleField, planes_um: Sequence[float]) -> np.ndarray:
+    """Ground-truth label planes: a 3x3 square of value 4 x diameter (µm) per particle.
+
+    Each particle is drawn on the plane of ``planes_um`` nearest its depth, centred on the
+    pixel nearest its centre; squares are clipped at the window edge. Where squares overlap
+    the larger diameter wins.
+
+    Returns
+    -------
+    (len(planes_um), rows, cols) float32
+    """
+    planes = np.asarray(planes_um, dtype=np.float64)
+    labels = np.zeros((planes.size,) + field.shape, dtype=np.float32)
+    rows, cols = field.shape
+    for x, y, z, d in zip(field.x_um, field.y_um, field.z_um, field.diameter_um, strict=True):
+        plane = int(np.argmin(np.abs(planes - z)))
+        row, col = int(round(y / field.pixel_um)), int(round(x / field.pixel_um))
+        r0, r1 = max(row - _LABEL_HALF, 0), min(row + _LABEL_HALF + 1, rows)
+        c0, c1 = max(col - _LABEL_HALF, 0), min(col + _LABEL_HALF + 1, cols)
+        if r0 < r1 and c0 < c1:
+            box = labels[plane, r0:r1, c0:c1]
+            np.maximum(box, np.float32(LABEL_SCALE * d), out=box)
+    return labels

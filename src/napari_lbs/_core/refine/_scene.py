@@ -1,0 +1,185 @@
+"""The Lorenz–Mie hologram of a whole particle table, and what a hologram holds beyond it.
+
+A refined table (`refine_particles`) describes every sphere it kept by its position, depth,
+diameter, index contrast and absorption: `particle_hologram` renders their hologram over a
+whole frame, the fields of all spheres added coherently, so that dividing it out of the
+data (`residual_hologram`) leaves what the table does not explain — a particle the network
+did not propose (hidden by a neighbour's fringes, or of a size it never saw) among the
+remains of the fits.
+
+Each sphere is rendered on the square around the disc where its fringes lie below the
+pixel's Nyquist frequency (`_refine._patch_edge`, at most ``2 * patch_px`` pixels wide):
+beyond it the camera aliases the fringes and the fit does not model them either.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import torch
+
+from napari_lbs._core.foundation import ExperimentConfig
+from napari_lbs._core.foundation import PARTICLE_COLUMNS, InputError
+from napari_lbs._core.refine._material import MATERIAL_TOLERANCE, same_material
+from napari_lbs._core.physics import holograms_from_fields, sphere_fields, term_count
+from napari_lbs._core.foundation import ProgressCallback, StopCallback, Stopped
+from napari_lbs._core.refine._refine import RefineSettings, _check_table, _patch_edge, refine_particles
+
+__all__ = ["particle_hologram", "residual_hologram", "residual_particles"]
+
+
+def particle_hologram(shape: tuple[int, int], table, config: ExperimentConfig, *, settings: RefineSettings | None = None,
+                      should_stop: StopCallback | None = None) -> np.ndarray:
+    """The normalised Lorenz–Mie hologram of the spheres of ``table`` on a frame of ``shape``.
+
+    Parameters
+    ----------
+    shape : (rows, cols)
+        The frame (pixels of ``config.optics.pixel_um``).
+    table : pandas.DataFrame or dict of arrays
+        ``x_um, y_um, z_um, diameter_um`` (depths in the config's convention) and, when
+        present, ``index_contrast`` and ``absorption`` (else ``settings``' starts): a refined
+        table as `refine_particles` returns it.
+    config : ExperimentConfig
+    settings : RefineSettings, optional
+        The medium's index, the pixel integration and the largest patch, as the fit used
+        them.
+    should_stop : callable, optional
+        Polled before each sphere; `Stopped` is raised when it returns True.
+
+    Returns
+    -------
+    (rows, cols) float64 array: ``|x̂ + Σ E_s|²`` with unobstructed light 1. Each sphere's
+    interference with the plane wave goes through its pixel transfer; the intensity of the
+    summed field adds last, so overlapping spheres interfere as fields do.
+    """
+    import pandas as pd
+
+    settings = settings or RefineSettings()
+    if len(tuple(shape)) != 2:
+        raise InputError(f"particle hologram: expected a frame shape (rows, cols), got {tuple(shape)}")
+    rows, cols = (int(n) for n in shape)
+    if rows < 1 or cols < 1:
+        raise InputError(f"particle hologram: expected a frame of at least one pixel, got shape {tuple(shape)}")
+    frame = _check_table(table)
+    optics = config.optics
+    pixel = optics.pixel_um
+    to_physical = settings.medium_index / optics.medium_index
+    column = lambda name, default: (pd.to_numeric(frame[name], errors="coerce").fillna(default).to_numpy(np.float64)
+                                    if name in frame else np.full(len(frame), default))
+    x, y = frame["x_um"].to_numpy(np.float64), frame["y_um"].to_numpy(np.float64)
+    z, diameter = frame["z_um"].to_numpy(np.float64) * to_physical, frame["diameter_um"].to_numpy(np.float64)
+    contrast, absorption = column("index_contrast", settings.index_contrast), column("absorption", settings.absorption)
+    cross = np.zeros((rows, cols))
+    summed = np.zeros((3, rows, cols), dtype=np.complex128)
+    optics_kw = {"wavelength_um": optics.wavelength_um, "medium_index": settings.medium_index}
+    wide = replace(settings, patch_px=2 * settings.patch_px)
+    for i in range(len(frame)):
+        if should_stop is not None and should_stop():
+            raise Stopped()
+        edge = _patch_edge(z[i], settings=wide, wavelength_um=optics.wavelength_um, pixel_um=pixel)
+        half = edge // 2
+        c0, r0 = round(x[i] / pixel) - half, round(y[i] / pixel) - half
+        r_lo, r_hi, c_lo, c_hi = max(r0, 0), min(r0 + edge, rows), max(c0, 0), min(c0 + edge, cols)
+        if r_lo >= r_hi or c_lo >= c_hi:
+            continue  # a sphere whose fringes miss the frame
+        rr, cc = np.mgrid[r_lo:r_hi, c_lo:c_hi]
+        dx = torch.as_tensor(cc.reshape(1, -1) * pixel - x[i], dtype=torch.float64)
+        dy = torch.as_tensor(rr.reshape(1, -1) * pixel - y[i], dtype=torch.float64)
+        sphere = [torch.tensor([value], dtype=torch.float64) for value in (z[i], diameter[i], contrast[i], absorption[i])]
+        size = math.pi * settings.medium_index / optics.wavelength_um * diameter[i]
+        # Wiscombe's count at the fitted size: what it leaves out is below 2e-9 of the hologram
+        fields = sphere_fields(dx, dy, *sphere, terms=term_count(size, 1.0), **optics_kw)
+        single = holograms_from_fields(fields, dx, dy, sphere[0], pixel_um=pixel if settings.pixel_integration else None, **optics_kw)
+        own = sum(f.real**2 + f.imag**2 for f in fields)
+        block = (slice(r_lo, r_hi), slice(c_lo, c_hi))
+        cross[block] += (single - 1.0 - own).reshape(rr.shape).numpy()
+        for axis in range(3):
+            summed[(axis, *block)] += fields[axis].reshape(rr.shape).numpy()
+    return 1.0 + cross + np.sum(summed.real**2 + summed.imag**2, axis=0)
+
+
+def residual_hologram(hologram: np.ndarray, table, config: ExperimentConfig, *, settings: RefineSettings | None = None,
+                      background: np.ndarray | None = None, should_stop: StopCallback | None = None) -> np.ndarray:
+    """``hologram`` less the hologram of ``table``'s spheres, in its own units.
+
+    The data is divided by ``background`` (else by its mean, as `refine_particles` sees it
+    from ``napari-lbs predict --refine``); the spheres' terms, ``particle_hologram - 1``,
+    are taken away there and the result multiplied back, so a network or a fit sees the
+    hologram the table's spheres would leave without them.
+    """
+    image = np.asarray(hologram, dtype=np.float64)
+    if image.ndim != 2:
+        raise InputError(f"hologram: expected a 2-D image, got shape {image.shape}")
+    scale = np.asarray(background, dtype=np.float64) if background is not None else float(np.mean(image))
+    if np.shape(scale) not in ((), image.shape) or not np.all(np.asarray(scale) > 0):
+        raise InputError(f"background: expected positive values of the hologram's shape {image.shape}, got shape {np.shape(scale)}")
+    model = particle_hologram(image.shape, table, config, settings=settings, should_stop=should_stop)
+    return (image / scale - (model - 1.0)) * scale
+
+
+def residual_particles(hologram: np.ndarray, table, config: ExperimentConfig, *, propose, settings: RefineSettings | None = None,
+                       background: np.ndarray | None = None, progress: ProgressCallback | None = None, should_stop: StopCallback | None = None):
+    """Particles the residual of a refined ``table`` holds: proposed there, refined there.
+
+    Parameters
+    ----------
+    hologram : (rows, cols) array
+        The hologram ``table`` was refined on, in its own units.
+    table : pandas.DataFrame
+        A refined table (`refine_particles`), every scatterer it kept.
+    config : ExperimentConfig
+    propose : callable
+        ``propose(image)`` -> a particle table of guesses for a hologram in ``hologram``'s
+        units: the network's proposals (`predict_particles` down to its proposal threshold).
+    settings : RefineSettings, optional
+        How the table was refined; the new particles are refined the same way.
+    background : (rows, cols) array, optional
+        As `residual_hologram`.
+    progress, should_stop
+        Passed to the refinement (one step per batch).
+
+    Returns
+    -------
+    pandas.DataFrame
+        The new particles as `refine_particles` returns them, fitted on the residual (the
+        table's spheres taken out of the data; their interference with a find is neither
+        taken out nor modelled): those the fit refined and measured as the sample's material (an index contrast within `MATERIAL_TOLERANCE` of
+        ``settings.index_contrast``, whatever its uncertainty), less those that refit onto a
+        particle of ``table`` (within a quarter of the smaller diameter laterally and two
+        diameters in depth: what the table's fit left of it). A particle hidden in a
+        neighbour's fringes or along its line of sight is so fitted against the data its
+        neighbours leave.
+    """
+    import pandas as pd
+
+    settings = settings or RefineSettings()
+    image = np.asarray(hologram, dtype=np.float64)
+    scale = np.asarray(background, dtype=np.float64) if background is not None else float(np.mean(image))
+    kept = pd.DataFrame(table).reset_index(drop=True)
+    # the rows the fit measured: an unrefined row is a guess, whose hologram may be far off
+    fitted = kept[kept["refined"].astype(bool)] if "refined" in kept else kept
+    residual = residual_hologram(image, fitted, config, settings=settings, background=background, should_stop=should_stop)
+    # the network sees an intensity: where a fit overshoots the data, none is left
+    try:
+        guesses = pd.DataFrame({name: np.asarray(values) for name, values in dict(propose(np.maximum(residual, 0.0))).items()})
+    except (TypeError, ValueError) as error:
+        raise InputError(f"propose: expected a particle table (columns of equal length), got {error}") from None
+    if guesses.empty:
+        guesses = pd.DataFrame({name: np.empty(0) for name in PARTICLE_COLUMNS})
+    found = refine_particles(residual / scale, guesses, config, settings=settings, progress=progress, should_stop=should_stop)
+    # a find is a particle of the sample, measured as one: the residual also holds debris and
+    # what the fits left, which the network, seeing them without their context, proposes too
+    # (whatever their uncertainty, sigmas=0: a loose index does not make a find)
+    sample = same_material(found, index_contrast=settings.index_contrast, tolerance=MATERIAL_TOLERANCE, sigmas=0.0)
+    found = found[found["refined"].to_numpy(bool) & sample].reset_index(drop=True)
+    if found.empty or kept.empty:
+        return found
+    lateral = np.hypot(found["x_um"].to_numpy()[:, None] - kept["x_um"].to_numpy()[None], found["y_um"].to_numpy()[:, None] - kept["y_um"].to_numpy()[None])
+    smaller = np.minimum(found["diameter_um"].to_numpy()[:, None], kept["diameter_um"].to_numpy()[None])
+    # the table's depths are in the config's convention, the diameters in the medium (as `_refine._duplicates` compares them)
+    depth = np.abs(found["z_um"].to_numpy()[:, None] - kept["z_um"].to_numpy()[None]) * settings.medium_index / config.optics.medium_index
+    twin = ((lateral < 0.25 * smaller) & (depth < 2.0 * smaller)).any(axis=1)
+    return found[~twin].reset_index(drop=True)
