@@ -1,4 +1,4 @@
-"""The ``napari-lbs`` console script: one sub-command per pipeline step (`napari_lbs._core.pipeline._pipeline`).
+"""The ``napari-lbs`` console script: one sub-command per pipeline step (`napari_lbs._core.pipeline`).
 
 Each sub-command checks its flags and outputs, builds the step's request, runs it with a
 progress bar and prints the step's one-line summary.
@@ -28,9 +28,7 @@ from pathlib import Path
 from napari_lbs import __version__
 from napari_lbs._core import InputError, load_config, write_config
 from napari_lbs._core import pipeline
-from napari_lbs._core.foundation import json_safe
-from napari_lbs._core.foundation import size_threads
-from napari_lbs._core.foundation import check_output_path
+from napari_lbs._core.foundation import check_output_path, json_safe, size_threads
 
 # Failures that are the input's or the machine's, not the program's: exit 2 with one line.
 _EXPECTED_ERRORS = (ValueError, OSError, MemoryError)

@@ -14,9 +14,9 @@ import numpy as np
 from magicgui.widgets import ComboBox, PushButton, SpinBox, create_widget
 from qtpy.QtCore import QTimer
 
-from napari_lbs._core import CalibrationSettings, calibrate_hologram
+from napari_lbs._core import CalibrationSettings
 from napari_lbs._core.calibration import experimental_reference, reference_planes
-from napari_lbs._core.foundation import write_json
+from napari_lbs._core.pipeline import CalibrateRequest, calibrate
 from napari_lbs._layers import UNITS
 from napari_lbs._widgets._backprop import CONFIG_TOOLTIP, HOLOGRAM_TOOLTIP
 from napari_lbs._widgets._base import StepWidget, chosen, config_from, config_problem, doc_of, hologram_data, hologram_problem, output_problem, path_edit
@@ -216,15 +216,14 @@ class CalibrationWidget(StepWidget):
         settings = CalibrationSettings(mode=self.mode.value, generations=self.generations.value, population=self.population.value, seed=self.seed.value)
         layer = self.hologram.value
         place_hologram(layer, chosen(self.config))
-        return hologram_data(layer), config_from(self.config), self._roi_origin(), settings, Path(self.output.value), layer
+        request = CalibrateRequest(hologram_data(layer), Path(self.output.value), config_from(self.config), settings=settings, roi=self._roi_origin(), source=layer.name)
+        return request, layer
 
     def work(self, job, *, progress, should_stop, report):
-        hologram, config, roi, settings, output, layer = job
-        result = calibrate_hologram(hologram, config, roi=roi, settings=settings, progress=progress, should_stop=should_stop, report=report)
-        payload = result.to_json()
-        payload["provenance"] = {"config": config.to_dict(), "seed": settings.seed}
-        write_json(output, payload)
-        return result, output, layer
+        # the pipeline's step: the same JSON and provenance as the console script writes
+        request, layer = job
+        result = calibrate(request, progress=progress, should_stop=should_stop, report=report).value
+        return result, request.out_path, layer
 
     def report_received(self, record) -> None:
         """A generation's best fitness, as it is made: the curve grows during the run."""

@@ -1,10 +1,22 @@
 """The pipeline every front uses: one step per task, a frozen request in, a `StepResult` out.
 
 The top wing: stands on every other. Other wings import these names from ``napari_lbs._core.pipeline``, never from its
-private modules; each name is imported on first use.
+private modules; each name is imported on first use. The console script and the widgets only build requests and show
+results; the steps read the inputs, run `_core`'s functions, write the outputs with their provenance and say in one
+line what they did.
 
-`_pipeline`
-    The pipeline: one step per task, a frozen request in, a `StepResult` out.
+`_common`
+    What every step shares: `StepResult`, the provenance outputs record, the readers of a request's inputs.
+`_setup_steps`
+    The steps that start from one hologram or none: simulate, backprop and calibrate.
+`_data_steps`
+    The steps that make and use a training set: generate and train.
+`_predict`
+    The steps that find particles: predict (a hologram or a recording, refined by a fit on request) and track.
+`_diagnose_step`
+    The steps that measure: diagnose (the sim-to-real gap of a setup's holograms) and evaluate.
+`_demo`
+    The demo: every step in turn on the built-in real hologram, recorded in ``summary.json``.
 """
 
 from napari_lbs._core.foundation import lazy_exports
@@ -12,6 +24,11 @@ from napari_lbs._core.foundation import lazy_exports
 __getattr__, __dir__, __all__ = lazy_exports(
     __name__,
     {
-        "_pipeline": ("BackpropRequest", "CalibrateRequest", "DEMO_SAMPLE_DISTRACTORS", "DemoRequest", "DiagnoseRequest", "EvaluateRequest", "GenerateRequest", "PredictRequest", "SimulateRequest", "TrackRequest", "TrainRequest", "backprop", "calibrate", "demo", "diagnose", "evaluate", "generate", "predict", "prediction_outputs", "refined_prediction", "requested_effects", "simulate", "track", "train"),
+        "_common": ("StepResult", "provenance", "read_calibration"),
+        "_setup_steps": ("BackpropRequest", "CalibrateRequest", "SimulateRequest", "backprop", "calibrate", "simulate"),
+        "_data_steps": ("GenerateRequest", "TrainRequest", "generate", "requested_effects", "train"),
+        "_predict": ("PredictRequest", "REFINE_PROPOSAL_FRACTION", "TrackRequest", "predict", "prediction_outputs", "refined_prediction", "track"),
+        "_diagnose_step": ("DiagnoseRequest", "EvaluateRequest", "diagnose", "evaluate"),
+        "_demo": ("DEMO_SAMPLE_DISTRACTORS", "DemoRequest", "demo"),
     },
 )

@@ -1,0 +1,160 @@
+"""The steps that make and use a training set: generate and train."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from napari_lbs._core.foundation import ExperimentConfig
+from napari_lbs._core.foundation import ProgressCallback, StopCallback
+from napari_lbs._core.foundation import read_json_object
+from napari_lbs._core.pipeline._common import Log, StepResult, _quiet, read_calibration
+
+if TYPE_CHECKING:  # for the annotations only: the steps import these modules when they run
+    from napari_lbs._core.learning import DatasetLayout, InputProcessing, TrainingSettings
+    from napari_lbs._core.physics import Distractors
+
+__all__ = ["GenerateRequest", "requested_effects", "generate", "TrainRequest", "train"]
+
+
+# --- generate ------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class GenerateRequest:
+    """A synthetic training set: the one description the console script, the widget and the demo build.
+
+    Attributes
+    ----------
+    out_dir : Path
+    config : ExperimentConfig
+    groups : int
+    calibration_path : path, optional
+        A calibration JSON: recorded, and its Holo-processing makes the inputs unless
+        ``processing`` is given.
+    processing : InputProcessing, optional
+        How inputs are made (default: the calibration's, else none: the seed's normal simulation).
+    effects : mapping
+        ``{effect_id: {param: value}}`` added to every hologram (`requested_effects`).
+    effects_source : dict, optional
+        Where the effects came from, recorded in the data set.
+    layout : DatasetLayout, optional
+    distractors : Distractors, optional
+    seed : int
+    workers : int
+        Processes simulating groups at once.
+    """
+
+    out_dir: Path
+    config: ExperimentConfig = ExperimentConfig()
+    groups: int = 256
+    calibration_path: str | Path | None = None
+    processing: InputProcessing | None = None
+    effects: Mapping = field(default_factory=dict)
+    effects_source: dict | None = None
+    layout: DatasetLayout | None = None
+    distractors: Distractors | None = None
+    seed: int = 0
+    workers: int = 1
+
+
+def requested_effects(*, report_path=None, explicit: Sequence[str] = (), flag: str = "--effect") -> tuple[dict, dict | None]:
+    """The effects a diagnosis report names plus explicit ones (which add to or override them), and their source.
+
+    Parameters
+    ----------
+    report_path : path, optional
+        A diagnosis ``report.json`` (`effects_from_report`).
+    explicit : sequence of str
+        Command-line forms such as ``particle_phase:index_contrast=0.26,transmission=1``.
+    flag : str
+        Named in the message of a malformed explicit effect.
+
+    Returns
+    -------
+    effects : dict
+    source : dict or None
+        ``{"report": path, "verdict": id}`` and/or ``{"explicit": [...]}``; None without effects asked for.
+    """
+    from napari_lbs._core.physics import effects_from_report, parse_effects
+
+    effects, source = {}, None
+    if report_path:
+        report = read_json_object(report_path, what="diagnosis report")
+        effects = effects_from_report(report, name=str(report_path))
+        source = {"report": str(report_path), "verdict": report["verdict"]["id"]}
+    explicit = [text for text in explicit if text.strip()]
+    effects.update(parse_effects(explicit, flag=flag))
+    if explicit:
+        source = {**(source or {}), "explicit": list(explicit)}
+    return effects, source
+
+
+def generate(request: GenerateRequest, *, progress: ProgressCallback | None = None, should_stop: StopCallback | None = None) -> StepResult:
+    """Write the synthetic training set (`generate_dataset`)."""
+    from napari_lbs._core.learning import DatasetLayout, InputProcessing, generate_dataset
+    from napari_lbs._core.physics import Distractors
+
+    calibration = read_calibration(request.calibration_path) if request.calibration_path else None
+    processing = request.processing or (InputProcessing.from_calibration(calibration) if calibration else InputProcessing())
+    distractors = request.distractors or Distractors()
+    effects = dict(request.effects)
+    start = time.perf_counter()
+    dataset = generate_dataset(request.out_dir, request.config, groups=request.groups, processing=processing, layout=request.layout or DatasetLayout(),
+                               calibration=calibration, effects=effects, effects_source=request.effects_source, distractors=distractors, seed=request.seed,
+                               workers=request.workers, progress=progress, should_stop=should_stop)
+    seconds = time.perf_counter() - start
+    planes = len(dataset.groups) * len(dataset.planes_um)
+    kind = f"calibrated ({request.calibration_path})" if request.processing is None and calibration else "uncalibrated: Holo-processing (0, 0, 1)"
+    added = f", effects: {', '.join(effects)}" if effects else ""
+    if request.effects_source and "report" in request.effects_source and not effects:
+        added = f", no effects: {request.effects_source['report']} names none"
+    if distractors.active:
+        added += f", unlabelled distractors: {distractors.impurities_per_tile} impurities per tile, neighbours in a {distractors.neighbours_margin_px}-pixel margin"
+    return StepResult(f"wrote {len(dataset.groups)} groups ({planes} input planes, {kind}{added}) in {seconds:.1f} s -> {request.out_dir}", dataset, (Path(request.out_dir),))
+
+
+# --- train ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class TrainRequest:
+    """A network trained on a data set folder.
+
+    Attributes
+    ----------
+    data : path
+        The data set folder (`generate`).
+    out_path : Path
+        The model file; its training log goes beside it as ``.json``, its resume state as ``.last.pt``.
+    settings : TrainingSettings, optional
+    resume : bool
+        Continue from ``out_path``'s ``.last.pt``.
+    """
+
+    data: str | Path
+    out_path: Path
+    settings: TrainingSettings | None = None
+    resume: bool = False
+
+
+def train(request: TrainRequest, *, progress: ProgressCallback | None = None, should_stop: StopCallback | None = None, log: Log = _quiet) -> StepResult:
+    """Train the U-Net (`train_model`); a data set with missing groups trains on those present, with a warning."""
+    from napari_lbs._core.learning import open_dataset
+    from napari_lbs._core.learning import TrainingSettings, train_model
+
+    settings = request.settings or TrainingSettings()
+    dataset = open_dataset(request.data)
+    expected = int(dataset.spec["groups"])
+    if len(dataset.groups) < expected:  # a stopped generate, or group files removed since
+        log(f"{request.data}: warning: {len(dataset.groups)} of {expected} groups present; training on those (run generate again to finish the set)")
+    result = train_model(dataset, request.out_path, settings=settings, resume=request.resume, progress=progress, should_stop=should_stop)
+    best = result.log["best"]
+    record = next(e for e in result.log["epochs"] if e["epoch"] == best["epoch"])["validation"]
+    stopped = f" ({result.log['stop_reason']})" if result.stopped else ""
+    summary = (f"trained {settings.preset} ({settings.formulation}) for {len(result.log['epochs'])} epochs in {result.log['seconds']:.0f} s{stopped}; best epoch {best['epoch']}: "
+               f"validation ER {100 * record['er']:.2f} %, JI {record['ji']:.3f} (one-to-one, held-out synthetic groups) -> {request.out_path}")
+    return StepResult(summary, result, (Path(result.model_path),))

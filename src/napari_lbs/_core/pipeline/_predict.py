@@ -1,0 +1,371 @@
+"""The steps that find particles: predict (a hologram or a recording, refined by a fit on request) and track."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from napari_lbs._core.foundation import ExperimentConfig
+from napari_lbs._core.foundation import InputError
+from napari_lbs._core.foundation import ProgressCallback, StopCallback
+from napari_lbs._core.foundation import check_output_path, write_json
+from napari_lbs._core.pipeline._common import Log, StepResult, _background, _quiet, _source
+
+if TYPE_CHECKING:  # for the annotations only: the steps import these modules when they run
+    import numpy as np
+
+    from napari_lbs._core.learning import LoadedModel
+
+__all__ = ["PredictRequest", "REFINE_PROPOSAL_FRACTION", "refined_prediction", "prediction_outputs", "predict", "TrackRequest", "track"]
+
+
+# --- predict -------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class PredictRequest:
+    """The particles of a hologram or a recording, found by a trained model.
+
+    Attributes
+    ----------
+    inputs : sequence of paths, or a 2-D array
+        Image files, folders, glob patterns, multi-page TIFFs or videos (`open_frames`); frames
+        numbered in this order. An array is one hologram already read.
+    model : path or LoadedModel
+    out_path : Path
+        The particle table (CSV, or Parquet for ``.parquet``); provenance beside it as ``.json``.
+    config : ExperimentConfig, optional
+        Optics and depths (default: the model's).
+    background_path : path, optional
+        A hologram taken without particles, divided out of every frame.
+    device : str
+    precision : str
+        The network's arithmetic: ``auto``, ``float32`` or ``bfloat16`` (`resolve_precision`).
+    force : bool
+        Run a model made for other optics or depths than the config's.
+    sequence_background : str
+        Recordings without a background file: ``auto``, ``global``, ``running``, ``flat`` or ``none`` (`predict_sequence`).
+    background_window : int
+        Frames of a running background.
+    workers : int, optional
+        Recordings: a local dask cluster of this many workers.
+    scheduler : str, optional
+        Recordings: an existing dask.distributed scheduler's address.
+    source : str, optional
+        The hologram's name in the provenance when ``inputs`` is an array.
+    refine : bool
+        Refine every detection by a Lorenz–Mie fit (`refine_particles`); the table gains its columns.
+    threshold : float, optional
+        The smallest score a detection keeps (`predict_particles`); default the model's, and
+        with ``refine`` `REFINE_PROPOSAL_FRACTION` of it.
+    material_index_contrast : float, optional
+        The sample's ``n_p - n_m`` (implies ``refine``); particles of another material
+        (`same_material`) are listed in the provenance instead of the table.
+    """
+
+    inputs: Sequence[str | Path] | np.ndarray
+    model: str | Path | LoadedModel
+    out_path: Path
+    config: ExperimentConfig | None = None
+    background_path: str | Path | None = None
+    device: str = "auto"
+    precision: str = "auto"
+    force: bool = False
+    sequence_background: str = "auto"
+    background_window: int = 21
+    workers: int | None = None
+    scheduler: str | None = None
+    source: str | None = None
+    refine: bool = False
+    threshold: float | None = None
+    material_index_contrast: float | None = None
+
+
+# With a fit to check them, detections are proposed at this fraction of the model's score
+# threshold: on the development holograms of docs/refinement.md the fit turned the extra
+# proposals into the spheres the network had scored just below its threshold (sizes beyond
+# its training range, overlapping holograms), and kept few false ones, down to 0.8 of it.
+REFINE_PROPOSAL_FRACTION = 0.8
+
+
+def _proposal_threshold(meta: dict, threshold: float | None) -> float:
+    """The score down to which a refined prediction proposes: ``threshold``, else `REFINE_PROPOSAL_FRACTION` of the model's."""
+    return float(threshold) if threshold is not None else REFINE_PROPOSAL_FRACTION * float(meta["threshold"])
+
+
+def _network_proposals(model, config: ExperimentConfig | None, *, threshold: float, device: str, precision: str, force: bool, progress, should_stop):
+    """``propose(image)``: the network's proposals (down to ``threshold``) in an image as the fit sees it (divided by the background, else by its mean), for `residual_particles`."""
+    from napari_lbs._core.learning import predict_particles
+
+    return lambda image: predict_particles(image, model, config, device=device, precision=precision, force=force, threshold=threshold, progress=progress,
+                                           should_stop=should_stop).particles
+
+
+def refined_prediction(hologram: np.ndarray, model, config: ExperimentConfig | None = None, *, background: np.ndarray | None = None, device: str = "auto",
+                       precision: str = "auto", force: bool = False, threshold: float | None = None, material_index_contrast: float | None = None,
+                       progress: ProgressCallback | None = None, should_stop: StopCallback | None = None):
+    """`predict_particles` down to `REFINE_PROPOSAL_FRACTION` of the model's threshold (or ``threshold``), then `refine_particles`.
+
+    The fit sees the hologram divided by ``background``, else by its mean. The network then
+    looks again in what the refined table leaves unexplained (`residual_particles`: spheres
+    hidden in their neighbours' fringes, sizes it scored low), and the sample's particles
+    the fit measures there join the table. Returns a `PredictionResult` whose particles are
+    the refined table (`REFINE_COLUMNS` after the first four) and whose provenance gains
+    ``refine`` (settings, counts, seconds; ``residual``: the second look's proposals, finds
+    and seconds). With
+    ``material_index_contrast`` (the sample's ``n_p - n_m``) the fits start there and the
+    particles of another material (`same_material`) leave the table for the provenance's
+    ``refine.material.other_particles``. ``progress`` counts the prediction's planes, then
+    the fit's batches, then the same for the second look.
+    """
+    import numpy as np
+
+    from napari_lbs._core.learning import LoadedModel, load_model
+    from napari_lbs._core.learning import PredictionResult, predict_particles
+
+    started = time.perf_counter()
+    model = model if isinstance(model, LoadedModel) else load_model(model, device=device)
+    proposal = _proposal_threshold(model.meta, threshold)
+    result = predict_particles(hologram, model, config, background=background, device=device, precision=precision, force=force,
+                               threshold=proposal, progress=progress, should_stop=should_stop)
+    normalised = np.asarray(hologram, dtype=np.float64) / (background if background is not None else float(np.mean(hologram)))
+    propose = _network_proposals(model, config, threshold=proposal, device=device, precision=precision, force=force, progress=progress,
+                                 should_stop=should_stop)
+    particles, record = _refined(normalised, result.particles, config or model.config, material=material_index_contrast, device=device, propose=propose,
+                                 progress=progress, should_stop=should_stop)
+    return PredictionResult(particles, {**result.provenance, "refine": record}, time.perf_counter() - started)
+
+
+def prediction_outputs(out_path) -> tuple[Path, Path]:
+    """The particle table and its provenance JSON, refused where they would overwrite something else."""
+    from napari_lbs._core.foundation import check_table_name
+
+    out = Path(out_path)
+    if out.suffix.lower() == ".json":
+        raise InputError(f"--out {out}: expected a particle table (.csv, or .parquet); its provenance is written beside it as .json")
+    check_table_name(out)  # a Parquet table without pyarrow is refused now, not after the work
+    record = out.with_suffix(".json")
+    if record.is_file():
+        try:
+            previous = json.loads(record.read_text(encoding="utf-8"))
+        except (json.JSONDecodeError, UnicodeDecodeError):
+            previous = None
+        # only a previous run's provenance of this same table may be replaced (never a model's training log)
+        if not (isinstance(previous, dict) and previous.get("particles") == str(out) and "model_sha256" in previous):
+            raise InputError(f"--out {out}: {record} exists and is not this table's provenance; choose another name")
+    return out, record
+
+
+def _write_table(out: Path, record_path: Path, particles: dict, record: dict) -> None:
+    """The particle table (CSV, or Parquet with ``record`` in its key-value metadata too) and its provenance JSON beside it."""
+    from napari_lbs._core.foundation import write_particles
+
+    write_particles(out, particles, metadata=record)
+    write_json(record_path, record)
+
+
+def predict(request: PredictRequest, *, progress: ProgressCallback | None = None, should_stop: StopCallback | None = None, log: Log = _quiet) -> StepResult:
+    """Predict the particles of one hologram, or of every frame of a recording (one table with a ``frame`` column)."""
+    from napari_lbs._core.learning import load_model
+    from napari_lbs._core.learning import predict_particles
+    from napari_lbs._core.recordings import open_frames
+
+    out, record_path = prediction_outputs(request.out_path)
+    if isinstance(request.inputs, (str, Path, list, tuple)):
+        inputs = [request.inputs] if isinstance(request.inputs, (str, Path)) else list(request.inputs)
+        with open_frames(inputs) as frames:
+            if len(frames) > 1:
+                return _predict_recording(request, frames, out, record_path, progress=progress, should_stop=should_stop, log=log)
+            # one frame (an image, a one-page TIFF, a one-frame video): the single-hologram path
+            source, hologram = frames.name(0), frames.read(0, log=log)
+    else:
+        source, hologram = _source("array", request.source), request.inputs
+    background = _background(request.background_path, hologram.shape, log=log)
+    model = request.model if not isinstance(request.model, (str, Path)) else load_model(request.model, device=request.device)
+    options = {"background": background, "device": request.device, "precision": request.precision, "force": request.force, "threshold": request.threshold,
+               "progress": progress, "should_stop": should_stop}
+    refine = request.refine or request.material_index_contrast is not None  # the fit measures the material
+    if refine:
+        options["material_index_contrast"] = request.material_index_contrast
+    result = (refined_prediction if refine else predict_particles)(hologram, model, request.config, **options)
+    particles, provenance = result.particles, result.provenance
+    refined = _refine_summary(provenance["refine"]) if refine else ""
+    _write_table(out, record_path, particles, {**provenance, "source": str(source), "background_file": request.background_path, "particles": str(out)})
+    count = provenance["refine"]["detections"] if refine else len(particles["x_um"])
+    return StepResult(f"found {count} particles in {source} in {result.seconds:.1f} s{refined} -> {out} (provenance: {record_path})", result, (out, record_path))
+
+
+def _refine_summary(record: dict) -> str:
+    """What the fit did, for a prediction's one-line summary."""
+    line = f", {record['kept']} kept by the fit in {record['seconds']:.1f} s, {record['residual']['found']} more found in its residual"
+    if "material" in record:
+        line += f", {record['material']['other_material']} of another material than {record['material']['index_contrast']:g} left out"
+    return line
+
+
+def _refined_frames(frames, particles: dict, config: ExperimentConfig, *, background, material: float | None, device: str, propose, log: Log, progress,
+                    should_stop) -> tuple[dict, dict]:
+    """Each frame's rows of a recording's table refined on that frame (divided by the background file, else by its mean)."""
+    import numpy as np
+
+    frame_of = np.asarray(particles["frame"]).astype(np.int64)
+    parts, records = [], []
+    for index in np.unique(frame_of):
+        rows = frame_of == index
+        hologram = np.asarray(frames.read(int(index), log=log), dtype=np.float64)
+        divisor = background if isinstance(background, np.ndarray) else float(hologram.mean())
+        table, record = _refined(hologram / divisor, {name: np.asarray(values)[rows] for name, values in particles.items()}, config, material=material, device=device,
+                                 propose=propose, progress=progress, should_stop=should_stop)
+        if len(table["x_um"]) and "frame" in table:
+            table["frame"] = np.full(len(table["x_um"]), index, dtype=np.asarray(particles["frame"]).dtype)
+        parts.append(table)
+        records.append(record)
+    merged = {name: np.concatenate([part[name] for part in parts]) for name in parts[0]} if parts else particles
+    summary = {"settings": records[0]["settings"] if records else None, "detections": sum(r["detections"] for r in records),
+               "kept": sum(r["kept"] for r in records), "seconds": sum(r["seconds"] for r in records),
+               "residual": {key: sum(r["residual"][key] for r in records) for key in ("proposals", "found", "seconds")}}
+    if material is not None:
+        from napari_lbs._core.refine import MATERIAL_SIGMAS, MATERIAL_TOLERANCE
+
+        others = [r["material"]["other_particles"] for r in records]
+        summary["material"] = {"index_contrast": float(material), "tolerance": MATERIAL_TOLERANCE, "sigmas": MATERIAL_SIGMAS,
+                               "other_material": sum(r["material"]["other_material"] for r in records),
+                               "other_particles": {name: [value for table in others for value in table[name]] for name in (others[0] if others else particles)}}
+    return merged, summary
+
+
+def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, *, material: float | None, device: str, propose, progress,
+             should_stop) -> tuple[dict, dict]:
+    """The particle table refined by `refine_particles`, with the finds in its residual (`residual_particles`, ``propose``), of the ``material`` where given (as a dict of arrays), and its provenance."""
+    from dataclasses import asdict
+
+    import numpy as np
+    import pandas as pd
+
+    from napari_lbs._core.refine import MATERIAL_SIGMAS, MATERIAL_TOLERANCE, same_material
+    from napari_lbs._core.refine import RefineSettings, refine_particles
+    from napari_lbs._core.refine import residual_particles
+    from napari_lbs._core.foundation import available_threads
+
+    # the prediction's device (CUDA where it ran there); on the CPU one fitting process per core;
+    # a declared material is also where every fit starts
+    settings = RefineSettings(device=device, workers=available_threads(), **({} if material is None else {"index_contrast": float(material)}))
+    started = time.perf_counter()
+    table = refine_particles(hologram, pd.DataFrame(particles), config, settings=settings, progress=progress, should_stop=should_stop)
+    record = {"settings": asdict(settings), "detections": len(particles["x_um"]), "kept": len(table), "seconds": time.perf_counter() - started}
+    started = time.perf_counter()
+    proposals = []
+
+    def counted(image):
+        proposals.append(propose(image))
+        return proposals[-1]
+
+    if len(table) and table["refined"].any():  # with nothing refined, the residual is the hologram the network has seen
+        found = residual_particles(hologram, table, config, propose=counted, settings=settings, background=np.ones(hologram.shape), progress=progress,
+                                   should_stop=should_stop)
+        table = pd.concat([table, found], ignore_index=True) if len(found) else table
+    record["residual"] = {"proposals": len(pd.DataFrame(dict(proposals[0]))) if proposals else 0, "found": len(table) - record["kept"], "seconds": time.perf_counter() - started}
+    if material is not None:
+        member = same_material(table, index_contrast=material, tolerance=MATERIAL_TOLERANCE, sigmas=MATERIAL_SIGMAS)
+        record["material"] = {"index_contrast": float(material), "tolerance": MATERIAL_TOLERANCE, "sigmas": MATERIAL_SIGMAS, "other_material": int((~member).sum()),
+                              "other_particles": {name: table[name].to_numpy()[~member].tolist() for name in table.columns}}
+        table = table[member]
+    return {name: table[name].to_numpy() for name in table.columns}, record
+
+
+def _predict_recording(request: PredictRequest, frames, out: Path, record_path: Path, *, progress, should_stop, log: Log) -> StepResult:
+    """A recording: one table with a ``frame`` column; finished frames kept in OUT.parts/ until the table is written."""
+    from napari_lbs._core.foundation import read_hologram
+    from napari_lbs._core.learning import load_model
+    from napari_lbs._core.recordings import predict_sequence
+
+    work_dir = check_output_path(out.with_name(out.name + ".parts"), flag="--out", folder=True)
+    background = read_hologram(request.background_path, log=log) if request.background_path else request.sequence_background
+    model = load_model(request.model, device="cpu")  # each worker moves it to the device
+    refine = request.refine or request.material_index_contrast is not None  # the fit measures the material
+    result = predict_sequence(frames, model, request.config, background=background, background_window=request.background_window, workers=request.workers,
+                              scheduler=request.scheduler, force=request.force, work_dir=work_dir, device=request.device, precision=request.precision,
+                              threshold=_proposal_threshold(model.meta, request.threshold) if refine else request.threshold, progress=progress,
+                              should_stop=should_stop)
+    particles, provenance = result.particles, dict(result.provenance)
+    if refine:
+        # the second look runs in this process, on the prediction's device (the workers moved their own copies there)
+        looker = load_model(request.model, device=request.device) if isinstance(request.model, (str, Path)) else model
+        propose = _network_proposals(looker, request.config, threshold=_proposal_threshold(model.meta, request.threshold), device=request.device,
+                                     precision=request.precision, force=request.force, progress=progress, should_stop=should_stop)
+        particles, provenance["refine"] = _refined_frames(frames, particles, request.config or model.config, background=background,
+                                                          material=request.material_index_contrast, device=request.device, propose=propose, log=log,
+                                                          progress=progress, should_stop=should_stop)
+    _write_table(out, record_path, particles, {**provenance, "background_file": request.background_path, "particles": str(out)})
+    shutil.rmtree(work_dir)
+    count, done = len(result.particles["x_um"]), result.provenance["frames"]
+    resumed = f"; {result.resumed} frames resumed from {work_dir}" if result.resumed else ""
+    refined = _refine_summary(provenance["refine"]) if refine else ""
+    return StepResult(f"found {count} particles in {done} frames in {result.seconds:.1f} s ({result.provenance['scheduler']}{resumed}){refined} -> {out} "
+                      f"(provenance: {record_path})", result, (out, record_path))
+
+
+# --- track ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class TrackRequest:
+    """The particles of a recording linked into 3-D tracks.
+
+    Attributes
+    ----------
+    particles_path : path
+        A particle table with a ``frame`` column (CSV or ``.parquet``).
+    out_path : Path
+        The tracks table; its provenance beside it as ``.json``.
+    search_range_um : float
+        Largest displacement between two frames a particle is seen in (µm).
+    axial_search_range_um : float, optional
+        A separate search range along z (µm).
+    memory : int
+        Frames a particle may be missed and keep its track.
+    """
+
+    particles_path: str | Path
+    out_path: Path
+    search_range_um: float = 60.0
+    axial_search_range_um: float | None = None
+    memory: int = 0
+
+
+def track(request: TrackRequest) -> StepResult:
+    """Link tracks (`link_tracks`) and write them with the prediction's provenance."""
+    import numpy as np
+
+    from napari_lbs._core.foundation import check_table_name, read_particles, write_particles
+    from napari_lbs._core.recordings import DISPLACEMENT_COLUMNS, link_tracks
+
+    prediction_json = Path(request.particles_path).with_suffix(".json")
+    out = check_table_name(check_output_path(request.out_path, flag="--out", inputs=[request.particles_path, prediction_json]))
+    # the tracks' provenance beside them, never over the prediction's own
+    provenance_json = check_output_path(out.with_suffix(".json"), flag="--out", inputs=[request.particles_path, prediction_json])
+    table = read_particles(request.particles_path)
+    if "frame" not in table:
+        raise InputError(f"{request.particles_path}: no frame column; tracks need the table of a recording (predict with several frames)")
+    tracks = link_tracks(table, search_range_um=request.search_range_um, axial_search_range_um=request.axial_search_range_um, memory=request.memory)
+    linking = {"particles": str(request.particles_path), "search_range_um": request.search_range_um, "axial_search_range_um": request.axial_search_range_um, "memory": request.memory}
+    if out.suffix.lower() != ".parquet":  # a track's last detection has no displacement: an empty CSV cell (Parquet keeps NaN)
+        for name in DISPLACEMENT_COLUMNS:
+            tracks[name] = np.array(["" if np.isnan(value) else f"{value:.9g}" for value in tracks[name]], dtype=object)
+    record = {"particles": str(out), "tracks": linking}
+    if prediction_json.is_file():  # what made the detections: model, settings, frames
+        try:
+            record["prediction"] = json.loads(prediction_json.read_text(encoding="utf-8"))
+        except (json.JSONDecodeError, UnicodeDecodeError):
+            record["prediction"] = None
+    write_particles(out, tracks, metadata=record)
+    write_json(provenance_json, record)
+    lengths = np.bincount(tracks["track"]) if tracks["track"].size else np.zeros(0, int)
+    frames = len(np.unique(tracks["frame"]))
+    return StepResult(f"linked {tracks['track'].size} particles of {frames} frames into {lengths.size} tracks (median length {np.median(lengths) if lengths.size else 0:g} frames) -> {out}",
+                      tracks, (out, provenance_json))
