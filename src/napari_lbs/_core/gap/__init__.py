@@ -14,6 +14,8 @@ One concern per module:
     `amortized_diagnoser`, `forest_posterior`, `DiagnosisSettings`: simulate, train, cache per setup; the posterior.
 `_twosample`
     `c2st`, `mmd`: two-sample tests (told apart? how far apart?).
+`_detect`
+    `find_particles`: the experiment's particles without a trained model (focus in the back-propagated volume).
 `_known`
     `known_sensor`: what a file of integer counts states (bit depth, saturation).
 `_diagnose`
@@ -23,6 +25,7 @@ One concern per module:
 """
 
 from napari_lbs._core.gap._amortized import Diagnoser, DiagnosisSettings, amortized_diagnoser, default_cache_dir, forest_posterior, load_diagnoser
+from napari_lbs._core.gap._detect import find_particles
 from napari_lbs._core.gap._diagnose import Diagnosis, diagnose_hologram
 from napari_lbs._core.gap._known import known_sensor
 from napari_lbs._core.gap._report import write_report
@@ -30,6 +33,6 @@ from napari_lbs._core.gap._summaries import MIN_TILE_PX, SUMMARY_GROUPS, tile_su
 from napari_lbs._core.gap._twosample import c2st, mmd
 
 __all__ = [
-    "diagnose_hologram", "write_report", "Diagnosis", "DiagnosisSettings", "forest_posterior", "amortized_diagnoser", "Diagnoser", "load_diagnoser",
+    "diagnose_hologram", "write_report", "find_particles", "Diagnosis", "DiagnosisSettings", "forest_posterior", "amortized_diagnoser", "Diagnoser", "load_diagnoser",
     "default_cache_dir", "known_sensor", "tile_summaries", "c2st", "mmd", "SUMMARY_GROUPS", "MIN_TILE_PX",
 ]
