@@ -10,7 +10,8 @@ import pytest
 import torch
 from sphere_scenes import FAST, PIXEL_UM, WATER, WAVELENGTH_UM, default_config, guess_table, sphere_scene
 
-from napari_lbs._core.physics._lorenz_mie import disc_holograms, mie_coefficients, sphere_fields, sphere_holograms, term_count
+from napari_lbs._core.physics._disc import disc_holograms
+from napari_lbs._core.physics._lorenz_mie import mie_coefficients, sphere_fields, sphere_holograms, term_count
 
 
 @pytest.fixture(autouse=True)
@@ -169,30 +170,30 @@ def test_ring_moments_through_the_coarse_radial_grid_match_the_direct_sums():
 
 def test_valley_interval_widens_with_the_rings_unexplained_chi_square():
     """The profile's interval reaches as far as the cost stays within Δχ² = 4 plus the excess χ² of the minimum, in the valley and across."""
-    from napari_lbs._core.refine import _refine
+    from napari_lbs._core.refine import _valley
 
     diameters = torch.linspace(29.0, 31.0, 41, dtype=torch.float64)[None]  # 0.05 µm apart
     contrast = torch.stack([torch.full((41,), 0.26 + j * 0.022, dtype=torch.float64) for j in (-1, 0, 1)], dim=-1)[None]
     offset = (diameters[0] - 30.0)[:, None] / 0.1  # half-variances rise as (Δd / 0.1 µm)²
     cost = (offset**2 + torch.tensor([30.0, 0.0, 30.0], dtype=torch.float64))[None]
     for minimum, reach_d, across in ((100.0, 0.15, False), (140.0, 0.65, True)):  # dof 200: excess 0 and 40
-        profile = _refine._Profile(diameters, contrast, torch.zeros_like(cost), cost + minimum, torch.ones(1, dtype=torch.float64), torch.tensor([200.0]))
-        threshold = _refine._interval_threshold(profile, torch.ones(1, dtype=torch.float64))
-        assert float(threshold[0]) == _refine._INTERVAL + max(minimum - 100.0, 0.0)
-        spread = _refine._profile_spread(profile, torch.tensor([30.0], dtype=torch.float64), torch.tensor([0.26], dtype=torch.float64), threshold)
+        profile = _valley._Profile(diameters, contrast, torch.zeros_like(cost), cost + minimum, torch.ones(1, dtype=torch.float64), torch.tensor([200.0]))
+        threshold = _valley.interval_threshold(profile, torch.ones(1, dtype=torch.float64))
+        assert float(threshold[0]) == _valley._INTERVAL + max(minimum - 100.0, 0.0)
+        spread = _valley.profile_spread(profile, torch.tensor([30.0], dtype=torch.float64), torch.tensor([0.26], dtype=torch.float64), threshold)
         assert abs(2.0 * float(spread[0, 0]) - reach_d) < 0.03
         assert (float(spread[0, 1]) > 0.01) == across  # the neighbouring valleys only within the wider interval
 
 
 def test_symmetric_centre_is_found_within_a_tenth_of_a_pixel():
-    from napari_lbs._core.refine import _refine
+    from napari_lbs._core.refine import _levenberg_marquardt, _patches, _rings
 
     truth = (36.3 * PIXEL_UM, 35.6 * PIXEL_UM, 900.0, 18.0)
     hologram = sphere_scene([truth])
     guess_x, guess_y = np.array([truth[0] + 1.9]), np.array([truth[1] - 1.4])
-    patches = _refine._cut_patches(hologram, guess_x, guess_y, np.array([48]), pixel_um=PIXEL_UM, device="cpu")
-    residual, _, _ = _refine._flat_model(patches)
-    x, y = _refine._symmetric_centres(residual, patches, guess_x, guess_y, pixel_um=PIXEL_UM)
+    patches = _patches.cut_patches(hologram, guess_x, guess_y, np.array([48]), pixel_um=PIXEL_UM, device="cpu")
+    residual, _, _ = _levenberg_marquardt.flat_model(patches)
+    x, y = _rings.symmetric_centres(residual, patches, guess_x, guess_y, pixel_um=PIXEL_UM)
     assert abs(x[0] - truth[0]) < 0.1 * PIXEL_UM and abs(y[0] - truth[1]) < 0.1 * PIXEL_UM
 
 
@@ -223,12 +224,12 @@ def test_forward_models_are_differentiable_in_every_parameter():
 
 def test_radial_interpolation_is_differentiable_in_the_profiles_and_the_radii():
     """The sparse Catmull–Rom product passes torch's numerical gradient check in its table and its positions."""
-    from napari_lbs._core.physics._lorenz_mie import _CatmullRom
+    from napari_lbs._core.physics._interpolation import CatmullRom
 
     generator = torch.Generator().manual_seed(0)
     table = torch.randn(2, 12, 4, dtype=torch.float64, generator=generator, requires_grad=True)
     position = (torch.rand(2, 30, dtype=torch.float64, generator=generator) * 8 + 1.5).requires_grad_(True)
-    assert torch.autograd.gradcheck(_CatmullRom.apply, (table, position))
+    assert torch.autograd.gradcheck(CatmullRom.apply, (table, position))
 
 
 @pytest.mark.parametrize("pixel_um", [None, 2.2])
@@ -262,12 +263,12 @@ def test_lateral_derivatives_match_central_differences(pixel_um):
 
 def test_coarse_patches_are_every_other_row_and_column_of_the_full_ones():
     """Patches cut at the image's edges too: the coarse pixels are the full patch's [::2, ::2], the padding masked."""
-    from napari_lbs._core.refine import _refine
+    from napari_lbs._core.refine import _patches
 
     image = np.random.default_rng(1).random((90, 70))
     x_um, y_um, edges = np.array([10.0, 80.0, 150.0]), np.array([5.0, 100.0, 190.0]), np.array([40, 33, 48])
-    fine = _refine._cut_patches(image, x_um, y_um, edges, pixel_um=PIXEL_UM, device="cpu")
-    coarse, _ = _refine._every_other_pixel(fine)
+    fine = _patches.cut_patches(image, x_um, y_um, edges, pixel_um=PIXEL_UM, device="cpu")
+    coarse, _ = _patches.every_other_pixel(fine)
     for i, (rows, cols) in enumerate(fine.shape):
         block = fine.data[i, : rows * cols].reshape(rows, cols)[::2, ::2]
         assert coarse.shape[i] == tuple(block.shape)
@@ -358,16 +359,16 @@ def test_worker_processes_give_the_same_table_report_progress_and_stop_at_once()
 
 def test_the_model_without_the_particle_rounds_the_same_wherever_its_buffers_lie():
     """The illumination's least squares gives the same bits for the same patches, whatever memory they were copied to (LAPACK's does not)."""
-    from napari_lbs._core.refine import _refine
+    from napari_lbs._core.refine import _levenberg_marquardt, _patches
 
     image = np.random.default_rng(3).random((200, 200))
-    patches = _refine._cut_patches(image, np.arange(16) * 6.0 + 20.0, np.arange(16) * 5.0 + 30.0, np.full(16, 60), pixel_um=PIXEL_UM, device="cpu")
-    first = _refine._flat_model(patches)
+    patches = _patches.cut_patches(image, np.arange(16) * 6.0 + 20.0, np.arange(16) * 5.0 + 30.0, np.full(16, 60), pixel_um=PIXEL_UM, device="cpu")
+    first = _levenberg_marquardt.flat_model(patches)
     spacers = []
     for size in range(1, 40):
         spacers.append(torch.empty(size, dtype=torch.float64))  # each copy lands at another alignment
-        copy = _refine._Patches(*(t.clone() if isinstance(t, torch.Tensor) else t for t in vars(patches).values()))
-        for expected, got in zip(first, _refine._flat_model(copy)):
+        copy = _patches.Patches(*(t.clone() if isinstance(t, torch.Tensor) else t for t in vars(patches).values()))
+        for expected, got in zip(first, _levenberg_marquardt.flat_model(copy)):
             assert torch.equal(expected, got)
 
 
@@ -549,7 +550,7 @@ def test_a_fit_on_a_bound_of_a_free_parameter_is_not_a_fit():
     """An index on its bound found no minimum inside the model's range; zero absorption (transparent) and fixed parameters on a bound are fine."""
     import torch
 
-    from napari_lbs._core.refine._refine import _on_bound
+    from napari_lbs._core.refine._batches import _on_bound
 
     low = torch.tensor([[0.0, 0.0, 1.0, 0.05, -0.9, 0.0, -1e9]], dtype=torch.float64)
     high = torch.tensor([[100.0, 100.0, 5000.0, 500.0, 2.5, 5.0, 1e9]], dtype=torch.float64)

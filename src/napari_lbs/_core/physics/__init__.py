@@ -3,10 +3,14 @@
 Stands on the foundation only. Other wings import these names from ``napari_lbs._core.physics``, never from its
 private modules; each name is imported on first use.
 
+`_disc`
+    Holograms of opaque discs (the seed"s particle model), batched and differentiable in torch.
 `_effects`
     The effect catalog: parametric extensions of the seed"s simulator, for diagnosis and for data.
+`_interpolation`
+    Cubic (Catmull–Rom) interpolation of radial tables, differentiable, for the Lorenz–Mie profiles.
 `_lorenz_mie`
-    Holograms of single particles, batched and differentiable in torch: Lorenz–Mie spheres and opaque discs.
+    Lorenz–Mie holograms of single spheres, batched and differentiable in torch.
 `_optics`
     Angular-spectrum propagation of scalar fields between parallel planes.
 `_synthesis`

@@ -1,4 +1,4 @@
-"""Holograms of single particles, batched and differentiable in torch: Lorenz–Mie spheres and opaque discs.
+"""Lorenz–Mie holograms of single spheres, batched and differentiable in torch.
 
 Lorenz–Mie convention (Lee et al. 2007, the convention of pylorenzmie)
 ----------------------------------------------------------------------
@@ -22,8 +22,8 @@ with ``Φ = k (r - z)``, ``r = √(ρ² + z²)``. The carrier ``e^{iΦ}`` holds 
 and is evaluated exactly at each pixel; ``A, B, C`` vary on the scale of the scattering
 lobes (≈ λ z / d, tens of pixels at the lensless depths and as many at a microscope's), so
 they are summed over partial waves on a one-dimensional ρ grid and interpolated (cubic
-Catmull–Rom) to the pixels. The partial-wave sum is therefore paid per radial sample, not
-per pixel.
+Catmull–Rom, `napari_lbs._core.physics._interpolation`) to the pixels. The partial-wave
+sum is therefore paid per radial sample, not per pixel.
 
 Mie coefficients
 ----------------
@@ -44,14 +44,14 @@ S.-H. Lee et al., Opt. Express 15, 18275 (2007).
 from __future__ import annotations
 
 import math
-import warnings
 
 import numpy as np
 import torch
 
+from napari_lbs._core.physics._interpolation import CatmullRom, interpolated_profiles
+
 __all__ = [
     "azimuthal_mean_holograms",
-    "disc_holograms",
     "fields_from_profiles",
     "holograms_from_fields",
     "lateral_derivatives",
@@ -62,7 +62,6 @@ __all__ = [
     "sphere_holograms",
     "term_count",
 ]
-
 
 
 def term_count(size_parameter: float, relative_index: complex) -> int:
@@ -77,6 +76,15 @@ def _reciprocal(w: torch.Tensor) -> torch.Tensor:
     re, im = w.real, w.imag
     inverse = 1.0 / (re * re + im * im)
     return torch.complex(re * inverse, -im * inverse)
+
+
+def _in_numpy(*tensors: torch.Tensor) -> bool:
+    """Whether the recurrences over orders run in numpy: on the CPU, no gradient wanted through ``tensors``.
+
+    numpy's per-operation cost on these short rows is a tenth to a half of torch's, and the
+    loops run hundreds of orders of tens of operations each.
+    """
+    return tensors[0].device.type == "cpu" and not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors))
 
 
 def mie_coefficients(size_parameter: torch.Tensor, relative_index: torch.Tensor, *, terms: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -95,93 +103,69 @@ def mie_coefficients(size_parameter: torch.Tensor, relative_index: torch.Tensor,
     -------
     (a, b) : (B, terms) complex128 tensors (Bohren & Huffman Eq. 4.53).
     """
-    if size_parameter.device.type == "cpu" and not (torch.is_grad_enabled() and (size_parameter.requires_grad or relative_index.requires_grad)):
-        # no gradient wanted: the same recurrences in numpy, whose per-operation cost on
-        # these short rows is a tenth of torch's (the loops run hundreds of orders)
-        a, b = _mie_coefficients_numpy(size_parameter.detach().to(torch.complex128).numpy(), relative_index.detach().to(torch.complex128).numpy(), terms)
-        return torch.from_numpy(a), torch.from_numpy(b)
-    x = size_parameter.to(torch.complex128)
-    m = relative_index.to(torch.complex128)
+    if _in_numpy(size_parameter, relative_index):
+        x, m = (t.detach().to(torch.complex128).numpy() for t in (size_parameter, relative_index))
+        return tuple(torch.from_numpy(np.ascontiguousarray(c)) for c in _mie_recurrences(np, x, m, terms))
+    return _mie_recurrences(torch, size_parameter.to(torch.complex128), relative_index.to(torch.complex128), terms)
+
+
+def _mie_recurrences(xp, x, m, terms: int) -> tuple:
+    """`mie_coefficients` of complex128 (B,) size parameters ``x`` and relative indices ``m``: (B, terms) ``a`` and ``b``.
+
+    ``xp``: numpy (arrays; no gradient) or torch (tensors, differentiable). In numpy,
+    ``D_n(x)``, ``ψ_n / ξ_n`` and ``D_n^{(3)}(x)``, which depend on the size parameter alone,
+    run once per distinct ``x`` (a size–index scan repeats each size for many indices); in
+    torch the reciprocals go through real arithmetic (its complex division is several times
+    slower).
+    """
+    count = x.shape[0]
+    if xp is np:
+        sizes, which = np.unique(x, return_inverse=True)
+        reciprocal, divide = (lambda w: 1.0 / w), (lambda v, w: v / w)
+        # D_n(m x) and D_n(x) end to end: their counts differ
+        join, split = np.concatenate, (lambda t: (t[..., :count], t[..., count:]))
+        per_sphere, own = (lambda t: t[which]), (lambda t: t)
+    else:
+        sizes = x
+        reciprocal, divide = _reciprocal, (lambda v, w: v * _reciprocal(w))
+        join, split = torch.stack, (lambda t: (t[..., 0, :], t[..., 1, :]))
+        per_sphere = own = lambda t: t.contiguous()
     mx = m * x
     # For real m the downward recurrence of D_n(mx) forgets its start only where the Bessel
     # functions decay, beyond n ≈ |mx| + 4|mx|^{1/3}; starting at |mx| (pylorenzmie 3.4.0)
     # leaves errors of order 1 in a_n for non-absorbing spheres of size parameter ≥ 50.
-    largest = float(torch.max(torch.abs(mx)).item())
+    largest = float(abs(mx).max().item()) if count else 0.0
     start = max(terms, int(largest)) + 16 + int(4.0 * largest ** (1 / 3))
     # D_n(mx) and D_n(x) together; multiplications by 1/z cost less than divisions
-    z = torch.stack([mx, x])
-    inverse = _reciprocal(z)
-    log_derivative = torch.zeros_like(z)
-    kept: list[torch.Tensor] = [log_derivative] * (terms + 1)
+    z = join([mx, sizes])
+    inverse = reciprocal(z)
+    log_derivative = xp.zeros_like(z)
+    kept = [log_derivative] * (terms + 1)
     for n in range(start, 0, -1):
         t = n * inverse
-        log_derivative = t - _reciprocal(log_derivative + t)
+        log_derivative = t - reciprocal(log_derivative + t)
         if n - 1 <= terms:
             kept[n - 1] = log_derivative
-    # the upward recurrences read one order at a time: rows of (terms + 1, B), not strided columns
-    inv_x = inverse[1]
-    psi_xi = 0.5 * (1.0 - torch.exp(2j * x))  # ψ_0 ξ_0
-    ratio = 1j * torch.sin(x) * torch.exp(-1j * x)  # ψ_0 / ξ_0
-    d3 = torch.full_like(x, 1j)
+    inner, outer = split(xp.stack(kept))  # (terms + 1, ·): the upward recurrences read one order at a time
+    inv_x = split(inverse)[1]
+    psi_xi = 0.5 * (1.0 - xp.exp(2j * sizes))  # ψ_0 ξ_0
+    ratio = 1j * xp.sin(sizes) * xp.exp(-1j * sizes)  # ψ_0 / ξ_0
+    d3 = xp.full_like(sizes, 1j)
     ratios, d3s = [], []
     for n in range(1, terms + 1):
         n_over_x = n * inv_x
-        up_psi = n_over_x - kept[n - 1][1]  # ψ_n / ψ_{n-1}
+        up_psi = n_over_x - outer[n - 1]  # ψ_n / ψ_{n-1}
         up_xi = n_over_x - d3
         psi_xi = psi_xi * up_psi * up_xi
-        ratio = ratio * up_psi * _reciprocal(up_xi)
-        d3 = kept[n][1] + 1j * _reciprocal(psi_xi)
+        ratio = divide(ratio * up_psi, up_xi)
+        d3 = outer[n] + divide(1j, psi_xi)
         ratios.append(ratio)
         d3s.append(d3)
-    ratio, d3 = torch.stack(ratios, dim=-1), torch.stack(d3s, dim=-1)
-    inner, outer = torch.stack(kept[1:], dim=-1)  # (B, terms) each
-    ha = inner * _reciprocal(m)[:, None]
+    ratio, d3, outer = (per_sphere(t) for t in (xp.stack(ratios, -1), xp.stack(d3s, -1), outer[1:].T))
+    inner = own(inner[1:].T)
+    ha = divide(inner, m[:, None])
     hb = inner * m[:, None]
-    a = ratio * (ha - outer) * _reciprocal(ha - d3)
-    b = ratio * (hb - outer) * _reciprocal(hb - d3)
-    return a, b
-
-
-def _mie_coefficients_numpy(x: np.ndarray, m: np.ndarray, terms: int) -> tuple[np.ndarray, np.ndarray]:
-    """`mie_coefficients` in numpy (complex128 (B,) size parameters and relative indices): the same recurrences, no gradient.
-
-    ``D_n(x)``, ``ψ_n / ξ_n`` and ``D_n^{(3)}(x)`` depend on the size parameter alone, so they
-    run once per distinct ``x`` (a size–index scan repeats each size for many indices).
-    """
-    sizes, which = np.unique(x, return_inverse=True)
-    mx = m * x
-    largest = float(np.max(np.abs(mx))) if mx.size else 0.0
-    start = max(terms, int(largest)) + 16 + int(4.0 * largest ** (1 / 3))
-    z = np.concatenate([mx, sizes])
-    inverse = 1.0 / z
-    log_derivative = np.zeros_like(z)
-    kept = np.zeros((terms + 1, *z.shape), dtype=np.complex128)
-    for n in range(start, 0, -1):
-        t = n * inverse
-        log_derivative = t - 1.0 / (log_derivative + t)
-        if n - 1 <= terms:
-            kept[n - 1] = log_derivative
-    inner, outer = kept[:, : mx.size], kept[:, mx.size :]  # D_n(m x) per sphere, D_n(x) per size
-    inv_x = inverse[mx.size :]
-    psi_xi = 0.5 * (1.0 - np.exp(2j * sizes))
-    ratio = 1j * np.sin(sizes) * np.exp(-1j * sizes)
-    d3 = np.full_like(sizes, 1j)
-    ratios = np.empty((terms, *sizes.shape), dtype=np.complex128)
-    d3s = np.empty_like(ratios)
-    for n in range(1, terms + 1):
-        n_over_x = n * inv_x
-        up_psi = n_over_x - outer[n - 1]
-        up_xi = n_over_x - d3
-        psi_xi = psi_xi * up_psi * up_xi
-        ratio = ratio * up_psi / up_xi
-        d3 = outer[n] + 1j / psi_xi
-        ratios[n - 1] = ratio
-        d3s[n - 1] = d3
-    ratio, d3, outer = ratios.T[which], d3s.T[which], outer[1:].T[which]
-    inner = inner[1:].T
-    ha = inner / m[:, None]
-    hb = inner * m[:, None]
-    return np.ascontiguousarray(ratio * (ha - outer) / (ha - d3)), np.ascontiguousarray(ratio * (hb - outer) / (hb - d3))
+    return divide(ratio * (ha - outer), ha - d3), divide(ratio * (hb - outer), hb - d3)
 
 
 def radial_step(z_um: torch.Tensor, diameter_um: torch.Tensor, *, wavelength_um: float, medium_index: float, samples_per_lobe: int = 12) -> torch.Tensor:
@@ -193,89 +177,6 @@ def radial_step(z_um: torch.Tensor, diameter_um: torch.Tensor, *, wavelength_um:
     """
     lobe_um = (wavelength_um / medium_index) * z_um.detach().to(torch.float64) / diameter_um.detach().to(torch.float64)
     return torch.clamp(lobe_um / samples_per_lobe, min=1e-3)
-
-
-def _catmull_rom_weights(position: torch.Tensor, last: int, *, derivative: bool = False) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
-    """First sample (``i - 1``) of each position's interval and the four Catmull–Rom weights of samples ``i - 1 … i + 2``.
-
-    ``last``: the grid's last sample index. With ``derivative`` the weights of the cubic's
-    slope (per sample spacing) instead. Positions beyond the grid extrapolate its end cubic.
-    """
-    base = torch.clamp(torch.floor(position.detach()), 1, last - 2)
-    t = position - base
-    t2 = t * t
-    if derivative:
-        weights = (-1.5 * t2 + 2.0 * t - 0.5, 4.5 * t2 - 5.0 * t, -4.5 * t2 + 4.0 * t + 0.5, 1.5 * t2 - t)
-    else:
-        t3 = t2 * t
-        weights = (-0.5 * t3 + t2 - 0.5 * t, 1.5 * t3 - 2.5 * t2 + 1.0, -1.5 * t3 + 2.0 * t2 + 0.5 * t, 0.5 * t3 - 0.5 * t2)
-    return base.long() - 1, weights
-
-
-def _interpolation_matrix(first: torch.Tensor, weights: tuple[torch.Tensor, ...], samples: int) -> torch.Tensor:
-    """Sparse (B·P, B·R) matrix of the weights: row ``(b, p)`` holds point p's four weights on grid b's samples."""
-    count, points = first.shape
-    columns = first[..., None] + torch.arange(4, device=first.device) + (torch.arange(count, device=first.device) * samples)[:, None, None]
-    rows = torch.arange(0, 4 * count * points + 1, 4, device=first.device)
-    values = torch.stack([w.detach() for w in weights], dim=-1)
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta", category=UserWarning)
-        return torch.sparse_csr_tensor(rows, columns.reshape(-1), values.reshape(-1), size=(count * points, count * samples), check_invariants=False)
-
-
-class _CatmullRom(torch.autograd.Function):
-    """Cubic interpolation of (B, R, D) real tables at (B, P) fractional sample positions: (B, P, D).
-
-    Forward as one sparse-matrix product (four weights per point): the points of a patch
-    outnumber its radial samples a hundredfold, so the product's cost is the points'.
-    Differentiable in the table and the positions.
-    """
-
-    @staticmethod
-    def forward(table, position):
-        count, samples, channels = table.shape
-        first, weights = _catmull_rom_weights(position, samples - 1)
-        # a contiguous table keeps the sparse product on its fast path (measured: 3× slower strided)
-        out = _interpolation_matrix(first, weights, samples) @ table.reshape(count * samples, channels).contiguous()
-        return out.reshape(*position.shape, channels)
-
-    @staticmethod
-    def setup_context(ctx, inputs, output):
-        ctx.save_for_backward(*inputs)
-
-    @staticmethod
-    def backward(ctx, grad):
-        table, position = ctx.saved_tensors
-        count, samples, channels = table.shape
-        grad_table = grad_position = None
-        if ctx.needs_input_grad[0]:
-            first, weights = _catmull_rom_weights(position, samples - 1)
-            flat = (first + (torch.arange(count, device=first.device) * samples)[:, None]).reshape(-1)
-            grad_table = torch.zeros((count * samples, channels), dtype=grad.dtype, device=grad.device)
-            for offset, weight in enumerate(weights):
-                grad_table.index_add_(0, flat + offset, (grad * weight[..., None]).reshape(-1, channels))
-            grad_table = grad_table.reshape(count, samples, channels)
-        if ctx.needs_input_grad[1]:
-            grad_position = (grad * _interpolate_slope(table.detach(), position.detach())).sum(dim=-1)
-        return grad_table, grad_position
-
-
-def _interpolate_slope(table: torch.Tensor, position: torch.Tensor) -> torch.Tensor:
-    """Slope (per sample spacing) of the cubic interpolation of (B, R, D) tables at (B, P) positions: (B, P, D); not differentiable."""
-    count, samples, channels = table.shape
-    first, weights = _catmull_rom_weights(position, samples - 1, derivative=True)
-    return (_interpolation_matrix(first, weights, samples) @ table.reshape(count * samples, channels).contiguous()).reshape(*position.shape, channels)
-
-
-def _profile_table(profiles: torch.Tensor) -> torch.Tensor:
-    """(C, B, R) complex profiles as a (B, R, 2C) real table (`_CatmullRom`'s layout)."""
-    channels, count, samples = profiles.shape
-    return torch.view_as_real(profiles).permute(1, 2, 0, 3).reshape(count, samples, 2 * channels)
-
-
-def _table_values(values: torch.Tensor, channels: int) -> torch.Tensor:
-    """(B, P, 2C) real interpolated values as (C, B, P) complex."""
-    return torch.view_as_complex(values.reshape(*values.shape[:-1], channels, 2).permute(2, 0, 1, 3).contiguous())
 
 
 def radial_profiles(
@@ -316,26 +217,6 @@ def radial_profiles(
     return profiles.transpose(1, 2).reshape(3, sets * count, samples), step
 
 
-def _interpolated_profiles(profiles: torch.Tensor, step: torch.Tensor, rho_um: torch.Tensor, *, slope: bool = False) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
-    """(3, K, B, P) complex ``A, B, C`` of K copies of the profiles (3, K·B, R) at the radii (B, P) of B point sets.
-
-    The copies share each point set's grid (``step``, (B,)), so the interpolation weights are
-    computed once. With ``slope``, also their derivatives in ρ (per µm; not differentiable).
-    """
-    count, points = rho_um.shape
-    copies = profiles.shape[1] // count
-    samples = profiles.shape[-1]
-    table = _profile_table(profiles.reshape(3 * copies, count, samples))  # (B, R, 2·3K): channels (component, copy)
-    position = rho_um / step[:, None] + 1.0
-    shape = (count, points, 3, copies, 2)
-    # contiguous per component: the many elementwise operations that follow run 3-5× slower on strided complex views
-    values = torch.view_as_complex(_CatmullRom.apply(table, position).reshape(shape)).permute(2, 3, 0, 1).contiguous()
-    if not slope:
-        return values
-    slopes = torch.view_as_complex(_interpolate_slope(table.detach(), position.detach()).reshape(shape)).permute(2, 3, 0, 1) / step[:, None]
-    return values, slopes
-
-
 def _carrier(rho2: torch.Tensor, z_um: torch.Tensor, k: float) -> torch.Tensor:
     """``e^{i k (r - z)}`` (the fringes), written without cancellation; ``z_um`` broadcast against ``rho2``."""
     phase = k * rho2 / (torch.sqrt(rho2 + z_um**2) + z_um)
@@ -356,7 +237,7 @@ def fields_from_profiles(
     dx, dy = dx_um.to(torch.float64), dy_um.to(torch.float64)
     rho2 = dx**2 + dy**2
     rho = torch.sqrt(rho2 + 1e-300)
-    along_x, along_y, axial = _interpolated_profiles(profiles, step, rho)
+    along_x, along_y, axial = interpolated_profiles(profiles, step, rho)
     carrier = _carrier(rho2, z_um.to(torch.float64).reshape(copies, count, 1), k)
     inv = 1.0 / (rho2 + 1e-300)
     ex = carrier * (along_x + (dy**2 * inv) * (along_y - along_x))
@@ -388,14 +269,14 @@ def lateral_derivatives(
     Analytic: the interpolated profiles' slopes in ρ, the carrier's ``dΦ/dρ = k ρ / r``,
     the azimuthal factors' and the pixel transfer's derivatives. A point moved by ``+h``
     is the sphere moved by ``-h``. ``others``: fields (B, P) added to the sphere's (their
-    interference with it, as `_refine`'s neighbours), fixed.
+    interference with it, as the refinement's neighbours), fixed.
     """
     k = 2.0 * math.pi * medium_index / wavelength_um
     dx, dy = dx_um.to(torch.float64), dy_um.to(torch.float64)
     z = z_um.to(torch.float64)[:, None]
     rho2 = dx**2 + dy**2
     rho = torch.sqrt(rho2 + 1e-300)
-    values, slopes = _interpolated_profiles(profiles, step, rho, slope=True)
+    values, slopes = interpolated_profiles(profiles, step, rho, slope=True)
     (a, b, c), (a1, b1, c1) = values[:, 0], slopes[:, 0]
     r = torch.sqrt(rho2 + z**2)
     carrier = _carrier(rho2, z, k)
@@ -536,9 +417,7 @@ def _profile_sums(a_eff: torch.Tensor, b_eff: torch.Tensor, k: float, z_um: torc
     """
     r = torch.sqrt(rho_um**2 + z_um[..., None] ** 2)
     kr, cos_t = k * r, z_um[..., None] / r
-    if rho_um.device.type == "cpu" and not (torch.is_grad_enabled() and any(t.requires_grad for t in (a_eff, b_eff, z_um, rho_um))):
-        # no gradient wanted: the recurrences in numpy, whose per-operation cost on these
-        # short rows is under half of torch's (hundreds of orders, tens of operations each)
+    if _in_numpy(rho_um, a_eff, b_eff, z_um):
         arrays = (t.detach().resolve_conj().numpy() for t in (a_eff, b_eff, kr, cos_t))
         s0, s1, s2 = (torch.from_numpy(s) for s in _partial_wave_sums(np, *arrays, block=block))
     else:
@@ -618,7 +497,7 @@ def _coarse_profile_sums(a_eff: torch.Tensor, b_eff: torch.Tensor, k: float, z_u
     rows, sets = math.prod(coarse.shape[1:-2]), coarse.shape[-2]
     # every set of a row shares its radii: the sets are the channels of one interpolation
     table = torch.view_as_real(coarse.reshape(3, rows, sets, samples)).permute(1, 3, 0, 2, 4).reshape(rows, samples, 6 * sets)
-    values = _CatmullRom.apply(table, (rho_um / step[..., None] + 1.0).reshape(rows, -1))  # (rows, R, 3·S·2)
+    values = CatmullRom.apply(table, (rho_um / step[..., None] + 1.0).reshape(rows, -1))  # (rows, R, 3·S·2)
     out = torch.view_as_complex(values.reshape(rows, -1, 3, sets, 2).permute(2, 0, 3, 1, 4).contiguous())  # (3, rows, S, R)
     out = out.reshape(3, *coarse.shape[1:-1], rho_um.shape[-1])
     return out[0], out[1], out[2]
@@ -713,85 +592,3 @@ def azimuthal_mean_holograms(
     a, b = mie_coefficients(size, relative, terms=terms)
     a_eff, b_eff = (t.reshape(count, sets, terms) for t in weighted_coefficients(a, b))
     return mean_intensity(a_eff, b_eff, z_um.to(torch.float64), rho_um.to(torch.float64), k=k, pixel_um=pixel_um, annulus_um=annulus_um)
-
-
-class _BesselJ1(torch.autograd.Function):
-    """J1 with its derivative ``J0(x) - J1(x)/x`` (torch's J1 has none)."""
-
-    @staticmethod
-    def forward(x):
-        return torch.special.bessel_j1(x)
-
-    @staticmethod
-    def setup_context(ctx, inputs, output):
-        ctx.save_for_backward(inputs[0], output)
-        ctx.save_for_forward(inputs[0], output)
-
-    @staticmethod
-    def _derivative(x, j1):
-        safe = torch.where(x == 0, torch.ones_like(x), x)
-        return torch.where(x == 0, torch.full_like(x, 0.5), torch.special.bessel_j0(x) - j1 / safe)
-
-    @staticmethod
-    def backward(ctx, grad):
-        x, j1 = ctx.saved_tensors
-        return grad * _BesselJ1._derivative(x, j1)
-
-    @staticmethod
-    def jvp(ctx, tangent):
-        x, j1 = ctx.saved_tensors
-        return tangent * _BesselJ1._derivative(x, j1)
-
-
-def disc_holograms(
-    x_px: torch.Tensor,
-    y_px: torch.Tensor,
-    z_um: torch.Tensor,
-    diameter_um: torch.Tensor,
-    *,
-    shape: tuple[int, int],
-    wavelength_um: float,
-    pixel_um: float,
-    medium_index: float = 1.0,
-) -> torch.Tensor:
-    """Holograms of opaque discs (the seed's particle model) on a ``shape`` patch, by the angular spectrum.
-
-    The disc's pixel-averaged coverage has the spectrum ``a J1(2π a f) / f`` times the
-    pixel's ``sinc(f_x p) sinc(f_y p)`` (what `_synthesis.disc_coverage` samples); its
-    scattered field ``-coverage`` is propagated by the exact transfer function of
-    `napari_lbs._core.physics._optics` on a grid padded to twice the patch (light leaving the patch
-    is dropped, not wrapped, up to that margin).
-
-    Parameters
-    ----------
-    x_px, y_px : (B,) tensors
-        Disc centres in the patch's pixel coordinates (column, row; pixel centres at integers).
-    z_um : (B,) tensor
-        Distances to the sensor (µm, the propagation convention of the config's medium).
-    diameter_um : (B,) tensor
-    shape : (rows, cols)
-    wavelength_um, pixel_um, medium_index : float
-
-    Returns
-    -------
-    (B, rows, cols) float64 tensor, unobstructed light = 1.
-    """
-    rows, cols = shape
-    grid = (2 * rows, 2 * cols)
-    fy = torch.fft.fftfreq(grid[0], d=pixel_um, dtype=torch.float64, device=x_px.device)[:, None]
-    fx = torch.fft.fftfreq(grid[1], d=pixel_um, dtype=torch.float64, device=x_px.device)[None, :]
-    f = torch.sqrt(fx**2 + fy**2)
-    lam = wavelength_um / medium_index
-    q = lam**2 * f**2
-    propagating = q < 1.0
-    rate = -2.0 * math.pi / lam * torch.where(propagating, q / (torch.sqrt(torch.clamp(1.0 - q, min=0.0)) + 1.0), torch.zeros_like(q))
-    radius = diameter_um.to(torch.float64)[:, None, None] / 2.0
-    argument = 2.0 * math.pi * radius * f
-    safe_f = torch.where(f == 0, torch.ones_like(f), f)
-    disc = torch.where(f == 0, math.pi * radius**2, radius * _BesselJ1.apply(argument) / safe_f)
-    spectrum = disc / pixel_um**2 * torch.sinc(fx * pixel_um) * torch.sinc(fy * pixel_um)
-    shift = -2.0 * math.pi * pixel_um * (fx * x_px.to(torch.float64)[:, None, None] + fy * y_px.to(torch.float64)[:, None, None])
-    phase = shift + rate * z_um.to(torch.float64)[:, None, None]
-    field = torch.fft.ifft2(torch.where(propagating, -spectrum, torch.zeros_like(spectrum)) * (torch.cos(phase) + 1j * torch.sin(phase)))
-    field = field[:, :rows, :cols]
-    return (1.0 + field.real) ** 2 + field.imag**2

@@ -8,7 +8,7 @@ did not propose (hidden by a neighbour's fringes, or of a size it never saw) amo
 remains of the fits.
 
 Each sphere is rendered on the square around the disc where its fringes lie below the
-pixel's Nyquist frequency (`_refine._patch_edge`, at most ``2 * patch_px`` pixels wide):
+pixel's Nyquist frequency (`_patches.patch_edge`, at most ``2 * patch_px`` pixels wide):
 beyond it the camera aliases the fringes and the fit does not model them either.
 """
 
@@ -25,7 +25,8 @@ from napari_lbs._core.foundation import PARTICLE_COLUMNS, InputError
 from napari_lbs._core.refine._material import MATERIAL_TOLERANCE, same_material
 from napari_lbs._core.physics import holograms_from_fields, sphere_fields, term_count
 from napari_lbs._core.foundation import ProgressCallback, StopCallback, Stopped
-from napari_lbs._core.refine._refine import RefineSettings, _check_table, _patch_edge, refine_particles
+from napari_lbs._core.refine._patches import check_table as _check_table, patch_edge as _patch_edge
+from napari_lbs._core.refine._refine import RefineSettings, refine_particles
 
 __all__ = ["particle_hologram", "residual_hologram", "residual_particles"]
 
