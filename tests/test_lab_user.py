@@ -235,18 +235,19 @@ def test_prediction_s_time_left_follows_the_measured_throughput(make_napari_view
 def test_training_s_time_left_is_bounded_by_its_budget_and_its_end_named_right(make_napari_viewer, qtbot, tmp_path, monkeypatch, tiny_config):
     import time
 
-    import napari_lbs._core as core
+    import napari_lbs._widgets._training as training
     from napari_lbs._core import TrainingResult, generate_dataset
+    from napari_lbs._core.pipeline import StepResult
 
     generate_dataset(tmp_path / "data", tiny_config, groups=2, seed=0)
 
-    def train(data, output, *, settings, progress, should_stop, report):  # 0.1 s a batch: 10 s for all 100
+    def train(request, *, progress, should_stop, report):  # 0.1 s a batch: 10 s for all 100
         for done in range(1, 21):
             time.sleep(0.1)
             progress(done, 100)
-        return TrainingResult(output, {"best": {"epoch": 1, "score": [0.5, 0.6]}, "stop_reason": "time budget reached"}, True)
+        return StepResult("", TrainingResult(request.out_path, {"best": {"epoch": 1, "score": [0.5, 0.6]}, "stop_reason": "time budget reached"}, True))
 
-    monkeypatch.setattr(core, "train_model", train)
+    monkeypatch.setattr(training, "train", train)
     viewer = laptop_viewer(make_napari_viewer)
     _, step = viewer.window.add_plugin_dock_widget("napari-lbs", "4 Training")
     step.data.value = tmp_path / "data"

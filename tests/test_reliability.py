@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -48,7 +49,8 @@ def test_predict_never_overwrites_a_model_log_an_input_or_writes_a_table_as_json
     log.write_text(json.dumps({"epochs": []}))
     hologram.write_bytes(b"")
     cases = [
-        (["--out", str(tmp_path / "m.csv")], "is not this table's provenance"),
+        (["--out", str(tmp_path / "m.csv")], f"{log}: exists; add --force"),
+        (["--out", str(tmp_path / "m.csv"), "--force"], "is not this table's provenance"),
         (["--out", str(tmp_path / "p.json")], "expected a particle table"),
         (["--out", str(hologram)], f"would overwrite the input {hologram}"),
     ]
@@ -309,6 +311,108 @@ def test_outputs_are_refused_before_any_work(workspace, capsys):
         line = refusal(capsys, argv)
         assert message in line, line
     assert nothing_written(workspace, before) and existing.read_text() == "keep"
+
+
+# Every writing command: its file (or a file it writes into its folder) and the --out naming it.
+_WRITERS = {
+    "config": (["config"], "--write", "c2.toml", None),
+    "simulate": (["simulate", "--config", "{config}", "--size", "32", "--particles", "2"], "--out", "sim", "particles.csv"),
+    "backprop": (["backprop", "{holo}", "--config", "{config}"], "--out", "mine.tif", None),
+    "calibrate": (["calibrate", "{holo}", "--config", "{config}"], "--out", "calib.json", None),
+    "train": (["train", "{tmp}/data"], "--out", "model.pt", None),
+    "predict": (["predict", "{holo}", "--model", "{tmp}/m.pt"], "--out", "mine.csv", None),
+    "track": (["track", "{tmp}/truth.csv"], "--out", "tracks.csv", None),
+    "diagnose": (["diagnose", "{holo}", "--config", "{config}"], "--out", "report", "report.md"),
+    "demo": (["demo", "--quick"], "--out", "demo", "summary.json"),
+}
+
+
+def _writer(workspace, command: str, kind: str):
+    """``napari-lbs COMMAND`` whose output file is a ``kind`` (exists, null, fifo, symlink); the argv, the target and the victim a link points to."""
+    head, flag, name, inner = _WRITERS[command]
+    argv = [part.format(config=workspace / "c.toml", holo=workspace / "h.tif", tmp=workspace) for part in head] + [flag, str(workspace / name)]
+    if inner:
+        (workspace / name).mkdir()
+    target = workspace / name / inner if inner else workspace / name
+    victim = workspace / "victim.txt"
+    victim.write_text("keep")
+    if kind == "exists":
+        target.write_text("mine")
+    elif kind == "fifo":
+        os.mkfifo(target)
+    elif kind == "symlink":
+        target.symlink_to(victim)
+    elif kind == "null":
+        if inner:
+            target.symlink_to("/dev/null")
+        else:
+            argv[-1] = "/dev/null"
+            target = Path("/dev/null")
+    return argv, target, victim
+
+
+@pytest.mark.parametrize("kind", ["exists", "null", "fifo", "symlink"])
+@pytest.mark.parametrize("command", list(_WRITERS))
+def test_no_command_writes_through_a_device_fifo_or_link_or_replaces_a_file_without_force(workspace, capsys, command, kind):
+    import stat
+
+    argv, target, victim = _writer(workspace, command, kind)
+    line = refusal(capsys, argv)
+    assert str(target) in line, line
+    expected = {"exists": "exists; add --force", "null": "not a regular file" if target == Path("/dev/null") else "symbolic link", "fifo": "not a regular file",
+                "symlink": "symbolic link"}[kind]
+    assert expected in line, line
+    if kind != "exists":  # --force replaces regular files only
+        assert expected in refusal(capsys, [*argv, "--force"])
+    assert victim.read_text() == "keep" and stat.S_ISCHR(os.stat("/dev/null").st_mode)
+    if kind == "exists":
+        assert target.read_text() == "mine"
+    elif kind == "fifo":
+        assert stat.S_ISFIFO(os.lstat(target).st_mode)
+    elif target != Path("/dev/null"):
+        assert target.is_symlink()
+
+
+def test_force_replaces_a_regular_file_keeping_its_mode_and_a_folder_holding_none_of_the_outputs_is_used(workspace, capsys, umask_002):
+    config = workspace / "c.toml"
+    config.write_text(config.read_text().replace("z_step_um = 50.0", "z_step_um = 1000.0"))
+    stack = workspace / "mine.tif"
+    stack.write_text("old")
+    stack.chmod(0o640)
+    argv = ["backprop", str(workspace / "h.tif"), "--config", str(config), "--out", str(stack)]
+    assert "add --force" in refusal(capsys, argv)
+    assert main([*argv, "--force"]) == 0
+    assert tifffile.imread(stack).shape == (4, 64, 64) and stack.stat().st_mode & 0o777 == 0o640
+    written = workspace / "c2.toml"
+    assert main(["config", "--write", str(written)]) == 0 and written.stat().st_mode & 0o777 == 0o664
+    assert "add --force" in refusal(capsys, ["config", "--write", str(written)])
+    assert main(["config", "--write", str(written), "--force"]) == 0
+    sim = workspace / "sim"
+    sim.mkdir()
+    (sim / "notes.txt").write_text("mine")
+    simulate = ["simulate", "--config", str(config), "--out", str(sim), "--size", "32", "--particles", "2"]
+    assert main(simulate) == 0 and (sim / "notes.txt").read_text() == "mine"
+    assert "hologram.tif: exists; add --force" in refusal(capsys, simulate)
+    assert main([*simulate, "--force", "--seed", "1"]) == 0
+    assert not [p for p in workspace.rglob(".*") if p.is_file()]  # no temporary file left
+
+
+def test_the_file_helpers_refuse_links_devices_and_fifos_and_clobber_only_with_force(tmp_path):
+    from napari_lbs._core.foundation import atomic_write_bytes, check_target
+
+    fifo, link, victim = tmp_path / "fifo", tmp_path / "link", tmp_path / "victim"
+    os.mkfifo(fifo)
+    victim.write_bytes(b"keep")
+    link.symlink_to(victim)
+    for path, message in ((fifo, "not a regular file"), (link, "symbolic link"), (tmp_path, "is a folder"), ("/dev/null", "not a regular file")):
+        for force in (False, True):
+            with pytest.raises(InputError, match=message):
+                atomic_write_bytes(path, b"x", force=force)
+    with pytest.raises(InputError, match="exists; add --force"):
+        atomic_write_bytes(victim, b"x", force=False)
+    assert victim.read_bytes() == b"keep" and link.is_symlink() and check_target(tmp_path / "new") == tmp_path / "new"
+    assert atomic_write_bytes(tmp_path / "new", b"new", force=False).read_bytes() == b"new"
+    assert atomic_write_bytes(victim, b"x", force=True).read_bytes() == b"x"
 
 
 def test_unexpected_errors_exit_1_with_one_line_and_debug_prints_the_traceback(monkeypatch, capsys, tmp_path):

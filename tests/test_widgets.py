@@ -76,7 +76,7 @@ def test_backprop_widget_makes_a_micrometre_z_stack_and_refuses_a_3d_layer(make_
     assert layer.metadata["z_um"] == [1800.0, 1900.0, 2000.0, 2100.0, 2200.0]
 
 
-def test_calibration_widget_fits_on_the_roi_writes_json_and_stops(make_napari_viewer, qtbot, tmp_path):
+def test_calibration_widget_fits_on_the_roi_writes_json_and_stops(make_napari_viewer, qtbot, tmp_path, monkeypatch):
     from napari_lbs._core import load_sample_hologram
 
     viewer = make_napari_viewer()
@@ -104,6 +104,16 @@ def test_calibration_widget_fits_on_the_roi_writes_json_and_stops(make_napari_vi
     assert widget._run.enabled and widget._progress_bar is None
     assert json.loads((tmp_path / "cal2.json").read_text())["stopped"] is True
     assert "(stopped)" in widget._status.value
+    # an existing file is replaced only once the user says so
+    from qtpy.QtWidgets import QMessageBox
+
+    asked = []
+    monkeypatch.setattr(QMessageBox, "warning", lambda *args: asked.append(args[2]) or QMessageBox.StandardButton.Cancel)
+    before = (tmp_path / "cal2.json").read_bytes()
+    widget._run.clicked.emit()
+    qtbot.waitUntil(lambda: widget._worker is None, timeout=TIMEOUT_MS)
+    assert "cal2.json exists and will be replaced" in asked[0] and "not run" in widget._status.value
+    assert (tmp_path / "cal2.json").read_bytes() == before
 
 
 def test_generate_train_predict_widgets_from_data_to_points(make_napari_viewer, qtbot, tmp_path, monkeypatch):

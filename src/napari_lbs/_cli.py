@@ -1,15 +1,14 @@
 """The ``napari-lbs`` console script: one sub-command per pipeline step (`napari_lbs._core.pipeline`).
 
-Each sub-command checks its flags and outputs, builds the step's request, runs it with a
-progress bar and prints the step's one-line summary.
+Each sub-command checks its flags and outputs, builds the step's request, runs it with a progress bar and prints the
+step's one-line summary.
 
-Bad input exits 2 with one line naming the culprit (a file or a flag); an unexpected error
-exits 1 with one line asking for a report (``--debug`` prints the traceback); success prints
-a one-line summary on stderr. See docs/formats.md and docs/reliability.md.
+Bad input exits 2 with one line naming the culprit (a file or a flag); an unexpected error exits 1 with one line asking
+for a report (``--debug`` prints the traceback); success prints a one-line summary on stderr. See docs/formats.md and
+docs/reliability.md.
 
-Outputs are checked before any work (`check_output_path`). Everything heavy is imported
-inside the sub-commands, so ``napari-lbs --version`` or ``--help`` starts in a fraction of a
-second.
+Outputs are checked before any work (`check_output_path`): an existing one needs ``--force``. Everything heavy is
+imported inside the sub-commands, so ``napari-lbs --version`` or ``--help`` starts in a fraction of a second.
 """
 
 from __future__ import annotations
@@ -106,6 +105,14 @@ def _inputs(args) -> list:
     return [name for entry in names for name in (entry if isinstance(entry, list) else [entry])]  # predict takes several HOLO
 
 
+def _checked(args, request, *, folder: bool = False):
+    """``request``, once ``--out`` (a folder, or each file the step writes) is checked before any work (`check_output_path`)."""
+    force = args.force or getattr(args, "resume", False)  # a resumed training replaces its own files
+    for path in [args.out] if folder else request.outputs():
+        check_output_path(path, flag="--out", folder=folder, inputs=_inputs(args), force=force, writes=[out.name for out in request.outputs()] if folder else ())
+    return request
+
+
 def _run(step, request, label: str | None = None, **callbacks):
     """Run a pipeline step with a terminal progress bar and print its one-line summary."""
     if label is not None:
@@ -122,37 +129,34 @@ def _cmd_config(args) -> None:
         return
     if not args.write:
         raise ValueError("--write: expected a file to write the default config to")
-    path = write_config(check_output_path(args.write, flag="--write"))
+    path = write_config(check_output_path(args.write, flag="--write", force=args.force))
     _summary(f"wrote the default experiment config to {path}")
 
 
 def _cmd_simulate(args) -> None:
     config = load_config(args.config)
-    out = check_output_path(args.out, flag="--out", folder=True, inputs=[args.config])
-    for name in ("hologram.tif", "particles.csv") if args.frames is None else ("frames.tif", "particles.csv"):
-        check_output_path(out / name, flag="--out")
     if args.frames is None:
         for flag, value in (("--flow", args.flow), ("--speed-um", args.speed_um)):
             if value is not None:
                 raise InputError(f"{flag}: describes a recording; add --frames N")
-    request = pipeline.SimulateRequest(out, config, size_px=args.size, particles=args.particles, seed=args.seed, shadowing=args.shadowing,
-                                       frames=args.frames, flow=args.flow or "uniform", speed_um=8.0 if args.speed_um is None else args.speed_um)
-    _run(pipeline.simulate, request, "simulate")
+    request = pipeline.SimulateRequest(Path(args.out), config, size_px=args.size, particles=args.particles, seed=args.seed, shadowing=args.shadowing, frames=args.frames,
+                                       flow=args.flow or "uniform", speed_um=8.0 if args.speed_um is None else args.speed_um, replace=args.force)
+    _run(pipeline.simulate, _checked(args, request, folder=True), "simulate")
 
 
 def _cmd_backprop(args) -> None:
-    config, out = load_config(args.config), check_output_path(args.out, flag="--out", inputs=_inputs(args))
-    _run(pipeline.backprop, pipeline.BackpropRequest(args.holo, out, config, background_path=args.background), "backprop", log=_summary)
+    request = pipeline.BackpropRequest(args.holo, Path(args.out), load_config(args.config), background_path=args.background, replace=args.force)
+    _run(pipeline.backprop, _checked(args, request), "backprop", log=_summary)
 
 
 def _cmd_calibrate(args) -> None:
     from napari_lbs._core import CalibrationSettings
 
     config = load_config(args.config)
-    out = check_output_path(args.out, flag="--out", inputs=_inputs(args))
     settings = _settings(CalibrationSettings, mode=args.mode, generations=args.generations, population=args.population, runs=args.runs, seed=args.seed)
-    request = pipeline.CalibrateRequest(args.holo, out, config, settings=settings, roi=tuple(args.roi) if args.roi else None, background_path=args.background)
-    _run(pipeline.calibrate, request, "calibrate", log=_summary)
+    request = pipeline.CalibrateRequest(args.holo, Path(args.out), config, settings=settings, roi=tuple(args.roi) if args.roi else None, background_path=args.background,
+                                        replace=args.force)
+    _run(pipeline.calibrate, _checked(args, request), "calibrate", log=_summary)
 
 
 def _cmd_generate(args) -> None:
@@ -175,28 +179,23 @@ def _cmd_generate(args) -> None:
 def _cmd_train(args) -> None:
     from napari_lbs._core import TrainingSettings
 
-    out = check_output_path(args.out, flag="--out", inputs=_inputs(args))
-    for companion in (out.with_suffix(".json"), out.with_suffix(".last.pt")):
-        check_output_path(companion, flag="--out", inputs=_inputs(args))
     settings = _settings(TrainingSettings, formulation=args.formulation, preset=args.preset, epochs=args.epochs, minutes=args.minutes, patience=args.patience,
                          augment=not args.no_augment, batch_size=args.batch_size, learning_rate=args.learning_rate, device=args.device, seed=args.seed,
                          validation_groups=args.validation_groups, patch_size=args.patch_size, foreground_weight=args.foreground_weight, precision=args.precision)
-    _run(pipeline.train, pipeline.TrainRequest(args.data, out, settings=settings, resume=args.resume), "train", log=_summary)
+    _run(pipeline.train, _checked(args, pipeline.TrainRequest(args.data, Path(args.out), settings=settings, resume=args.resume, replace=args.force)), "train", log=_summary)
 
 
 def _cmd_predict(args) -> None:
-    for path in pipeline.prediction_outputs(args.out):
-        check_output_path(path, flag="--out", inputs=_inputs(args))
     request = pipeline.PredictRequest(args.holo, args.model, Path(args.out), load_config(args.config) if args.config else None, background_path=args.background,
                                       device=args.device, precision=args.precision, force=args.force, sequence_background=args.sequence_background, background_window=args.background_window,
                                       workers=args.workers, scheduler=args.scheduler, refine=args.refine or args.material is not None, threshold=args.threshold,
-                                      material_index_contrast=args.material)
-    _run(pipeline.predict, request, "predict", log=_summary)
+                                      material_index_contrast=args.material, replace=args.force)
+    _run(pipeline.predict, _checked(args, request), "predict", log=_summary)
 
 
 def _cmd_track(args) -> None:
     _run(pipeline.track, pipeline.TrackRequest(args.particles, Path(args.out), search_range_um=args.search_range_um, axial_search_range_um=args.axial_search_range_um,
-                                               memory=args.memory))
+                                               memory=args.memory, replace=args.force))
 
 
 def _cmd_diagnose(args) -> None:
@@ -204,13 +203,10 @@ def _cmd_diagnose(args) -> None:
 
     config = load_config(args.config)
     stated = parse_effects(args.known_effect, flag="--known-effect")
-    out = check_output_path(args.out, flag="--out", folder=True, inputs=_inputs(args))
-    for name in ("report.json", "report.md", "gap_where.png", "gap_effects.png"):
-        check_output_path(out / name, flag="--out")
     settings = _settings(DiagnosisSettings, simulations=args.simulations, level=args.level, seed=args.seed, cache_dir=args.cache)
-    request = pipeline.DiagnoseRequest(args.holo[0] if len(args.holo) == 1 else tuple(args.holo), out, config, settings=settings, background_path=args.background, calibration_path=args.calibration,
-                                       roi=tuple(args.roi) if args.roi else None, tile_px=args.tile, known=not args.no_known, stated=stated)
-    _run(pipeline.diagnose, request, "diagnose", log=_summary)
+    request = pipeline.DiagnoseRequest(args.holo[0] if len(args.holo) == 1 else tuple(args.holo), Path(args.out), config, settings=settings, background_path=args.background, calibration_path=args.calibration,
+                                       roi=tuple(args.roi) if args.roi else None, tile_px=args.tile, known=not args.no_known, stated=stated, replace=args.force)
+    _run(pipeline.diagnose, _checked(args, request, folder=True), "diagnose", log=_summary)
 
 
 def _cmd_evaluate(args) -> None:
@@ -221,8 +217,8 @@ def _cmd_evaluate(args) -> None:
 
 
 def _cmd_demo(args) -> None:
-    out = check_output_path(args.out, flag="--out", folder=True)
-    result = pipeline.demo(pipeline.DemoRequest(out, quick=args.quick, calibrated=args.calibrated, seed=args.seed), progress_for=_ProgressBar, log=_summary)
+    request = _checked(args, pipeline.DemoRequest(Path(args.out), quick=args.quick, calibrated=args.calibrated, seed=args.seed, replace=args.force), folder=True)
+    result = pipeline.demo(request, progress_for=_ProgressBar, log=_summary)
     print(result.paths[0])
     _summary(result.summary)
 
@@ -235,6 +231,9 @@ class _Parser(argparse.ArgumentParser):
 
 
 _SEED = _integer(0)
+# Every writing sub-command but predict (whose --force also covers its model's optics) takes this --force; docs/cli.md lists each one's outputs.
+_FORCE = _Parser(add_help=False)
+_FORCE.add_argument("--force", action="store_true", help="replace the outputs of an earlier run where they exist (without it an existing output exits 2 naming it)")
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -243,12 +242,12 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--debug", action="store_true", help="print the full traceback of any error")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    p = sub.add_parser("config", help="write (or check) an experiment config")
+    p = sub.add_parser("config", help="write (or check) an experiment config", parents=[_FORCE])
     p.add_argument("--write", metavar="FILE", help="write the default config to FILE")
     p.add_argument("--check", metavar="FILE", help="validate FILE")
     p.set_defaults(run=_cmd_config)
 
-    p = sub.add_parser("simulate", help="simulate a hologram of a random particle field with its ground truth")
+    p = sub.add_parser("simulate", help="simulate a hologram of a random particle field with its ground truth", parents=[_FORCE])
     p.add_argument("--config", required=True)
     p.add_argument("--out", required=True, metavar="DIR")
     p.add_argument("--size", type=_integer(16), help="window edge in pixels (default: tile.size)")
@@ -260,14 +259,14 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--speed-um", type=_number(0.0), help="with --frames: largest displacement of a particle between frames (µm, default 8)")
     p.set_defaults(run=_cmd_simulate)
 
-    p = sub.add_parser("backprop", help="back-propagate a hologram into a float32 z-stack TIFF")
+    p = sub.add_parser("backprop", help="back-propagate a hologram into a float32 z-stack TIFF", parents=[_FORCE])
     p.add_argument("holo", metavar="HOLO")
     p.add_argument("--config", required=True)
     p.add_argument("--out", required=True, metavar="STACK.tif")
     p.add_argument("--background", metavar="BG")
     p.set_defaults(run=_cmd_backprop)
 
-    p = sub.add_parser("calibrate", help="fit Holo-processing (noise + gamma) to one tile of a real hologram")
+    p = sub.add_parser("calibrate", help="fit Holo-processing (noise + gamma) to one tile of a real hologram", parents=[_FORCE])
     p.add_argument("holo", metavar="HOLO")
     p.add_argument("--config", required=True)
     p.add_argument("--out", required=True, metavar="CALIB.json")
@@ -301,7 +300,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="simulate each group with unlabelled particles in a margin of PX pixels around it and keep the window, as a crop of a real hologram is (default 0; the demo uses %d)" % pipeline.DEMO_SAMPLE_DISTRACTORS["neighbours_margin_px"])
     p.set_defaults(run=_cmd_generate)
 
-    p = sub.add_parser("train", help="train the U-Net on a synthetic training set")
+    p = sub.add_parser("train", help="train the U-Net on a synthetic training set", parents=[_FORCE])
     p.add_argument("data", metavar="DATA")
     p.add_argument("--out", required=True, metavar="MODEL.pt")
     p.add_argument("--formulation", choices=("focus", "seed"), default="focus", help="focus (default): context planes in, centre probability + depth offset + diameter out; seed: the seed paper's")
@@ -318,7 +317,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--patch-size", type=_integer(0), default=0, help="train on square crops (default: 128 focus, whole tiles seed)")
     p.add_argument("--foreground-weight", type=_number(1.0), default=1.0, help="seed formulation: MSE weight of label pixels (default 1: the seed's plain MSE)")
     p.add_argument("--no-augment", action="store_true", help="focus formulation: no random gamma, contrast, noise or quantisation")
-    p.add_argument("--resume", action="store_true", help="continue from MODEL.last.pt")
+    p.add_argument("--resume", action="store_true", help="continue from MODEL.last.pt (replacing MODEL.pt and its .json as it goes)")
     p.set_defaults(run=_cmd_train)
 
     p = sub.add_parser("predict", help="reconstruct the particles of a hologram or a recording with a trained model")
@@ -329,7 +328,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--background", metavar="BG", help="a hologram taken without particles, divided out of every frame")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     p.add_argument("--precision", choices=("auto", "float32", "bfloat16"), default="auto", help="bfloat16 where the CPU (AMX, AVX-512 BF16) or GPU has it natively, else float32 (auto)")
-    p.add_argument("--force", action="store_true", help="run a model made for other optics or depths than the config's (without it such a run exits 2 naming both values)")
+    p.add_argument("--force", action="store_true", help="run a model made for other optics or depths than the config's (without it such a run exits 2 naming both values), "
+                   "and replace PARTICLES.csv and its .json where they exist (without it they exit 2)")
     p.add_argument("--sequence-background", choices=("auto", "global", "running", "flat", "none"), default="auto",
                    help="recordings without --background: divide every frame by the median of the frames (global), of the frames around it (running), its own smooth illumination (flat), the median if the recording shows it particle-free else flat (auto, default), or nothing")
     p.add_argument("--background-window", type=_integer(1), default=21, help="frames of a running background (default 21)")
@@ -343,7 +343,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--material", type=_number(-0.9, 2.5), metavar="N", help="refine, and keep the particles of index contrast n_p - n_m = N (0.26: polystyrene in water)")
     p.set_defaults(run=_cmd_predict)
 
-    p = sub.add_parser("track", help="link the particles of a recording into 3-D tracks (trackpy)")
+    p = sub.add_parser("track", help="link the particles of a recording into 3-D tracks (trackpy)", parents=[_FORCE])
     p.add_argument("particles", metavar="PARTICLES.csv", help="a particle table with a frame column (CSV or .parquet)")
     p.add_argument("--out", required=True, metavar="TRACKS.csv", help="the tracks table: CSV, or Parquet when the name ends in .parquet")
     p.add_argument("--search-range-um", type=_number(0.0, above=True), default=60.0,
@@ -352,7 +352,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--memory", type=_integer(0), default=0, help="frames a particle may be missed and keep its track (default 0)")
     p.set_defaults(run=_cmd_track)
 
-    p = sub.add_parser("diagnose", help="diagnose the sim-to-real gap of one or more holograms of a setup: which effect, where, how much")
+    p = sub.add_parser("diagnose", help="diagnose the sim-to-real gap of one or more holograms of a setup: which effect, where, how much", parents=[_FORCE])
     p.add_argument("holo", metavar="HOLO", nargs="+", help="holograms of one setup, pooled: files, folders of images or multi-page TIFFs")
     p.add_argument("--config", required=True)
     p.add_argument("--out", required=True, metavar="REPORT_DIR")
@@ -378,7 +378,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print the metrics JSON on stdout")
     p.set_defaults(run=_cmd_evaluate)
 
-    p = sub.add_parser("demo", help="run the whole pipeline on the built-in real hologram")
+    p = sub.add_parser("demo", help="run the whole pipeline on the built-in real hologram", parents=[_FORCE])
     p.add_argument("--out", default="napari-lbs-demo", metavar="DIR")
     p.add_argument("--quick", action="store_true", help="a token run on one tile (about a minute)")
     p.add_argument("--calibrated", action="store_true", help="train on the seed's LBS data (calibrated Holo-processing of opaque discs), not transparent spheres")

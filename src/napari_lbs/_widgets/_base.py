@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import inspect
 import itertools
+import os
 import re
 import threading
 import time
@@ -31,7 +32,7 @@ from napari_lbs._widgets._setup import restore_pixel_size
 
 __all__ = [
     "StepWidget", "chosen", "config_from", "config_problem", "doc_of", "hologram_data", "hologram_problem", "missing", "model_config", "model_problem", "output_problem",
-    "path_edit", "wrapping_label",
+    "path_edit", "replacing", "wrapping_label",
 ]
 
 
@@ -167,6 +168,15 @@ def hologram_data(layer) -> np.ndarray:
     from napari.utils.notifications import show_info
 
     return as_hologram(np.asarray(layer.data), name=layer.name, log=show_info)
+
+
+def replacing(paths) -> str | None:
+    """The question before a run replaces files that exist (None when none does); confirmed, the run's request gets ``replace``.
+
+    A path typed into a field was never asked about by a save dialog, so every step asks here.
+    """
+    existing = [str(path) for path in paths if os.path.lexists(path)]
+    return f"{', '.join(existing)} exist{'s' if len(existing) == 1 else ''} and will be replaced" if existing else None
 
 
 def _confirmed(parent, title: str, warning: str) -> bool:

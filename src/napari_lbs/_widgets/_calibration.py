@@ -19,7 +19,7 @@ from napari_lbs._core.calibration import experimental_reference, reference_plane
 from napari_lbs._core.pipeline import CalibrateRequest, calibrate
 from napari_lbs._layers import UNITS
 from napari_lbs._widgets._backprop import CONFIG_TOOLTIP, HOLOGRAM_TOOLTIP
-from napari_lbs._widgets._base import StepWidget, chosen, config_from, config_problem, doc_of, hologram_data, hologram_problem, output_problem, path_edit
+from napari_lbs._widgets._base import StepWidget, chosen, config_from, config_problem, doc_of, hologram_data, hologram_problem, output_problem, path_edit, replacing
 from napari_lbs._widgets._plots import FitnessPlot
 from napari_lbs._widgets._setup import place_hologram
 
@@ -216,8 +216,13 @@ class CalibrationWidget(StepWidget):
         settings = CalibrationSettings(mode=self.mode.value, generations=self.generations.value, population=self.population.value, seed=self.seed.value)
         layer = self.hologram.value
         place_hologram(layer, chosen(self.config))
-        request = CalibrateRequest(hologram_data(layer), Path(self.output.value), config_from(self.config), settings=settings, roi=self._roi_origin(), source=layer.name)
+        output = Path(self.output.value)
+        request = CalibrateRequest(hologram_data(layer), output, config_from(self.config), settings=settings, roi=self._roi_origin(), source=layer.name,
+                                   replace=replacing([output]) is not None)  # run only once `caution` is confirmed
         return request, layer
+
+    def caution(self, job):
+        return replacing(job[0].outputs())
 
     def work(self, job, *, progress, should_stop, report):
         # the pipeline's step: the same JSON and provenance as the console script writes

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -10,7 +11,7 @@ from magicgui.widgets import FloatSpinBox, LineEdit, SpinBox, create_widget
 from napari_lbs._core import DiagnosisSettings
 from napari_lbs._layers import UNITS
 from napari_lbs._widgets._backprop import CONFIG_TOOLTIP, HOLOGRAM_TOOLTIP
-from napari_lbs._widgets._base import StepWidget, chosen, config_from, config_problem, effects_problem, hologram_problem, output_problem, parsed_effects, path_edit
+from napari_lbs._widgets._base import StepWidget, chosen, config_from, config_problem, effects_problem, hologram_problem, output_problem, parsed_effects, path_edit, replacing
 from napari_lbs._widgets._plots import ColourBarPlot, PosteriorPlot
 from napari_lbs._widgets._setup import place_hologram
 
@@ -65,7 +66,11 @@ class DiagnosisWidget(StepWidget):
         settings = DiagnosisSettings(simulations=self.simulations.value, level=float(self.level.value), seed=self.seed.value)
         request = DiagnoseRequest(np.asarray(layer.data), Path(self.output.value), config_from(self.config), settings=settings, tile_px=self.tile.value or None,
                                   stated=parsed_effects(self.known_effects), source=layer.name)
-        return request, layer
+        # the report's files are replaced only once `caution` is confirmed
+        return replace(request, replace=replacing(request.outputs()) is not None), layer
+
+    def caution(self, job):
+        return replacing(job[0].outputs())
 
     def work(self, job, *, progress, should_stop, report):
         from napari_lbs._core.pipeline import diagnose

@@ -7,7 +7,8 @@ from pathlib import Path
 from magicgui.widgets import ComboBox, FloatSpinBox, SpinBox
 
 from napari_lbs._core import InputError, TrainingSettings, open_dataset
-from napari_lbs._widgets._base import StepWidget, doc_of, output_problem, path_edit
+from napari_lbs._core.pipeline import TrainRequest, train
+from napari_lbs._widgets._base import StepWidget, doc_of, output_problem, path_edit, replacing
 from napari_lbs._widgets._plots import LossPlot
 
 __all__ = ["TrainingWidget"]
@@ -66,13 +67,15 @@ class TrainingWidget(StepWidget):
             patch_size=self.patch.value,
             seed=self.seed.value,
         )
-        return Path(self.data.value), Path(self.output.value), settings
+        request = TrainRequest(Path(self.data.value), Path(self.output.value), settings=settings)
+        # the model, its log and resume state are replaced only once `caution` is confirmed
+        return TrainRequest(request.data, request.out_path, settings=settings, replace=replacing(request.outputs()) is not None)
+
+    def caution(self, job):
+        return replacing(job.outputs())
 
     def work(self, job, *, progress, should_stop, report):
-        from napari_lbs._core import train_model
-
-        data, output, settings = job
-        return train_model(data, output, settings=settings, progress=progress, should_stop=should_stop, report=report)
+        return train(job, progress=progress, should_stop=should_stop, report=report).value
 
     def report_received(self, record) -> None:
         self._plot.add(record)

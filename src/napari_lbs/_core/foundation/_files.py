@@ -1,8 +1,11 @@
-"""Files: atomic writes, strict JSON, and reading UTF-8 text and JSON objects.
+"""Files: safe atomic writes, strict JSON, and reading UTF-8 text and JSON objects.
 
 Every writer goes to a temporary name beside the target and renames it into place, so an
-interrupted write never leaves a half-written file where a good one was. Readers refuse a
-missing file, a folder or another encoding with one line naming the file.
+interrupted write never leaves a half-written file where a good one was. A target is a new
+name or an existing regular file: a symbolic link is never written through (nor replaced),
+a device, FIFO or socket never replaced, and an existing file replaced only when the caller
+says so (`check_target`). Readers refuse a missing file, a folder or another encoding with
+one line naming the file.
 
 This module imports only the standard library, so every other module may use it.
 """
@@ -14,6 +17,7 @@ import json
 import math
 import os
 import re
+import stat
 import tempfile
 import time
 from contextlib import contextmanager
@@ -21,7 +25,7 @@ from pathlib import Path
 
 from napari_lbs._core.foundation._errors import InputError
 
-__all__ = ["atomic_path", "atomic_write_bytes", "json_safe", "write_json", "read_text", "read_json_object"]
+__all__ = ["check_target", "atomic_path", "atomic_write_bytes", "json_safe", "write_json", "read_text", "read_json_object"]
 
 _RUN_STARTED = time.time()  # temporaries older than this are a killed run's leftovers
 
@@ -54,18 +58,92 @@ def _remove_stale_temporaries(path: Path) -> None:
             pass
 
 
-@contextmanager
-def atomic_path(path: Path):
-    """Yield a temporary path beside ``path``; rename it onto ``path`` only if the block succeeds.
+def check_target(path: str | Path, *, force: bool = False, flag: str | None = None) -> Path:
+    """Refuse a file output unless it is a new name, or an existing regular file and ``force``: the one rule every writer follows.
 
-    The result has the mode an ordinary write would give it: an existing file's own mode, else
-    0666 less the umask (a temporary file is created 0600, which would hide results from the
-    lab members sharing a folder). A folder at ``path`` is refused. Temporaries of ``path``
-    that a killed earlier run left are removed first.
+    The last component is examined without following a link (``lstat``, as ``O_NOFOLLOW``
+    would), so ``/dev/null``, a FIFO or a link to another file is never written through.
+
+    Parameters
+    ----------
+    path : path
+        The file about to be written.
+    force : bool
+        Replace an existing regular file (the user asked: ``--force``, or a save dialog that
+        asked already).
+    flag : str, optional
+        The flag that named it (``--out``), for the message.
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    Raises
+    ------
+    InputError
+        A symbolic link, a folder, anything else that is not a regular file (a device, a
+        FIFO, a socket), or an existing regular file without ``force``; one line naming the path.
     """
     path = Path(path)
-    if path.is_dir():
-        raise InputError(f"{path}: is a folder; expected a file name")
+    name = f"{flag} {path}" if flag else str(path)
+    try:
+        mode = os.lstat(path).st_mode
+    except (FileNotFoundError, NotADirectoryError):  # a new name (a parent that is a file is refused when the folder is made)
+        return path
+    if stat.S_ISLNK(mode):
+        raise InputError(f"{name}: is a symbolic link; name the file itself (a link is never written through)")
+    if stat.S_ISDIR(mode):
+        raise InputError(f"{name}: is a folder; expected a file name")
+    if not stat.S_ISREG(mode):
+        raise InputError(f"{name}: is not a regular file (a device, FIFO or socket); choose a file name")
+    if not force:
+        raise InputError(f"{name}: exists; add --force to replace it, or choose another name")
+    return path
+
+
+def _commit(temporary: Path, path: Path, *, force: bool) -> None:
+    """Put the finished ``temporary`` at ``path``, re-checking the target as it is now (another process may have made it meanwhile)."""
+    try:
+        existing = os.lstat(path)
+    except FileNotFoundError:
+        existing = None
+    # a replaced file keeps its own mode; a new one gets 0666 less the umask (mkstemp made it 0600)
+    os.chmod(temporary, existing.st_mode & 0o7777 if existing is not None and stat.S_ISREG(existing.st_mode) else _new_file_mode())
+    if not force:
+        try:  # a hard link fails on any existing name, link or file: no clobber, atomically
+            os.link(temporary, path)
+            return
+        except FileExistsError:
+            check_target(path, force=False)  # raises, naming what is there
+        except OSError:  # a file system without hard links: check, then rename
+            check_target(path, force=False)
+    check_target(path, force=True)
+    os.replace(temporary, path)
+
+
+@contextmanager
+def atomic_path(path: Path, *, force: bool = True):
+    """Yield a temporary path beside ``path``; put it at ``path`` only if the block succeeds.
+
+    ``path`` is checked before (`check_target`) and again when the temporary is put in place:
+    a symbolic link, a folder, a device, a FIFO or a socket is refused, and with ``force``
+    false so is an existing file. The result has the mode an ordinary write would give it:
+    a replaced file's own mode, else 0666 less the umask (a temporary file is created 0600,
+    which would hide results from the lab members sharing a folder). Temporaries of ``path``
+    that a killed earlier run left are removed first.
+
+    Parameters
+    ----------
+    path : Path
+        The file to write.
+    force : bool
+        Replace an existing regular file. Steps that rewrite their own files as they go (a
+        model per epoch, a data set's manifest) keep the default; a step writing a user's
+        output passes the user's choice after checking it with `check_target` up front.
+    """
+    path = Path(path)
+    check_target(path, force=force)
     if path.parent and not path.parent.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
     _remove_stale_temporaries(path)
@@ -74,17 +152,15 @@ def atomic_path(path: Path):
     temporary = Path(temporary)
     try:
         yield temporary
-        mode = path.stat().st_mode & 0o7777 if path.is_file() else _new_file_mode()
-        os.chmod(temporary, mode)
-        os.replace(temporary, path)
+        _commit(temporary, path, force=force)
     finally:
         if temporary.exists():
             temporary.unlink()
 
 
-def atomic_write_bytes(path: Path, data: bytes) -> Path:
-    """Write ``data`` to ``path`` atomically; return ``path``."""
-    with atomic_path(path) as temporary:
+def atomic_write_bytes(path: Path, data: bytes, *, force: bool = True) -> Path:
+    """Write ``data`` to ``path`` atomically (`atomic_path`); return ``path``."""
+    with atomic_path(path, force=force) as temporary:
         temporary.write_bytes(data)
     return Path(path)
 
@@ -100,10 +176,10 @@ def json_safe(value: object) -> object:
     return value
 
 
-def write_json(path: str | Path, payload: dict) -> Path:
-    """Write ``payload`` as indented strict JSON, atomically; non-finite numbers become ``null`` (`json_safe`)."""
+def write_json(path: str | Path, payload: dict, *, force: bool = True) -> Path:
+    """Write ``payload`` as indented strict JSON, atomically (`atomic_path`); non-finite numbers become ``null`` (`json_safe`)."""
     text = json.dumps(json_safe(payload), indent=2, sort_keys=False, allow_nan=False)
-    return atomic_write_bytes(Path(path), (text + "\n").encode("utf-8"))
+    return atomic_write_bytes(Path(path), (text + "\n").encode("utf-8"), force=force)
 
 
 def read_text(path: str | Path, *, what: str) -> str:

@@ -5,7 +5,7 @@ One message per refusal, one line, naming the culprit (a file, a flag or a key):
 set manifests, model and resume files), the bounds on work
 their inputs imply (memory and disk for a stack, widths of a network) and the outputs they
 name (a folder where a file goes, a file where a folder goes, an input about to be
-overwritten). docs/reliability.md lists every case and what the user gets.
+overwritten, a link or device, an existing file without ``--force``). docs/reliability.md lists every case and what the user gets.
 
 This module imports only the standard library at import time (numpy and torch inside the
 functions that need them), so the CLI can use it and still start fast.
@@ -21,6 +21,7 @@ from collections.abc import Collection, Iterable, Mapping
 from pathlib import Path
 
 from napari_lbs._core.foundation._errors import ConfigError, InputError
+from napari_lbs._core.foundation._files import check_target
 
 __all__ = [
     "InputError",
@@ -153,8 +154,14 @@ def check_disk(required_bytes: float, path: Path, *, what: str, remedy: str) -> 
         raise InputError(f"{path}: {what}: {required_bytes / _GIB:.1f} GiB to write, {free / _GIB:.1f} GiB free there; {remedy}")
 
 
-def check_output_path(path: str | Path, *, flag: str, folder: bool = False, inputs: Iterable[str | Path | None] = (), exists_ok: bool = True) -> Path:
+def check_output_path(path: str | Path, *, flag: str, folder: bool = False, inputs: Iterable[str | Path | None] = (), force: bool = False,
+                      writes: Iterable[str] = ()) -> Path:
     """Refuse an output before any work: the one rule every writer follows.
+
+    A file output must be a new name or, with ``force``, an existing regular file
+    (`check_target`: never a link, a device or a FIFO). A folder output may exist; the files
+    the command writes into it (``writes``) follow the file rule, so a folder holding none of
+    them is used as it is, and one holding any of them needs ``force``.
 
     Parameters
     ----------
@@ -165,27 +172,29 @@ def check_output_path(path: str | Path, *, flag: str, folder: bool = False, inpu
     folder : bool
         The output is a folder (created if needed) rather than a file.
     inputs : paths
-        The command's inputs; an output on any of them is refused.
-    exists_ok : bool
-        Whether an existing file (or, for a folder, an existing folder) may be replaced or added to.
+        The command's inputs; an output on any of them is refused, ``force`` or not.
+    force : bool
+        Replace existing outputs (the user's ``--force``).
+    writes : names
+        A folder output: the names of the files the command writes into it.
 
     Raises
     ------
     InputError
         The output is one of the inputs; a folder where a file goes or a file where a folder
-        goes; a parent that is a file; a parent folder that cannot be written.
+        goes; a link, device or FIFO where a file goes; an existing output without ``force``;
+        a parent that is a file; a parent folder that cannot be written.
     """
     path = Path(path)
     resolved = path.resolve()
+    targets = [path / name for name in writes] if folder else [path]
     for name in inputs:
-        if name and Path(name).resolve() == resolved:
+        if name and any(Path(name).resolve() in (resolved, target.resolve()) for target in targets):
             raise InputError(f"{flag} {path}: would overwrite the input {name}")
     if folder and path.exists() and not path.is_dir():
         raise InputError(f"{flag} {path}: is a file; expected a folder")
-    if not folder and path.is_dir():
-        raise InputError(f"{flag} {path}: is a folder; expected a file name")
-    if path.exists() and not exists_ok:
-        raise InputError(f"{flag} {path}: exists; choose another name or remove it")
+    for target in targets:
+        check_target(target, force=force, flag=flag)
     ancestor = path.parent
     while not ancestor.exists() and ancestor != ancestor.parent:
         ancestor = ancestor.parent

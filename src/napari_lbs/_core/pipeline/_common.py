@@ -15,9 +15,9 @@ from pathlib import Path
 from napari_lbs import __version__
 from napari_lbs._core.foundation import ExperimentConfig
 from napari_lbs._core.foundation import InputError
-from napari_lbs._core.foundation import read_json_object
+from napari_lbs._core.foundation import check_target, read_json_object
 
-__all__ = ["Log", "StepResult", "provenance", "read_calibration"]
+__all__ = ["Log", "StepResult", "provenance", "read_calibration", "check_outputs"]
 
 Log = Callable[[str], None]
 
@@ -45,6 +45,12 @@ class StepResult:
 def provenance(config: ExperimentConfig, **extra) -> dict:
     """What every output records: the package version, the config and the step's own inputs."""
     return {"napari_lbs": __version__, "config": config.to_dict(), **extra}
+
+
+def check_outputs(paths, *, replace: bool) -> None:
+    """Refuse, before any work, an output that exists (unless ``replace``) or is a link, a folder, a device or a FIFO (`check_target`)."""
+    for path in paths:
+        check_target(path, force=replace)
 
 
 def _quiet(_text: str) -> None:

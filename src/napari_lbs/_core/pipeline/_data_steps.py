@@ -9,9 +9,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from napari_lbs._core.foundation import ExperimentConfig
-from napari_lbs._core.foundation import ProgressCallback, StopCallback
+from napari_lbs._core.foundation import ProgressCallback, ReportCallback, StopCallback
 from napari_lbs._core.foundation import read_json_object
-from napari_lbs._core.pipeline._common import Log, StepResult, _quiet, read_calibration
+from napari_lbs._core.pipeline._common import Log, StepResult, _quiet, check_outputs, read_calibration
 
 if TYPE_CHECKING:  # for the annotations only: the steps import these modules when they run
     from napari_lbs._core.learning import DatasetLayout, InputProcessing, TrainingSettings
@@ -132,26 +132,40 @@ class TrainRequest:
         The model file; its training log goes beside it as ``.json``, its resume state as ``.last.pt``.
     settings : TrainingSettings, optional
     resume : bool
-        Continue from ``out_path``'s ``.last.pt``.
+        Continue from ``out_path``'s ``.last.pt`` (its files are the run's own: replaced as it goes).
+    replace : bool
+        Replace existing outputs (the user's ``--force``, or a save dialog that asked); links, devices and FIFOs are refused regardless.
     """
 
     data: str | Path
     out_path: Path
     settings: TrainingSettings | None = None
     resume: bool = False
+    replace: bool = False
+
+    def outputs(self) -> tuple[Path, Path, Path]:
+        """The files the step writes: the model, its training log and its resume state."""
+        out = Path(self.out_path)
+        return out, out.with_suffix(".json"), out.with_suffix(".last.pt")
 
 
-def train(request: TrainRequest, *, progress: ProgressCallback | None = None, should_stop: StopCallback | None = None, log: Log = _quiet) -> StepResult:
-    """Train the U-Net (`train_model`); a data set with missing groups trains on those present, with a warning."""
+def train(request: TrainRequest, *, progress: ProgressCallback | None = None, should_stop: StopCallback | None = None, log: Log = _quiet,
+          report: ReportCallback | None = None) -> StepResult:
+    """Train the U-Net (`train_model`); a data set with missing groups trains on those present, with a warning.
+
+    ``report(record)`` receives each epoch's record as it ends (the widget's live curves).
+    """
     from napari_lbs._core.learning import open_dataset
     from napari_lbs._core.learning import TrainingSettings, train_model
 
     settings = request.settings or TrainingSettings()
+    check_outputs(request.outputs(), replace=request.replace or request.resume)
     dataset = open_dataset(request.data)
     expected = int(dataset.spec["groups"])
     if len(dataset.groups) < expected:  # a stopped generate, or group files removed since
         log(f"{request.data}: warning: {len(dataset.groups)} of {expected} groups present; training on those (run generate again to finish the set)")
-    result = train_model(dataset, request.out_path, settings=settings, resume=request.resume, progress=progress, should_stop=should_stop)
+    result = train_model(dataset, request.out_path, settings=settings, resume=request.resume, progress=progress, should_stop=should_stop,
+                         report=report)
     best = result.log["best"]
     record = next(e for e in result.log["epochs"] if e["epoch"] == best["epoch"])["validation"]
     stopped = f" ({result.log['stop_reason']})" if result.stopped else ""

@@ -10,12 +10,12 @@ from pathlib import Path
 from napari_lbs._core.foundation import ExperimentConfig
 from napari_lbs._core.foundation import ProgressCallback
 from napari_lbs._core.foundation import write_json
-from napari_lbs._core.pipeline._common import Log, StepResult, _quiet
+from napari_lbs._core.pipeline._common import Log, StepResult, _quiet, check_outputs
 from napari_lbs._core.pipeline._data_steps import GenerateRequest, TrainRequest, generate, train
 from napari_lbs._core.pipeline._predict import PredictRequest, predict
 from napari_lbs._core.pipeline._setup_steps import BackpropRequest, CalibrateRequest, backprop, calibrate
 
-__all__ = ["DEMO_SAMPLE_EFFECTS", "DEMO_SAMPLE_DISTRACTORS", "DEMO_SAFETY_MINUTES", "DemoRequest", "demo"]
+__all__ = ["DEMO_FILES", "DEMO_SAMPLE_EFFECTS", "DEMO_SAMPLE_DISTRACTORS", "DEMO_SAFETY_MINUTES", "DemoRequest", "demo"]
 
 
 # --- demo ----------------------------------------------------------------------------------
@@ -29,6 +29,9 @@ DEMO_SAMPLE_DISTRACTORS = {"impurities_per_tile": 6, "impurity_diameter_min_um":
 # The demo's training budget: a safety stop for a machine many times slower or busier than 2
 # idle cores, never the normal end (the summary's ``stop_reason`` says when it ended training).
 DEMO_SAFETY_MINUTES = 60.0
+
+# What the demo writes into its folder, besides the training set ``data/`` (resumed when it was made with the same settings).
+DEMO_FILES = ("zstack.tif", "calibration.json", "model.pt", "model.json", "model.last.pt", "particles.csv", "particles.json", "summary.json")
 
 
 @dataclass(frozen=True)
@@ -44,12 +47,19 @@ class DemoRequest:
         Train on the seed's LBS data (calibrated Holo-processing of opaque discs) instead of
         transparent spheres with the sample's distractors.
     seed : int
+    replace : bool
+        Replace existing outputs (the user's ``--force``, or a save dialog that asked); links, devices and FIFOs are refused regardless.
     """
 
     out_dir: Path
     quick: bool = False
     calibrated: bool = False
     seed: int = 0
+    replace: bool = False
+
+    def outputs(self) -> tuple[Path, ...]:
+        """The files the demo writes into ``out_dir`` (`DEMO_FILES`)."""
+        return tuple(Path(self.out_dir) / name for name in DEMO_FILES)
 
 
 def demo(request: DemoRequest, *, progress_for: Callable[[str], ProgressCallback | None] = lambda step: None, log: Log = _quiet) -> StepResult:
@@ -67,7 +77,8 @@ def demo(request: DemoRequest, *, progress_for: Callable[[str], ProgressCallback
     from napari_lbs._core.physics import Distractors
     from napari_lbs._core.learning import TrainingSettings
 
-    out, seed = Path(request.out_dir), request.seed
+    out, seed, replacing = Path(request.out_dir), request.seed, request.replace
+    check_outputs(request.outputs(), replace=replacing)
     out.mkdir(parents=True, exist_ok=True)
     config = ExperimentConfig()
     hologram = load_sample_hologram()
@@ -88,11 +99,11 @@ def demo(request: DemoRequest, *, progress_for: Callable[[str], ProgressCallback
     sample = SAMPLE_PROVENANCE["source"]
     timings = {}
     start = time.perf_counter()
-    stacked = backprop(BackpropRequest(hologram, out / "zstack.tif", config, source=sample), progress=progress_for("backprop"))
+    stacked = backprop(BackpropRequest(hologram, out / "zstack.tif", config, source=sample, replace=replacing), progress=progress_for("backprop"))
     timings["backprop"] = time.perf_counter() - start
 
     start = time.perf_counter()
-    calibration = calibrate(CalibrateRequest(hologram, out / "calibration.json", config, settings=calibration_settings, source=sample),
+    calibration = calibrate(CalibrateRequest(hologram, out / "calibration.json", config, settings=calibration_settings, source=sample, replace=replacing),
                             progress=progress_for("calibrate")).value.to_json()
     timings["calibrate"] = time.perf_counter() - start
 
@@ -116,7 +127,7 @@ def demo(request: DemoRequest, *, progress_for: Callable[[str], ProgressCallback
     timings["generate"] = time.perf_counter() - start
 
     start = time.perf_counter()
-    trained = train(TrainRequest(out / "data", out / "model.pt", settings=training), progress=progress_for("train"), log=log).value
+    trained = train(TrainRequest(out / "data", out / "model.pt", settings=training, replace=replacing), progress=progress_for("train"), log=log).value
     if trained.log["stop_reason"]:
         log(f"demo: warning: training ended early ({trained.log['stop_reason']}) after {len(trained.log['epochs'])} of {training.epochs} epochs; another run with this seed may differ")
     timings["train"] = time.perf_counter() - start
@@ -125,7 +136,7 @@ def demo(request: DemoRequest, *, progress_for: Callable[[str], ProgressCallback
     # 2 cores, a small share of the demo's minutes), and the sample's material kept: its debris
     # fit as small spheres of another index contrast (docs/refinement.md).
     predicted = predict(PredictRequest(hologram, trained.model_path, out / "particles.csv", config, device=training.device, source=sample, refine=True,
-                                       material_index_contrast=DEMO_SAMPLE_EFFECTS["particle_phase"]["index_contrast"]), progress=progress_for("predict"))
+                                       material_index_contrast=DEMO_SAMPLE_EFFECTS["particle_phase"]["index_contrast"], replace=replacing), progress=progress_for("predict"))
     result = predicted.value
     refined = result.provenance["refine"]
     timings["predict"] = result.seconds - refined["seconds"] - refined["residual"]["seconds"]
@@ -157,7 +168,7 @@ def demo(request: DemoRequest, *, progress_for: Callable[[str], ProgressCallback
         "sample": SAMPLE_PROVENANCE,
         "quick": bool(request.quick),
     }
-    write_json(out / "summary.json", summary)
+    write_json(out / "summary.json", summary, force=replacing)
     line = (f"demo: calibration SSIM {calibration['ssim']:.3f} ({'used' if request.calibrated else 'recorded; --calibrated trains on it'}), {data}, "
             f"trained the {training.formulation} formulation ({training.preset}, {trained.log['seconds']:.0f} s; "
             f"validated on {len(trained.log['validation_groups'])} held-out synthetic groups: ER {100 * validation['er']:.1f} %, JI {validation['ji']:.3f}), "

@@ -10,17 +10,21 @@ from typing import TYPE_CHECKING
 from napari_lbs._core.foundation import ExperimentConfig
 from napari_lbs._core.foundation import InputError
 from napari_lbs._core.foundation import ProgressCallback, StopCallback
-from napari_lbs._core.pipeline._common import Log, StepResult, _background, _quiet, _source, provenance, read_calibration
+from napari_lbs._core.pipeline._common import Log, StepResult, _background, _quiet, _source, check_outputs, provenance, read_calibration
 
 if TYPE_CHECKING:  # for the annotations only: the steps import these modules when they run
     import numpy as np
 
     from napari_lbs._core.gap import DiagnosisSettings
 
-__all__ = ["DiagnoseRequest", "DIAGNOSED_FRAMES", "diagnose", "EvaluateRequest", "evaluate"]
+__all__ = ["REPORT_FILES", "DiagnoseRequest", "DIAGNOSED_FRAMES", "diagnose", "EvaluateRequest", "evaluate"]
 
 
 # --- diagnose ------------------------------------------------------------------------------
+
+
+# What a diagnosis writes into its folder (`write_report`).
+REPORT_FILES = ("report.json", "report.md", "gap_where.png", "gap_effects.png")
 
 
 @dataclass(frozen=True)
@@ -51,6 +55,8 @@ class DiagnoseRequest:
         Effects the user knows the experiment has (`parse_effects`), put into every simulation.
     source : str, optional
         The hologram's name in the provenance (default: its path).
+    replace : bool
+        Replace existing outputs (the user's ``--force``, or a save dialog that asked); links, devices and FIFOs are refused regardless.
     """
 
     hologram: str | Path | Sequence | np.ndarray
@@ -64,6 +70,11 @@ class DiagnoseRequest:
     known: bool = True
     stated: Mapping = field(default_factory=dict)
     source: str | None = None
+    replace: bool = False
+
+    def outputs(self) -> tuple[Path, ...]:
+        """The files the step writes into ``out_dir`` (`REPORT_FILES`)."""
+        return tuple(Path(self.out_dir) / name for name in REPORT_FILES)
 
 
 DIAGNOSED_FRAMES = 16  # frames of a recording a diagnosis reads: the features are averaged, and 16 frames average out the particles
@@ -92,6 +103,7 @@ def diagnose(request: DiagnoseRequest, *, progress: ProgressCallback | None = No
     from napari_lbs._core.gap import MIN_TILE_PX, DiagnosisSettings, diagnose_hologram, write_report
 
     config, settings = request.config, request.settings or DiagnosisSettings()
+    check_outputs(request.outputs(), replace=request.replace)
     if request.tile_px is not None and request.tile_px < MIN_TILE_PX:
         raise InputError(f"--tile: expected at least {MIN_TILE_PX} pixels (the lowest frequency band needs them), got {request.tile_px}")
     calibration = read_calibration(request.calibration_path) if request.calibration_path else None

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 from napari_lbs._core.foundation import ExperimentConfig
 from napari_lbs._core.foundation import InputError
 from napari_lbs._core.foundation import ProgressCallback, StopCallback
-from napari_lbs._core.foundation import check_output_path, write_json
+from napari_lbs._core.foundation import check_output_path, check_target, write_json
 from napari_lbs._core.pipeline._common import Log, StepResult, _background, _quiet, _source
 
 if TYPE_CHECKING:  # for the annotations only: the steps import these modules when they run
@@ -66,6 +66,8 @@ class PredictRequest:
     material_index_contrast : float, optional
         The sample's ``n_p - n_m`` (implies ``refine``); particles of another material
         (`same_material`) are listed in the provenance instead of the table.
+    replace : bool
+        Replace existing outputs (the user's ``--force``, or a save dialog that asked); links, devices and FIFOs are refused regardless.
     """
 
     inputs: Sequence[str | Path] | np.ndarray
@@ -84,6 +86,11 @@ class PredictRequest:
     refine: bool = False
     threshold: float | None = None
     material_index_contrast: float | None = None
+    replace: bool = False
+
+    def outputs(self) -> tuple[Path, Path]:
+        """The files the step writes: the table and its provenance beside it (checked by `prediction_outputs`)."""
+        return Path(self.out_path), Path(self.out_path).with_suffix(".json")
 
 
 # With a fit to check them, detections are proposed at this fraction of the model's score
@@ -141,8 +148,12 @@ def refined_prediction(hologram: np.ndarray, model, config: ExperimentConfig | N
     return PredictionResult(particles, {**result.provenance, "refine": record}, time.perf_counter() - started)
 
 
-def prediction_outputs(out_path) -> tuple[Path, Path]:
-    """The particle table and its provenance JSON, refused where they would overwrite something else."""
+def prediction_outputs(out_path, *, replace: bool = False) -> tuple[Path, Path]:
+    """The particle table and its provenance JSON beside it, refused where they exist (unless ``replace``) or would overwrite something else.
+
+    Even with ``replace`` an existing ``.json`` is replaced only when it is this table's
+    provenance from an earlier prediction (never a model's training log).
+    """
     from napari_lbs._core.foundation import check_table_name
 
     out = Path(out_path)
@@ -150,7 +161,8 @@ def prediction_outputs(out_path) -> tuple[Path, Path]:
         raise InputError(f"--out {out}: expected a particle table (.csv, or .parquet); its provenance is written beside it as .json")
     check_table_name(out)  # a Parquet table without pyarrow is refused now, not after the work
     record = out.with_suffix(".json")
-    if record.is_file():
+    check_target(out, force=replace, flag="--out")
+    if check_target(record, force=replace, flag="--out").is_file():
         try:
             previous = json.loads(record.read_text(encoding="utf-8"))
         except (json.JSONDecodeError, UnicodeDecodeError):
@@ -175,7 +187,7 @@ def predict(request: PredictRequest, *, progress: ProgressCallback | None = None
     from napari_lbs._core.learning import predict_particles
     from napari_lbs._core.recordings import open_frames
 
-    out, record_path = prediction_outputs(request.out_path)
+    out, record_path = prediction_outputs(request.out_path, replace=request.replace)
     if isinstance(request.inputs, (str, Path, list, tuple)):
         inputs = [request.inputs] if isinstance(request.inputs, (str, Path)) else list(request.inputs)
         with open_frames(inputs) as frames:
@@ -329,6 +341,8 @@ class TrackRequest:
         A separate search range along z (µm).
     memory : int
         Frames a particle may be missed and keep its track.
+    replace : bool
+        Replace existing outputs (the user's ``--force``, or a save dialog that asked); links, devices and FIFOs are refused regardless.
     """
 
     particles_path: str | Path
@@ -336,6 +350,7 @@ class TrackRequest:
     search_range_um: float = 60.0
     axial_search_range_um: float | None = None
     memory: int = 0
+    replace: bool = False
 
 
 def track(request: TrackRequest) -> StepResult:
@@ -346,9 +361,9 @@ def track(request: TrackRequest) -> StepResult:
     from napari_lbs._core.recordings import DISPLACEMENT_COLUMNS, link_tracks
 
     prediction_json = Path(request.particles_path).with_suffix(".json")
-    out = check_table_name(check_output_path(request.out_path, flag="--out", inputs=[request.particles_path, prediction_json]))
+    out = check_table_name(check_output_path(request.out_path, flag="--out", inputs=[request.particles_path, prediction_json], force=request.replace))
     # the tracks' provenance beside them, never over the prediction's own
-    provenance_json = check_output_path(out.with_suffix(".json"), flag="--out", inputs=[request.particles_path, prediction_json])
+    provenance_json = check_output_path(out.with_suffix(".json"), flag="--out", inputs=[request.particles_path, prediction_json], force=request.replace)
     table = read_particles(request.particles_path)
     if "frame" not in table:
         raise InputError(f"{request.particles_path}: no frame column; tracks need the table of a recording (predict with several frames)")

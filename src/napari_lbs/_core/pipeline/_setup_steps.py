@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 from napari_lbs._core.foundation import ExperimentConfig
 from napari_lbs._core.foundation import ProgressCallback, ReportCallback, StopCallback
 from napari_lbs._core.foundation import write_json
-from napari_lbs._core.pipeline._common import Log, StepResult, _background, _hologram, _quiet, _source, provenance
+from napari_lbs._core.pipeline._common import Log, StepResult, _background, _hologram, _quiet, _source, check_outputs, provenance
 
 if TYPE_CHECKING:  # for the annotations only: the steps import these modules when they run
     import numpy as np
@@ -49,6 +49,8 @@ class SimulateRequest:
         A recording's flow: ``uniform``, ``vortex`` or ``shear``.
     speed_um : float
         A recording's largest displacement of a particle between frames (µm).
+    replace : bool
+        Replace existing outputs (the user's ``--force``, or a save dialog that asked); links, devices and FIFOs are refused regardless.
     """
 
     out_dir: Path
@@ -60,6 +62,11 @@ class SimulateRequest:
     frames: int | None = None
     flow: str = "uniform"
     speed_um: float = 8.0
+    replace: bool = False
+
+    def outputs(self) -> tuple[Path, Path]:
+        """The files the step writes into ``out_dir``: the hologram (or frames) and the truth."""
+        return Path(self.out_dir) / ("hologram.tif" if self.frames is None else "frames.tif"), Path(self.out_dir) / "particles.csv"
 
 
 def simulate(request: SimulateRequest, *, progress: ProgressCallback | None = None, should_stop: StopCallback | None = None) -> StepResult:
@@ -73,6 +80,7 @@ def simulate(request: SimulateRequest, *, progress: ProgressCallback | None = No
     size = request.size_px if request.size_px is not None else config.tile.size
     count = request.particles if request.particles is not None else config.particles.per_tile
     optics = config.optics
+    check_outputs(request.outputs(), replace=request.replace)
     grid = padded_shape((size, size), z_max_um=config.volume.z_max_um, wavelength_um=optics.wavelength_um, pixel_um=optics.pixel_um, medium_index=optics.medium_index)
     check_memory(_SIMULATION_BYTES_PER_PX * grid[0] * grid[1], what=f"a {size}x{size} simulation ({grid[0]}x{grid[1]} padded)", remedy="use a smaller --size")
     if request.frames is not None:
@@ -135,6 +143,8 @@ class BackpropRequest:
         A hologram taken without particles, divided out.
     source : str, optional
         The hologram's name in the provenance (default: its path).
+    replace : bool
+        Replace existing outputs (the user's ``--force``, or a save dialog that asked); links, devices and FIFOs are refused regardless.
     """
 
     hologram: str | Path | np.ndarray
@@ -142,6 +152,11 @@ class BackpropRequest:
     config: ExperimentConfig = ExperimentConfig()
     background_path: str | Path | None = None
     source: str | None = None
+    replace: bool = False
+
+    def outputs(self) -> tuple[Path]:
+        """The file the step writes."""
+        return (Path(self.out_path),)
 
 
 def backprop(request: BackpropRequest, *, progress: ProgressCallback | None = None, should_stop: StopCallback | None = None, log: Log = _quiet) -> StepResult:
@@ -153,6 +168,7 @@ def backprop(request: BackpropRequest, *, progress: ProgressCallback | None = No
     from napari_lbs._core.foundation import check_disk
 
     config, out = request.config, Path(request.out_path)
+    check_outputs(request.outputs(), replace=request.replace)
     hologram = _hologram(request.hologram, log=log)
     background = _background(request.background_path, hologram.shape, log=log)
     z_um = config.volume.planes_um()
@@ -188,6 +204,8 @@ class CalibrateRequest:
     background_path : path, optional
     source : str, optional
         The hologram's name in the provenance (default: its path).
+    replace : bool
+        Replace existing outputs (the user's ``--force``, or a save dialog that asked); links, devices and FIFOs are refused regardless.
     """
 
     hologram: str | Path | np.ndarray
@@ -197,6 +215,11 @@ class CalibrateRequest:
     roi: tuple[int, int] | None = None
     background_path: str | Path | None = None
     source: str | None = None
+    replace: bool = False
+
+    def outputs(self) -> tuple[Path]:
+        """The file the step writes."""
+        return (Path(self.out_path),)
 
 
 def calibrate(request: CalibrateRequest, *, progress: ProgressCallback | None = None, should_stop: StopCallback | None = None, log: Log = _quiet,
@@ -208,6 +231,7 @@ def calibrate(request: CalibrateRequest, *, progress: ProgressCallback | None = 
     from napari_lbs._core.calibration import CalibrationSettings, calibrate_hologram
 
     config, settings = request.config, request.settings or CalibrationSettings()
+    check_outputs(request.outputs(), replace=request.replace)
     hologram = _hologram(request.hologram, log=log)
     background = _background(request.background_path, hologram.shape, log=log)
     result = calibrate_hologram(hologram, config, roi=request.roi, background=background, settings=settings, progress=progress, should_stop=should_stop,
