@@ -43,7 +43,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import pseudoreal  # noqa: E402
 
-from napari_lbs._core.pipeline._pipeline import DEMO_SAMPLE_DISTRACTORS  # noqa: E402
+from napari_lbs._core.pipeline import DEMO_SAMPLE_DISTRACTORS  # noqa: E402
 
 from napari_lbs._core import (
     CalibrationSettings,

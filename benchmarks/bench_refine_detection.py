@@ -63,7 +63,7 @@ from napari_lbs._core import (
 )
 from napari_lbs._core.foundation._files import write_json
 from napari_lbs._core.learning._metrics import match_particles
-from napari_lbs._core.pipeline._pipeline import REFINE_PROPOSAL_FRACTION
+from napari_lbs._core.pipeline import REFINE_PROPOSAL_FRACTION
 from napari_lbs._core.refine._scene import residual_particles
 
 INDEX_CONTRAST = round(pseudoreal.N_PARTICLE - pseudoreal.N_MEDIUM, 3)
