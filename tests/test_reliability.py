@@ -526,3 +526,24 @@ def test_sigterm_during_simulate_train_and_predict_leaves_no_partial_file(tmp_pa
     _terminated(["predict", str(tmp_path / "h" / "hologram.tif"), "--model", str(tmp_path / "m.pt"), "--out", str(tmp_path / "p.csv")], ready=started)
     assert not (tmp_path / "p.csv").exists() and not (tmp_path / "p.json").exists()
     assert not [p.name for p in tmp_path.rglob(".*")]  # no temporary file anywhere
+
+
+def test_an_interrupt_inside_an_import_waits_for_the_import_to_end(tmp_path, monkeypatch):
+    """SIGTERM inside a module's top level is raised only once the import is over (an extension's initialisation would abort)."""
+    import importlib
+
+    from napari_lbs._core.foundation import interruptible
+
+    (tmp_path / "slow_module.py").write_text(
+        "import os, signal, time\n"
+        "os.kill(os.getpid(), signal.SIGTERM)\n"
+        "time.sleep(0.3)  # the handler ran here, inside the import\n"
+        "FINISHED = True\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    before, imported = signal.getsignal(signal.SIGTERM), []
+    with pytest.raises(KeyboardInterrupt), interruptible():
+        imported.append(importlib.import_module("slow_module").FINISHED)
+        time.sleep(2.0)  # the interrupt, looked at again every 50 ms, lands here
+    assert imported == [True]
+    assert signal.getsignal(signal.SIGTERM) is before

@@ -17,9 +17,7 @@ import argparse
 import json
 import math
 import os
-import signal
 import sys
-import threading
 import time
 import traceback
 from pathlib import Path
@@ -27,7 +25,7 @@ from pathlib import Path
 from napari_lbs import __version__
 from napari_lbs._core import InputError, load_config, write_config
 from napari_lbs._core import pipeline
-from napari_lbs._core.foundation import check_output_path, json_safe, size_threads
+from napari_lbs._core.foundation import check_output_path, interruptible, json_safe, size_threads
 
 # Failures that are the input's or the machine's, not the program's: exit 2 with one line.
 _EXPECTED_ERRORS = (ValueError, OSError, MemoryError)
@@ -387,10 +385,6 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _terminate(signum, frame) -> None:
-    raise KeyboardInterrupt
-
-
 def _one_line(error: BaseException) -> str:
     """The first line of an error's message; a system error as ``FILE: reason``."""
     if isinstance(error, MemoryError):
@@ -405,13 +399,10 @@ def _one_line(error: BaseException) -> str:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``napari-lbs`` console script."""
     args = _parser().parse_args(argv)
-    in_main_thread = threading.current_thread() is threading.main_thread()
-    if in_main_thread:
-        # SIGTERM unwinds like Ctrl-C, so every temporary file is removed on the way out
-        previous = signal.signal(signal.SIGTERM, _terminate)
     try:
-        size_threads()  # torch, BLAS and the FFTs on the cores this process may run on, or NAPARI_LBS_THREADS
-        args.run(args)
+        with interruptible():  # SIGTERM and Ctrl-C unwind, so every temporary file is removed on the way out
+            size_threads()  # torch, BLAS and the FFTs on the cores this process may run on, or NAPARI_LBS_THREADS
+            args.run(args)
     except KeyboardInterrupt:
         print(f"napari-lbs {args.command}: interrupted; no partial file was left (finished files, such as generated groups, are kept)", file=sys.stderr)
         return 130
@@ -424,9 +415,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"napari-lbs {args.command}: internal error ({type(error).__name__}: {_one_line(error)}); please report it with the command line"
               f"{'' if args.debug else ' and the output of --debug'}", file=sys.stderr)
         return 1
-    finally:
-        if in_main_thread:
-            signal.signal(signal.SIGTERM, previous)
     return 0
 
 

@@ -9,6 +9,8 @@ private modules; each name is imported on first use.
     The two refusals every layer raises: bad input and a bad experiment config.
 `_files`
     Files: atomic writes, strict JSON, and reading UTF-8 text and JSON objects.
+`_interrupts`
+    SIGTERM and Ctrl-C as `KeyboardInterrupt`, raised where unwinding is safe.
 `_io`
     Reading holograms; reading and writing stacks and particle tables.
 `_lazy`
@@ -32,6 +34,7 @@ __getattr__, __dir__, __all__ = lazy_exports(
         "_errors": ("ConfigError", "InputError"),
         "_files": ("atomic_path", "atomic_write_bytes", "check_target", "json_safe", "read_json_object", "write_json"),
         "_io": ("PARTICLE_COLUMNS", "as_hologram", "check_table_name", "read_hologram", "read_particles", "read_stack", "tiff_pages", "write_particles", "write_stack"),
+        "_interrupts": ("interruptible",),
         "_lazy": ("lazy_exports",),
         "_progress": ("ProgressCallback", "ReportCallback", "Steps", "StopCallback", "Stopped"),
         "_samples": ("SAMPLE_PROVENANCE", "load_sample_hologram"),
