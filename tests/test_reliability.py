@@ -547,3 +547,57 @@ def test_an_interrupt_inside_an_import_waits_for_the_import_to_end(tmp_path, mon
         time.sleep(2.0)  # the interrupt, looked at again every 50 ms, lands here
     assert imported == [True]
     assert signal.getsignal(signal.SIGTERM) is before
+
+
+# --- values that make NaN or all-zero data, hangs, memory, garbage ------------------------------
+
+@pytest.mark.parametrize("params, culprit", [
+    ({"quantization": {"bits": 0, "saturation": 2}}, "quantization.bits"),
+    ({"quantization": {"bits": -3, "saturation": 2}}, "quantization.bits"),
+    ({"parasitic_fringes": {"amplitude": 0.1, "period_px": 0, "angle_rad": 0}}, "parasitic_fringes.period_px"),
+    ({"shot_noise": {"log10_photons": -2}}, "shot_noise.log10_photons"),
+    ({"illumination": {"depth": 1e308, "x0": 0, "y0": 0}}, "illumination.depth"),
+    ({"shot_noise": {"log10_photons": 10**400}}, "shot_noise.log10_photons"),
+    ({"shot_noise": [1.0]}, "shot_noise: params"),
+])
+def test_effect_values_outside_their_physical_limits_are_refused_from_a_report(workspace, capsys, params, culprit):
+    effect_id = next(iter(params))
+    report = workspace / "report.json"
+    report.write_text(json.dumps({"verdict": {"id": effect_id}, "effects": [{"id": effect_id, "params": params[effect_id]}]}))
+    before = {p.name for p in workspace.rglob("*")}
+    line = refusal(capsys, ["generate", "--config", str(workspace / "c.toml"), "--groups", "1", "--out", str(workspace / "d"), "--effects-from", str(report)])
+    assert str(report) in line and culprit in line, line
+    assert nothing_written(workspace, before)
+
+
+def test_effect_flags_outside_their_physical_limits_are_refused_and_every_parameter_has_limits(workspace, capsys):
+    from napari_lbs._core.physics._effects import EFFECTS, LIMITS, check_effects
+
+    for flag in ["sensor_blur:sigma_px=1e7", "coherence:theta_mrad=1e6"]:
+        line = refusal(capsys, ["generate", "--config", str(workspace / "c.toml"), "--groups", "1", "--out", str(workspace / "d"), "--effect", flag])
+        assert flag.split(":")[0] in line and "1e+0" in line and "[0, 50]" in line, line
+    for effect in EFFECTS.values():  # the fit ranges, neutral values and injections lie within the limits
+        assert set(LIMITS[effect.id]) == set(effect.bounds)
+        for name, (low, high) in effect.bounds.items():
+            lowest, highest = LIMITS[effect.id][name]
+            assert lowest <= low <= high <= highest and lowest <= effect.neutral[name] <= highest, (effect.id, name)
+        for injection in effect.injections:
+            check_effects({effect.id: injection})
+    with pytest.raises(InputError, match=r"quantization.bits: expected a finite number in \[1, 16\], got nan"):
+        check_effects({"quantization": {"bits": float("nan"), "saturation": 2}})
+
+
+def test_a_group_that_is_not_finite_is_refused_before_it_is_put_in_place(tmp_path, monkeypatch):
+    from napari_lbs._core import load_config
+    from napari_lbs._core.learning import _dataset
+
+    real = _dataset.synthetic_group
+
+    def poisoned(*args, **kwargs):
+        inputs, labels, particles = real(*args, **kwargs)
+        return np.full_like(inputs, np.nan), labels, particles
+
+    monkeypatch.setattr(_dataset, "synthetic_group", poisoned)
+    with pytest.raises(InputError, match="NaN or infinite"):
+        _dataset.generate_dataset(tmp_path / "d", load_config(None), groups=1)
+    assert not list((tmp_path / "d").rglob("group_*"))

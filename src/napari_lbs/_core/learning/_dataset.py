@@ -411,6 +411,7 @@ def _write_group(path: Path, config: ExperimentConfig, processing: InputProcessi
     inputs, labels, particles = synthetic_group(config, processing, seed=[seed, group], layout=layout, effects=effects, distractors=distractors)
     if layout.kind == "stack":  # values in [0, 1]: float16 keeps 11 bits and halves the cache
         inputs = inputs.astype(np.float16)
+    _check_group(path, inputs, labels, effects)
     description = json.dumps({
         "group": group,
         "seed": [seed, group],
@@ -421,6 +422,16 @@ def _write_group(path: Path, config: ExperimentConfig, processing: InputProcessi
         writer.write(inputs, description=description, metadata=None, photometric="minisblack")
         writer.write(labels, compression="zlib", metadata=None, photometric="minisblack")
     return group
+
+
+def _check_group(path: Path, inputs: np.ndarray, labels: np.ndarray, effects: dict) -> None:
+    """Refuse a group that holds no usable hologram, before its file is put in place (a set with such a group would train on garbage)."""
+    for what, values in (("inputs", inputs), ("labels", labels)):
+        bad = int(np.size(values) - np.count_nonzero(np.isfinite(values)))
+        if bad:
+            raise InputError(f"{path.name}: the {what} hold {bad} NaN or infinite values; the settings (effects {effects or 'none'}) make no valid hologram")
+    if not np.any(inputs):
+        raise InputError(f"{path.name}: the inputs are all zero; the settings (effects {effects or 'none'}) make no valid hologram")
 
 
 def open_dataset(path: str | Path) -> SyntheticDataset:

@@ -47,6 +47,7 @@ from napari_lbs._core.physics._synthesis import ParticleField, layer_images, sim
 __all__ = [
     "Effect",
     "EFFECTS",
+    "LIMITS",
     "BASELINE",
     "optical_hologram",
     "sensor_image",
@@ -123,6 +124,25 @@ EFFECTS: dict[str, Effect] = {e.id: e for e in (
     Effect("spherical_wave", "diverging illumination (point source at L)", {"source_mm": (8.0, 200.0)}, {"source_mm": 1e9}, ({"source_mm": 40.0}, {"source_mm": 15.0})),
 )}
 OPTICAL_EFFECTS = ("coherence", "particle_phase", "multiple_scattering", "spherical_wave")
+
+# Physical limits of every parameter, wider than the fit bounds (`Effect.bounds`): a stated or
+# reported value outside them makes no physical sense and would give NaN or all-zero data
+# (0 bits, a period under the sampling limit, no photons) or a kernel no filter finishes in
+# reasonable time (a blur of 1e7 pixels); `check_effects` refuses it.
+LIMITS: dict[str, dict[str, tuple[float, float]]] = {
+    "illumination": {"depth": (0.0, 1.0), "x0": (-2.0, 2.0), "y0": (-2.0, 2.0)},
+    "shot_noise": {"log10_photons": (0.0, 12.0)},
+    "quantization": {"bits": (1.0, 16.0), "saturation": (0.1, 1e3)},
+    "sensor_blur": {"sigma_px": (0.0, 50.0)},
+    "coherence": {"theta_mrad": (0.0, 50.0), "bandwidth_nm": (0.0, 200.0)},
+    "particle_phase": {"index_contrast": (0.0, 2.0), "transmission": (0.0, 1.0)},
+    "multiple_scattering": {"on": (0.0, 1.0)},
+    "parasitic_fringes": {
+        "amplitude": (0.0, 1.0), "period_px": (2.0, 1e6), "angle_rad": (-2 * math.pi, 2 * math.pi),
+        "dust_per_mpx": (0.0, 2000.0), "dust_zone_px": (0.0, 500.0), "dust_grain_px": (0.5, 100.0),
+    },
+    "spherical_wave": {"source_mm": (1.0, 1e9)},
+}
 
 
 def _param(effects: dict, effect: str, name: str) -> float:
@@ -253,6 +273,8 @@ def optical_hologram(field: ParticleField, effects: dict, *, wavelength_um: floa
         return simulate_hologram(field, wavelength_um=wavelength_um, medium_index=medium_index, shadowing=True)
     source_um = _param(effects, "spherical_wave", "source_mm") * 1000.0
     if source_um < 1e11:
+        if field.z_um.size and source_um <= float(np.max(field.z_um)):
+            raise InputError(f"effects: spherical_wave.source_mm: expected a source beyond the deepest particle ({np.max(field.z_um) / 1000:g} mm), got {source_um / 1000:g}")
         # a point source at L: the layer at z is seen magnified by M = L/(L - z), at distance M z
         centre_x, centre_y = (field.shape[1] - 1) * field.pixel_um / 2, (field.shape[0] - 1) * field.pixel_um / 2
         magnification = source_um / (source_um - field.z_um)
@@ -331,13 +353,20 @@ def sensor_image(intensity: np.ndarray, baseline: dict, effects: dict, *, noise:
     return image.astype(np.float32)
 
 
+def _short(value: object) -> str:
+    """``repr(value)`` cut to 40 characters (an error message stays one short line)."""
+    text = repr(value) if not isinstance(value, int) or abs(value) < 10**30 else f"an integer of {len(str(abs(value)))} digits"
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
 def check_effects(effects: dict) -> dict:
     """A validated copy of ``{effect_id: {param: value}}``: known ids and names, every parameter a finite number.
 
     A parameter whose bounds are a single value (``multiple_scattering.on``) or that the effect
     lists as optional (`Effect.optional`: it takes its neutral value) may be left out.
     Values are not clipped to the fit bounds (a stated value such as 12 bits is legitimate);
-    they must only be finite. Raises `InputError` naming the culprit.
+    they must lie within the physical limits (`LIMITS`). Raises `InputError` naming the culprit
+    (effect.param, the value and the range).
     """
     if not isinstance(effects, dict):
         raise InputError(f"effects: expected a mapping of effect id to parameters, got {type(effects).__name__}")
@@ -360,10 +389,11 @@ def check_effects(effects: dict) -> dict:
                 continue
             try:
                 value = float(params[name])
-            except (TypeError, ValueError):
-                raise InputError(f"effects: {effect_id}.{name}: expected a number, got {params[name]!r}") from None
-            if not math.isfinite(value):
-                raise InputError(f"effects: {effect_id}.{name}: expected a finite number, got {value}")
+            except (TypeError, ValueError, OverflowError):
+                raise InputError(f"effects: {effect_id}.{name}: expected a number, got {_short(params[name])}") from None
+            lowest, highest = LIMITS[effect_id][name]
+            if not lowest <= value <= highest:  # NaN fails too
+                raise InputError(f"effects: {effect_id}.{name}: expected a finite number in [{lowest:g}, {highest:g}], got {value:g}")
             values[name] = value
         checked[effect_id] = values
     return checked
@@ -403,8 +433,8 @@ def effects_from_report(report: dict, *, name: str = "report") -> dict:
     """
     try:
         verdict = report["verdict"]["id"]
-        fits = {entry["id"]: entry["params"] for entry in report["effects"]}
-    except (KeyError, TypeError) as error:
+        fits = {str(entry["id"]): entry["params"] for entry in report["effects"]}
+    except (KeyError, TypeError, IndexError) as error:
         raise InputError(f"{name}: not a diagnosis report (missing {error})") from None
     if verdict is None:
         return {}
@@ -413,8 +443,13 @@ def effects_from_report(report: dict, *, name: str = "report") -> dict:
         source = fits.get(effect_id)
         if source is None:
             raise InputError(f"{name}: the report names {effect_id!r} but records no parameters for it")
-        chosen[effect_id] = {k: v for k, v in source.items() if not k.startswith("baseline.")}
-    return check_effects(chosen)
+        if not isinstance(source, dict):
+            raise InputError(f"{name}: effects: {effect_id}: params: expected a JSON object, got {type(source).__name__}")
+        chosen[effect_id] = {k: v for k, v in source.items() if not str(k).startswith("baseline.")}
+    try:
+        return check_effects(chosen)
+    except InputError as error:
+        raise InputError(f"{name}: {error}") from None
 
 
 def effect_hologram(field: ParticleField, effects: dict, *, wavelength_um: float, medium_index: float = 1.0, crop_px: int = 0, rng: np.random.Generator) -> np.ndarray:
