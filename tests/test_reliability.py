@@ -601,3 +601,23 @@ def test_a_group_that_is_not_finite_is_refused_before_it_is_put_in_place(tmp_pat
     with pytest.raises(InputError, match="NaN or infinite"):
         _dataset.generate_dataset(tmp_path / "d", load_config(None), groups=1)
     assert not list((tmp_path / "d").rglob("group_*"))
+
+
+def test_track_refuses_absurd_frames_links_across_long_gaps_at_once_and_stops_between_frames(workspace, capsys):
+    from napari_lbs._core.foundation import Stopped
+    from napari_lbs._core.recordings import link_tracks
+
+    table = workspace / "p.csv"
+    table.write_text("x_um,y_um,z_um,diameter_um,frame\n1,1,1,20,0\n2,2,2,20,1000000000000000\n")
+    line = refusal(capsys, ["track", str(table), "--out", str(workspace / "t.csv")])
+    assert str(table) in line and "frame" in line and "10000000" in line, line
+    rows = {"x_um": np.array([1.0, 2.0, 3.0]), "y_um": np.ones(3), "z_um": np.ones(3), "diameter_um": np.ones(3), "frame": np.array([0, 1, 5_000_000])}
+    started = time.monotonic()
+    tracks = link_tracks(rows, search_range_um=60.0, memory=3)  # trackpy alone steps through every empty frame of the gap
+    assert time.monotonic() - started < 2.0 and tracks["track"].tolist() == [0, 0, 1]
+    rng = np.random.default_rng(0)
+    many = {name: rng.random(2000) * 500 for name in ("x_um", "y_um", "z_um", "diameter_um")} | {"frame": rng.integers(0, 1000, 2000)}
+    asked = []
+    with pytest.raises(Stopped):
+        link_tracks(many, search_range_um=5.0, should_stop=lambda: asked.append(1) or len(asked) > 3)
+    assert len(asked) == 4  # heard after the third frame, not at the end

@@ -347,7 +347,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--search-range-um", type=_number(0.0, above=True), default=60.0,
                    help="largest displacement between two frames a particle is seen in (µm, default 60: a predicted depth may jump by a 50 µm plane)")
     p.add_argument("--axial-search-range-um", type=_number(0.0, above=True), help="a separate search range along z (µm; default: --search-range-um)")
-    p.add_argument("--memory", type=_integer(0), default=0, help="frames a particle may be missed and keep its track (default 0)")
+    p.add_argument("--memory", type=_integer(0, 10000), default=0, help="frames a particle may be missed and keep its track (default 0)")
     p.set_defaults(run=_cmd_track)
 
     p = sub.add_parser("diagnose", help="diagnose the sim-to-real gap of one or more holograms of a setup: which effect, where, how much", parents=[_FORCE])

@@ -353,8 +353,8 @@ class TrackRequest:
     replace: bool = False
 
 
-def track(request: TrackRequest) -> StepResult:
-    """Link tracks (`link_tracks`) and write them with the prediction's provenance."""
+def track(request: TrackRequest, *, progress: ProgressCallback | None = None, should_stop: StopCallback | None = None) -> StepResult:
+    """Link tracks (`link_tracks`, frame by frame: ``should_stop`` is heard between frames) and write them with the prediction's provenance."""
     import numpy as np
 
     from napari_lbs._core.foundation import check_table_name, read_particles, write_particles
@@ -367,7 +367,12 @@ def track(request: TrackRequest) -> StepResult:
     table = read_particles(request.particles_path)
     if "frame" not in table:
         raise InputError(f"{request.particles_path}: no frame column; tracks need the table of a recording (predict with several frames)")
-    tracks = link_tracks(table, search_range_um=request.search_range_um, axial_search_range_um=request.axial_search_range_um, memory=request.memory)
+    try:
+        tracks = link_tracks(table, search_range_um=request.search_range_um, axial_search_range_um=request.axial_search_range_um, memory=request.memory,
+                             progress=progress, should_stop=should_stop)
+    except InputError as error:
+        text = str(error)
+        raise InputError(text.replace("particle table:", f"{request.particles_path}:", 1) if text.startswith("particle table:") else text) from None
     linking = {"particles": str(request.particles_path), "search_range_um": request.search_range_um, "axial_search_range_um": request.axial_search_range_um, "memory": request.memory}
     if out.suffix.lower() != ".parquet":  # a track's last detection has no displacement: an empty CSV cell (Parquet keeps NaN)
         for name in DISPLACEMENT_COLUMNS:
