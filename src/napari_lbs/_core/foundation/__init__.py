@@ -1,4 +1,4 @@
-"""The foundation: errors, progress and stop, files, threads, the experiment config, validation, image and table I/O, built-in data.
+"""The foundation: errors, progress and stop, files, threads and worker pools, the experiment config, validation, I/O, built-in data.
 
 Imports nothing else of the package; every other wing stands on it. Other wings import these names from ``napari_lbs._core.foundation``, never from its
 private modules; each name is imported on first use.
@@ -15,6 +15,8 @@ private modules; each name is imported on first use.
     Reading holograms; reading and writing stacks and particle tables.
 `_lazy`
     Names a package exports, imported from their modules on first use (PEP 562).
+`_pools`
+    Worker processes: tasks run in a pool of one-thread processes, with progress and stop, results in task order.
 `_progress`
     The one pattern for long work: ``progress(done, total)`` and ``should_stop()`` callbacks.
 `_samples`
@@ -36,6 +38,7 @@ __getattr__, __dir__, __all__ = lazy_exports(
         "_io": ("PARTICLE_COLUMNS", "as_hologram", "check_table_name", "read_hologram", "read_particles", "read_stack", "tiff_pages", "write_particles", "write_stack"),
         "_interrupts": ("interruptible",),
         "_lazy": ("lazy_exports",),
+        "_pools": ("CHECK_S", "WorkerPool", "run_in_workers"),
         "_progress": ("ProgressCallback", "ReportCallback", "Steps", "StopCallback", "Stopped"),
         "_samples": ("SAMPLE_PROVENANCE", "load_sample_hologram"),
         "_threads": ("available_threads", "process_threads", "size_threads", "thread_pool"),

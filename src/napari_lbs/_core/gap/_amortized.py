@@ -9,11 +9,9 @@ the same setup. The cache file holds plain arrays and JSON text, read with
 
 from __future__ import annotations
 
-import concurrent.futures
 import hashlib
 import importlib.util
 import json
-import multiprocessing
 import os
 import time
 from dataclasses import dataclass
@@ -28,7 +26,7 @@ from napari_lbs._core.gap._features import feature_names, set_features, set_summ
 from napari_lbs._core.gap._forest import ForestArrays, train_forest
 from napari_lbs._core.gap._scenarios import ScenarioPrior, TileGrid, draw_scenario, simulate_tiles
 from napari_lbs._core.foundation import ProgressCallback, Steps, StopCallback
-from napari_lbs._core.foundation import available_threads, size_threads
+from napari_lbs._core.foundation import available_threads, run_in_workers
 
 __all__ = ["DiagnosisSettings", "Diagnoser", "amortized_diagnoser", "default_cache_dir", "forest_posterior", "load_diagnoser"]
 
@@ -59,8 +57,9 @@ class DiagnosisSettings:
         so the same hologram gets the same posterior whatever ``seed``.
     training_seed : int
     jobs : int or None
-        Processes that simulate (default: `available_threads`, the cores this process may
-        use or ``NAPARI_LBS_THREADS``).
+        Processes that simulate, one thread each (default and most: `available_threads`, the
+        cores this process may use or ``NAPARI_LBS_THREADS``). More than 1 spawns processes
+        (`run_in_workers`), so a script must start its work under ``if __name__ == "__main__":``.
     cache_dir : str or None
         Where diagnosers are kept (default `default_cache_dir`).
     """
@@ -147,31 +146,8 @@ def _simulate(task: tuple) -> tuple[int, np.ndarray, np.ndarray, tuple, dict]:
 
 
 def _simulations(tasks: list, *, jobs: int, steps: Steps) -> list:
-    """Every task's `_simulate`, in task order; one progress step each; a stop cancels what has not started."""
-    if jobs <= 1:
-        out = []
-        for task in tasks:
-            steps.check()
-            out.append(_simulate(task))
-            steps.advance()
-        return out
-    results = [None] * len(tasks)
-    # forked where the platform can (a script or notebook without a ``__main__`` guard works; the
-    # children touch no Qt or torch state), else spawned
-    method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
-    # one thread each: the processes share the cores between them
-    with concurrent.futures.ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context(method), initializer=size_threads, initargs=(1,)) as pool:
-        futures = [pool.submit(_simulate, task) for task in tasks]
-        try:
-            for future in concurrent.futures.as_completed(futures):
-                steps.check()
-                result = future.result()
-                results[result[0] - tasks[0][0]] = result
-                steps.advance()
-        except BaseException:
-            pool.shutdown(wait=True, cancel_futures=True)
-            raise
-    return results
+    """Every task's `_simulate`, in task order, on ``jobs`` processes (`run_in_workers`); one progress step each; a stop raises `Stopped`."""
+    return run_in_workers(_simulate, tasks, workers=jobs, steps=steps)
 
 
 def amortized_diagnoser(

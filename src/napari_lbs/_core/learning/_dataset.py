@@ -40,7 +40,7 @@ from napari_lbs._core.foundation import ExperimentConfig
 from napari_lbs._core.physics import check_effects, effect_hologram
 from napari_lbs._core.foundation import atomic_path, read_json_object, write_json
 from napari_lbs._core.foundation import InputError
-from napari_lbs._core.foundation import ProgressCallback, Steps, StopCallback
+from napari_lbs._core.foundation import ProgressCallback, Steps, StopCallback, Stopped, run_in_workers
 from napari_lbs._core.physics import Distractors, ParticleField, distractor_scene, label_planes, random_particle_field, simulate_hologram
 from napari_lbs._core.foundation import check_dataset_manifest
 
@@ -340,10 +340,12 @@ def generate_dataset(
         the labels would contradict each other.
     seed : int
     workers : int
-        Processes simulating groups at once (1: in this process). The set does not depend on it.
+        Processes simulating groups at once (1: in this process; at most `available_threads`;
+        `run_in_workers`). The set does not depend on it.
     progress, should_stop
-        One step per group. A stop ends after the current group; the set is then marked
-        incomplete and a rerun finishes it.
+        One step per group. A stop ends after the current group in this process, at once in
+        workers (a group they were writing is left out); the set is then marked incomplete and
+        a rerun finishes it.
     """
     if int(groups) < 1:
         raise InputError(f"groups: expected a positive number of groups, got {groups}")
@@ -377,31 +379,21 @@ def generate_dataset(
     if present:
         steps.advance(len(present))
     jobs = [(dataset.group_path(g), config, processing, layout, effects, distractors, int(seed), g) for g in missing]
-    if workers > 1 and len(jobs) > 1:
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
-
-        # spawn, not fork: a forked child inherits the FFT and thread pools' locks mid-use and can hang
-        with ProcessPoolExecutor(max_workers=int(workers), mp_context=multiprocessing.get_context("spawn")) as pool:
-            futures = [pool.submit(_write_group, *job) for job in jobs]
-            for future in futures:
-                if steps.stop_requested():
-                    dataset.stopped = True
-                    pool.shutdown(wait=True, cancel_futures=True)  # running groups finish (atomic writes); the rest never start
-                    break
-                dataset.groups.append(future.result())
-                steps.advance()
-    else:
-        for job in jobs:
-            if steps.stop_requested():
-                dataset.stopped = True
-                break
-            dataset.groups.append(_write_group(*job))
-            steps.advance()
+    try:
+        dataset.groups.extend(run_in_workers(_write_job, jobs, workers=workers, steps=steps))
+    except Stopped:
+        # each group is written atomically: the ones on disk are whole, whichever worker wrote them
+        dataset.stopped = True
+        dataset.groups.extend(g for g in missing if _group_is_valid(dataset.group_path(g), len(planes_um), config.tile.size))
     dataset.groups.sort()
     dataset.complete = len(dataset.groups) == int(groups)
     write_json(manifest, {**spec, "complete": dataset.complete})
     return dataset
+
+
+def _write_job(job: tuple) -> int:
+    """`_write_group` of one job's arguments (a worker's task)."""
+    return _write_group(*job)
 
 
 def _write_group(path: Path, config: ExperimentConfig, processing: InputProcessing, layout: DatasetLayout, effects: dict, distractors: Distractors, seed: int, group: int) -> int:

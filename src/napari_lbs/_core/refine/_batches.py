@@ -1,4 +1,4 @@
-"""One batch's fit, the neighbours in its model, and the batches run in this process or in a pool of workers.
+"""One batch's fit, the neighbours in its model, and the batches run in a `WorkerPool` (in this process or in workers).
 
 A batch is fitted from its patches: the searches (`napari_lbs._core.refine._rings`), the
 robust fit on every other pixel and then on all (`levenberg_marquardt`), the valley profile
@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from napari_lbs._core.foundation import ExperimentConfig, Steps
+from napari_lbs._core.foundation import CHECK_S, ExperimentConfig, Steps, WorkerPool
 from napari_lbs._core.physics import holograms_from_fields, sphere_fields
 from napari_lbs._core.refine._levenberg_marquardt import clamp, flat_model, huber, levenberg_marquardt, residual_inflation, robust_scale
 from napari_lbs._core.refine._model import Model, scattered_terms
@@ -249,31 +249,10 @@ def _fit_task(task: FitTask, steps: Steps | None = None) -> dict[str, np.ndarray
                       terms=task.terms, device=torch.device(task.device), steps=steps or Steps(1, progress=None, should_stop=None))
 
 
-HEARTBEAT_S = 0.5
+# Steps' heartbeat while a batch fits in this process: as often as the pool checks its workers.
+HEARTBEAT_S = CHECK_S
 
 
-def run_tasks(tasks: list[FitTask], pool, steps: Steps) -> list[dict[str, np.ndarray]]:
-    """`_fit_task` of every task, in order: in this process, or in ``pool``'s workers (``steps`` repeats its count at the fits' checks once `HEARTBEAT_S` has passed)."""
-    if pool is None:
-        outputs = []
-        for task in tasks:
-            steps.check()
-            outputs.append(_fit_task(task, steps=steps))
-            steps.advance()
-        return outputs
-    import multiprocessing
-
-    pending = [pool.apply_async(_fit_task, (task,)) for task in tasks]
-    outputs = []
-    for job in pending:
-        while True:
-            steps.check()
-            try:
-                outputs.append(job.get(timeout=HEARTBEAT_S))
-                break
-            except multiprocessing.TimeoutError:
-                continue  # the fits go on: `check` reports the same count again
-        steps.advance()
-    return outputs
-
-
+def run_tasks(tasks: list[FitTask], pool: WorkerPool, steps: Steps) -> list[dict[str, np.ndarray]]:
+    """`_fit_task` of every task, in order, in ``pool`` (in this process the fits check ``steps`` themselves)."""
+    return pool.run(_fit_task, tasks, steps=steps, share_steps=True)

@@ -56,7 +56,7 @@ from collections.abc import Mapping
 import numpy as np
 import torch
 
-from napari_lbs._core.foundation import PARTICLE_COLUMNS, ExperimentConfig, InputError, ProgressCallback, Steps, StopCallback, size_threads
+from napari_lbs._core.foundation import PARTICLE_COLUMNS, ExperimentConfig, InputError, ProgressCallback, Steps, StopCallback, WorkerPool
 from napari_lbs._core.refine._batches import HEARTBEAT_S, FitTask, run_tasks
 from napari_lbs._core.refine._model import scattered_terms
 from napari_lbs._core.refine._patches import check_fixed, check_hologram, check_table
@@ -170,12 +170,8 @@ def refine_particles(
     current = start.copy()
     result: dict[str, np.ndarray] = {}
     reach = 1.5 * settings.patch_px * optics.pixel_um
-    pool = None
-    if settings.workers > 1 and device.type == "cpu" and chunks > 1:
-        import multiprocessing
-
-        # spawned, not forked: a forked child inherits torch's and the BLAS's thread pools mid-use
-        pool = multiprocessing.get_context("spawn").Pool(min(settings.workers, chunks), initializer=size_threads, initargs=(1,))
+    # workers on the CPU only: on a GPU the batches share the one device
+    pool = WorkerPool(settings.workers if device.type == "cpu" else 1)
     try:
         present = np.ones(count, dtype=bool)
         for round_index in range(settings.rounds if count else 0):
@@ -204,9 +200,7 @@ def refine_particles(
                 present = _kept(result, settings=settings)
             steps.advance(chunks - len(outputs))
     finally:
-        if pool is not None:
-            pool.terminate()  # a stop ends the running fits at once; nothing they wrote is kept
-            pool.join()
+        pool.close()  # a stop or a failure has already ended the running fits; nothing they did is kept
     out = frame.copy()
     if count:
         keep = _kept(result, settings=settings)
