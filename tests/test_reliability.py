@@ -621,3 +621,42 @@ def test_track_refuses_absurd_frames_links_across_long_gaps_at_once_and_stops_be
     with pytest.raises(Stopped):
         link_tracks(many, search_range_um=5.0, should_stop=lambda: asked.append(1) or len(asked) > 3)
     assert len(asked) == 4  # heard after the third frame, not at the end
+
+
+def test_predict_refuses_what_would_not_fit_in_memory_and_simulate_bounds_the_particles(workspace, capsys, detector, monkeypatch):
+    from napari_lbs._core import predict_particles
+    from napari_lbs._core.foundation import _validation
+    from napari_lbs._core.learning._prediction import _prediction_bytes
+
+    optics = {"wavelength_um": 0.66, "pixel_um": 2.2, "medium_index": 1.33}
+    planes = list(detector.config.volume.planes_um())
+    assert _prediction_bytes((20000, 20000), planes, detector, optics) > 24 * 2**30  # the size that was killed for memory
+    hologram = 1.0 + 0.1 * np.random.default_rng(0).random((64, 64), np.float32)
+    monkeypatch.setattr(_validation, "_available_memory_bytes", lambda: 2**20)
+    with pytest.raises(InputError, match=r"predicting a 64x64 hologram .*GiB of memory needed, 0.0 GiB available; crop the hologram"):
+        predict_particles(hologram, detector)
+    monkeypatch.undo()
+    line = refusal(capsys, ["simulate", "--config", str(workspace / "c.toml"), "--particles", "100000000", "--out", str(workspace / "s")])
+    assert "--particles" in line and "100000" in line, line
+    big = workspace / "big.toml"
+    big.write_text((workspace / "c.toml").read_text().replace("per_tile = 12", "per_tile = 100000000"))
+    line = refusal(capsys, ["config", "--check", str(big)])
+    assert "particles.per_tile" in line, line
+    assert not (workspace / "s").exists()
+
+
+def test_a_recording_refuses_more_workers_than_cores_and_a_refused_run_leaves_no_work_folder(tmp_path, capsys, detector):
+    from napari_lbs._core import predict_sequence
+    from napari_lbs._core.foundation import available_threads
+
+    frames = 1.0 + 0.1 * np.random.default_rng(0).random((3, 64, 64), np.float32)
+    with pytest.raises(InputError, match=rf"workers: expected an integer in \[1, {available_threads()}\]"):
+        predict_sequence(frames, detector, workers=1000)
+    frames[2] = 0.0  # refused when the frame is reached, after the work folder was made
+    tifffile.imwrite(tmp_path / "rec.tif", frames, photometric="minisblack")
+    out = tmp_path / "p.csv"
+    line = refusal(capsys, ["predict", str(tmp_path / "rec.tif"), "--model", str(detector.path), "--out", str(out), "--sequence-background", "none"])
+    assert "every pixel is 0" in line, line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rec.tif"]
+    line = refusal(capsys, ["predict", str(tmp_path / "rec.tif"), "--model", str(detector.path), "--out", str(out), "--threshold", "1.5"])
+    assert "threshold" in line and "(0, 1)" in line, line

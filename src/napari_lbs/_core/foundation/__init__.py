@@ -32,7 +32,7 @@ from napari_lbs._core.foundation._lazy import lazy_exports
 __getattr__, __dir__, __all__ = lazy_exports(
     __name__,
     {
-        "_config": ("ExperimentConfig", "load_config", "write_config"),
+        "_config": ("ExperimentConfig", "MAX_PARTICLES", "load_config", "write_config"),
         "_errors": ("ConfigError", "InputError"),
         "_files": ("atomic_path", "atomic_write_bytes", "check_target", "json_safe", "read_json_object", "write_json"),
         "_io": ("PARTICLE_COLUMNS", "as_hologram", "check_table_name", "read_hologram", "read_particles", "read_stack", "tiff_pages", "write_particles", "write_stack"),
@@ -42,6 +42,6 @@ __getattr__, __dir__, __all__ = lazy_exports(
         "_progress": ("ProgressCallback", "ReportCallback", "Steps", "StopCallback", "Stopped"),
         "_samples": ("SAMPLE_PROVENANCE", "load_sample_hologram"),
         "_threads": ("available_threads", "process_threads", "size_threads", "thread_pool"),
-        "_validation": ("check_calibration", "check_dataset_manifest", "check_disk", "check_holo_params", "check_memory", "check_model_payload", "check_output_path", "check_prediction_meta", "check_resume_matches", "load_resume_state"),
+        "_validation": ("check_calibration", "check_number", "check_dataset_manifest", "check_disk", "check_holo_params", "check_memory", "check_model_payload", "check_output_path", "check_prediction_meta", "check_resume_matches", "load_resume_state"),
     },
 )

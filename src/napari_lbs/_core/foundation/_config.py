@@ -30,6 +30,9 @@ __all__ = [
 # The most reconstruction planes (or particle layers) a config may ask for: 100 times the
 # seed's 61. A 1024² stack of this depth is 24 GiB; commands also check the memory they need.
 MAX_PLANES = 6100
+# particles in one simulated field: a 1024² window holds about 1500 of 25 µm side by side at
+# 2.2 µm pixels, so this is far beyond any sample while a simulation of it stays minutes long
+MAX_PARTICLES = 100_000
 
 
 def _require(condition: bool, key: str, message: str, value: object) -> None:
@@ -122,7 +125,8 @@ class ParticlesConfig:
             f"a diameter >= diameter_min_um={self.diameter_min_um}",
             self.diameter_max_um,
         )
-        _require(isinstance(self.per_tile, int) and self.per_tile >= 0, "particles.per_tile", "a non-negative integer", self.per_tile)
+        _require(isinstance(self.per_tile, int) and not isinstance(self.per_tile, bool) and 0 <= self.per_tile <= MAX_PARTICLES, "particles.per_tile",
+                 f"an integer in [0, {MAX_PARTICLES}]", self.per_tile)
         _require(self.layer_step_um > 0.0, "particles.layer_step_um", "a positive step", self.layer_step_um)
 
 
@@ -186,6 +190,8 @@ class ExperimentConfig:
                 expected = type(defaults[key])
                 if isinstance(value, bool) or not isinstance(value, (int, float)):
                     raise ConfigError(f"{name}.{key}: expected a number, got {value!r}")
+                if isinstance(value, int) and abs(value) > 2**53:  # beyond every range below, and beyond float's exact integers
+                    raise ConfigError(f"{name}.{key}: expected a number of sensible size, got an integer of {len(str(abs(value)))} digits")
                 if expected is int and not float(value).is_integer():
                     raise ConfigError(f"{name}.{key}: expected an integer, got {value!r}")
                 if isinstance(value, float) and not math.isfinite(value):
@@ -228,6 +234,8 @@ def load_config(path: str | Path | None = None) -> ExperimentConfig:
         data = tomllib.loads(read_text(path, what="config"))
     except tomllib.TOMLDecodeError as error:
         raise ConfigError(f"{path}: not valid TOML ({error})") from None
+    except RecursionError:  # arrays or tables nested thousands deep
+        raise ConfigError(f"{path}: not a config (values nested too deeply)") from None
     return ExperimentConfig.from_dict(data)
 
 

@@ -206,6 +206,10 @@ def read_json_object(path: str | Path, *, what: str) -> dict:
         payload = json.loads(read_text(path, what=what))
     except json.JSONDecodeError as error:
         raise InputError(f"{path}: not valid JSON ({error})") from None
+    except RecursionError:  # arrays or objects nested thousands deep
+        raise InputError(f"{path}: not a {what} (values nested too deeply)") from None
+    except ValueError as error:  # an integer of more digits than Python converts
+        raise InputError(f"{path}: not a {what} ({str(error).splitlines()[0]})") from None
     if not isinstance(payload, dict):
         raise InputError(f"{path}: expected a JSON object ({what}), got a {type(payload).__name__}")
     return payload

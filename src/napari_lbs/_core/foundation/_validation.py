@@ -86,6 +86,22 @@ def _finite_number(value, *, key: str, low: float, high: float) -> float:
     return number
 
 
+def check_number(value, *, key: str, low: float = -math.inf, high: float = math.inf, above: bool = False) -> float:
+    """``value`` as a finite float in ``[low, high]`` (``(low, high]`` with ``above``); `InputError` naming ``key`` otherwise.
+
+    The wording is the console script's for a flag, so the API and the flags refuse alike.
+    """
+    try:
+        number = float(value) if not isinstance(value, (bool, str)) and value is not None else math.nan
+    except (TypeError, ValueError, OverflowError):
+        number = math.nan
+    if not math.isfinite(number) or number < low or (above and number == low) or number > high:
+        bounds = f"{'above' if above else 'at least'} {low:g}" + (f" and at most {high:g}" if math.isfinite(high) else "") if math.isfinite(low) else f"at most {high:g}"
+        shown = f"{number:g}" if math.isfinite(number) or isinstance(value, float) else repr(value)[:40]
+        raise InputError(f"{key}: expected a finite number {bounds}, got {shown}")
+    return number
+
+
 def check_holo_params(params: Mapping, *, name: str) -> dict[str, float]:
     """Check Holo-processing parameters (``N_R``, ``N_sigma``, ``gamma``) against `HOLO_PARAM_RANGES`.
 
@@ -154,6 +170,14 @@ def check_disk(required_bytes: float, path: Path, *, what: str, remedy: str) -> 
         raise InputError(f"{path}: {what}: {required_bytes / _GIB:.1f} GiB to write, {free / _GIB:.1f} GiB free there; {remedy}")
 
 
+def _resolved(path: Path, *, culprit: str) -> Path:
+    """``path.resolve()``, with a loop of symbolic links refused naming ``culprit``."""
+    try:
+        return path.resolve()
+    except (RuntimeError, OSError) as error:  # Python 3.11 raises RuntimeError for a loop, 3.13 OSError
+        raise InputError(f"{culprit}: is a loop of symbolic links ({type(error).__name__}); name the file itself") from None
+
+
 def check_output_path(path: str | Path, *, flag: str, folder: bool = False, inputs: Iterable[str | Path | None] = (), force: bool = False,
                       writes: Iterable[str] = ()) -> Path:
     """Refuse an output before any work: the one rule every writer follows.
@@ -186,10 +210,10 @@ def check_output_path(path: str | Path, *, flag: str, folder: bool = False, inpu
         a parent that is a file; a parent folder that cannot be written.
     """
     path = Path(path)
-    resolved = path.resolve()
+    resolved = _resolved(path, culprit=f"{flag} {path}")
     targets = [path / name for name in writes] if folder else [path]
     for name in inputs:
-        if name and any(Path(name).resolve() in (resolved, target.resolve()) for target in targets):
+        if name and any(_resolved(Path(name), culprit=str(name)) in (resolved, _resolved(target, culprit=f"{flag} {target}")) for target in targets):
             raise InputError(f"{flag} {path}: would overwrite the input {name}")
     if folder and path.exists() and not path.is_dir():
         raise InputError(f"{flag} {path}: is a file; expected a folder")

@@ -216,9 +216,14 @@ def load_model(path: str | Path, *, device: str = "cpu") -> LoadedModel:
         raise InputError(f"{path}: not a napari-lbs model file ({type(error).__name__})") from None
     # format, widths (a preset's, so nothing huge is allocated), channels and config before any network is built
     meta = check_model_payload(payload, name=str(path), formats={MODEL_FORMAT: _READABLE_VERSIONS}, presets=PRESETS, formulations=FORMULATIONS)
+    state = payload["state_dict"]
+    # a network with NaN or infinite weights outputs NaN, which no threshold passes: it would report "0 particles"
+    damaged = [name for name, tensor in state.items() if torch.is_tensor(tensor) and tensor.is_floating_point() and not bool(torch.isfinite(tensor).all())] if isinstance(state, dict) else []
+    if damaged:
+        raise InputError(f"{path}: weights {damaged[0]} hold NaN or infinite values ({len(damaged)} tensors); the model file is damaged (train it again)")
     network = UNet(tuple(meta["widths"]), in_channels=meta["in_channels"], out_channels=meta["out_channels"]).to(memory_format=torch.channels_last)
     try:
-        network.load_state_dict(payload["state_dict"])
+        network.load_state_dict(state)
     except RuntimeError as error:
         raise InputError(f"{path}: weights do not fit the {meta.get('preset')} network ({str(error).splitlines()[0]})") from None
     network.to(resolve_device(device)).eval()

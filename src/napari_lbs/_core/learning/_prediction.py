@@ -35,11 +35,11 @@ from napari_lbs._core.foundation import ExperimentConfig
 from napari_lbs._core.learning._detection import PeakDecoder, PlaneLinker, suppress
 from napari_lbs._core.foundation import InputError, as_hologram
 from napari_lbs._core.learning._network import LoadedModel, check_model_matches, inference_network, load_model, network_outputs, resolve_precision
-from napari_lbs._core.physics import backpropagate, backpropagated_blocks
+from napari_lbs._core.physics import backpropagate, backpropagated_blocks, padded_shape
 from napari_lbs._core.foundation import ProgressCallback, Steps, StopCallback
-from napari_lbs._core.foundation import check_prediction_meta
+from napari_lbs._core.foundation import check_memory, check_prediction_meta
 
-__all__ = ["PredictionResult", "predict_particles", "tile_layout", "tile_normalisation", "window_layout"]
+__all__ = ["PredictionResult", "check_threshold", "predict_particles", "tile_layout", "tile_normalisation", "window_layout"]
 
 _PLANES_PER_CHUNK = 8
 # Per pixel, one network call on one window of up to ~640² ran 1.2x cheaper than batches of
@@ -138,18 +138,20 @@ def predict_particles(
     loaded = model if isinstance(model, LoadedModel) else load_model(model, device=device)
     meta = loaded.meta
     check_prediction_meta(meta, name=str(loaded.path or "model"))
-    threshold = float(meta["threshold"]) if threshold is None else float(threshold)
-    if not (math.isfinite(threshold) and threshold > 0):
-        raise InputError(f"threshold: expected a positive score, got {threshold}")
+    threshold = check_threshold(meta["threshold"] if threshold is None else threshold, loaded)
     loaded = replace(loaded, network=inference_network(loaded.network))  # the caller's model stays as it is
     loaded.network.precision = resolve_precision(precision, next(loaded.network.parameters()).device)
     config = config if config is not None else loaded.config
     planes = [float(z) for z in (planes_um if planes_um is not None else config.volume.planes_um())]
+    if not planes or not all(math.isfinite(z) and z > 0 for z in planes):
+        raise InputError(f"planes_um: expected a non-empty list of positive depths (µm), got {list(planes_um) if planes_um is not None else planes!r}")
     check_model_matches(meta, config, planes_um=planes, force=force)
+    optics = {"wavelength_um": config.optics.wavelength_um, "pixel_um": config.optics.pixel_um, "medium_index": config.optics.medium_index}
+    check_memory(_prediction_bytes(hologram.shape, planes, loaded, optics), what=f"predicting a {hologram.shape[0]}x{hologram.shape[1]} hologram ({len(planes)} planes)",
+                 remedy="crop the hologram or predict it in parts")
     size = int(meta["tile_size"])
     margin_px = min(int(margin_px), size // 4)
     layout = (tile_layout(hologram.shape[0], size=size, margin=margin_px), tile_layout(hologram.shape[1], size=size, margin=margin_px))
-    optics = {"wavelength_um": config.optics.wavelength_um, "pixel_um": config.optics.pixel_um, "medium_index": config.optics.medium_index}
     steps = Steps(len(planes), progress=progress, should_stop=should_stop)
     if loaded.formulation == "focus":
         window_px = _WINDOW_PX if window_px is None else int(window_px)
@@ -181,6 +183,39 @@ def predict_particles(
         "seconds": round(seconds, 3),
     }
     return PredictionResult(particles, provenance, seconds)
+
+
+def check_threshold(value, loaded: LoadedModel) -> float:
+    """``value`` as a detection threshold: a probability in (0, 1) for ``focus`` models, an output in (0, the largest output] for ``seed`` ones."""
+    try:
+        threshold = float(value)
+    except (TypeError, ValueError, OverflowError):
+        raise InputError(f"threshold: expected a number, got {value!r}") from None
+    if loaded.formulation == "focus":
+        if not 0.0 < threshold < 1.0:  # NaN fails too
+            raise InputError(f"threshold: expected a positive score below 1 (a peak probability, in (0, 1)), got {threshold:g}")
+    elif not 0.0 < threshold <= float(loaded.meta["output_scale"]):
+        raise InputError(f"threshold: expected a positive score of at most {float(loaded.meta['output_scale']):g} (the model's largest output), got {threshold:g}")
+    return threshold
+
+
+def _prediction_bytes(shape: tuple[int, int], planes: list[float], loaded: LoadedModel, optics: dict) -> float:
+    """Peak memory (bytes) `predict_particles` needs for a hologram of ``shape``, an estimate with a margin.
+
+    Both formulations hold one batch of padded planes (`backpropagated_blocks`: 512 MiB, or
+    one plane with the FFT's workspace when a plane is larger) beside full-size float32
+    planes: ``focus`` the context's planes, the three maps and the decoder's window of them;
+    ``seed`` a chunk of planes with its tiles, inputs, outputs and stitched planes.
+    """
+    rows, cols = shape
+    padded = padded_shape(shape, z_max_um=max(planes), **optics)
+    batch = max(512 * 2**20, 3 * 8 * padded[0] * padded[1])
+    if loaded.formulation == "focus":
+        reach = max(abs(int(o)) for o in loaded.meta.get("context", [0]))
+        planes_held = (2 * reach + 2) + 3 + 9  # context planes, maps, decoder window
+    else:
+        planes_held = 5 * min(_PLANES_PER_CHUNK, len(planes)) + 2
+    return batch + 4.0 * rows * cols * (planes_held + 4)  # + the hologram and its normalised copy
 
 
 def _stitched(outputs: np.ndarray, layout, shape: tuple[int, int]) -> np.ndarray:

@@ -41,7 +41,7 @@ import scipy.fft
 from napari_lbs._core.foundation import InputError
 from napari_lbs._core.foundation import ProgressCallback, Steps, StopCallback
 from napari_lbs._core.foundation import process_threads, thread_pool
-from napari_lbs._core.foundation import check_memory
+from napari_lbs._core.foundation import check_memory, check_number
 
 __all__ = [
     "padded_shape",
@@ -56,6 +56,13 @@ __all__ = [
 
 _WORKING_BYTES = 512 * 2**20  # working memory for one batch of padded planes
 _MAX_PAD_FACTOR = 4
+
+
+def _check_optics(wavelength_um: float, pixel_um: float, medium_index: float) -> None:
+    """Refuse optics no propagation can use (a zero pitch divides by zero, a negative wavelength makes NaN), naming the argument."""
+    check_number(wavelength_um, key="wavelength_um", low=0.0, high=100.0, above=True)
+    check_number(pixel_um, key="pixel_um", low=0.0, high=1e4, above=True)
+    check_number(medium_index, key="medium_index", low=0.0, high=10.0, above=True)
 
 
 def _medium_wavelength(wavelength_um: float, medium_index: float) -> float:
@@ -75,6 +82,7 @@ def padded_shape(shape: tuple[int, int], *, z_max_um: float, wavelength_um: floa
     px), at most ``4 n``, rounded up to a fast FFT length. Beyond the cap the band limit of
     `transfer_function` drops the widest angles instead of letting them alias.
     """
+    _check_optics(wavelength_um, pixel_um, medium_index)
     spread = _spread_px(z_max_um, wavelength_um=wavelength_um, pixel_um=pixel_um, medium_index=medium_index)
     out = []
     for n in shape:
@@ -302,6 +310,7 @@ def superpose(
     -------
     (rows, cols) complex array (complex64 for float32/complex64 input).
     """
+    _check_optics(wavelength_um, pixel_um, medium_index)
     if len(scattered) != len(z_um) or not len(scattered):
         raise InputError(f"scattered: expected one field per depth ({len(z_um)}), got {len(scattered)}")
     shape = np.shape(scattered[0])
@@ -356,6 +365,7 @@ def propagate(
     -------
     (len(z_um), rows, cols) complex array; 2-D if ``z_um`` is a scalar.
     """
+    _check_optics(wavelength_um, pixel_um, medium_index)
     field = np.asarray(field)
     if field.ndim != 2:
         raise InputError(f"field: expected a 2-D array, got shape {field.shape}")
@@ -410,6 +420,7 @@ def backpropagated_blocks(
     steps : Steps, optional
         Advanced by each batch's planes and checked before each (a stop raises `Stopped`).
     """
+    _check_optics(wavelength_um, pixel_um, medium_index)
     normalised = _normalised_hologram(hologram, background)
     distances = _distances(z_um)
     steps = steps if steps is not None else Steps(distances.size)
@@ -450,6 +461,7 @@ def backpropagate(
     -------
     (len(z_um), rows, cols) array, float32 for float32 input, float64 for float64 input.
     """
+    _check_optics(wavelength_um, pixel_um, medium_index)
     normalised = _normalised_hologram(hologram, background)
     real_dtype = normalised.dtype.type
     distances = _distances(z_um)

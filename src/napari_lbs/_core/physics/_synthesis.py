@@ -14,8 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.fft
 
-from napari_lbs._core.foundation import InputError
-from napari_lbs._core.physics._optics import propagation_grid, superpose, transfer_function
+from napari_lbs._core.foundation import MAX_PARTICLES, InputError, check_number
+from napari_lbs._core.physics._optics import padded_shape, propagation_grid, superpose, transfer_function
 from napari_lbs._core.foundation import process_threads
 
 __all__ = [
@@ -200,13 +200,22 @@ def random_particle_field(
     centres uniform over the window. With ``overlap=False`` no two particles overlap in
     projection along z (rejection sampling; raises when the window is too full).
     """
+    if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or not 0 <= count <= MAX_PARTICLES:
+        raise InputError(f"count: expected an integer in [0, {MAX_PARTICLES}], got {count!r}")
+    low = check_number(diameter_min_um, key="diameter_min_um", low=0.0, above=True)
+    if check_number(diameter_max_um, key="diameter_max_um", low=0.0, above=True) < low:
+        raise InputError(f"diameter_max_um: expected a diameter of at least diameter_min_um={low:g}, got {diameter_max_um:g}")
+    check_number(pixel_um, key="pixel_um", low=0.0, high=1e4, above=True)
+    try:
+        layers = np.asarray(layers_um, dtype=np.float64).ravel()
+        rows, cols = (int(n) for n in shape)
+    except (TypeError, ValueError):
+        raise InputError(f"layers_um, shape: expected depths (µm) and (rows, cols), got {layers_um!r} and {shape!r}") from None
+    if layers.size == 0 or not np.all(np.isfinite(layers)):
+        raise InputError("layers_um: expected at least one depth, all finite")
+    if not 1 <= rows <= 10**5 or not 1 <= cols <= 10**5:
+        raise InputError(f"shape: expected 1 to 100000 pixels per side, got {shape!r}")
     rng = np.random.default_rng(seed)
-    if count < 0:
-        raise InputError(f"count: expected a non-negative integer, got {count}")
-    layers = np.asarray(layers_um, dtype=np.float64)
-    if layers.size == 0:
-        raise InputError("layers_um: expected at least one depth")
-    rows, cols = shape
     diameters = rng.uniform(diameter_min_um, diameter_max_um, count)
     depths = rng.uniform(layers.min(), layers.max(), count) if continuous else rng.choice(layers, size=count)
     x = np.empty(count)
@@ -271,10 +280,13 @@ def simulate_hologram(field: ParticleField, *, wavelength_um: float, medium_inde
         layer from the farthest, each layer multiplying it by its transmission ``1 - coverage``,
         so nearer particles shadow the light scattered by farther ones.
     """
+    if not isinstance(field, ParticleField):
+        raise InputError(f"field: expected a ParticleField (random_particle_field, or one built from a particle table), got {type(field).__name__}")
+    optics = {"wavelength_um": wavelength_um, "pixel_um": field.pixel_um, "medium_index": medium_index}
+    padded_shape(field.shape, z_max_um=0.0, **optics)  # refuses optics no propagation can use, before the layers are drawn
     depths, images = layer_images(field)
     if depths.size == 0:
         return np.ones(field.shape, dtype=np.float32)
-    optics = {"wavelength_um": wavelength_um, "pixel_um": field.pixel_um, "medium_index": medium_index}
     if not shadowing:
         scattered = superpose([-image for image in images], depths, **optics)
         return np.abs(1.0 + scattered).astype(np.float32) ** 2

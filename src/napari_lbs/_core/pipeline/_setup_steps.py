@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from napari_lbs._core.foundation import ExperimentConfig
+from napari_lbs._core.foundation import ExperimentConfig, InputError
 from napari_lbs._core.foundation import ProgressCallback, ReportCallback, StopCallback
 from napari_lbs._core.foundation import write_json
 from napari_lbs._core.pipeline._common import Log, StepResult, _background, _hologram, _quiet, _source, check_outputs, provenance
@@ -74,11 +74,13 @@ def simulate(request: SimulateRequest, *, progress: ProgressCallback | None = No
     from napari_lbs._core.foundation import tiff_pages, write_particles
     from napari_lbs._core.physics import padded_shape
     from napari_lbs._core.physics import random_particle_field, simulate_hologram
-    from napari_lbs._core.foundation import check_memory
+    from napari_lbs._core.foundation import MAX_PARTICLES, check_memory
 
     config, out = request.config, Path(request.out_dir)
     size = request.size_px if request.size_px is not None else config.tile.size
     count = request.particles if request.particles is not None else config.particles.per_tile
+    if isinstance(count, bool) or not isinstance(count, int) or not 0 <= count <= MAX_PARTICLES:
+        raise InputError(f"--particles: expected an integer in [0, {MAX_PARTICLES}], got {count!r}")
     optics = config.optics
     check_outputs(request.outputs(), replace=request.replace)
     grid = padded_shape((size, size), z_max_um=config.volume.z_max_um, wavelength_um=optics.wavelength_um, pixel_um=optics.pixel_um, medium_index=optics.medium_index)

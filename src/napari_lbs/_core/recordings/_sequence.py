@@ -23,7 +23,10 @@ from __future__ import annotations
 
 import hashlib
 import json
+import multiprocessing
+import shutil
 import time
+import zipfile
 from collections.abc import Sequence
 from contextlib import ExitStack
 from dataclasses import dataclass
@@ -38,7 +41,7 @@ from napari_lbs._core.foundation import atomic_path, read_json_object, write_jso
 from napari_lbs._core.recordings._frames import HologramFrames, open_frames
 from napari_lbs._core.foundation import as_hologram
 from napari_lbs._core.foundation import ProgressCallback, Steps, StopCallback, Stopped
-from napari_lbs._core.foundation import process_threads, size_threads
+from napari_lbs._core.foundation import available_threads, process_threads, size_threads
 from napari_lbs._core.foundation import InputError
 
 __all__ = ["SequenceResult", "local_cluster", "predict_sequence"]
@@ -92,6 +95,7 @@ class _Work:
         self.folder = folder
         self.results: dict[int, dict] = {}  # without a folder
         self.first_provenance: dict | None = None
+        self.created = False
         if folder is None:
             return
         manifest = folder / "work.json"
@@ -100,8 +104,15 @@ class _Work:
             if previous.get("format") != _WORK_FORMAT or previous.get("identity") != json.loads(json.dumps(identity)):
                 raise InputError(f"{folder}: holds the frames of another run (other inputs, model or settings); delete it or choose another output")
         else:
+            self.created = not folder.exists()
             folder.mkdir(parents=True, exist_ok=True)
             write_json(manifest, {"format": _WORK_FORMAT, "napari_lbs": __version__, "identity": identity})
+
+    def discard_if_refused(self, exc_type, exc, traceback) -> bool:
+        """An `ExitStack` exit: a fresh run refused (bad input, a bug) leaves no work folder; a stop or Ctrl-C keeps it to resume, and so does a resumed run."""
+        if exc_type is not None and issubclass(exc_type, Exception) and not issubclass(exc_type, Stopped) and self.created:
+            shutil.rmtree(self.folder, ignore_errors=True)
+        return False
 
     def finished(self) -> set[int]:
         if self.folder is None:
@@ -130,8 +141,12 @@ class _Work:
     def load(self, index: int) -> dict[str, np.ndarray]:
         if self.folder is None:
             return self.results[index]
-        with np.load(self.folder / f"frame_{index:07d}.npz") as data:
-            return {name: data[name] for name in data.files}
+        path = self.folder / f"frame_{index:07d}.npz"
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                return {name: data[name] for name in data.files}
+        except (zipfile.BadZipFile, OSError, ValueError, EOFError) as error:  # written atomically, so damaged after the run
+            raise InputError(f"{path}: a damaged finished frame ({type(error).__name__}); delete it to predict that frame again") from None
 
     def background(self, compute) -> tuple[str, np.ndarray | None, dict]:
         """``(mode, global background or None, measures)``, computed once and kept in the work folder for a resumed run."""
@@ -177,15 +192,23 @@ class _Scheduler:
         if scheduler is not None or workers is not None:
             from dask.distributed import Client
 
-            if scheduler is not None:
-                try:
-                    self.client = Client(scheduler, timeout="10s")
-                except OSError as error:
-                    raise InputError(f"scheduler: cannot reach the dask scheduler at {scheduler} ({error})") from None
-            else:
-                self.cluster = local_cluster(workers, processes=local_processes)
-                self.client = Client(self.cluster)
-            self.model = self.client.scatter(model, broadcast=True, hash=False)  # sent once, kept by every worker
+            children = {child.pid for child in multiprocessing.active_children()}
+            try:
+                if scheduler is not None:
+                    try:
+                        self.client = Client(scheduler, timeout="10s")
+                    except OSError as error:
+                        raise InputError(f"scheduler: cannot reach the dask scheduler at {scheduler} ({error})") from None
+                else:
+                    self.cluster = local_cluster(workers, processes=local_processes)
+                    self.client = Client(self.cluster)
+                self.model = self.client.scatter(model, broadcast=True, hash=False)  # sent once, kept by every worker
+            except BaseException:  # Ctrl-C or a failure while the cluster starts: no worker process outlives the run
+                self.close({})
+                for child in multiprocessing.active_children():
+                    if child.pid not in children:
+                        child.terminate()
+                raise
         self.local_threads = process_threads()
         # the local scheduler runs a batch of one frame per core; a cluster keeps two frames per worker in flight
         self.slots = _IN_FLIGHT_PER_WORKER * max(1, len(self.client.scheduler_info()["workers"])) if self.client else self.local_threads
@@ -221,11 +244,16 @@ class _Scheduler:
         return [(index_of[future.key], *future.result()) for future in done]
 
     def close(self, pending: dict) -> None:
-        if self.client is not None:
-            self.client.cancel(list(pending.values()))
-            self.client.close()
-        if self.cluster is not None:
-            self.cluster.close()
+        """Cancel what is pending and end the client and the local cluster (its worker processes), each even if another step fails."""
+        try:
+            if self.client is not None:
+                try:
+                    self.client.cancel(list(pending.values()))
+                finally:
+                    self.client.close(timeout=10)
+        finally:
+            if self.cluster is not None:
+                self.cluster.close(timeout=10)
 
 
 def predict_sequence(
@@ -297,13 +325,14 @@ def predict_sequence(
     -------
     SequenceResult
     """
-    from napari_lbs._core.learning import LoadedModel, check_model_matches, load_model, resolve_device, resolve_precision
+    from napari_lbs._core.learning import LoadedModel, check_model_matches, check_threshold, load_model, resolve_device, resolve_precision
 
     start_time = time.perf_counter()
     if workers is not None and scheduler is not None:
         raise InputError("workers: give either a number of local workers or a scheduler address, not both")
-    if workers is not None and workers < 1:
-        raise InputError(f"workers: expected at least 1, got {workers}")
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or not 1 <= workers <= available_threads()):
+        # more single-threaded workers than cores only wait for each other, each holding a model and a frame
+        raise InputError(f"workers: expected an integer in [1, {available_threads()}] (the cores this process may use), got {workers!r}")
     resolve_precision(precision, resolve_device("cpu"))  # an unknown name refused before any frame
     static = None
     if isinstance(background, np.ndarray):
@@ -321,6 +350,8 @@ def predict_sequence(
         loaded = model if isinstance(model, LoadedModel) else load_model(model, device="cpu")
         config = config if config is not None else loaded.config
         check_model_matches(loaded.meta, config, planes_um=config.volume.planes_um(), force=force)
+        if threshold is not None:
+            check_threshold(threshold, loaded)  # before any work folder or worker, not in every frame
         count = len(frames)
         if count == 1 and mode in ("global", "running", "auto"):
             mode = "flat" if mode == "auto" else "none"  # the median of one frame is that frame: dividing by it would leave nothing
@@ -344,6 +375,7 @@ def predict_sequence(
         pending: dict = {}
         cleanup.callback(runner.close, pending)
         work = _Work(Path(work_dir) if work_dir is not None else None, identity)
+        cleanup.push(work.discard_if_refused)
         finished = work.finished() & set(range(count))
         steps = Steps(count, progress=progress, should_stop=should_stop)
         steps.advance(len(finished))
