@@ -13,6 +13,7 @@ import hashlib
 import importlib.util
 import json
 import os
+import stat
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -167,7 +168,7 @@ def amortized_diagnoser(
     key = hashlib.sha256(json.dumps(setup, sort_keys=True).encode()).hexdigest()[:16]
     folder = Path(settings.cache_dir) if settings.cache_dir else default_cache_dir()
     path = folder / f"diagnoser-{key}.npz"
-    if path.exists():
+    if path.exists() or path.is_symlink():
         diagnoser = load_diagnoser(path)
         if diagnoser.key == key:
             return diagnoser
@@ -241,6 +242,12 @@ def load_diagnoser(path) -> Diagnoser:
     """A cached diagnoser (`amortized_diagnoser`); anything else raises `InputError` naming the file."""
     path = Path(path)
     try:
+        mode = path.stat().st_mode
+    except (OSError, RuntimeError) as error:
+        raise InputError(f"{path}: cannot be read as a diagnoser cache ({type(error).__name__})") from None
+    if not stat.S_ISREG(mode):  # a FIFO would block the read forever, a device never end
+        raise InputError(f"{path}: not a regular file (a FIFO, device or socket); remove it to train the diagnoser again")
+    try:
         with np.load(path, allow_pickle=False) as data:
             meta = json.loads(str(data["meta"]))
             if meta.get("format") != CACHE_FORMAT:
@@ -253,9 +260,26 @@ def load_diagnoser(path) -> Diagnoser:
             )
     except Exception as error:  # a truncated zip, a JSON of the wrong shape, a missing array: never the file's code
         raise InputError(f"{path}: not a napari-lbs diagnoser cache ({type(error).__name__}: {error})") from None
+    problem = _cache_problem(diagnoser)
+    if problem:
+        raise InputError(f"{path}: not a napari-lbs diagnoser cache ({problem}); remove it to train the diagnoser again")
+    return diagnoser
+
+
+def _cache_problem(diagnoser: Diagnoser) -> str | None:
+    """What is wrong with a loaded cache's arrays (shapes, lengths, finiteness), or None."""
+    if diagnoser.features.ndim != 2 or diagnoser.summaries.ndim != 3 or diagnoser.present.ndim != 2:
+        return "features, summaries and present: expected 2-D, 3-D and 2-D arrays"
     n = diagnoser.features.shape[0]
     forest = diagnoser.forest
     if not (diagnoser.present.shape == (n, len(diagnoser.candidates)) and forest.value.shape[1] == 2 * len(diagnoser.candidates) + 2 and diagnoser.summaries.shape[0] == n
             and forest.feature.max(initial=-1) < diagnoser.features.shape[1]):
-        raise InputError(f"{path}: not a napari-lbs diagnoser cache (arrays of inconsistent shapes)")
-    return diagnoser
+        return "arrays of inconsistent shapes"
+    if len(diagnoser.summary_names) != diagnoser.summaries.shape[2] or not all(isinstance(c, str) for c in diagnoser.candidates):
+        return "summary names or candidates that do not match the arrays"
+    if np.isinf(diagnoser.features).any() or np.isinf(diagnoser.summaries).any():
+        return "infinite features or summaries"
+    for name, values in diagnoser.params.items():
+        if values.shape != (n,) or np.isinf(values).any():  # NaN marks an absent effect
+            return f"param {name}: expected {n} finite values or NaN"
+    return None

@@ -53,18 +53,35 @@ class ForestArrays:
 
     @classmethod
     def from_arrays(cls, arrays, prefix: str = "forest_") -> ForestArrays:
-        """The forest from `arrays`' output (raises ValueError on inconsistent arrays)."""
+        """The forest from `arrays`' output (raises ValueError on arrays of the wrong type, shape or range).
+
+        Everything a forest's evaluation relies on is checked, so a damaged or crafted file
+        can neither index out of its arrays, loop, nor answer a probability outside [0, 1].
+        """
         forest = cls(**{name: np.asarray(arrays[f"{prefix}{name}"]) for name in ("roots", "left", "right", "feature", "threshold", "value")})
+        for name in ("roots", "left", "right", "feature"):
+            if getattr(forest, name).dtype.kind not in "iu" or getattr(forest, name).ndim != 1:
+                raise ValueError(f"forest {name}: expected a 1-D integer array, got {getattr(forest, name).dtype} of shape {getattr(forest, name).shape}")
+        if forest.threshold.dtype.kind != "f" or forest.threshold.ndim != 1 or forest.value.dtype.kind != "f" or forest.value.ndim != 2:
+            raise ValueError("forest threshold and value: expected 1-D and 2-D float arrays")
         nodes = forest.left.size
-        if not (forest.right.size == forest.feature.size == forest.threshold.size == forest.value.shape[0] == nodes):
-            raise ValueError("forest arrays of different lengths")
-        for name in ("roots", "left", "right"):
+        if not (forest.right.size == forest.feature.size == forest.threshold.size == forest.value.shape[0] == nodes) or not forest.roots.size:
+            raise ValueError("forest arrays of different lengths, or no tree")
+        for name in ("left", "right"):
             values = getattr(forest, name)
             if values.size and (values.min() < -1 or values.max() >= nodes):
                 raise ValueError(f"forest {name} out of range")
+        if forest.roots.min() < 0 or forest.roots.max() >= nodes:
+            raise ValueError("forest roots out of range")
         inner = forest.left >= 0
+        if np.any(inner != (forest.right >= 0)) or np.any(forest.feature[inner] < 0):
+            raise ValueError("forest nodes with one child, or a split on no feature")
         if np.any(forest.left[inner] <= np.flatnonzero(inner)) or np.any(forest.right[inner] <= np.flatnonzero(inner)):
             raise ValueError("forest children must come after their node (a cycle would never end)")
+        if np.any(np.isnan(forest.threshold[inner])):
+            raise ValueError("forest thresholds: NaN at a split")
+        if not np.all((forest.value >= 0.0) & (forest.value <= 1.0)):  # NaN fails too
+            raise ValueError("forest values: expected shares in [0, 1]")
         return forest
 
 
