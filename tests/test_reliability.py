@@ -697,3 +697,80 @@ def test_damaged_diagnoser_caches_and_fifos_are_refused_in_one_line(tmp_path, da
     with pytest.raises(InputError, match="fifo.npz: not a regular file"):
         load_diagnoser(tmp_path / "fifo.npz")  # np.load would wait for a writer forever
     assert time.monotonic() - started < 2.0
+
+
+def test_api_calls_and_inputs_that_used_to_end_in_internal_errors_raise_input_error(workspace, capsys, detector):
+    from napari_lbs._core import backpropagate, load_config, predict_particles, random_particle_field, refine_particles, simulate_hologram
+    from napari_lbs._core.foundation._files import read_json_object
+    from napari_lbs._core.recordings._sequence import _Work
+
+    hologram = 1.0 + 0.1 * np.random.default_rng(0).random((64, 64), np.float32)
+    table = {"x_um": np.array([50.0]), "y_um": np.array([50.0]), "z_um": np.array([2000.0]), "diameter_um": np.array([25.0])}
+    calls = [
+        (lambda: backpropagate(hologram, [1000.0], wavelength_um=-1, pixel_um=2.2), "wavelength_um: expected a finite number above 0"),
+        (lambda: backpropagate(hologram, [1000.0], wavelength_um=0.66, pixel_um=0), "pixel_um: expected a finite number above 0"),
+        (lambda: simulate_hologram(None, wavelength_um=0.66), "field: expected a ParticleField"),
+        (lambda: refine_particles(hologram, table, config=None), "config: expected an ExperimentConfig"),
+        (lambda: predict_particles(hologram, detector, planes_um=[]), "planes_um: expected a non-empty list"),
+        (lambda: random_particle_field((64, 64), count=2, diameter_min_um=30, diameter_max_um=20, layers_um=[2000.0], pixel_um=2.2), "diameter_max_um"),
+    ]
+    for call, message in calls:
+        with pytest.raises(InputError, match=message):
+            call()
+    deep_toml, deep_json, huge = workspace / "deep.toml", workspace / "deep.json", workspace / "huge.toml"
+    deep_toml.write_text("a = " + "[" * 5000 + "]" * 5000 + "\n")
+    deep_json.write_text("[" * 100000 + "]" * 100000)
+    huge.write_text("[tile]\nsize = " + "9" * 400 + "\n")
+    for path, read, culprit in ((deep_toml, load_config, "deep.toml"), (deep_json, lambda p: read_json_object(p, what="report"), "deep.json"), (huge, load_config, "tile.size")):
+        with pytest.raises(ValueError, match=culprit):  # ConfigError and InputError are ValueErrors naming the file or key
+            read(path)
+    (workspace / "loop1").symlink_to(workspace / "loop2")
+    (workspace / "loop2").symlink_to(workspace / "loop1")
+    for argv in (["backprop", str(workspace / "loop1"), "--config", str(workspace / "c.toml"), "--out", str(workspace / "x.tif")],
+                 ["track", str(workspace / "loop1"), "--out", str(workspace / "t.csv")]):
+        assert "is a loop of symbolic links" in refusal(capsys, argv)
+    work = _Work(workspace / "parts", {"run": 1})
+    work.save(0, {"x_um": np.zeros(3)})
+    part = workspace / "parts" / "frame_0000000.npz"
+    part.write_bytes(part.read_bytes()[:40])
+    with pytest.raises(InputError, match="frame_0000000.npz: a damaged finished frame"):
+        work.load(0)
+
+
+def test_garbage_is_refused_damaged_tiffs_huge_floats_nan_weights_and_tables_the_reader_would_refuse(workspace, capsys, detector):
+    from napari_lbs._core import load_model
+    from napari_lbs._core.foundation import read_particles, write_particles
+    from napari_lbs._core.learning._network import save_model
+
+    good = workspace / "good.tif"
+    tifffile.imwrite(good, 1.0 + np.random.default_rng(0).random((64, 64), np.float32), rowsperstrip=16)
+    data = bytearray(good.read_bytes())
+    data[8 + 2 + 12 * 3 + 2 : 8 + 2 + 12 * 3 + 4] = bytes(2)  # one tag's data type made invalid: tifffile warns and reads on
+    damaged = workspace / "damaged.tif"
+    damaged.write_bytes(bytes(data))
+    huge = workspace / "huge.tif"
+    tifffile.imwrite(huge, (1e38 * (0.5 + np.random.default_rng(1).random((64, 64)))).astype(np.float32))
+    for image, message in ((damaged, "damaged.tif: cannot be read as an image (a damaged TIFF"), (huge, "huge.tif: has intensities up to")):
+        before = {p.name for p in workspace.rglob("*")}
+        line = refusal(capsys, ["backprop", str(image), "--config", str(workspace / "c.toml"), "--out", str(workspace / "stack.tif")])
+        assert message in line, line
+        assert nothing_written(workspace, before)
+    with torch_no_grad():
+        broken = load_model(detector.path)
+        next(iter(broken.network.parameters())).fill_(float("nan"))
+    save_model(workspace / "nan.pt", broken.network, broken.meta)
+    with pytest.raises(InputError, match="nan.pt: weights .* hold NaN or infinite values"):
+        load_model(workspace / "nan.pt")
+    table = {"x_um": np.array([1.0, np.nan]), "y_um": np.zeros(2), "z_um": np.zeros(2), "diameter_um": np.ones(2)}
+    for bad, message in ((table, "column x_um holds NaN"), ({**table, "x_um": np.ones(3)}, "column y_um has shape"), ({**table, "x_um": np.ones(2), " y": np.ones(2)}, "column name ' y'")):
+        with pytest.raises(InputError, match=message):
+            write_particles(workspace / "p.csv", bad)
+        assert not (workspace / "p.csv").exists()
+    write_particles(workspace / "p.csv", {**table, "x_um": np.ones(2), "note": np.array(["a,b", "c\\nd"], dtype=object)})
+    assert read_particles(workspace / "p.csv")["note"].tolist() == ["a,b", "c\\nd"]
+
+
+def torch_no_grad():
+    import torch
+
+    return torch.no_grad()

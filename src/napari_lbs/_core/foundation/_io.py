@@ -10,7 +10,7 @@ import csv
 import importlib.util
 import io
 import json
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -73,6 +73,32 @@ def as_hologram(image: np.ndarray, *, name: str = "hologram", channel: int | Non
     return out
 
 
+@contextmanager
+def tiff_complaints() -> Iterator[list[str]]:
+    """The warnings tifffile logs within the block (one line each), kept off the terminal.
+
+    tifffile reports a damaged tag or strip as a logged warning and goes on with what it could
+    parse; a reader that gets any refuses the file rather than using what came back.
+    """
+    import logging
+
+    complaints: list[str] = []
+
+    class _Collect(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            complaints.append(record.getMessage().strip().splitlines()[0] if record.getMessage().strip() else record.levelname)
+
+    logger, handler = logging.getLogger("tifffile"), _Collect(logging.WARNING)
+    propagate = logger.propagate
+    logger.addHandler(handler)
+    logger.propagate = False
+    try:
+        yield complaints
+    finally:
+        logger.removeHandler(handler)
+        logger.propagate = propagate
+
+
 def read_hologram(path: str | Path, *, channel: int | None = None, log: Callable[[str], None] | None = None) -> np.ndarray:
     """Read a hologram from TIFF, PNG or BMP as a 2-D float array (see `as_hologram`)."""
     path = Path(path)
@@ -83,9 +109,12 @@ def read_hologram(path: str | Path, *, channel: int | None = None, log: Callable
         if suffix in (".tif", ".tiff"):
             import tifffile
 
-            with tifffile.TiffFile(path) as handle:
+            with tiff_complaints() as complaints, tifffile.TiffFile(path) as handle:
                 pages = len(handle.pages)
                 image = handle.asarray()
+            if complaints:  # tifffile skips what it cannot parse and reads on: what it returns is not the recorded image
+                more = f" and {len(complaints) - 1} more" if len(complaints) > 1 else ""
+                raise InputError(f"{path}: cannot be read as an image (a damaged TIFF: {complaints[0]}{more})")
         else:
             from PIL import Image
 
@@ -93,8 +122,10 @@ def read_hologram(path: str | Path, *, channel: int | None = None, log: Callable
                 pages = getattr(handle, "n_frames", 1)
                 # a palette image stores indices into a colour table: its colours are the intensities
                 image = np.asarray(handle.convert("RGB") if handle.mode in ("P", "PA") else handle)
+    except InputError:
+        raise
     except Exception as error:  # any decoder failure is the file's fault: say which file
-        raise InputError(f"{path}: cannot be read as an image ({type(error).__name__}: {error})") from None
+        raise InputError(f"{path}: cannot be read as an image ({type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''})") from None
     if pages > 1:
         raise InputError(f"{path}: holds {pages} pages; expected one hologram (split the pages into files)")
     return as_hologram(image, name=str(path), channel=channel, log=log)
@@ -167,9 +198,7 @@ def write_particles(path: str | Path, table: dict[str, np.ndarray], *, metadata:
         Parquet only: stored as JSON in the file's key-value metadata under ``napari_lbs``
         (e.g. the provenance; a CSV's goes in a JSON file beside it).
     """
-    missing = [c for c in PARTICLE_COLUMNS if c not in table]
-    if missing:
-        raise InputError(f"particle table: missing column {missing[0]}")
+    _check_table_to_write(path, table)
     columns = list(PARTICLE_COLUMNS) + [c for c in table if c not in PARTICLE_COLUMNS]
     if _is_parquet(path):
         return _write_parquet(Path(path), {c: np.asarray(table[c]) for c in columns}, metadata)
@@ -218,6 +247,31 @@ def _write_parquet(path: Path, table: dict[str, np.ndarray], metadata: dict | No
     with atomic_path(path) as temporary:
         pyarrow.parquet.write_table(arrow, temporary)
     return path
+
+
+def _check_table_to_write(path: str | Path, table: dict) -> None:
+    """Refuse a table `read_particles` would refuse, before anything is written (naming ``path`` and the column)."""
+    if not isinstance(table, Mapping):
+        raise InputError(f"{path}: expected a particle table (a mapping of column name to values), got {type(table).__name__}")
+    missing = [c for c in PARTICLE_COLUMNS if c not in table]
+    if missing:
+        raise InputError(f"{path}: particle table: missing column {missing[0]}")
+    names = [str(name).strip() for name in table]
+    for name, stripped in zip(table, names, strict=True):
+        if not isinstance(name, str) or not stripped or name != stripped or names.count(stripped) > 1:
+            raise InputError(f"{path}: particle table: column name {name!r} is not a distinct, non-blank name without surrounding spaces")
+    lengths = {name: np.shape(values) for name, values in table.items()}
+    count = lengths["x_um"][0] if len(lengths["x_um"]) == 1 else -1
+    for name, shape in lengths.items():
+        if shape != (count,):
+            raise InputError(f"{path}: particle table: column {name} has shape {shape}; expected {max(count, 0)} values, one per particle (as x_um)")
+    for name in PARTICLE_COLUMNS:
+        try:
+            values = np.asarray(table[name], dtype=np.float64)
+        except (TypeError, ValueError):
+            raise InputError(f"{path}: particle table: column {name} is not numeric") from None
+        if name != "diameter_um" and not np.all(np.isfinite(values)):
+            raise InputError(f"{path}: particle table: column {name} holds NaN or infinite values")
 
 
 def _format(value: object) -> str:

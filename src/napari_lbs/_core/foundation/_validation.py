@@ -46,6 +46,7 @@ __all__ = [
 HOLO_PARAM_RANGES = {"N_R": (-1.0, 1.0), "N_sigma": (0.0, 5.0), "gamma": (0.05, 20.0)}
 # Dark-frame subtraction leaves small negative counts; an image far below zero is no intensity.
 _NEGATIVE_TOLERANCE = 0.1  # of the image's maximum
+_LARGEST_INTENSITY = 1.8e19  # about the square root of float32's largest value (3.4e38)
 _GIB = 1024.0**3
 
 
@@ -63,7 +64,8 @@ def check_intensity_image(image, *, name: str) -> None:
     ------
     InputError
         NaN or infinite pixels; every pixel equal (all-zero included: nothing was recorded);
-        or negative values below -10 % of the maximum (dark-frame noise stays above that).
+        negative values below -10 % of the maximum (dark-frame noise stays above that); or
+        values whose square overflows float32 (above 1.8e19).
     """
     import numpy as np
 
@@ -75,6 +77,8 @@ def check_intensity_image(image, *, name: str) -> None:
         raise InputError(f"{name}: every pixel is {low:g}; expected a recorded hologram (an image with fringes)")
     if low < -_NEGATIVE_TOLERANCE * max(high, 0.0):
         raise InputError(f"{name}: has negative intensities down to {low:g} (maximum {high:g}); expected a recorded intensity (>= 0)")
+    if max(high, -low) > _LARGEST_INTENSITY:  # the propagation squares fields: beyond this the float32 squares overflow to inf and planes come out 0
+        raise InputError(f"{name}: has intensities up to {max(high, -low):g}; expected at most {_LARGEST_INTENSITY:.3g} (their squares must fit in float32): rescale the image")
 
 
 def _finite_number(value, *, key: str, low: float, high: float) -> float:

@@ -143,6 +143,10 @@ def refine_particles(
     """
     import pandas as pd
 
+    if not isinstance(config, ExperimentConfig):
+        raise InputError(f"config: expected an ExperimentConfig (load_config), got {type(config).__name__}")
+    if settings is not None and not isinstance(settings, RefineSettings):
+        raise InputError(f"settings: expected RefineSettings, got {type(settings).__name__}")
     settings = settings or RefineSettings()
     image = check_hologram(hologram)
     frame = check_table(table)
