@@ -249,7 +249,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--config", required=True)
     p.add_argument("--out", required=True, metavar="DIR")
     p.add_argument("--size", type=_integer(16), help="window edge in pixels (default: tile.size)")
-    p.add_argument("--particles", type=_integer(0), help="number of particles (default: particles.per_tile)")
+    p.add_argument("--particles", type=_integer(0), help="number of particles, at most 100000 (default: particles.per_tile)")
     p.add_argument("--seed", type=_SEED, default=0)
     p.add_argument("--shadowing", action="store_true", help="propagate layer by layer so particles shadow each other")
     p.add_argument("--frames", type=_integer(1), help="simulate a recording of N frames (DIR/frames.tif) with the truth of every frame and its tracks")
@@ -332,12 +332,12 @@ def _parser() -> argparse.ArgumentParser:
                    help="recordings without --background: divide every frame by the median of the frames (global), of the frames around it (running), its own smooth illumination (flat), the median if the recording shows it particle-free else flat (auto, default), or nothing")
     p.add_argument("--background-window", type=_integer(1), default=21, help="frames of a running background (default 21)")
     engine = p.add_mutually_exclusive_group()
-    engine.add_argument("--workers", type=_integer(1), help="recordings: run on a local dask cluster of N worker processes (default: the local threaded scheduler)")
+    engine.add_argument("--workers", type=_integer(1), help="recordings: run on a local dask cluster of N worker processes, at most the cores (default: the local threaded scheduler)")
     engine.add_argument("--scheduler", metavar="ADDRESS", help="recordings: run on an existing dask.distributed scheduler (tcp://host:8786)")
     p.add_argument("--refine", action="store_true", help="refine every detection by a Lorenz-Mie fit (spheres in water): the table gains index_contrast, absorption, "
                    "z_err_um, diameter_err_um, index_err, fit_residual, refined, outside_training; then the network looks again in what the fit leaves unexplained "
                    "and adds the particles it finds there of the sample's material (--material, else 0.26); one fitting process per core (docs/refinement.md)")
-    p.add_argument("--threshold", type=_number(0.0, above=True), help="smallest detection score kept (default: the model's; with --refine 0.8 of it, the fit checks the rest)")
+    p.add_argument("--threshold", type=_number(0.0, above=True), help="smallest detection score kept, below 1 for focus models (default: the model's; with --refine 0.8 of it, the fit checks the rest)")
     p.add_argument("--material", type=_number(-0.9, 2.5), metavar="N", help="refine, and keep the particles of index contrast n_p - n_m = N (0.26: polystyrene in water)")
     p.set_defaults(run=_cmd_predict)
 
@@ -347,7 +347,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--search-range-um", type=_number(0.0, above=True), default=60.0,
                    help="largest displacement between two frames a particle is seen in (µm, default 60: a predicted depth may jump by a 50 µm plane)")
     p.add_argument("--axial-search-range-um", type=_number(0.0, above=True), help="a separate search range along z (µm; default: --search-range-um)")
-    p.add_argument("--memory", type=_integer(0, 10000), default=0, help="frames a particle may be missed and keep its track (default 0)")
+    p.add_argument("--memory", type=_integer(0, 10000), default=0, help="frames a particle may be missed and keep its track, at most 10000 (default 0)")
     p.set_defaults(run=_cmd_track)
 
     p = sub.add_parser("diagnose", help="diagnose the sim-to-real gap of one or more holograms of a setup: which effect, where, how much", parents=[_FORCE])
