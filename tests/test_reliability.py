@@ -495,10 +495,21 @@ def test_sigterm_during_a_long_command_leaves_nothing(tmp_path, command):
     assert sorted(p.name for p in tmp_path.rglob("*")) == ["c.toml"]
 
 
+def _catches_sigterm(pid: int) -> bool:
+    """Whether the process has a handler for SIGTERM (Linux: the SigCgt mask in /proc)."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("SigCgt:"):
+            return bool(int(line.split()[1], 16) >> (signal.SIGTERM - 1) & 1)
+    return False
+
+
 def _terminated(command: list[str], *, ready, timeout_s: float = 120.0) -> str:
     """Run a CLI command, send SIGTERM once ``ready()`` holds (polled), return its stderr; it must exit 130 cleanly."""
     process = subprocess.Popen([sys.executable, "-m", "napari_lbs._cli", *command], stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + timeout_s
+    while not _catches_sigterm(process.pid):  # a loaded machine may take seconds to start; the handler comes first
+        assert process.poll() is None and time.monotonic() < deadline, "the command ended before it installed its handler"
+        time.sleep(0.01)
     while not ready():
         assert process.poll() is None and time.monotonic() < deadline, "the command ended before it could be interrupted"
         time.sleep(0.05)
@@ -512,7 +523,7 @@ def _terminated(command: list[str], *, ready, timeout_s: float = 120.0) -> str:
 def test_sigterm_during_simulate_train_and_predict_leaves_no_partial_file(tmp_path):
     config = tmp_path / "c.toml"
     config.write_text("[tile]\nsize = 64\n[particles]\nper_tile = 3\nlayer_step_um = 100.0\n[volume]\nz_min_um = 1800.0\nz_max_um = 2000.0\nz_step_um = 100.0\n")
-    started = lambda: time.sleep(0.8) or True  # noqa: E731 (past start-up, ~0.1 s: the handler is installed before any work)
+    started = lambda: time.sleep(0.8) or True  # noqa: E731 (0.8 s after the handler is installed: into the work)
     # a 4096² simulation takes ~6 s on 2 idle cores: still running at 0.8 s
     _terminated(["simulate", "--config", str(config), "--out", str(tmp_path / "sim"), "--size", "4096", "--particles", "6000"], ready=started)
     assert not (tmp_path / "sim").exists() or not any((tmp_path / "sim").iterdir())
