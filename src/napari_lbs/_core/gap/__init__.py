@@ -20,6 +20,12 @@ One concern per module:
     `known_sensor`: what a file of integer counts states (bit depth, saturation).
 `_diagnose`
     `diagnose_hologram`: posterior, verdict, where and how much.
+`_heldout`
+    `TileSplit`, `whittle_loglik`, `model_probabilities`: the held-out likelihood of a frame's model, tile by tile.
+`_nested`
+    `select_effects`: the catalog's camera effects as nested models of the frame, forward selection.
+`_scene_diagnosis`
+    `diagnose_scene`: the gap diagnosed on the experiment's own fitted particles.
 `_report`
     `write_report`: ``report.json`` (docs/formats.md), ``report.md``, figures.
 """
@@ -29,10 +35,11 @@ from napari_lbs._core.gap._detect import find_particles
 from napari_lbs._core.gap._diagnose import Diagnosis, diagnose_hologram
 from napari_lbs._core.gap._known import known_sensor
 from napari_lbs._core.gap._report import write_report
+from napari_lbs._core.gap._scene_diagnosis import SceneDiagnosis, SceneDiagnosisSettings, diagnose_scene
 from napari_lbs._core.gap._summaries import MIN_TILE_PX, SUMMARY_GROUPS, tile_summaries
 from napari_lbs._core.gap._twosample import c2st, mmd
 
 __all__ = [
-    "diagnose_hologram", "write_report", "find_particles", "Diagnosis", "DiagnosisSettings", "forest_posterior", "amortized_diagnoser", "Diagnoser", "load_diagnoser",
+    "diagnose_hologram", "write_report", "find_particles", "diagnose_scene", "SceneDiagnosis", "SceneDiagnosisSettings", "Diagnosis", "DiagnosisSettings", "forest_posterior", "amortized_diagnoser", "Diagnoser", "load_diagnoser",
     "default_cache_dir", "known_sensor", "tile_summaries", "c2st", "mmd", "SUMMARY_GROUPS", "MIN_TILE_PX",
 ]

@@ -1,0 +1,86 @@
+"""The scene-conditioned diagnosis (`diagnose_scene`) scored on a withheld-effect suite, and run on the built-in real hologram.
+
+``suite DIR``: every hologram of a folder written by ``withheld_suite.py make`` is
+diagnosed; a case is right when the verdict names exactly the effects withheld in it
+(nothing for a control). Printed per case: the verdict, the selected effects' z, the
+structured share, the particle optics' z, the seconds; then the score, the controls' false
+alarms and the load average before and after. ``real``: the built-in hologram's report.
+
+    python benchmarks/withheld_suite.py make development /tmp/dev
+    python benchmarks/bench_scene_diagnosis.py suite /tmp/dev --out benchmarks/results/diagnosis/scene_development.json
+    python benchmarks/bench_scene_diagnosis.py real --out benchmarks/results/diagnosis/scene_real.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from napari_lbs._core import ExperimentConfig, load_sample_hologram, read_hologram
+from napari_lbs._core.gap import diagnose_scene
+
+
+def _case_line(name: str, report: dict, seconds: float) -> dict:
+    effects = {e["id"]: e for e in report["effects"]}
+    return {
+        "case": name,
+        "verdict": report["verdict"]["id"],
+        "catalog_explains": report["verdict"]["catalog_explains"],
+        "structured_share": round(report["verdict"]["residual"], 4),
+        "z": {k: (None if v["z"] is None else round(float(v["z"]), 2)) for k, v in effects.items()},
+        "particles": report["gap"]["particles"],
+        "seconds": round(seconds, 1),
+    }
+
+
+def suite(folder: Path) -> dict:
+    design = json.loads((folder / "design.json").read_text())
+    config = ExperimentConfig()
+    lines, right, alarms, controls = [], 0, 0, 0
+    for case in design["cases"]:
+        path = folder / case["file"]
+        if not path.is_file():
+            continue
+        started = time.perf_counter()
+        report = diagnose_scene(read_hologram(path), config).report
+        line = _case_line(case["name"], report, time.perf_counter() - started)
+        named = sorted((line["verdict"] or "").split("+")) if line["verdict"] else []
+        line["expected"] = case["expected"]
+        line["right"] = named == sorted(case["expected"])
+        right += line["right"]
+        if not case["expected"]:
+            controls += 1
+            alarms += bool(named)
+        lines.append(line)
+        print(json.dumps(line), flush=True)
+    return {"suite": design["suite"], "cases": lines, "right": right, "of": len(lines), "control_false_alarms": alarms, "controls": controls}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("what", choices=["suite", "real"])
+    parser.add_argument("folder", nargs="?")
+    parser.add_argument("--out", required=True)
+    args = parser.parse_args()
+    load = [os.getloadavg()[0]]
+    if args.what == "suite":
+        result = suite(Path(args.folder))
+    else:
+        started = time.perf_counter()
+        diagnosis = diagnose_scene(load_sample_hologram(), ExperimentConfig())
+        result = {"report": json.loads(diagnosis.to_json()), "tile_map": np.round(diagnosis.tile_map, 3).tolist(), "seconds": round(time.perf_counter() - started, 1)}
+        print(json.dumps(_case_line("built-in", result["report"], result["seconds"])))
+    load.append(os.getloadavg()[0])
+    result["load_average"] = load
+    Path(args.out).write_text(json.dumps(result, indent=1, default=float))
+    if args.what == "suite":
+        print(f"{result['right']}/{result['of']} right; {result['control_false_alarms']} false alarms in {result['controls']} controls; load {load}")
+
+
+if __name__ == "__main__":
+    main()

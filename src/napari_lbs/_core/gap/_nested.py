@@ -1,0 +1,215 @@
+"""Catalog effects as nested models of the experiment's frame, around its own fitted particles.
+
+The frame's model is the catalog's camera (`sensor_image`, the code that makes training data)
+applied to the hologram of the experiment's particles as they were fitted (`particle_hologram`):
+
+    mean = gain · sensor_image(scene; contrast, gamma; effects)
+
+The baseline fits ``gain``, the fringe ``contrast`` and the response ``gamma`` (the seed's
+noise offset acts as a fringe contrast once a frame is normalised; its gamma map as a
+response). Each effect adds its catalog parameters and is nothing at their neutral values, so
+the baseline is nested in every model and a model with an effect in every model with one more.
+
+Effects of the mean: ``illumination`` (the beam's envelope: depth and centre),
+``sensor_blur`` (σ in pixels, blurring the light before the noise is added) and
+``parasitic_fringes`` (an etalon's straight fringe: amplitude, period, angle, started at the
+residual's strongest spectral peak). ``shot_noise`` changes the noise, not the mean: it is
+judged on the high-passed residual, whose variance grows with the light by ``1 / photons``.
+
+Parameters are fitted by least squares on the tiles of one colour (`TileSplit`), every other
+pixel of them, and judged on the other colour's tiles by the held-out likelihood
+(`whittle_loglik`). Forward selection adds the effect of the largest significant held-out
+gain (``z``: the gain over its tile-to-tile error), refits, and stops when no effect gains
+``level_z`` errors.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage, optimize
+
+from napari_lbs._core.foundation import Stopped
+from napari_lbs._core.gap._heldout import TileSplit, model_probabilities, tile_spectra, whittle_loglik
+from napari_lbs._core.physics import EFFECTS, sensor_image
+
+__all__ = ["MEAN_EFFECTS", "FrameFit", "Selection", "fit_frame", "select_effects"]
+
+# the parameters each effect of the mean fits (the others of its catalog entry stay neutral)
+MEAN_EFFECTS = {
+    "illumination": ("depth", "x0", "y0"),
+    "sensor_blur": ("sigma_px",),
+    "parasitic_fringes": ("amplitude", "period_px", "angle_rad"),
+}
+_BASELINE = (("gain", 1.0, (0.2, 5.0)), ("contrast", 1.0, (0.0, 3.0)), ("gamma", 1.0, (0.3, 3.0)))
+_STEPS = 12  # least-squares steps per fit: the starts are the simpler model's optimum
+_HIGH_PASS_PX = 1.5  # the shot-noise test's high pass: the residual less its Gaussian blur of this σ
+
+
+@dataclass(frozen=True)
+class FrameFit:
+    """One model fitted twice, on each colour's tiles: its parameters, residuals and held-out log-likelihood per tile."""
+
+    effects: tuple[str, ...]
+    params: tuple[dict, dict]
+    loglik: np.ndarray = field(repr=False)
+    residuals: tuple[np.ndarray, np.ndarray] = field(repr=False)
+    means: tuple[np.ndarray, np.ndarray] = field(repr=False)
+
+
+@dataclass(frozen=True)
+class Selection:
+    """What forward selection found: the models it fitted, the gains it judged, the effects it kept."""
+
+    chosen: tuple[str, ...]
+    fits: dict
+    steps: list
+    probabilities: dict
+    shot_noise: dict
+
+
+def _fringe_start(residual: np.ndarray) -> dict:
+    """Period (px) and angle (rad) of the residual's strongest spectral peak beyond the lowest frequencies."""
+    spectrum = np.abs(np.fft.rfft2(residual - residual.mean())) ** 2
+    fy = np.fft.fftfreq(residual.shape[0])[:, None]
+    fx = np.fft.rfftfreq(residual.shape[1])[None, :]
+    radius = np.hypot(fx, fy)
+    spectrum[(radius < 1.0 / 24.0) | (radius > 0.25)] = 0.0  # within the catalog's periods, 4-24 px
+    row, col = np.unravel_index(int(np.argmax(spectrum)), spectrum.shape)
+    f_x, f_y = float(fx[0, col]), float(fy[row, 0])
+    return {"amplitude": 0.01, "period_px": 1.0 / max(np.hypot(f_x, f_y), 1e-6), "angle_rad": float(np.arctan2(f_y, f_x) % np.pi)}
+
+
+def _starts(effect: str, residual: np.ndarray) -> dict:
+    if effect == "parasitic_fringes":
+        return _fringe_start(residual)
+    return {"illumination": {"depth": 0.1, "x0": 0.0, "y0": 0.0}, "sensor_blur": {"sigma_px": 0.6}}[effect]
+
+
+def _mean(scene: np.ndarray, values: dict, effects: tuple[str, ...], zeros: np.ndarray) -> np.ndarray:
+    chosen = {e: {**EFFECTS[e].neutral, **{p: values[f"{e}.{p}"] for p in MEAN_EFFECTS[e]}} for e in effects}
+    baseline = {"contrast": values["contrast"], "sigma": 0.0, "gamma": values["gamma"]}
+    return values["gain"] * sensor_image(scene, baseline, chosen, noise=zeros).astype(np.float64)
+
+
+def _fit(data: np.ndarray, scene: np.ndarray, mask: np.ndarray, effects: tuple[str, ...], start: dict, zeros: np.ndarray) -> dict:
+    names = [name for name, _, _ in _BASELINE] + [f"{e}.{p}" for e in effects for p in MEAN_EFFECTS[e]]
+    bounds = {name: limits for name, _, limits in _BASELINE}
+    bounds.update({f"{e}.{p}": EFFECTS[e].bounds[p] for e in effects for p in MEAN_EFFECTS[e]})
+    x0 = np.array([float(np.clip(start[name], *bounds[name])) for name in names])
+    sample = mask.copy()
+    sample[1::2, :] = False  # every other row and column of the fitted tiles: neighbours add little but cost
+    sample[:, 1::2] = False
+    target = data[sample]
+
+    def residual(x: np.ndarray) -> np.ndarray:
+        return _mean(scene, dict(zip(names, x, strict=True)), effects, zeros)[sample] - target
+
+    low, high = np.array([bounds[n][0] for n in names]), np.array([bounds[n][1] for n in names])
+    # ``max_nfev`` counts steps here: each also costs one evaluation per parameter for the Jacobian
+    result = optimize.least_squares(residual, x0, bounds=(low, high), x_scale="jac", max_nfev=_STEPS, diff_step=1e-3, ftol=1e-5, xtol=1e-5)
+    return dict(zip(names, (float(v) for v in result.x), strict=True))
+
+
+def fit_frame(data: np.ndarray, scene: np.ndarray, split: TileSplit, effects: tuple[str, ...], *, starts: tuple[dict, dict] | None = None) -> FrameFit:
+    """Fit ``effects`` (and the baseline) on each colour's tiles; the held-out log-likelihood of every tile."""
+    zeros = np.zeros(data.shape, np.float32)
+    scene32 = scene.astype(np.float32)
+    params, residuals, means, spectra = [], [], [], []
+    for colour in (0, 1):
+        start = {name: value for name, value, _ in _BASELINE}
+        if starts is not None:
+            start.update(starts[colour])
+        for effect in effects:
+            if not all(f"{effect}.{p}" in start for p in MEAN_EFFECTS[effect]):
+                guess = _starts(effect, np.where(split.mask(colour), data - start["gain"] * scene, 0.0))
+                start.update({f"{effect}.{p}": v for p, v in guess.items()})
+        fitted = _fit(data, scene32, split.mask(colour), effects, start, zeros)
+        mean = _mean(scene32, fitted, effects, zeros)
+        params.append(fitted)
+        means.append(mean)
+        residuals.append(data - mean)
+        spectra.append(tile_spectra(data - mean, split))
+    return FrameFit(tuple(effects), (params[0], params[1]), whittle_loglik((spectra[0], spectra[1]), split), (residuals[0], residuals[1]), (means[0], means[1]))
+
+
+def _gain(better: np.ndarray, worse: np.ndarray) -> tuple[float, float]:
+    """Summed held-out gain (nats) and its z: the sum over its tile-to-tile error."""
+    difference = better - worse
+    spread = float(np.std(difference, ddof=1)) * np.sqrt(difference.size) if difference.size > 1 else np.inf
+    total = float(difference.sum())
+    return total, float(total / spread) if spread > 0 else (np.inf if total > 0 else 0.0)
+
+
+def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
+    """Does the residual's variance grow with the light? A held-out test of a signed slope in the mean.
+
+    The residual is high-passed (less its Gaussian blur of σ = 1.5 px) to keep the noise and
+    little of the structure. Its squares are regressed, over one colour's tiles, on the local
+    fringe amplitude ``|mean - blur(mean, 8 px)|`` (what an imperfect particle model leaves
+    grows with it, on bright and dark fringes alike) with and without the mean itself (photon
+    noise is larger on the bright fringes than on the dark ones), and the Gaussian
+    log-likelihoods of the two are compared on the other colour's tiles, every other pixel of
+    every other row. ``log10_photons`` is the catalog's parameter: photons per unit of
+    normalised light, from the slope corrected for the high pass's share of white noise.
+    """
+    impulse = np.zeros((15, 15))
+    impulse[7, 7] = 1.0
+    kept = float(np.sum((impulse - ndimage.gaussian_filter(impulse, _HIGH_PASS_PX)) ** 2))  # white noise's variance kept by the high pass
+    colours = split.colours()
+    gains = np.zeros(len(colours))
+    slopes = []
+    for fitted_on in (0, 1):
+        residual, mean = fit.residuals[fitted_on], fit.means[fitted_on]
+        high = residual - ndimage.gaussian_filter(residual, _HIGH_PASS_PX)
+        fringe = np.abs(mean - ndimage.gaussian_filter(mean, 8.0))
+        samples = [(high[w][::2, ::2].ravel(), mean[w][::2, ::2].ravel(), fringe[w][::2, ::2].ravel(), c) for w, c in zip(split.windows(), colours, strict=True)]
+        h2 = np.concatenate([s[0] for s in samples if s[3] == fitted_on]) ** 2
+        m = np.concatenate([s[1] for s in samples if s[3] == fitted_on])
+        e = np.concatenate([s[2] for s in samples if s[3] == fitted_on])
+        null, *_ = np.linalg.lstsq(np.stack([np.ones_like(e), e], axis=1), h2, rcond=None)
+        alternative, *_ = np.linalg.lstsq(np.stack([np.ones_like(e), e, m], axis=1), h2, rcond=None)
+        slopes.append(float(alternative[2]))
+        for k, (h, m_t, e_t, colour) in enumerate(samples):
+            if colour == fitted_on:
+                continue
+            v0 = np.maximum(null[0] + null[1] * e_t, 1e-12)
+            v1 = np.maximum(alternative[0] + alternative[1] * e_t + alternative[2] * m_t, 1e-12)
+            gains[k] = -0.5 * float(np.sum(h**2 / v1 + np.log(v1)) - np.sum(h**2 / v0 + np.log(v0)))
+    total, z = _gain(gains, np.zeros_like(gains))
+    slope = float(np.mean(slopes)) / kept
+    if slope <= 0:
+        total, z = min(total, 0.0), min(z, 0.0)  # a variance that falls with the light is no photon noise
+    return {"gain": total, "z": z, "log10_photons": float(np.log10(1.0 / slope)) if slope > 0 else None}
+
+
+def select_effects(data: np.ndarray, scene: np.ndarray, split: TileSplit, *, candidates=tuple(MEAN_EFFECTS), level_z: float = 3.0,
+                   max_effects: int = 3, should_stop=None) -> Selection:
+    """Forward selection over ``candidates`` by held-out gain (module docstring); the shot-noise test on the final model."""
+    chosen: tuple[str, ...] = ()
+    fits = {"baseline": fit_frame(data, scene, split, ())}
+    steps = []
+    while len(chosen) < max_effects:
+        base = fits["+".join(chosen) or "baseline"]
+        round_gains = {}
+        for effect in candidates:
+            if effect in chosen:
+                continue
+            if should_stop is not None and should_stop():
+                raise Stopped()
+            model = tuple(sorted((*chosen, effect)))
+            fit = fit_frame(data, scene, split, model, starts=base.params)
+            fits["+".join(model)] = fit
+            round_gains[effect] = _gain(fit.loglik, base.loglik)
+        if not round_gains:
+            break
+        best = max(round_gains, key=lambda e: round_gains[e][1])
+        steps.append({"given": list(chosen), "gains": {e: {"gain_nats": g, "z": z} for e, (g, z) in round_gains.items()}, "added": None})
+        if round_gains[best][1] < level_z or round_gains[best][0] <= 0:
+            break
+        chosen = tuple(sorted((*chosen, best)))
+        steps[-1]["added"] = best
+    final = fits["+".join(chosen) or "baseline"]
+    probabilities = model_probabilities({name: fit.loglik for name, fit in fits.items()})
+    return Selection(chosen, fits, steps, probabilities, shot_noise_test(final, split))

@@ -1,0 +1,107 @@
+"""Catalog effects as nested models of a frame (`select_effects`) and the held-out likelihood they are judged by."""
+
+import numpy as np
+import pytest
+
+from napari_lbs._core.gap._heldout import TileSplit, model_probabilities, tile_spectra, whittle_loglik
+from napari_lbs._core.gap._nested import fit_frame, select_effects
+from napari_lbs._core.physics import sensor_image
+
+SIZE = 256
+
+
+def _scene(seed: int = 0) -> np.ndarray:
+    """A frame of ring patterns (a stand-in for particles' holograms: fringes at 0.05-0.3 cycles per pixel), unobstructed light 1."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:SIZE, 0:SIZE].astype(float)
+    scene = np.ones((SIZE, SIZE))
+    for _ in range(12):
+        cy, cx, scale = rng.uniform(0, SIZE), rng.uniform(0, SIZE), rng.uniform(40.0, 120.0)
+        r2 = (yy - cy) ** 2 + (xx - cx) ** 2
+        scene += 0.3 * np.cos(r2 / scale) * np.exp(-r2 / (2 * 40.0**2))
+    return scene
+
+
+def _frame(effects: dict, *, seed: int = 1, read_noise: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
+    scene = _scene()
+    noise = np.random.default_rng(seed).standard_normal((SIZE, SIZE)).astype(np.float32)
+    image = sensor_image(scene.astype(np.float32), {"contrast": 0.9, "sigma": read_noise, "gamma": 1.0}, effects, noise=noise).astype(np.float64)
+    return image / image.mean(), scene
+
+
+@pytest.mark.parametrize(("effects", "expected"), [
+    ({}, ()),
+    ({"illumination": {"depth": 0.35, "x0": 0.2, "y0": -0.1}}, ("illumination",)),
+    ({"sensor_blur": {"sigma_px": 1.2}}, ("sensor_blur",)),
+])
+def test_the_effect_present_is_selected_and_nothing_else(effects, expected):
+    data, scene = _frame(effects)
+    selection = select_effects(data, scene, TileSplit.of(data.shape))
+    assert selection.chosen == expected
+    if expected == ("sensor_blur",):
+        fitted = [fit["sensor_blur.sigma_px"] for fit in selection.fits["sensor_blur"].params]
+        assert all(abs(value - 1.2) < 0.15 for value in fitted)
+
+
+def test_a_wrong_effect_gains_nothing_held_out():
+    """On a frame with no etalon, the fringe model's held-out gain is at most zero within its error."""
+    data, scene = _frame({})
+    split = TileSplit.of(data.shape)
+    base, fringes = fit_frame(data, scene, split, ()), fit_frame(data, scene, split, ("parasitic_fringes",))
+    gain = fringes.loglik - base.loglik
+    assert gain.sum() <= 2.0 * gain.std(ddof=1) * np.sqrt(gain.size)
+
+
+def test_whittle_likelihood_prefers_the_residual_that_is_noise():
+    """A residual of white noise scores higher than the same noise plus a structure the model left."""
+    split = TileSplit.of((SIZE, SIZE))
+    rng = np.random.default_rng(4)
+    white = rng.standard_normal((SIZE, SIZE))
+    structured = white + 2.0 * np.sin(np.arange(SIZE) / 3.0)[None, :]
+    clean = whittle_loglik((tile_spectra(white, split), tile_spectra(white, split)), split)
+    left = whittle_loglik((tile_spectra(structured, split), tile_spectra(structured, split)), split)
+    assert clean.sum() > left.sum()
+    probabilities = model_probabilities({"clean": clean, "left": left})
+    assert probabilities["clean"] > 0.99 and sum(probabilities.values()) == pytest.approx(1.0)
+
+
+def test_the_same_frame_gives_the_same_selection():
+    data, scene = _frame({"illumination": {"depth": 0.3, "x0": 0.0, "y0": 0.0}})
+    first, second = (select_effects(data, scene, TileSplit.of(data.shape)) for _ in range(2))
+    assert first.chosen == second.chosen and first.fits[first.chosen[0]].params == second.fits[second.chosen[0]].params
+
+
+@pytest.mark.parametrize("log10_photons", [None, 2.0])
+def test_photon_noise_is_found_from_the_bright_and_dark_fringes_and_its_level_measured(log10_photons):
+    from napari_lbs._core.gap._nested import shot_noise_test
+
+    effects = {"shot_noise": {"log10_photons": log10_photons}} if log10_photons else {}
+    data, scene = _frame(effects, read_noise=0.01)
+    split = TileSplit.of(data.shape)
+    result = shot_noise_test(fit_frame(data, scene, split, ()), split)
+    if log10_photons is None:
+        assert result["z"] < 3.0
+    else:
+        assert result["z"] >= 3.0 and abs(result["log10_photons"] - log10_photons) < 0.3
+
+
+def test_a_frame_of_spheres_is_diagnosed_end_to_end_with_the_report_fields():
+    """`diagnose_scene` on a small Lorenz–Mie frame: particles found and fitted, every field of report.json, strict JSON, the same twice."""
+    import json
+
+    import pandas as pd
+
+    from napari_lbs._core import ExperimentConfig, particle_hologram
+    from napari_lbs._core.gap import SceneDiagnosisSettings, diagnose_scene
+
+    config = ExperimentConfig.from_dict({"volume": {"z_min_um": 1800.0, "z_max_um": 2600.0, "z_step_um": 50.0}})
+    spheres = pd.DataFrame({"x_um": [150.0, 420.0], "y_um": [160.0, 400.0], "z_um": [2000.0, 2400.0], "diameter_um": [24.0, 26.0], "index_contrast": [0.26, 0.26]})
+    frame = particle_hologram((256, 256), spheres, config) + np.random.default_rng(2).normal(0.0, 0.01, (256, 256))
+    settings = SceneDiagnosisSettings(particles=4, scene_particles=8, index_grid=(0.26,), grid=2)
+    first, second = (diagnose_scene(frame, config, settings=settings) for _ in range(2))
+    report = json.loads(first.to_json())
+    assert {"gap", "effects", "verdict", "posterior"} <= set(report)
+    assert {"id", "shrink", "residual", "undecided", "catalog_explains"} <= set(report["verdict"])
+    assert {e["id"] for e in report["effects"]} == {"illumination", "sensor_blur", "parasitic_fringes", "particle_phase", "shot_noise"}
+    assert report["particle_optics"]["particles"] == 2 and abs(report["particle_optics"]["diameter_median_um"] - 25.0) < 2.0
+    assert first.to_json() == second.to_json()
