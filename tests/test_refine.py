@@ -467,13 +467,18 @@ def test_predict_refine_writes_the_refined_columns(tmp_path, monkeypatch, flags)
     from napari_lbs._core.refine import _refine
 
     made, settings = [], _refine.RefineSettings
-    monkeypatch.setattr(_refine, "RefineSettings", lambda **options: made.append(options) or settings(**{**FAST, **options}))
+    class Recorded(settings):  # a RefineSettings (the fit checks its type) made fast, its options recorded
+        def __init__(self, **options):
+            made.append(options)
+            super().__init__(**{**FAST, **options})
+
+    monkeypatch.setattr(_refine, "RefineSettings", Recorded)
     assert _cli.main(["predict", str(tmp_path / "holo.tif"), "--model", str(tmp_path / "model.pt"), "--out", str(tmp_path / "p.csv"), *flags,
                       "--device", "cpu"]) == 0
     from napari_lbs._core.foundation._threads import available_threads
 
     material = {"index_contrast": 0.26} if "--material" in flags else {}
-    assert made == [{"device": "cpu", "workers": available_threads(), **material}]  # the fit runs where the prediction did, a process per core
+    assert made[0] == {"device": "cpu", "workers": available_threads(), **material}  # the fit runs where the prediction did, a process per core (later: copies the fit makes)
     # the network proposes down to 0.8 of its threshold (the fit checks them), then again in
     # the refined table's residual, where the stub's same guess finds nothing more
     assert thresholds == [0.4, 0.4]
@@ -517,7 +522,11 @@ def test_predict_material_refines_every_frame_of_a_recording(tmp_path, monkeypat
     first = {name: values[:1] for name, values in guesses.items() if name != "frame"}
     monkeypatch.setattr(_prediction, "predict_particles", lambda *a, **k: _prediction.PredictionResult(first, {"model_sha256": "stub"}, 0.1))
     settings = _refine.RefineSettings
-    monkeypatch.setattr(_refine, "RefineSettings", lambda **options: settings(**{**FAST, **options}))
+    class Fast(settings):  # a RefineSettings (the fit checks its type) made fast
+        def __init__(self, **options):
+            super().__init__(**{**FAST, **options})
+
+    monkeypatch.setattr(_refine, "RefineSettings", Fast)
     assert _cli.main(["predict", str(tmp_path / "rec.tif"), "--model", "m.pt", "--out", str(tmp_path / "p.csv"), "--material", "0.26", "--device", "cpu"]) == 0
     table, record = read_particles(tmp_path / "p.csv"), json.loads((tmp_path / "p.json").read_text())["refine"]
     assert table["frame"].tolist() == [0, 1] and np.allclose(table["z_um"], [900.0, 880.0], atol=3.0)
