@@ -30,16 +30,19 @@ One concern per module:
     `write_report`: ``report.json`` (docs/formats.md), ``report.md``, figures.
 """
 
-from napari_lbs._core.gap._amortized import Diagnoser, DiagnosisSettings, amortized_diagnoser, default_cache_dir, forest_posterior, load_diagnoser
-from napari_lbs._core.gap._detect import find_particles
-from napari_lbs._core.gap._diagnose import Diagnosis, diagnose_hologram
-from napari_lbs._core.gap._known import known_sensor
-from napari_lbs._core.gap._report import write_report
-from napari_lbs._core.gap._scene_diagnosis import SceneDiagnosis, SceneDiagnosisSettings, diagnose_scene
-from napari_lbs._core.gap._summaries import MIN_TILE_PX, SUMMARY_GROUPS, tile_summaries
-from napari_lbs._core.gap._twosample import c2st, mmd
+from napari_lbs._core.foundation import lazy_exports
 
-__all__ = [
-    "diagnose_hologram", "write_report", "find_particles", "diagnose_scene", "SceneDiagnosis", "SceneDiagnosisSettings", "Diagnosis", "DiagnosisSettings", "forest_posterior", "amortized_diagnoser", "Diagnoser", "load_diagnoser",
-    "default_cache_dir", "known_sensor", "tile_summaries", "c2st", "mmd", "SUMMARY_GROUPS", "MIN_TILE_PX",
-]
+# names imported on first use: `diagnose_hologram` runs without torch, which only `diagnose_scene` (its refinement) loads
+__getattr__, __dir__, __all__ = lazy_exports(
+    __name__,
+    {
+        "_amortized": ("Diagnoser", "DiagnosisSettings", "amortized_diagnoser", "default_cache_dir", "forest_posterior", "load_diagnoser"),
+        "_detect": ("find_particles",),
+        "_diagnose": ("Diagnosis", "diagnose_hologram"),
+        "_known": ("known_sensor",),
+        "_report": ("write_report",),
+        "_scene_diagnosis": ("SceneDiagnosis", "SceneDiagnosisSettings", "diagnose_scene"),
+        "_summaries": ("MIN_TILE_PX", "SUMMARY_GROUPS", "tile_summaries"),
+        "_twosample": ("c2st", "mmd"),
+    },
+)
