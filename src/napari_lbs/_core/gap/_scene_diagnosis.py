@@ -7,8 +7,8 @@
    each value of ``index_grid`` (absorption 0), every other parameter fitted.
 2. **Particle optics** (``particle_phase``) is judged particle by particle: each particle's
    relative squared residual under opaque spheres less its best under transparent ones, the
-   mean over the particles against its standard error. The frame's scene is the particle
-   model that wins (transparent spheres, each at its best index contrast) or opaque spheres.
+   mean over the particles against its standard error. The frame's scene is every particle
+   found (up to ``scene_particles``), fitted with its index contrast and absorption free.
 3. **The frame's effects** (`select_effects`): the catalog's camera around the scene's
    hologram, each effect a nested model fitted on one colour of a checkerboard of tiles and
    judged on the other by a Whittle likelihood; forward selection by held-out gain; then the
@@ -56,7 +56,7 @@ class SceneDiagnosisSettings:
         The strongest found particles whose optics are tested (each fitted under every
         particle model).
     scene_particles : int
-        The most particles found and fitted for the frame's scene (under the winning model):
+        The most particles found and fitted (index contrast and absorption free) for the frame's scene:
         every particle left out stays in the residual as structure.
     index_grid : tuple of float
         Index contrasts at which transparent spheres are fitted.
