@@ -42,34 +42,39 @@ def _require(condition: bool, key: str, message: str, value: object) -> None:
 
 @dataclass(frozen=True)
 class OpticsConfig:
-    """Illumination and sensor.
+    """Illumination and sampling.
 
     Attributes
     ----------
     wavelength_um : float
         Vacuum wavelength (µm). The seed experiment: 0.66.
     pixel_um : float
-        Sensor pixel pitch (µm).
+        Pixel pitch at the sample (µm): the sensor pitch of a lensless setup, the camera pitch
+        divided by `magnification` behind an objective. Every computation uses this pitch. A
+        pitch below half the medium wavelength is allowed: the angular spectrum is then cut at
+        the medium's ``n/λ`` (the evanescent part carries no light to the sensor).
     medium_index : float
         Refractive index used for propagation; depths are then optical distances.
+    magnification : float
+        Lateral magnification between the sample and the camera (1: lensless). Recorded with
+        the config so the camera pitch ``pixel_um * magnification`` (`camera_pixel_um`) is known.
     """
 
     wavelength_um: float = 0.66
     pixel_um: float = 2.2
     medium_index: float = 1.0
+    magnification: float = 1.0
 
     def __post_init__(self) -> None:
         _require(0.0 < self.wavelength_um < 20.0, "optics.wavelength_um", "a wavelength in (0, 20) µm", self.wavelength_um)
-        _require(0.0 < self.pixel_um < 1000.0, "optics.pixel_um", "a pixel pitch in (0, 1000) µm", self.pixel_um)
+        _require(0.0 < self.pixel_um < 1000.0, "optics.pixel_um", "a pixel pitch at the sample in (0, 1000) µm", self.pixel_um)
         _require(1.0 <= self.medium_index < 5.0, "optics.medium_index", "a refractive index in [1, 5)", self.medium_index)
-        # Sampling a plane wave needs at least two samples per medium wavelength at the widest angle
-        # we keep; below that the angular spectrum has no propagating content to speak of.
-        _require(
-            self.wavelength_um / self.medium_index < 2.0 * self.pixel_um,
-            "optics.pixel_um",
-            f"a pitch larger than half the medium wavelength ({self.wavelength_um / self.medium_index / 2:.3g} µm)",
-            self.pixel_um,
-        )
+        _require(0.0 < self.magnification <= 1000.0, "optics.magnification", "a magnification in (0, 1000]", self.magnification)
+
+    @property
+    def camera_pixel_um(self) -> float:
+        """The camera's pixel pitch (µm): ``pixel_um * magnification``."""
+        return self.pixel_um * self.magnification
 
 
 def _plane_count(range_um: float, step_um: float) -> int:
@@ -88,6 +93,7 @@ class VolumeConfig:
     def __post_init__(self) -> None:
         _require(self.z_min_um > 0.0, "volume.z_min_um", "a positive depth", self.z_min_um)
         _require(self.z_max_um > self.z_min_um, "volume.z_max_um", f"a depth larger than z_min_um={self.z_min_um}", self.z_max_um)
+        _require(math.isfinite(self.z_max_um), "volume.z_max_um", "a finite depth", self.z_max_um)
         _require(self.z_step_um > 0.0, "volume.z_step_um", "a positive step", self.z_step_um)
         _require(
             self.z_step_um <= self.z_max_um - self.z_min_um,
@@ -125,6 +131,7 @@ class ParticlesConfig:
             f"a diameter >= diameter_min_um={self.diameter_min_um}",
             self.diameter_max_um,
         )
+        _require(math.isfinite(self.diameter_max_um), "particles.diameter_max_um", "a finite diameter", self.diameter_max_um)
         _require(isinstance(self.per_tile, int) and not isinstance(self.per_tile, bool) and 0 <= self.per_tile <= MAX_PARTICLES, "particles.per_tile",
                  f"an integer in [0, {MAX_PARTICLES}]", self.per_tile)
         _require(self.layer_step_um > 0.0, "particles.layer_step_um", "a positive step", self.layer_step_um)
@@ -183,7 +190,7 @@ class ExperimentConfig:
             values = data.get(name, {})
             if not isinstance(values, dict):
                 raise ConfigError(f"{name}: expected a table, got {values!r}")
-            defaults = {f.name: f.default for f in dataclasses.fields(section_cls)}
+            defaults = {f.name: f.default for f in dataclasses.fields(section_cls)} | _INPUT_ONLY.get(name, {})
             for key, value in values.items():
                 if key not in defaults:
                     raise ConfigError(f"{name}.{key}: unknown key; expected one of {sorted(defaults)}")
@@ -197,14 +204,37 @@ class ExperimentConfig:
                 if isinstance(value, float) and not math.isfinite(value):
                     raise ConfigError(f"{name}.{key}: expected a finite number, got {value!r}")
             kwargs = {k: (int(v) if type(defaults[k]) is int else float(v)) for k, v in values.items()}
+            if "camera_pixel_um" in kwargs:
+                kwargs = _sample_pixel(kwargs)
             built[name] = section_cls(**kwargs)
         return cls(**built)
 
 
+# Keys a file may give that the config stores in another form: a camera pitch becomes the pitch
+# at the sample (camera pitch / magnification), which every computation uses.
+_INPUT_ONLY = {"optics": {"camera_pixel_um": 0.0}}
+
+
+def _sample_pixel(optics: dict[str, float]) -> dict[str, float]:
+    """``optics`` with ``camera_pixel_um`` replaced by the pitch at the sample, ``pixel_um``; both given must agree."""
+    optics = dict(optics)
+    camera = optics.pop("camera_pixel_um")
+    magnification = optics.get("magnification", 1.0)
+    _require(0.0 < camera < 1e6, "optics.camera_pixel_um", "a camera pixel pitch in (0, 1e6) µm", camera)
+    _require(magnification > 0.0, "optics.magnification", "a magnification in (0, 1000]", magnification)
+    at_sample = camera / magnification
+    if "pixel_um" in optics:
+        _require(math.isclose(optics["pixel_um"], at_sample, rel_tol=1e-6), "optics.camera_pixel_um",
+                 f"pixel_um x magnification = {optics['pixel_um'] * magnification:.6g} µm (or give only one of pixel_um, camera_pixel_um)", camera)
+    optics["pixel_um"] = at_sample
+    return optics
+
+
 _COMMENTS = {
     "optics.wavelength_um": "vacuum wavelength (the seed experiment: 660 nm)",
-    "optics.pixel_um": "sensor pixel pitch",
+    "optics.pixel_um": "pixel pitch at the sample (camera pitch / magnification)",
     "optics.medium_index": "refractive index used for propagation (z are optical distances)",
+    "optics.magnification": "objective magnification (1: lensless)",
     "volume.z_min_um": "nearest reconstruction plane",
     "volume.z_max_um": "farthest reconstruction plane",
     "volume.z_step_um": "spacing of reconstruction planes (experimental z-stack)",
@@ -249,6 +279,8 @@ def config_to_toml(config: ExperimentConfig) -> str:
         for key, value in values.items():
             text = f"{key} = {value!r}"
             comment = _COMMENTS.get(f"{section}.{key}")
+            if (section, key) == ("optics", "magnification") and value != 1.0:
+                comment = f"objective magnification (camera pitch {config.optics.camera_pixel_um:.6g} µm)"
             lines.append(f"{text:<26}# {comment}" if comment else text)
     return "\n".join(lines) + "\n"
 
