@@ -364,3 +364,67 @@ def test_the_gap_map_has_a_labelled_colour_bar(make_napari_viewer, qtbot):
     assert gap_map.colorbar.visible and bar.get_visible()
     assert bar.get_xlabel() == gap_map.name and str(gap_map.units[0]) == "micrometer"
     assert next(tick.get_text() for tick in bar.get_xticklabels()) != ""  # the values are written under the bar
+
+
+STEP_CLASSES = ("BackpropWidget", "CalibrationWidget", "GenerateWidget", "TrainingWidget", "PredictionWidget", "DiagnosisWidget", "BatchWidget")
+
+
+def other_value(widget, existing):
+    """A value for ``widget`` that differs from its default (``existing``: a path that exists)."""
+    from magicgui.widgets import CheckBox, ComboBox, FileEdit, LineEdit
+
+    if isinstance(widget, FileEdit):
+        return str(existing)
+    if isinstance(widget, CheckBox):
+        return not widget.value
+    if isinstance(widget, ComboBox):
+        return next(choice for choice in widget.choices if choice != widget.value)
+    if isinstance(widget, LineEdit):
+        return "0.26"
+    return widget.max if widget.value != widget.max else widget.min
+
+
+@pytest.mark.parametrize("name", STEP_CLASSES)
+def test_every_setting_comes_back_after_a_restart_as_one_consistent_whole(make_napari_viewer, tmp_path, name):
+    from magicgui.widgets import FileEdit
+
+    import napari_lbs._widgets as widgets
+
+    viewer = make_napari_viewer()
+    step = getattr(widgets, name)(viewer)
+    assert step._persisted(), name
+    typed = {}
+    for field in step._persisted():
+        value = other_value(field, tmp_path)
+        if isinstance(field, FileEdit):
+            field.line_edit.value = value
+        else:
+            field.value = value
+        typed[field.name] = value
+    again = getattr(widgets, name)(viewer)  # napari started again: a new widget reads what the last one saved
+    restored = {field.name: field.line_edit.value if isinstance(field, FileEdit) else field.value for field in again._persisted()}
+    assert restored == typed
+
+
+def test_a_remembered_material_comes_back_with_refine_so_run_is_not_blocked(make_napari_viewer, tmp_path):
+    from napari_lbs._widgets import PredictionWidget
+
+    viewer = make_napari_viewer()
+    step = PredictionWidget(viewer)
+    step.refine.value = True
+    step.material.value = "0.26"
+    again = PredictionWidget(viewer)
+    assert again.refine.value and again.material.value == "0.26"
+    assert again._material_problem() is None and "material" not in again._status.value
+
+
+def test_a_remembered_record_that_no_longer_fits_the_fields_is_not_used_at_all(make_napari_viewer):
+    import json
+
+    from qtpy.QtCore import QSettings
+
+    from napari_lbs._widgets import CalibrationWidget
+
+    QSettings("napari-lbs", "CalibrationWidget").setValue("fields", json.dumps({"seed": 5, "generations": "many", "mode": "seed"}))
+    step = CalibrationWidget(make_napari_viewer())
+    assert (step.seed.value, step.generations.value, step.mode.value) == (0, 100, "robust")

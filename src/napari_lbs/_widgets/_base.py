@@ -3,15 +3,20 @@
 A step widget collects parameters, runs one `_core` function in napari's ``thread_worker``
 (``progress`` relayed to a bar in napari's activity dock and to the widget's own bar with
 elapsed time and ETA; ``should_stop`` wired to Stop) and shows the result as µm layers.
-While its inputs are invalid Run is disabled and the reason shown. A step's last result
-stays on its status line until it runs again. Settings persist between napari sessions as
-typed (an empty path stays empty; a stale value falls back to the default).
+A job of several phases (a refined prediction: the network, the fit, the second look) has
+one bar over the whole job, each phase named as it begins (`Phases`). While its inputs are
+invalid Run is disabled and the reason shown. A step's last result stays on its status line
+until it runs again. Settings persist between napari sessions as typed, all fields of a step
+as one record, so they come back as the consistent whole they were saved as (an empty path
+stays empty; a remembered input that has gone falls back to the default; a record that no
+longer fits the fields is not used at all).
 """
 
 from __future__ import annotations
 
 import inspect
 import itertools
+import json
 import os
 import re
 import threading
@@ -19,7 +24,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from magicgui.widgets import ComboBox, Container, FileEdit, FloatSpinBox, Label, LineEdit, ProgressBar, PushButton, SpinBox
+from magicgui.widgets import CheckBox, ComboBox, Container, FileEdit, FloatSpinBox, Label, LineEdit, ProgressBar, PushButton, SpinBox
 from psygnal import Signal
 from qtpy.QtCore import QObject, QSettings, Qt
 from qtpy.QtCore import Signal as QtSignal
@@ -36,10 +41,13 @@ __all__ = [
 ]
 
 
+_FIELDS = "fields"  # QSettings key of a step's remembered fields: one JSON record, written and read whole
+
+
 class _Relay(QObject):
     """Carries worker-thread callbacks to the GUI thread (queued signals)."""
 
-    progress = QtSignal(int, int, float)  # done, total, and when (the worker's clock: queued signals may arrive in bursts)
+    progress = QtSignal(int, int, float, str)  # done, total, when (the worker's clock: queued signals may arrive in bursts), phase
     report = QtSignal(object)
 
 
@@ -187,20 +195,95 @@ def _confirmed(parent, title: str, warning: str) -> bool:
     return answer == QMessageBox.StandardButton.Yes
 
 
-_RECENT_STEPS = 5  # the ETA's throughput: the median time per step over this many latest steps
+_RECENT_STEPS = 5  # the ETA's throughput: the median time per step over at least this many latest steps
+_RECENT_SHARE = 0.25  # ... and over at least this share of the time elapsed, so a long job's estimate moves slowly
 
 
 def time_left(marks: list[tuple[float, int]], total: int) -> float | None:
-    """Seconds until ``total`` steps at the throughput measured last, or None before two progress reports.
+    """Seconds until ``total`` steps at the throughput measured lately, or None before two progress reports.
 
-    ``marks`` are ``(time, done)`` at each report. The median over the latest steps follows a
-    job whose steps change speed (prediction's back-propagated planes, then the network's),
-    which an average since the start does not.
+    ``marks`` are ``(time, done)`` at each report. The throughput is the median time per step
+    over the latest steps: at least `_RECENT_STEPS` of them and at least the latest
+    `_RECENT_SHARE` of the time elapsed. Recent steps follow a job whose steps change speed
+    (prediction's back-propagated planes, then the network's), which an average since the start
+    does not; the share of the elapsed time keeps a long job's estimate from jumping with a few
+    slow or quick steps (training's validation batches).
     """
-    seconds_per_step = [(t1 - t0) / (d1 - d0) for (t0, d0), (t1, d1) in itertools.pairwise(marks[-_RECENT_STEPS - 1 :]) if d1 > d0]
+    start = len(marks) - 1 - _RECENT_STEPS
+    horizon = marks[-1][0] - _RECENT_SHARE * (marks[-1][0] - marks[0][0])
+    while start > 0 and marks[start][0] > horizon:
+        start -= 1
+    seconds_per_step = [(t1 - t0) / (d1 - d0) for (t0, d0), (t1, d1) in itertools.pairwise(marks[max(start, 0) :]) if d1 > d0]
     if not seconds_per_step:
         return None
     return float(np.median(seconds_per_step)) * max(total - marks[-1][1], 0)
+
+
+class Phases:
+    """The progress of a job made of phases run one after another, as one bar over the whole job.
+
+    The work tells each phase as it begins (``progress.phase(name)``, e.g. "fit 103 particles")
+    and counts its steps with ``progress(done, total)`` as usual. ``weights`` give each phase's
+    expected share of the time, in the order the phases run, by the first word of a phase's
+    name: the bar stands at the finished phases' weight plus the running one's share of its
+    own, and the time left is the running phase's (from its throughput, `time_left`) plus the
+    phases to come at the seconds per unit of weight the job has taken so far. A phase the job
+    skips (the second look when nothing was refined) only ends the bar sooner.
+    """
+
+    RESOLUTION = 1000  # the bar's steps over the whole job
+
+    def __init__(self, weights: dict[str, float], started: float) -> None:
+        self.weights = dict(weights)
+        self.name = ""
+        self._started = started
+        self._finished_weight = 0.0
+        self._marks: list[tuple[float, int]] = []
+        self._total = 0
+
+    def _key(self, name: str) -> str:
+        return name.split(" ", 1)[0]
+
+    def begin(self, name: str, at: float) -> None:
+        """The phase ``name`` begins at ``at`` (the worker's perf_counter)."""
+        self._finished_weight += self.weights.get(self._key(self.name), 0.0)
+        self.name, self._marks, self._total = name, [(at, 0)], 0
+
+    def step(self, done: int, total: int, at: float) -> None:
+        self._marks.append((at, done))
+        self._total = total
+
+    def _spent(self) -> float:
+        within = min(self._marks[-1][1] / self._total, 1.0) if self._total and self._marks else 0.0
+        return self._finished_weight + self.weights.get(self._key(self.name), 0.0) * within
+
+    def fraction(self) -> float:
+        """The share of the whole job done."""
+        return min(self._spent() / sum(self.weights.values()), 1.0)
+
+    def time_left(self, now: float) -> float | None:
+        """Seconds to the end of the whole job, or None before it can be estimated."""
+        current = time_left(self._marks, self._total)
+        order = list(self.weights)
+        later = order[order.index(self._key(self.name)) + 1 :] if self._key(self.name) in order else []
+        if current is None or not later or self._spent() <= 0:
+            return current
+        return current + (now - self._started) / self._spent() * sum(self.weights[name] for name in later)
+
+
+class _Reporter:
+    """The worker's ``progress`` callback: ``(done, total)`` steps, and ``phase(name)`` as a phase begins; relayed with the worker's clock."""
+
+    def __init__(self, emit) -> None:
+        self._emit = emit
+        self._phase = ""
+
+    def __call__(self, done: int, total: int) -> None:
+        self._emit(int(done), int(total), time.perf_counter(), self._phase)
+
+    def phase(self, name: str) -> None:
+        self._phase = name
+        self._emit(0, 0, time.perf_counter(), name)
 
 
 def _clock(seconds: float) -> str:
@@ -253,6 +336,7 @@ class StepWidget(Container):
     """
 
     title = ""
+    transient: tuple[str, ...] = ()  # names of fields not remembered between sessions (they describe a result, not a setting)
     produced = Signal(object)  # the path this step just wrote (calibration JSON, data set, model)
 
     def __init__(self, viewer, fields: list) -> None:
@@ -272,6 +356,7 @@ class StepWidget(Container):
         self._progress_bar = None
         self._started = 0.0
         self._marks: list[tuple[float, int]] = []  # (time, done) of each progress report: the ETA's throughput
+        self._phases: Phases | None = None  # a job of several phases: one bar over them all
         self._budget: float | None = None
         self._counts = ""  # the last "done/total" reported
         self._result_message: str | None = None
@@ -294,30 +379,46 @@ class StepWidget(Container):
         return QSettings("napari-lbs", type(self).__name__)
 
     def _persisted(self) -> list:
-        return [w for w in self._fields if isinstance(w, (SpinBox, FloatSpinBox, FileEdit, LineEdit)) or (isinstance(w, ComboBox) and w.choices and isinstance(w.choices[0], str))]
+        """The fields remembered between sessions: every value typed or chosen, not a layer picker nor one listed in ``transient``."""
+        return [w for w in self._fields if w.name not in self.transient
+                and (isinstance(w, (SpinBox, FloatSpinBox, FileEdit, LineEdit, CheckBox)) or (isinstance(w, ComboBox) and w.choices and isinstance(w.choices[0], str)))]
 
     def _restore_settings(self) -> None:
-        settings = self._settings()
+        """Put back the fields as they were last saved, all of them or none (a record that does not fit the fields leaves every default)."""
+        stored = self._settings().value(_FIELDS)
+        try:
+            record = json.loads(str(stored)) if stored is not None else {}
+        except ValueError:
+            return
+        if not isinstance(record, dict):
+            return
+        values = {}
         for widget in self._persisted():
-            stored = settings.value(widget.name)
-            if stored is None:
+            if widget.name not in record:
                 continue
-            stored = str(stored)
-            try:
-                if isinstance(widget, FileEdit):
-                    # An input (any field but "output") that has gone since is stale: keep the default.
-                    if stored and widget.name != "output" and not Path(stored).expanduser().exists():
-                        continue
-                    widget.line_edit.value = stored
-                else:
-                    widget.value = type(widget.value)(stored)
-            except (TypeError, ValueError):
-                pass  # a stale setting is ignored, the default stays
+            value = record[widget.name]
+            if isinstance(widget, FileEdit):
+                # An input (any field but "output") that has gone since is stale: keep the default.
+                if not isinstance(value, str):
+                    return
+                if value and widget.name != "output" and not Path(value).expanduser().exists():
+                    continue
+            elif isinstance(widget, ComboBox) and value not in widget.choices:
+                return
+            elif type(value) is not type(widget.value) and not (isinstance(widget, FloatSpinBox) and type(value) is int):
+                return
+            elif isinstance(widget, (SpinBox, FloatSpinBox)) and not widget.min <= value <= widget.max:
+                return
+            values[widget] = value
+        for widget, value in values.items():
+            if isinstance(widget, FileEdit):
+                widget.line_edit.value = value
+            else:
+                widget.value = value
 
     def _changed(self, *_) -> None:
-        settings = self._settings()
-        for widget in self._persisted():
-            settings.setValue(widget.name, widget.line_edit.value if isinstance(widget, FileEdit) else str(widget.value))
+        record = {widget.name: widget.line_edit.value if isinstance(widget, FileEdit) else widget.value for widget in self._persisted()}
+        self._settings().setValue(_FIELDS, json.dumps(record))
         self._revalidate()
 
     def add_view(self, widget) -> None:
@@ -365,6 +466,10 @@ class StepWidget(Container):
     def work(self, job, *, progress, should_stop, report):
         """The `_core` call on `prepare`'s ``job``, run in the worker thread; returns what `show` receives."""
         raise NotImplementedError
+
+    def phase_weights(self, job) -> dict[str, float] | None:
+        """For a job of several phases (`Phases`): each phase's expected share of the time, in order, by the first word of its name; None: one phase."""
+        return None
 
     def budget_seconds(self) -> float | None:
         """The run's time budget, which bounds its time left (None: none)."""
@@ -417,12 +522,12 @@ class StepWidget(Container):
         # happen inside a progress callback (the job could finish in between).
         self._progress_bar = progress(total=0, desc=self.title)
 
+        weights = self.phase_weights(job)
+        self._phases = Phases(weights, self._started) if weights else None
+
         @thread_worker(connect={"returned": self.show, "errored": self._on_errored, "finished": self._on_finished}, start_thread=False)
         def run():
-            def progress(done: int, total: int) -> None:
-                self._relay.progress.emit(done, total, time.perf_counter())
-
-            return self.work(job, progress=progress, should_stop=self._stop_requested.is_set, report=self._relay.report.emit)
+            return self.work(job, progress=_Reporter(self._relay.progress.emit), should_stop=self._stop_requested.is_set, report=self._relay.report.emit)
 
         self._worker = run()
         self._worker.start()
@@ -433,25 +538,39 @@ class StepWidget(Container):
         if self._worker is not None:
             self._status.value = "stopping…"
 
-    def _on_progress(self, done: int, total: int, at: float) -> None:
+    def _on_progress(self, done: int, total: int, at: float, phase: str) -> None:
         bar = self._progress_bar
         if self._worker is None or bar is None:  # a late signal from a finished job
             return
-        self._bar.max, self._bar.value = max(total, 1), min(done, max(total, 1))
+        phases = self._phases
+        if phases is not None:
+            if phase != phases.name:
+                phases.begin(phase, at)
+                bar.set_description(f"{self.title}: {phase}")
+            if total:
+                phases.step(done, total, at)
+            maximum, value = Phases.RESOLUTION, round(Phases.RESOLUTION * phases.fraction())
+            left = phases.time_left(at)
+            self._counts = f"{phase} {done}/{total}" if total else f"{phase}: starting"
+        elif total:
+            maximum, value = total, min(done, total)
+            self._marks.append((at, done))
+            left = time_left(self._marks, total) if done < total else None
+            self._counts = f"{done}/{total}"
+        else:
+            return  # a phase named to a step that shows none
+        self._bar.max, self._bar.value = maximum, value
         elapsed = time.perf_counter() - self._started
-        self._marks.append((at, done))
-        left = time_left(self._marks, total) if done < total else None
         eta = f", about {_clock(left)} left" if left is not None else ""
         if self._budget is not None and (left is None or elapsed + left > self._budget):
             eta = f", at most {_clock(max(self._budget - elapsed, 0.0))} left (the time budget ends first)"
-        self._counts = f"{done}/{total}"
         self._timing.value = f"{self._counts}, {_clock(elapsed)} elapsed{eta}"
         if not self._stop_requested.is_set():
             self._status.value = f"{self.title}: running"
         # Last: napari's progress may process events, and with them this job's end.
-        if bar.total != total:
-            bar.total = total
-        bar.update(done - bar.n)  # update() emits the value the activity dock shows
+        if bar.total != maximum:
+            bar.total = maximum
+        bar.update(value - bar.n)  # update() emits the value the activity dock shows
 
     def _on_report(self, record) -> None:
         if self._worker is not None:

@@ -26,6 +26,7 @@ class PredictionWidget(StepWidget):
     """Hologram + model → Points layer (z, y, x in µm) with diameter, depth and score; optional scoring."""
 
     title = "prediction"
+    transient = ("colour_by",)  # the last result's features
 
     def __init__(self, napari_viewer) -> None:
         import napari
