@@ -99,7 +99,7 @@ def _number(low: float, high: float = math.inf, *, above: bool = False):
 
 def _inputs(args) -> list:
     """The files a command reads, which its outputs must never replace."""
-    names = [getattr(args, name, None) for name in ("holo", "background", "config", "calibration", "model", "effects_from", "data")]
+    names = [getattr(args, name, None) for name in ("holo", "background", "dark", "config", "calibration", "model", "effects_from", "data")]
     return [name for entry in names for name in (entry if isinstance(entry, list) else [entry])]  # predict takes several HOLO
 
 
@@ -189,6 +189,15 @@ def _cmd_predict(args) -> None:
                                       workers=args.workers, scheduler=args.scheduler, refine=args.refine or args.material is not None, threshold=args.threshold,
                                       material_index_contrast=args.material, replace=args.force)
     _run(pipeline.predict, _checked(args, request), "predict", log=_summary)
+
+
+def _cmd_refine(args) -> None:
+    from napari_lbs._core.foundation import available_threads
+
+    request = pipeline.RefineRequest(args.holo, Path(args.out), load_config(args.config), background_path=args.background, dark_path=args.dark,
+                                     index_contrast=args.index_contrast, medium_index=args.medium_index, max_particles=args.max_particles,
+                                     depth_window_um=args.depth_window_um, workers=available_threads(), replace=args.force)
+    _run(pipeline.refine, _checked(args, request), "refine", log=_summary)
 
 
 def _cmd_track(args) -> None:
@@ -340,6 +349,18 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--threshold", type=_number(0.0, above=True), help="smallest detection score kept, below 1 for focus models (default: the model's; with --refine 0.8 of it, the fit checks the rest)")
     p.add_argument("--material", type=_number(-0.9, 2.5), metavar="N", help="refine, and keep the particles of index contrast n_p - n_m = N (0.26: polystyrene in water)")
     p.set_defaults(run=_cmd_predict)
+
+    p = sub.add_parser("refine", help="find the particles of one hologram and fit each by Lorenz-Mie theory, with no trained model", parents=[_FORCE])
+    p.add_argument("holo", metavar="HOLO", help="the hologram (TIFF, PNG, BMP)")
+    p.add_argument("--config", required=True, help="optics (the pixel pitch at the sample), the depths searched and the expected diameters")
+    p.add_argument("--out", required=True, metavar="PARTICLES.csv", help="the particle table: CSV, or Parquet when the name ends in .parquet; provenance beside it as .json")
+    p.add_argument("--background", metavar="BG", help="a hologram taken without particles, divided out (default: the hologram's own mean)")
+    p.add_argument("--dark", metavar="DARK", help="a frame taken without light (the camera's dark counts), taken off the hologram and the background")
+    p.add_argument("--index-contrast", type=_number(-0.9, 2.5), default=0.26, metavar="N", help="n_p - n_m where every fit starts (default 0.26: polystyrene in water)")
+    p.add_argument("--medium-index", type=_number(1.0, 5.0), default=1.33, metavar="N", help="refractive index of the liquid the particles are in (default 1.33: water)")
+    p.add_argument("--max-particles", type=_integer(1), default=64, metavar="N", help="the strongest detections fitted (default 64)")
+    p.add_argument("--depth-window-um", type=_number(0.0, above=True), metavar="UM", help="depths each fit scans on both sides of its guess (default: a quarter of the config's depth range, at most 400)")
+    p.set_defaults(run=_cmd_refine)
 
     p = sub.add_parser("track", help="link the particles of a recording into 3-D tracks (trackpy)", parents=[_FORCE])
     p.add_argument("particles", metavar="PARTICLES.csv", help="a particle table with a frame column (CSV or .parquet)")
