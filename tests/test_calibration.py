@@ -52,7 +52,9 @@ def test_fit_reaches_at_least_the_truths_ssim(pseudo_experiment):
     truth_ssim, plain_ssim = score_params(reference, holograms, [TRUTH, HoloParams(0.0, 0.2, 1.0)], **OPTICS)
     assert result.ssim >= truth_ssim - 0.005
     assert result.ssim > plain_ssim + 0.02
-    assert steps == [(i, 25) for i in range(1, 26)]  # exactly one progress step per generation
+    totals = {total for _, total in steps}
+    assert totals == {3 * 25 + 26 * 10 + 5 * 8}  # the set-up's back-propagations, every candidate, the finalists' re-scoring
+    assert [done for done, _ in steps] == sorted(done for done, _ in steps) and steps[-1][0] == steps[-1][1]
     assert [h["generation"] for h in result.history] == list(range(1, 26))
     assert live == result.history  # each generation's record reported as it was made (a live curve)
     assert not result.stopped
@@ -89,13 +91,51 @@ def test_same_seed_same_parameters():
 
 def test_stop_request_returns_promptly_with_the_best_so_far():
     reference = holo_processing(hologram(5, 128, 4), TRUTH, seed=1, **OPTICS)
-    steps = []
+    live = []
     start = time.perf_counter()
     result = calibrate(reference, [hologram(6, 128, 4)], settings=CalibrationSettings(generations=500, population=6, parents=2, fields=1),
-                       progress=lambda d, t: steps.append(d), should_stop=lambda: len(steps) >= 3, **OPTICS)
+                       report=live.append, should_stop=lambda: len(live) >= 3, **OPTICS)
     assert time.perf_counter() - start < 20
-    assert result.stopped and len(steps) == 3 and len(result.history) == 3
+    assert result.stopped and len(result.history) == 3
     assert 0.0 < result.ssim < 1.0 and -1.0 <= result.params.N_R <= 0.0
+
+
+def stop_after(count: int, steps: list, asked: list):
+    """A ``progress`` that asks to stop once ``count`` steps are done (the time of asking in ``asked``), and its ``should_stop``."""
+    def progress(done, total):
+        steps.append((done, time.perf_counter()))
+        if done >= count and not asked:
+            asked.append(time.perf_counter())
+
+    return progress, lambda: bool(asked)
+
+
+def test_stop_is_heard_between_the_candidates_of_a_generation_and_progress_counts_each():
+    """A population of 120 takes seconds to score; Stop after 10 of its candidates returns within 2 s with the best of those."""
+    from napari_lbs._core.calibration._calibrate import _Fitness
+
+    reference = holo_processing(hologram(5, 128, 4), TRUTH, seed=1, **OPTICS)
+    setup = _Fitness.setup_steps(1)
+    steps, asked = [], []
+    progress, should_stop = stop_after(setup + 10, steps, asked)
+    result = calibrate(reference, [hologram(6, 128, 4)], settings=CalibrationSettings(generations=50, population=120, parents=4, fields=1),
+                       progress=progress, should_stop=should_stop, **OPTICS)
+    ended = time.perf_counter() - asked[0]
+    assert ended < 2.0, f"calibration ended {ended:.1f} s after the stop request"
+    assert result.stopped and result.history == [] and 0.0 < result.ssim < 1.0
+    assert [done for done, _ in steps[setup : setup + 10]] == list(range(setup + 1, setup + 11))  # each candidate of the first population counted
+
+
+def test_stop_during_the_set_up_raises_stopped_at_once():
+    from napari_lbs._core import Stopped
+
+    reference = holo_processing(hologram(5, 128, 4), TRUTH, seed=1, **OPTICS)
+    steps, asked = [], []
+    progress, should_stop = stop_after(2, steps, asked)
+    with pytest.raises(Stopped):
+        calibrate(reference, [hologram(6, 128, 4), hologram(7, 128, 4), hologram(8, 128, 4)], settings=CalibrationSettings(generations=50, fields=3),
+                  progress=progress, should_stop=should_stop, **OPTICS)
+    assert time.perf_counter() - asked[0] < 2.0 and len(steps) == 2
 
 
 @pytest.mark.parametrize("mode", ["robust", "seed"])

@@ -94,13 +94,25 @@ def test_calibration_widget_fits_on_the_roi_writes_json_and_stops(make_napari_vi
     payload = json.loads((tmp_path / "cal.json").read_text())
     assert payload["roi"] == [50, 0, 256] and len(payload["history"]) == 2
     assert viewer.layers["I_e (experiment)"].data.shape == (256, 256) and "I_s (synthetic)" in viewer.layers
-    # a long run, stopped after its first generation: partial result kept, widget ready again
-    widget.generations.value = 500
+    # a long run, stopped in its set-up: nothing to keep, within 2 s
+    import time
+
+    widget.generations.value, widget.population.value = 500, 24
     widget.output.value = tmp_path / "cal2.json"
     widget._run.clicked.emit()
-    qtbot.waitUntil(lambda: widget._progress_bar is not None, timeout=60_000)
+    qtbot.waitUntil(lambda: widget._bar.value > 0, timeout=60_000)  # the set-up's progress is shown
+    clicked = time.perf_counter()
     widget._stop.clicked.emit()
     qtbot.waitUntil(lambda: widget._worker is None, timeout=TIMEOUT_MS)
+    assert time.perf_counter() - clicked < 2.0 and "nothing was written" in widget._status.value and not (tmp_path / "cal2.json").exists()
+    # stopped in its second generation (24 candidates, seconds of work): the best so far kept within 2 s, widget ready again
+    widget._run.clicked.emit()
+    qtbot.waitUntil(lambda: len(widget._live_history) == 1, timeout=TIMEOUT_MS)
+    qtbot.wait(300)
+    clicked = time.perf_counter()
+    widget._stop.clicked.emit()
+    qtbot.waitUntil(lambda: widget._worker is None, timeout=TIMEOUT_MS)
+    assert time.perf_counter() - clicked < 2.0
     assert widget._run.enabled and widget._progress_bar is None
     assert json.loads((tmp_path / "cal2.json").read_text())["stopped"] is True
     assert "(stopped)" in widget._status.value

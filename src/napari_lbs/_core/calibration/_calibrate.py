@@ -34,7 +34,7 @@ import numpy as np
 from napari_lbs._core.foundation import ExperimentConfig
 from napari_lbs._core.foundation import InputError
 from napari_lbs._core.physics import backpropagate, propagate
-from napari_lbs._core.foundation import ProgressCallback, ReportCallback, Steps, StopCallback
+from napari_lbs._core.foundation import ProgressCallback, ReportCallback, Steps, StopCallback, Stopped
 from napari_lbs._core.physics import random_particle_field, simulate_hologram
 from napari_lbs._core.foundation import thread_pool
 from napari_lbs._core.foundation import check_holo_params, check_memory
@@ -58,6 +58,7 @@ PARAM_BOUNDS = {"N_R": (-1.0, 0.0), "N_sigma": (0.2, 0.6), "gamma": (0.6, 1.4)} 
 _NOISE_POOL = 16  # independent noise realisations per simulated field
 _RESCORE_DRAWS = 8  # fresh noise draws per field when re-scoring the finalists
 _FINALISTS = 5
+_UNSCORED = -1e9  # the fitness of a candidate left unscored once a stop is requested (a loss is at most 2)
 
 
 @dataclass(frozen=True)
@@ -246,7 +247,8 @@ def experimental_planes(stack: np.ndarray, *, invert: bool, mode: str = "robust"
 class _Fitness:
     """``1 - SSIM(I_e, I_s(θ))`` on precomputed back-propagations (see the module docstring)."""
 
-    def __init__(self, reference, holograms, *, planes_um, optics, mode, seed):
+    def __init__(self, reference, holograms, *, planes_um, optics, mode, seed, steps: Steps | None = None):
+        """``steps``, when given, counts one step per back-propagation made here and is checked after each (`Stopped`)."""
         self.ssim = _SSIM(reference)
         self.mode = mode
         self.rng = np.random.default_rng([seed, 1])
@@ -255,12 +257,25 @@ class _Fitness:
         self.noise = []  # B(n) per field and draw: (draws, planes, rows, cols)
         self.ranges = []
         for index, hologram in enumerate(holograms):
-            self.signal.append(propagate(hologram, z, **optics))
+            self.signal.append(self._counted(propagate(hologram, z, **optics), steps))
             noise_rng = np.random.default_rng([seed, 2, index])
-            draws = [propagate(noise_rng.standard_normal(hologram.shape).astype(np.float32), z, **optics) for _ in range(_NOISE_POOL + _RESCORE_DRAWS)]
+            draws = [self._counted(propagate(noise_rng.standard_normal(hologram.shape).astype(np.float32), z, **optics), steps)
+                     for _ in range(_NOISE_POOL + _RESCORE_DRAWS)]
             self.noise.append(np.stack(draws))
             self.ranges.append((float(np.ptp(hologram)), float(hologram.std())))
         self.evaluations = 0
+
+    @staticmethod
+    def _counted(planes: np.ndarray, steps: Steps | None) -> np.ndarray:
+        if steps is not None:
+            steps.advance()
+            steps.check()
+        return planes
+
+    @staticmethod
+    def setup_steps(fields: int) -> int:
+        """The back-propagations `_Fitness` makes for ``fields`` simulated fields: each field's, and its noise draws'."""
+        return fields * (1 + _NOISE_POOL + _RESCORE_DRAWS)
 
     def image(self, params: HoloParams, field_index: int, draw: int) -> np.ndarray:
         value_range, sigma = self.ranges[field_index]
@@ -331,9 +346,12 @@ def calibrate(
         Reference depths (µm).
     settings : CalibrationSettings
     progress, should_stop
-        One step per GA generation (``runs * generations`` in all). On a stop request the GA
-        ends after the current generation and the best parameters so far are returned with
-        ``stopped=True``.
+        One step per back-propagation of the set-up (``fields * 25``), per candidate scored
+        (``(generations + 1) * population`` a run: the first population is scored too) and
+        per noise draw re-scoring the finalists (``5 * 8``; ``seed`` mode ``1 * 8``). On a stop
+        request the candidates not yet scored are left unscored, the GA ends with the current
+        generation, and the best candidate so far, re-scored alone, is returned with
+        ``stopped=True``; a stop before any candidate was scored raises `Stopped`.
     report : callable, optional
         Called with each generation's history record (``run``, ``generation``,
         ``best_fitness``) as it is made, for a live fitness curve.
@@ -348,8 +366,11 @@ def calibrate(
         raise InputError(f"holograms: expected the reference's shape {reference.shape}, got {[h.shape for h in holograms]}")
     start = time.perf_counter()
     optics = {"wavelength_um": wavelength_um, "pixel_um": pixel_um, "medium_index": medium_index}
-    fitness = _Fitness(reference, holograms, planes_um=planes_um, optics=optics, mode=settings.mode, seed=settings.seed)
-    steps = Steps(settings.runs * settings.generations, progress=progress, should_stop=should_stop)
+    setup = _Fitness.setup_steps(len(holograms))
+    per_run = (settings.generations + 1) * settings.population
+    finalists_wanted = 1 if settings.mode == "seed" else _FINALISTS
+    steps = Steps(setup + settings.runs * per_run + finalists_wanted * _RESCORE_DRAWS, progress=progress, should_stop=should_stop)
+    fitness = _Fitness(reference, holograms, planes_um=planes_um, optics=optics, mode=settings.mode, seed=settings.seed, steps=steps)
     history: list[dict] = []
     candidates: dict[tuple, float] = {}
 
@@ -360,21 +381,27 @@ def calibrate(
         return [(ga.generations_completed + f) % _NOISE_POOL for f in range(len(holograms))]
 
     def fitness_func(ga, solution, _index):
+        if steps.stop_requested():  # heard between candidates: the rest of the generation is left unscored
+            return _UNSCORED
         params = HoloParams(*map(float, solution))
         loss = fitness.loss(params, draws_for(ga))
         key = tuple(np.round(solution, 6))
         candidates[key] = min(candidates.get(key, math.inf), loss)
+        steps.advance()
         return -loss
 
     stopped = False
     for run in range(settings.runs):
         def on_generation(ga, run=run):
+            if steps.stop_requested():  # a generation cut short is no point of the curve
+                return "stop"
+            # pygad reuses the scores of the candidates it keeps: the count is made up at each generation's end
+            steps.advance(setup + run * per_run + (ga.generations_completed + 1) * settings.population - steps.done)
             best = -float(np.max(ga.last_generation_fitness))
             history.append({"run": run, "generation": ga.generations_completed, "best_fitness": best})
             if report is not None:
                 report(history[-1])
-            steps.advance()
-            return "stop" if steps.stop_requested() else None
+            return None
 
         ga = pygad.GA(
             num_generations=settings.generations,
@@ -400,9 +427,16 @@ def calibrate(
             stopped = True
             break
 
+    if not candidates:
+        raise Stopped("calibration stopped before any candidate was scored")
     # Re-score the finalists on noise the fit never saw; the winner's SSIM is that fresh score.
-    finalists = sorted(candidates, key=candidates.get)[: 1 if settings.mode == "seed" else _FINALISTS]
-    scores = {key: fitness.fresh_loss(HoloParams(*key)) for key in finalists}
+    # A stopped fit re-scores its best alone, so that Stop is answered within a second or so.
+    finalists = sorted(candidates, key=candidates.get)[: 1 if stopped else finalists_wanted]
+    steps.advance(setup + settings.runs * per_run - steps.done)
+    scores = {}
+    for key in finalists:
+        scores[key] = fitness.fresh_loss(HoloParams(*key))
+        steps.advance(_RESCORE_DRAWS)
     best_key = min(scores, key=scores.get)
     params = HoloParams(*map(float, best_key))
     return CalibrationResult(
