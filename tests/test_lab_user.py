@@ -428,3 +428,19 @@ def test_a_remembered_record_that_no_longer_fits_the_fields_is_not_used_at_all(m
     QSettings("napari-lbs", "CalibrationWidget").setValue("fields", json.dumps({"seed": 5, "generations": "many", "mode": "seed"}))
     step = CalibrationWidget(make_napari_viewer())
     assert (step.seed.value, step.generations.value, step.mode.value) == (0, 100, "robust")
+
+
+def test_a_particle_layer_saved_under_its_proposed_name_gets_csv_and_opens_again(make_napari_viewer, tmp_path):
+    """File › Save Selected Layers proposes the layer's name ("… particles", no extension); accepted, napari can open what was written."""
+    from napari_lbs._core import read_particles, write_particles
+
+    viewer = make_napari_viewer()
+    _, truth = viewer.open_sample("napari-lbs", "synthetic_hologram")
+    viewer.layers.selection = {truth}
+    written = viewer.layers.save(str(tmp_path / "cropped_hologram particles"), selected=True, plugin="napari-lbs")
+    assert written == [str(tmp_path / "cropped_hologram particles.csv")]
+    reopened = viewer.open(written[0], plugin="napari-lbs")[0]  # a .csv: napari's own reader is offered too
+    np.testing.assert_allclose(reopened.data, truth.data, atol=1e-5)
+    # a table written without the extension opens too, no reader to choose: its header says what it is
+    write_particles(tmp_path / "old particles", read_particles(written[0]))
+    assert len(viewer.open(str(tmp_path / "old particles"), plugin=None)[0].data) == len(truth.data)  # plugin=None: as File › Open

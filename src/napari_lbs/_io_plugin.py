@@ -9,6 +9,12 @@ ticks "remember", stored in ``settings.plugins.extension2reader``), and its own 
 first in *Save Selected Layers…*. Hence two menu commands (*File → IO Utilities*) that read
 and write particle tables without a choice, and a reader that hands any CSV that is not a
 particle table on to napari's, so remembering "LBS holography" for ``.csv`` loses nothing.
+
+A table is written with the ``.csv`` its name lacks (napari's save dialog proposes the layer's
+name, "… particles", without one), as napari's own Points writer does. The reader also takes
+a file without that extension when its header is a particle table's: the manifest offers it
+for the names the plugin's Points layers propose (``* particles``, ``* truth``, ``missed (*)``),
+which no other reader claims, so opening one asks nothing.
 """
 
 from __future__ import annotations
@@ -34,10 +40,12 @@ def _is_particle_table(path: str) -> bool:
 
 
 def get_reader(path):
-    """Return a reader for one CSV: particle tables become Points, any other CSV goes to napari's own reader; None for anything else."""
-    if isinstance(path, list) or not str(path).lower().endswith(".csv"):
+    """Return a reader for one file: a particle table (by its header, whatever its name) becomes Points, any other CSV goes to napari's own reader; None for anything else."""
+    if isinstance(path, list) or Path(path).is_dir():
         return None
-    return read_particle_csv if _is_particle_table(str(path)) else _read_with_napari
+    if _is_particle_table(str(path)):
+        return read_particle_csv
+    return _read_with_napari if str(path).lower().endswith(".csv") else None
 
 
 def _read_with_napari(path):
@@ -58,8 +66,8 @@ def read_particle_csv(path):
 def write_particle_csv(path: str, data, attributes: dict) -> list[str]:
     """Points → particle CSV in world µm (data × scale + translate); ``diameter_um`` and other features after.
 
-    Points without a ``diameter_um`` feature (not particles: a user's own annotations) are
-    written by napari's own Points writer, as napari would have.
+    A name without ``.csv`` gets it. Points without a ``diameter_um`` feature (not particles:
+    a user's own annotations) are written by napari's own Points writer, as napari would have.
     """
     features = attributes.get("features")
     if features is None or "diameter_um" not in features:
@@ -67,6 +75,7 @@ def write_particle_csv(path: str, data, attributes: dict) -> list[str]:
 
         written = napari_write_points(path, data, attributes)
         return [written] if written else []
+    path = str(path) if str(path).lower().endswith(".csv") else f"{path}.csv"
     table = points_table(data, scale=attributes.get("scale", (1.0, 1.0, 1.0)), translate=attributes.get("translate", (0.0, 0.0, 0.0)), features=attributes.get("features"), size=attributes.get("size"))
     write_particles(path, table)
     return [path]
