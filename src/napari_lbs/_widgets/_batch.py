@@ -84,11 +84,16 @@ class BatchWidget(StepWidget):
     def caution(self, job):
         return job[3]
 
+    def phase_weights(self, job):
+        return {"frames": 0.95, "tracks": 0.05}
+
     def work(self, job, *, progress, should_stop, report):
         frames, model, config, warning, background, window, device, engine, linking = job
+        progress.phase("frames")
         result = predict_sequence([frames], model, config, background=background, background_window=window, **engine, device=device, force=warning is not None,
                                   progress=progress, should_stop=should_stop)
-        return result, link_tracks(result.particles, **linking), frames, engine, linking
+        progress.phase("tracks")
+        return result, link_tracks(result.particles, **linking, progress=progress, should_stop=should_stop), frames, engine, linking
 
     def _on_errored(self, error: Exception) -> None:
         """As every step's, but a run stopped with a work folder kept its finished frames: say that running again resumes."""

@@ -39,7 +39,7 @@ __getattr__, __dir__, __all__ = lazy_exports(
         "_interrupts": ("interruptible",),
         "_lazy": ("lazy_exports",),
         "_pools": ("CHECK_S", "WorkerPool", "run_in_workers"),
-        "_progress": ("ProgressCallback", "ReportCallback", "Steps", "StopCallback", "Stopped"),
+        "_progress": ("ProgressCallback", "ReportCallback", "Steps", "StopCallback", "Stopped", "begin_phase"),
         "_samples": ("SAMPLE_PROVENANCE", "load_sample_hologram"),
         "_threads": ("available_threads", "process_threads", "size_threads", "thread_pool"),
         "_validation": ("check_calibration", "check_number", "check_dataset_manifest", "check_disk", "check_holo_params", "check_memory", "check_model_payload", "check_output_path", "check_prediction_meta", "check_resume_matches", "load_resume_state"),

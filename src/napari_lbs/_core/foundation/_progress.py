@@ -10,6 +10,11 @@ Every long-running `_core` function takes two keyword-only callables, both optio
 
 Training and calibration also take ``report(record)``, called with a dict after each batch
 and epoch (training) or GA generation (calibration), for live plots.
+
+A job made of several long functions in a row (a refined prediction: the network, the fit,
+the second look) passes the same ``progress`` to each, whose counts start again; it names
+each phase as it begins with `begin_phase`, so that a ``progress`` with a ``phase(name)``
+method (napari's steps) shows one bar over the whole job. Other callbacks hear nothing of it.
 """
 
 from __future__ import annotations
@@ -17,7 +22,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
-__all__ = ["ProgressCallback", "StopCallback", "ReportCallback", "Stopped", "Steps"]
+__all__ = ["ProgressCallback", "StopCallback", "ReportCallback", "Stopped", "Steps", "begin_phase"]
 
 ProgressCallback = Callable[[int, int], None]
 StopCallback = Callable[[], bool]
@@ -68,3 +73,10 @@ class Steps:
         self._reported = time.monotonic()
         if self._progress is not None:
             self._progress(self.done, self.total)
+
+
+def begin_phase(progress: ProgressCallback | None, name: str) -> None:
+    """Tell ``progress`` that the job's next phase, ``name`` (e.g. "fit 103 particles"), begins, where it has a ``phase(name)`` method."""
+    phase = getattr(progress, "phase", None)
+    if callable(phase):
+        phase(name)

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 
 from napari_lbs._core.foundation import ExperimentConfig
 from napari_lbs._core.foundation import InputError
-from napari_lbs._core.foundation import ProgressCallback, StopCallback
+from napari_lbs._core.foundation import ProgressCallback, StopCallback, begin_phase
 from napari_lbs._core.foundation import check_output_path, check_target, write_json
 from napari_lbs._core.pipeline._common import Log, StepResult, _background, _quiet, _source
 
@@ -128,7 +128,8 @@ def refined_prediction(hologram: np.ndarray, model, config: ExperimentConfig | N
     ``material_index_contrast`` (the sample's ``n_p - n_m``) the fits start there and the
     particles of another material (`same_material`) leave the table for the provenance's
     ``refine.material.other_particles``. ``progress`` counts the prediction's planes, then
-    the fit's batches, then the same for the second look.
+    the fit's batches, then the same for the second look, each phase named as it begins
+    (`begin_phase`: "network", "fit N particles", "second look").
     """
     import numpy as np
 
@@ -138,6 +139,7 @@ def refined_prediction(hologram: np.ndarray, model, config: ExperimentConfig | N
     started = time.perf_counter()
     model = model if isinstance(model, LoadedModel) else load_model(model, device=device)
     proposal = _proposal_threshold(model.meta, threshold)
+    begin_phase(progress, "network")
     result = predict_particles(hologram, model, config, background=background, device=device, precision=precision, force=force,
                                threshold=proposal, progress=progress, should_stop=should_stop)
     normalised = np.asarray(hologram, dtype=np.float64) / (background if background is not None else float(np.mean(hologram)))
@@ -268,6 +270,7 @@ def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, *,
     # a declared material is also where every fit starts
     settings = RefineSettings(device=device, workers=available_threads(), **({} if material is None else {"index_contrast": float(material)}))
     started = time.perf_counter()
+    begin_phase(progress, f"fit {len(particles['x_um'])} particles")
     table = refine_particles(hologram, pd.DataFrame(particles), config, settings=settings, progress=progress, should_stop=should_stop)
     record = {"settings": asdict(settings), "detections": len(particles["x_um"]), "kept": len(table), "seconds": time.perf_counter() - started}
     started = time.perf_counter()
@@ -278,6 +281,7 @@ def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, *,
         return proposals[-1]
 
     if len(table) and table["refined"].any():  # with nothing refined, the residual is the hologram the network has seen
+        begin_phase(progress, "second look")
         found = residual_particles(hologram, table, config, propose=counted, settings=settings, background=np.ones(hologram.shape), progress=progress,
                                    should_stop=should_stop)
         table = pd.concat([table, found], ignore_index=True) if len(found) else table
