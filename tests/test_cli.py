@@ -134,3 +134,27 @@ def test_calibrate_writes_contract_json(tmp_path):
     assert payload["seconds"] > 0 and payload["provenance"]["seed"] == 3
     result = run("calibrate", tmp_path / "h.tif", "--config", config, "--out", tmp_path / "c2.json", "--roi", "400", "0")
     assert result.returncode == 2 and "roi" in result.stderr and len(result.stderr.strip().splitlines()) == 1
+
+
+def test_refine_refuses_bad_input_and_replaces_only_its_own_outputs(tmp_path):
+    from importlib.resources import files
+
+    config = str(files("napari_lbs") / "data" / "microscope_example.toml")
+    noise = np.random.default_rng(0)
+    tifffile.imwrite(tmp_path / "h.tif", (1000 + 30 * noise.standard_normal((48, 48))).astype(np.float32))
+    tifffile.imwrite(tmp_path / "bg.tif", (1000 + 30 * noise.standard_normal((48, 48))).astype(np.float32))
+    tifffile.imwrite(tmp_path / "small.tif", (1000 + 30 * noise.standard_normal((16, 16))).astype(np.float32))
+    base = ["refine", tmp_path / "h.tif", "--config", config, "--out", tmp_path / "t.csv"]
+    for extra, culprit in ((["--background", tmp_path / "small.tif"], "small.tif"), (["--dark", tmp_path / "small.tif"], "small.tif"),
+                           (["--index-contrast", "7"], "--index-contrast"), (["--config", tmp_path / "none.toml"], "none.toml")):
+        result = run(*base, *extra)
+        assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1 and culprit in result.stderr
+        assert not (tmp_path / "t.csv").exists()
+    assert main([*map(str, base), "--background", str(tmp_path / "bg.tif")]) == 0  # noise: nothing found, an empty table
+    assert read_particles(tmp_path / "t.csv")["x_um"].size == 0
+    assert json.loads((tmp_path / "t.json").read_text())["find"]["detections"] == 0
+    assert main([*map(str, base)]) == 2  # exists
+    assert main([*map(str, base), "--force"]) == 0
+    (tmp_path / "other.json").write_text("{}")
+    assert main(["refine", str(tmp_path / "h.tif"), "--config", config, "--out", str(tmp_path / "other.csv"), "--force"]) == 2  # never another file's JSON
+    assert (tmp_path / "other.json").read_text() == "{}"

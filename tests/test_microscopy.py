@@ -1,0 +1,95 @@
+"""Microscope setups: sub-wavelength pixels at the sample, the built-in example, refine with no training."""
+
+import importlib.util
+import json
+from importlib.resources import files
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tifffile
+
+from napari_lbs._cli import main
+from napari_lbs._core import ExperimentConfig, load_config, read_particles
+from napari_lbs._core.physics import backpropagate, padded_shape, propagate, transfer_function
+from napari_lbs._core.refine import RefineSettings, particle_hologram
+
+DATA = files("napari_lbs") / "data"
+EXAMPLE = {name: Path(str(DATA / f"microscope_example{name}")) for name in (".toml", "_hologram.tif", "_background.tif", "_dark.tif", "_truth.csv")}
+SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "make_microscope_example.py"
+# 85× objective on a 7.24 µm camera: 0.0851 µm at the sample, below λ/(2n) = 0.248 µm in water
+MICROSCOPE = ExperimentConfig.from_dict({"optics": {"wavelength_um": 0.66, "camera_pixel_um": 7.24, "magnification": 85.0, "medium_index": 1.33},
+                                         "volume": {"z_min_um": 5.0, "z_max_um": 60.0, "z_step_um": 0.5},
+                                         "particles": {"diameter_min_um": 0.5, "diameter_max_um": 3.0, "layer_step_um": 5.0}})
+
+
+def test_the_angular_spectrum_at_sub_wavelength_pixels_is_cut_at_the_medium_cutoff():
+    optics = {"wavelength_um": 0.66, "pixel_um": MICROSCOPE.optics.pixel_um, "medium_index": 1.33}
+    kernel = transfer_function((128, 128), 20.0, **optics)
+    f = np.hypot(*np.meshgrid(np.fft.fftfreq(128, d=optics["pixel_um"]), np.fft.fftfreq(128, d=optics["pixel_um"]), indexing="ij"))
+    cutoff = 1.33 / 0.66
+    assert f.max() > 2.0 * cutoff  # the grid samples far beyond the propagating band
+    assert np.all(kernel[f > cutoff] == 0)  # evanescent light dropped
+    assert np.allclose(np.abs(kernel[f < 0.9 * cutoff]), 1.0)  # every propagating frequency kept
+    grid = padded_shape((128, 128), z_max_um=60.0, **optics)
+    assert grid[0] <= 4 * 128  # light at grazing angles is dropped by the band limit, not padded for
+    # a uniform field stays uniform, and forth-and-back propagation of a smooth field returns it
+    assert np.allclose(propagate(np.ones((64, 64), np.complex128), 30.0, **optics), 1.0)
+    rows, cols = np.mgrid[:96, :96]
+    smooth = 1.0 + 0.2 * np.exp(-((rows - 48.0) ** 2 + (cols - 48.0) ** 2) / 200.0)
+    back = propagate(propagate(smooth.astype(np.complex128), 10.0, **optics), -10.0, **optics)
+    assert np.abs(back - smooth)[24:72, 24:72].max() < 1e-3
+
+
+@pytest.mark.parametrize(("diameter_um", "z_um"), [(0.16, 10.0), (10.0, 5.0)])  # size parameter 1; a 10 µm sphere 5 µm from focus
+def test_lorenz_mie_holograms_evaluate_at_microscope_scale(diameter_um, z_um):
+    table = {"x_um": [3.2], "y_um": [3.2], "z_um": [z_um], "diameter_um": [diameter_um], "index_contrast": [0.26]}
+    hologram = particle_hologram((64, 64), table, MICROSCOPE, settings=RefineSettings(medium_index=1.33))
+    assert np.all(np.isfinite(hologram)) and np.all(hologram >= 0)
+    modulation = np.ptp(hologram)
+    assert (1e-4 < modulation < 0.05) if diameter_um < 1 else (modulation > 1.0)  # a tiny sphere barely scatters, a large one focuses light
+
+
+def test_backprop_takes_a_microscope_config_and_a_background(tmp_path):
+    stack = tmp_path / "stack.tif"
+    assert main(["backprop", str(EXAMPLE["_hologram.tif"]), "--config", str(EXAMPLE[".toml"]), "--background", str(EXAMPLE["_background.tif"]), "--out", str(stack)]) == 0
+    with tifffile.TiffFile(stack) as handle:
+        planes, description = handle.asarray(), json.loads(handle.pages[0].description)
+    assert planes.shape == (81, 256, 256) and description["config"]["optics"]["magnification"] == 60.0
+    truth = read_particles(EXAMPLE["_truth.csv"])
+    # the largest sphere's focal spot is brightest near its depth (a transparent sphere is a lens)
+    row, col = (int(round(truth[name][3] / 0.1)) for name in ("y_um", "x_um"))
+    brightest_um = description["z_um"][int(np.argmax(planes[:, row, col]))]
+    assert abs(brightest_um - truth["z_um"][3]) < 6.0
+
+
+def test_refine_fits_the_built_in_example_with_no_training(tmp_path):
+    out = tmp_path / "fit.csv"
+    argv = ["refine", str(EXAMPLE["_hologram.tif"]), "--config", str(EXAMPLE[".toml"]), "--background", str(EXAMPLE["_background.tif"]),
+            "--dark", str(EXAMPLE["_dark.tif"]), "--max-particles", "1", "--out", str(out)]
+    assert main(argv) == 0
+    fit, truth = read_particles(out), read_particles(EXAMPLE["_truth.csv"])
+    assert fit["x_um"].size == 1 and bool(fit["refined"][0])
+    nearest = int(np.argmin(np.hypot(truth["x_um"] - fit["x_um"][0], truth["y_um"] - fit["y_um"][0])))
+    assert nearest == 3  # the strongest scatterer: the 3 µm sphere
+    assert abs(fit["z_um"][0] - truth["z_um"][nearest]) < 0.3
+    assert abs(fit["diameter_um"][0] - truth["diameter_um"][nearest]) < 0.1
+    assert abs(fit["index_contrast"][0] - 0.26) < 0.02
+    record = json.loads(out.with_suffix(".json").read_text())
+    assert record["find"]["detector"] == "find_particles" and record["config"]["optics"]["magnification"] == 60.0
+    assert record["dark_file"] == str(EXAMPLE["_dark.tif"]) and record["particles"] == str(out)
+    assert main(argv) == 2  # no clobbering without --force
+
+
+def test_the_example_is_what_its_script_makes(tmp_path):
+    spec = importlib.util.spec_from_file_location("make_microscope_example", SCRIPT)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    script.make(tmp_path)
+    assert load_config(tmp_path / "microscope_example.toml") == load_config(EXAMPLE[".toml"])
+    assert load_config(EXAMPLE[".toml"]).optics.pixel_um == pytest.approx(0.1)
+    assert read_particles(tmp_path / "microscope_example_truth.csv").keys() == read_particles(EXAMPLE["_truth.csv"]).keys()
+    for name in ("_hologram.tif", "_background.tif", "_dark.tif"):
+        made, shipped = tifffile.imread(tmp_path / f"microscope_example{name}"), tifffile.imread(EXAMPLE[name])
+        assert made.dtype == shipped.dtype == np.uint16 and made.shape == shipped.shape == (256, 256)
+        assert np.abs(made.astype(int) - shipped.astype(int)).max() <= 1  # the same seed, the same frame (to a rounding)
