@@ -132,8 +132,12 @@ def test_a_hologram_opened_with_napari_s_reader_is_put_in_um_and_the_particles_s
 
 def test_a_recording_opened_with_napari_s_reader_runs_in_time_beside_its_particles(make_napari_viewer, qtbot, tmp_path, detector, tiny_config):
     import tifffile
+    from napari.utils.notifications import notification_manager
 
     from napari_lbs._core import simulate_sequence
+
+    messages = []
+    notification_manager.notification_ready.connect(lambda notification: messages.append(str(notification.message)))
 
     recording = simulate_sequence(tiny_config, frames=3, flow="uniform", size=96, count=4, speed_um=6.0, seed=2)
     tifffile.imwrite(tmp_path / "run.tif", recording.frames, photometric="minisblack")
@@ -152,6 +156,8 @@ def test_a_recording_opened_with_napari_s_reader_runs_in_time_beside_its_particl
     for z_um in (1800.0, 2200.0):  # the frame shows under the particles of every plane
         assert round(frames.world_to_data((0, z_um, 0, 0))[1]) == 0
     assert points.data_to_world(points.data[0])[0] == points.data[0, 0]
+    qtbot.wait(300)  # drawn
+    assert viewer.layers.extent.units is not None and not any("units" in message for message in messages), messages
 
 
 def test_a_model_for_another_setup_is_a_warning_to_confirm_before_run(make_napari_viewer, qtbot, tmp_path, monkeypatch, detector):

@@ -106,12 +106,13 @@ class BatchWidget(StepWidget):
         grid = PlaneGrid.of_provenance(result.provenance)
         metadata = {"provenance": result.provenance, "source": source, **engine, "linking": linking}
         frames, particles, found = result.provenance["frames"], len(tracks["x_um"]), np.unique(tracks["track"]).size
+        # the recording first: results beside a recording still in pixels would mix units
+        self._show_recording(source, grid, frames=frames, planes=int(result.provenance["planes_um"][2]))
         data, keywords = frame_points(tracks, grid)
         self._viewer.add_points(data, **keywords, border_color="cyan", border_width=0.15, name=f"{_short(source)} particles", metadata=metadata)
         if found:  # napari's Tracks cannot be empty
             data, keywords = track_lines(tracks, grid)
             self._viewer.add_tracks(data, **keywords, tail_length=frames, name=f"{_short(source)} tracks", metadata=metadata)
-        self._show_recording(source, grid, frames=frames, planes=int(result.provenance["planes_um"][2]))
         self._viewer.dims.set_point(self._viewer.dims.ndim - 4, 0)  # the first frame
         resumed = f"; {result.resumed} frames resumed from the work folder" if result.resumed else ""
         self.done(f"{particles} particles in {frames} frames → {found} tracks in {result.seconds:.1f} s; background {result.provenance['background_used']}; {result.provenance['scheduler']}{resumed}")
