@@ -485,3 +485,23 @@ def test_a_refined_prediction_shows_one_bar_over_its_named_phases(make_napari_vi
     assert any(text.startswith("second look") for text in timing)
     at_fit = next(text for text in timing if text.startswith("fit 7 particles 2/5"))
     assert left_on(at_fit) >= 1, at_fit  # the fit's 3 batches of 0.2 s and the second look are left
+
+
+def test_a_recording_s_table_reopens_with_its_frames_on_the_time_axis(make_napari_viewer, tmp_path, tiny_config):
+    from napari_lbs._core import link_tracks, simulate_sequence, write_particles
+    from napari_lbs._layers import PlaneGrid, frame_points
+
+    truth = simulate_sequence(tiny_config, frames=5, flow="uniform", size=64, count=3, speed_um=6.0, seed=2).truth
+    write_particles(tmp_path / "truth.csv", truth)  # a simulated recording's truth: a frame column
+    viewer = make_napari_viewer()
+    reopened = viewer.open(str(tmp_path / "truth.csv"), plugin="napari-lbs")[0]
+    assert reopened.data.shape == (len(truth["x_um"]), 4)
+    np.testing.assert_array_equal(reopened.data[:, 0], truth["frame"])  # each particle at its own time, not all at one
+    # a Batch layer saved and opened again keeps its time axis
+    tracks = link_tracks(truth, search_range_um=20.0)
+    data, keywords = frame_points(tracks, PlaneGrid.of_planes(tiny_config.volume.planes_um(), pixel_um=2.2))
+    layer = viewer.add_points(data, **keywords, name="run particles")
+    layer.save(str(tmp_path / "run.csv"), plugin="napari-lbs")
+    again = viewer.open(str(tmp_path / "run.csv"), plugin="napari-lbs")[0]
+    assert again.data.shape == layer.data.shape and again.axis_labels[0] == "frame"
+    np.testing.assert_array_equal(again.data[:, 0], layer.data[:, 0])

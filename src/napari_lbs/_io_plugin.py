@@ -26,7 +26,7 @@ import napari
 
 from napari_lbs._core import load_config, read_particles, write_particles
 from napari_lbs._core.foundation import PARTICLE_COLUMNS
-from napari_lbs._layers import PlaneGrid, particle_points, points_table, prefer_particle_writer
+from napari_lbs._layers import PlaneGrid, frame_points, particle_points, points_table, prefer_particle_writer
 
 
 def _is_particle_table(path: str) -> bool:
@@ -56,10 +56,14 @@ def _read_with_napari(path):
 
 
 def read_particle_csv(path):
-    """A particle CSV as a Points layer in (z, y, x) µm on the default plane grid; further numeric or boolean columns become features."""
+    """A particle CSV as a Points layer in (z, y, x) µm on the default plane grid; further numeric or boolean columns become features.
+
+    A recording's table (a ``frame`` column) gets the frame in front, as napari's time axis (`frame_points`).
+    """
     config = load_config(None)
     table = read_particles(path)
-    data, keywords = particle_points(table, PlaneGrid.of_planes(config.volume.planes_um(), pixel_um=config.optics.pixel_um))
+    grid = PlaneGrid.of_planes(config.volume.planes_um(), pixel_um=config.optics.pixel_um)
+    data, keywords = (frame_points if "frame" in table else particle_points)(table, grid)
     return [(data, {"name": Path(path).stem, **keywords, "metadata": {"source": str(path)}}, "points")]
 
 
