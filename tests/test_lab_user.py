@@ -505,3 +505,17 @@ def test_a_recording_s_table_reopens_with_its_frames_on_the_time_axis(make_napar
     again = viewer.open(str(tmp_path / "run.csv"), plugin="napari-lbs")[0]
     assert again.data.shape == layer.data.shape and again.axis_labels[0] == "frame"
     np.testing.assert_array_equal(again.data[:, 0], layer.data[:, 0])
+
+
+def test_the_gap_step_refuses_a_z_stack_and_shows_its_level_before_a_run(make_napari_viewer, qtbot):
+    viewer = make_napari_viewer()
+    _, step = viewer.window.add_plugin_dock_widget("napari-lbs", "6 Gap diagnosis")
+    holo = viewer.add_image(np.ones((512, 512), np.float32), name="holo", scale=(2.2, 2.2), units="µm")
+    stack = viewer.add_image(np.ones((61, 512, 512), np.float32), name="holo z-stack", metadata={"z_um": list(range(61)), "source": "holo"})
+    step.hologram.value = stack
+    assert not step._run.enabled and "z-stack" in step._status.value and "'holo'" in step._status.value
+    step.hologram.value = holo
+    assert "z-stack" not in step._status.value
+    step.level.value = 0.35
+    assert "0.35" in step._plot.axes.get_xlabel()
+    assert "8 × 8" in step.tile.tooltip and "at the centre of each" not in step.tile.tooltip

@@ -29,7 +29,9 @@ class DiagnosisWidget(StepWidget):
         self.hologram = create_widget(annotation=napari.layers.Image, label="hologram", name="hologram",
                                       options={"tooltip": HOLOGRAM_TOOLTIP + " A stack (frames, rows, cols) is pooled: every frame is one more look at the same setup."})
         self.config = path_edit(label="config", name="config", placeholder="empty: the defaults", filter="*.toml", tooltip=CONFIG_TOOLTIP)
-        self.tile = SpinBox(label="tile px (0: 128)", name="tile", value=0, min=0, max=8192, tooltip="Edge of the tiles read at the centre of each of 4 × 4 cells (pixels); 0: 128, or the cell where smaller")
+        self.tile = SpinBox(label="tile px (0: 128)", name="tile", value=0, min=0, max=8192,
+                            tooltip="Edge of the square tiles the hologram is read in (pixels): the sensor is cut into 4 × 4 cells and each cell is read as the whole "
+                                    "tiles it holds, so the gap map has a square per tile (a 1024² hologram in 128-px tiles: 8 × 8); 0: 128, or the cell where smaller")
         self.simulations = SpinBox(label="simulations", name="simulations", value=DiagnosisSettings().simulations, min=20, max=100_000,
                                    tooltip="Simulations the setup's diagnoser learns from, once per setup (cached and reused): 2000 take about 10 minutes on 2 cores")
         self.level = FloatSpinBox(label="level", name="level", value=DiagnosisSettings().level, min=0.05, max=1.0, step=0.05,
@@ -40,14 +42,24 @@ class DiagnosisWidget(StepWidget):
                                               "(polystyrene beads in water: particle_phase:index_contrast=0.26,transmission=1). Empty: only what the file states")
         self.output = path_edit(label="report folder", name="output", mode="d", value="lbs-diagnosis", tooltip="report.json (docs/formats.md), report.md and figures are written here")
         super().__init__(napari_viewer, [self.hologram, self.config, self.tile, self.simulations, self.level, self.seed, self.known_effects, self.output])
-        self._plot = PosteriorPlot()
+        self._plot = PosteriorPlot(level=self.level.value)
         self.add_view(self._plot.canvas)
+        self.level.changed.connect(self._show_level)
         self._colour_bar = ColourBarPlot()  # the gap map's, labelled
         self.add_view(self._colour_bar.canvas)
         self.diagnosis = None
 
+    def _show_level(self, *_) -> None:
+        """The level a verdict needs, on the plot until a run shows its own report."""
+        if self.diagnosis is None:
+            self._plot.show({}, nothing_missing=0.0, level=float(self.level.value))
+
     def problem(self):
         layer = self.hologram.value
+        if layer is not None and ("z_um" in layer.metadata or layer.name.endswith(" z-stack")):  # Back-propagation's planes of one hologram, not frames
+            source = layer.metadata.get("source")
+            return (f"hologram: {layer.name!r} is a z-stack of back-propagated planes, not a recording of frames; "
+                    f"choose {'the hologram ' + repr(source) if source else 'the hologram'}")
         stack = layer is not None and not layer.rgb and layer.ndim == 3  # a recording: its frames are pooled
         problem = (None if stack else hologram_problem(layer)) or config_problem(self.config) or effects_problem(self.known_effects)
         if problem:

@@ -109,9 +109,9 @@ class FitnessPlot:
 class PosteriorPlot:
     """A diagnosis's answer: each effect's probability of being present and of nothing missing, and the level a verdict needs."""
 
-    def __init__(self) -> None:
+    def __init__(self, *, level: float) -> None:
         self.canvas, self.axes = _dark_canvas(height_px=190)
-        self.show({}, nothing_missing=0.0, level=0.5)
+        self.show({}, nothing_missing=0.0, level=level)
 
     def show(self, presence: dict, *, nothing_missing: float, level: float, top: int = 6) -> None:
         """Bars for the ``top`` most probable effects of ``presence`` (``{effect: probability}``) and for nothing missing."""
