@@ -519,3 +519,69 @@ def test_the_gap_step_refuses_a_z_stack_and_shows_its_level_before_a_run(make_na
     step.level.value = 0.35
     assert "0.35" in step._plot.axes.get_xlabel()
     assert "8 × 8" in step.tile.tooltip and "at the centre of each" not in step.tile.tooltip
+
+
+def test_predicted_particles_are_all_shown_coloured_by_depth(make_napari_viewer):
+    from types import SimpleNamespace
+
+    from napari_lbs._widgets import PredictionWidget
+
+    viewer = make_napari_viewer()
+    step = PredictionWidget(viewer)
+    holo = viewer.add_image(np.ones((256, 256), np.float32), name="holo", scale=(2.2, 2.2), units="µm")
+    rng = np.random.default_rng(0)
+    particles = {"x_um": rng.uniform(0, 560, 40), "y_um": rng.uniform(0, 560, 40), "z_um": rng.uniform(1800, 4800, 40), "diameter_um": rng.uniform(20, 40, 40)}
+    provenance = {"planes_um": [1800.0, 4800.0, 61], "config": {"optics": {"pixel_um": 2.2}}}
+    step.show((SimpleNamespace(particles=particles, provenance=provenance, seconds=1.0), None, holo.name, (0.0, 0.0)))
+    points = viewer.layers["holo particles"]
+    for z_um in (1800.0, 3300.0, 4800.0):  # whatever the plane shown
+        viewer.dims.set_point(0, z_um)
+        assert len(points._view_data) == 40
+    assert step.colour_by.value == "z_um"
+    colours = np.asarray(points.border_color)
+    assert len(np.unique(colours.round(3), axis=0)) > 10  # a colour per depth
+
+
+def test_a_hologram_smaller_than_the_model_s_tile_keeps_run_disabled(make_napari_viewer, detector):
+    viewer = make_napari_viewer()
+    _, step = viewer.window.add_plugin_dock_widget("napari-lbs", "5 Prediction")
+    tile = int(detector.meta["tile_size"])
+    step.model.value = detector.path
+    step.hologram.value = viewer.add_image(np.ones((tile - 8, 2 * tile), np.float32), name="small", scale=(2.2, 2.2), units="µm")
+    assert not step._run.enabled and f"{tile}-pixel tile" in step._status.value
+    step.hologram.value = viewer.add_image(np.ones((tile, tile), np.float32), name="enough", scale=(2.2, 2.2), units="µm")
+    assert step._run.enabled, step._status.value
+
+
+def test_the_seven_tabs_fit_the_workflow_dock_at_1280_by_800(make_napari_viewer, qtbot):
+    viewer = laptop_viewer(make_napari_viewer)
+    _, workflow = viewer.window.add_plugin_dock_widget("napari-lbs", "LBS workflow")
+    qtbot.wait(200)
+    bar = workflow.tabs.tabBar()
+    assert bar.sizeHint().width() <= workflow.tabs.width(), (bar.sizeHint().width(), workflow.tabs.width())  # no scroll arrows
+
+
+def test_the_time_left_does_not_jump_with_a_few_slow_steps():
+    from napari_lbs._widgets._base import time_left
+
+    marks = [(0.1 * done, done) for done in range(201)]  # 20 s of 0.1-s steps, out of 1000
+    before = time_left(marks, 1000)
+    marks += [(marks[-1][0] + 1.0 * k, 200 + k) for k in range(1, 6)]  # then five slow ones (a validation pass)
+    after = time_left(marks, 1000)
+    assert before == pytest.approx(80.0) and after < 1.5 * before, (before, after)
+
+
+def test_synthetic_data_s_preview_lies_beside_the_hologram(make_napari_viewer, tmp_path, tiny_config):
+    from napari_lbs._core import generate_dataset, open_dataset
+    from napari_lbs._widgets import GenerateWidget
+
+    generate_dataset(tmp_path / "data", tiny_config, groups=2, seed=0)
+    viewer = make_napari_viewer()
+    holo = viewer.add_image(np.ones((256, 256), np.float32), name="holo", scale=(2.2, 2.2), units="µm")
+    step = GenerateWidget(viewer)
+    step.show(open_dataset(tmp_path / "data"))
+    step.show(open_dataset(tmp_path / "data"))  # run again: the preview is replaced, not doubled
+    previews = [layer for layer in viewer.layers if layer.name.startswith("training")]
+    assert len(previews) == 2
+    for layer in previews:
+        assert layer.extent.world[0][-1] > holo.extent.world[1][-1]  # right of the hologram, not over its top-left tile

@@ -15,6 +15,8 @@ from napari_lbs._widgets._base import StepWidget, config_from, config_problem, d
 
 __all__ = ["GenerateWidget"]
 
+_GAP_UM = 50.0  # between what the viewer shows and the data set's preview, to its right
+
 
 class GenerateWidget(StepWidget):
     """Synthetic training groups into a data set folder, with a preview of one group."""
@@ -59,8 +61,12 @@ class GenerateWidget(StepWidget):
     def show(self, dataset):
         if dataset.groups:
             inputs, labels, _ = dataset.read_group(dataset.groups[0])
-            grid = PlaneGrid.of_planes(dataset.planes_um, pixel_um=dataset.config.optics.pixel_um)
-            common = {"scale": grid.scale, "translate": grid.translate, "units": UNITS, "metadata": {"dataset": str(dataset.path), "spec": dataset.spec}}
+            for layer in [layer for layer in self._viewer.layers if "napari_lbs_preview" in layer.metadata]:  # the last run's
+                self._viewer.layers.remove(layer)
+            # beside everything shown (the hologram, its particles), never over it
+            right = self._viewer.layers.extent.world[1][-1] + _GAP_UM if len(self._viewer.layers) else 0.0
+            grid = PlaneGrid.of_planes(dataset.planes_um, pixel_um=dataset.config.optics.pixel_um, origin_um=(0.0, right))
+            common = {"scale": grid.scale, "translate": grid.translate, "units": UNITS, "metadata": {"dataset": str(dataset.path), "spec": dataset.spec, "napari_lbs_preview": True}}
             self._viewer.add_image(inputs.astype(np.float32), name="training input (group 0)", **common)
             self._viewer.add_image(labels, name="training label (group 0)", colormap="magenta", blending="additive", **common)
         state = "complete" if dataset.complete else "stopped; run again to resume"

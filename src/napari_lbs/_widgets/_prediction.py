@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import functools
+from pathlib import Path
+
 import numpy as np
 from magicgui.widgets import CheckBox, ComboBox, LineEdit, create_widget
 
-from napari_lbs._core import match_particles, predict_particles, read_particles, score_particles
+from napari_lbs._core import InputError, load_model, match_particles, predict_particles, read_particles, score_particles
 from napari_lbs._core.refine import MATERIAL_SIGMAS, MATERIAL_TOLERANCE
 from napari_lbs._core.pipeline import refined_prediction
 from napari_lbs._layers import PlaneGrid, particle_points
@@ -39,7 +42,9 @@ class PredictionWidget(StepWidget):
                                tooltip="Fit every detection with the exact scattering of a sphere (in water): depth, diameter, index contrast, "
                                        "absorption and their uncertainties as features (colour by them); the network proposes down to 0.8 of "
                                        "its threshold and the fit keeps the particles, then it looks again in what the fit leaves unexplained "
-                                       "(docs/refinement.md)")
+                                       "(docs/refinement.md). The fits run in worker processes (one per core) that start by importing the script "
+                                       "napari was started from, if any: such a script must keep its code under if __name__ == \"__main__\":, "
+                                       "else each worker runs it again (a new viewer per worker)")
         self.material = LineEdit(label="material n_p − n_m", name="material", value="",
                                  tooltip="Optional, with refine: the sample's index contrast (polystyrene in water: 0.26). Every fit starts there, and the "
                                          f"particles whose fitted index contrast differs by more than {MATERIAL_TOLERANCE:g} and {MATERIAL_SIGMAS:g} standard "
@@ -57,8 +62,17 @@ class PredictionWidget(StepWidget):
         self.add_view(self._plot.canvas)
 
     def problem(self):
-        return (model_problem(self.model) or hologram_problem(self.hologram.value) or missing(self.reference, "reference") or config_problem(self.config)
-                or self._material_problem())
+        return (model_problem(self.model) or hologram_problem(self.hologram.value) or self._size_problem() or missing(self.reference, "reference")
+                or config_problem(self.config) or self._material_problem())
+
+    def _size_problem(self) -> str | None:
+        """A hologram smaller than the model's tile cannot be predicted: said before Run."""
+        layer, path = self.hologram.value, chosen(self.model)
+        rows, cols = layer.data.shape[:2] if layer.rgb else layer.data.shape[-2:]
+        tile = _model_tile(str(path), path.stat().st_mtime_ns)
+        if tile is not None and tile > min(rows, cols):
+            return f"hologram: {layer.name!r} is {rows}x{cols} pixels, smaller than the model's {tile}-pixel tile"
+        return None
 
     def _material_problem(self) -> str | None:
         text = self.material.value.strip()
@@ -120,11 +134,25 @@ class PredictionWidget(StepWidget):
                 self._viewer.add_points(missed_data, **missed_keywords, name="missed (FN)", border_color="yellow", border_width=0.15, metadata={"source": "reference"})
             metadata["metrics"] = metrics
             message += f"; ER {100 * metrics['er']:.1f} %, JI {metrics['ji']:.3f} (one-to-one)"
-        self._points = self._viewer.add_points(data, **keywords, border_color=colours if len(data) else "cyan", border_width=0.15, name=f"{name} particles", metadata=metadata)
+        # every particle drawn over the hologram whatever the plane shown, its rim coloured by its depth (with a truth CSV: by its match)
+        self._points = self._viewer.add_points(data, **keywords, border_color=colours if len(data) else "cyan", border_width=0.15, name=f"{name} particles", metadata=metadata,
+                                               projection_mode="all")
+        self._show_all_depths(self._points)
         self._match_colours = colours
         self.colour_by.reset_choices()
+        self.colour_by.value = _MATCH if reference is not None or not len(data) else "z_um"
         self._recolour()
         self.done(message)
+
+    def _show_all_depths(self, layer) -> None:
+        """Make the depth axis's slice as thick as the particles' depth range, twice over, so a layer projecting all points (``projection_mode="all"``) shows all of them at any plane."""
+        if not len(layer.data):
+            return
+        axis = self._viewer.dims.ndim - 3  # the particles' (z, y, x) are the viewer's last three axes
+        low, high = layer.extent.world[:, 0]
+        thickness = list(self._viewer.dims.thickness)
+        thickness[axis] = max(thickness[axis], 2 * (high - low) + layer.scale[0])
+        self._viewer.dims.thickness = tuple(thickness)
 
     def _colour_choices(self, *_) -> list[str]:
         """match, then the last result's numeric features."""
@@ -142,3 +170,12 @@ class PredictionWidget(StepWidget):
             layer.border_color = self.colour_by.value
         else:
             layer.border_color = self._match_colours
+
+
+@functools.lru_cache(maxsize=8)
+def _model_tile(path: str, modified_ns: int) -> int | None:
+    """The tile size (pixels) of the model file ``path`` as modified at ``modified_ns``; None when it is no model."""
+    try:
+        return int(load_model(Path(path)).meta["tile_size"])
+    except (InputError, KeyError, TypeError, ValueError):
+        return None

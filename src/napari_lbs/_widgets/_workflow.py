@@ -17,6 +17,7 @@ from napari_lbs._widgets._training import TrainingWidget
 __all__ = ["WorkflowWidget"]
 
 _MAX_WIDTH_PX = 400  # leaves a 1280-px screen most of its width for the image
+_TAB_PADDING_PX = 3
 
 
 class WorkflowWidget(QWidget):
@@ -42,7 +43,9 @@ class WorkflowWidget(QWidget):
         self.diagnosis = DiagnosisWidget(napari_viewer)
         self.batch = BatchWidget(napari_viewer)
         self.tabs = QTabWidget()
-        self.tabs.setUsesScrollButtons(True)
+        self.tabs.setUsesScrollButtons(True)  # only where the dock is narrower than the default one
+        # narrow tabs: all seven side by side in the dock's width, no scroll arrows
+        self.tabs.tabBar().setStyleSheet(f"QTabBar::tab {{ padding-left: {_TAB_PADDING_PX}px; padding-right: {_TAB_PADDING_PX}px; }}")
         for label, step in (("1 Stack", self.backprop), ("2 Calib", self.calibration), ("3 Data", self.generate), ("4 Train", self.training), ("5 Predict", self.prediction), ("6 Gap", self.diagnosis), ("7 Batch", self.batch)):
             index = self.tabs.addTab(step.root_native_widget, label)
             self.tabs.setTabToolTip(index, type(step).__doc__.splitlines()[0])
