@@ -93,3 +93,11 @@ def test_the_example_is_what_its_script_makes(tmp_path):
         made, shipped = tifffile.imread(tmp_path / f"microscope_example{name}"), tifffile.imread(EXAMPLE[name])
         assert made.dtype == shipped.dtype == np.uint16 and made.shape == shipped.shape == (256, 256)
         assert np.abs(made.astype(int) - shipped.astype(int)).max() <= 1  # the same seed, the same frame (to a rounding)
+
+
+def test_the_fit_bins_only_pixels_finer_than_the_fringes_need():
+    from napari_lbs._core.pipeline import fringe_binning
+
+    assert fringe_binning(ExperimentConfig(), medium_index=1.33) == 1  # a lensless sensor's 2.2 µm
+    assert fringe_binning(MICROSCOPE, medium_index=1.33) == 2  # 0.0851 µm: 0.17 µm still samples n/λ
+    assert fringe_binning(MICROSCOPE, medium_index=1.0) == 3

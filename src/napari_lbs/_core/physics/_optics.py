@@ -23,6 +23,15 @@ axis to the frequencies whose geometric spread ``z tanθ`` stays within ``min(W/
 (Matsushima & Shimobaba, Opt. Express 17, 19662 (2009)). Light that would wrap is dropped
 instead of aliased.
 
+Pitch finer than half the medium wavelength
+-------------------------------------------
+Behind a microscope objective the pitch at the sample can be below ``λ/(2n)`` (0.0851 µm for
+660 nm in water, whose ``λ/(2n)`` is 0.248 µm). The grid then holds frequencies beyond the
+medium's cutoff ``n/λ``: they are evanescent and the kernel is zero there, so the angular
+spectrum is band-limited at ``n/λ`` by the propagation itself. Every propagating angle, up to
+grazing, is then sampled: the padding stops at its cap (4 n per axis, `padded_shape`) and the
+band limit above drops the widest angles, whose light would wrap, as at any pitch.
+
 References
 ----------
 J. W. Goodman, *Introduction to Fourier Optics*, 3rd ed., Sec. 3.10.
@@ -71,6 +80,8 @@ def _medium_wavelength(wavelength_um: float, medium_index: float) -> float:
 
 def _spread_px(z_um: float, *, wavelength_um: float, pixel_um: float, medium_index: float) -> float:
     """Lateral distance (px) that light at the grid's widest propagating angle travels over ``z_um``."""
+    # below a pitch of λ/(2n) the widest angle is grazing and the spread unbounded: 0.999 makes it
+    # exceed any window, so the padding takes its cap and the band limit does the rest
     sin_theta = min(_medium_wavelength(wavelength_um, medium_index) / (2.0 * pixel_um), 0.999)
     return abs(z_um) * sin_theta / np.sqrt(1.0 - sin_theta**2) / pixel_um
 

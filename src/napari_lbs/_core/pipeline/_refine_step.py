@@ -2,7 +2,7 @@
 
 The classical detector (`find_particles`: the back-propagated field's energy, peak by peak)
 gives each particle's position and depth; `refine_particles` then fits its patch of the
-hologram. Nothing is trained, so a setup of any scale — a microscope's sub-wavelength pixels
+hologram, binned first where its pitch is finer than the fringes need (`fringe_binning`). Nothing is trained, so a setup of any scale — a microscope's sub-wavelength pixels
 as well as a lensless sensor's — is refined from its config alone (docs/microscopy.md).
 """
 
@@ -18,7 +18,7 @@ import numpy as np
 from napari_lbs._core.foundation import ExperimentConfig, InputError, ProgressCallback, StopCallback, check_target, write_json
 from napari_lbs._core.pipeline._common import Log, StepResult, _background, _hologram, _quiet, _source, provenance
 
-__all__ = ["RefineRequest", "refine", "refine_hologram"]
+__all__ = ["RefineRequest", "fringe_binning", "refine", "refine_hologram"]
 
 
 @dataclass(frozen=True)
@@ -86,26 +86,63 @@ def _normalised(hologram: np.ndarray, background: np.ndarray | None, dark: np.nd
     return image / light
 
 
-def refine_hologram(hologram: np.ndarray, config: ExperimentConfig, *, index_contrast: float = 0.26, medium_index: float = 1.33, max_particles: int = 64,
-                    depth_window_um: float | None = None, workers: int = 1, progress: ProgressCallback | None = None,
-                    should_stop: StopCallback | None = None) -> tuple[dict, dict]:
-    """The particles of a normalised hologram: `find_particles`' guesses fitted by `refine_particles`.
+def fringe_binning(config: ExperimentConfig, *, medium_index: float) -> int:
+    """Pixels binned per side for the fit: as many as keep the pitch within half the medium wavelength.
+
+    The fringes at the sensor hold no spatial frequency above ``n/λ`` (the light that reaches
+    it propagates), so a pitch up to ``λ/(2n)`` samples them all: a microscope's pitch at the
+    sample (0.0851 µm behind 85× in water, λ/(2n) = 0.248 µm) is binned by 2, which makes the
+    same patch twice as wide for a quarter of the pixels. A lensless sensor's pitch is never
+    binned (1).
+    """
+    return max(1, int(config.optics.wavelength_um / (2.0 * medium_index * config.optics.pixel_um) + 1e-9))
+
+
+def _binned(hologram: np.ndarray, config: ExperimentConfig, factor: int) -> tuple[np.ndarray, ExperimentConfig]:
+    """The hologram's ``factor``² blocks averaged (the last rows and columns that fill no block dropped) and the config of their pitch."""
+    from dataclasses import replace
+
+    if factor == 1:
+        return hologram, config
+    rows, cols = (n // factor * factor for n in hologram.shape)
+    if rows == 0 or cols == 0:
+        raise InputError(f"hologram: expected at least {factor}x{factor} pixels, got shape {hologram.shape}")
+    blocks = hologram[:rows, :cols].reshape(rows // factor, factor, cols // factor, factor).mean(axis=(1, 3))
+    return blocks, replace(config, optics=replace(config.optics, pixel_um=config.optics.pixel_um * factor))
+
+
+def refine_hologram(hologram: np.ndarray, config: ExperimentConfig, *, guesses=None, index_contrast: float = 0.26, medium_index: float = 1.33,
+                    max_particles: int = 64, depth_window_um: float | None = None, patch_um: float | None = None, workers: int = 1,
+                    progress: ProgressCallback | None = None, should_stop: StopCallback | None = None) -> tuple[dict, dict]:
+    """The particles of a normalised hologram: `find_particles`' guesses (or ``guesses``) fitted by `refine_particles`.
+
+    Where the pitch is finer than half the medium wavelength, the hologram is first binned
+    (`fringe_binning`): the fit sees every propagating fringe on a fraction of the pixels,
+    each binned pixel integrating its area as the model's pixels do. Positions are reported in the
+    hologram's own coordinates (pixel ``(r, c)`` at ``(c, r) × pixel_um``).
 
     Parameters
     ----------
     hologram : (rows, cols) array
         Intensity with unobstructed light near 1 (divided by its background).
     config : ExperimentConfig
+    guesses : pandas.DataFrame or dict of arrays, optional
+        Starting guesses (``x_um, y_um, z_um, diameter_um`` at least; ``index_contrast``
+        where known); default `find_particles`' in the (binned) hologram.
     index_contrast, medium_index, max_particles, depth_window_um, workers
         As `RefineRequest`'s.
+    patch_um : float, optional
+        Largest patch edge (µm); default `RefineSettings.patch_px` pixels of the hologram's
+        own pitch (the same area whether binned or not).
     progress, should_stop
-        One step per depth searched, then one per fitted batch; `Stopped` when asked.
+        One step per depth searched (without ``guesses``), then one per fitted batch;
+        `Stopped` when asked.
 
     Returns
     -------
     (table, record): the refined table as a dict of arrays (docs/formats.md, the columns of
     ``predict --refine``) and what the provenance records of the search and the fit
-    (settings, detections, kept, seconds).
+    (detector, binning, settings, detections, kept, seconds).
     """
     import pandas as pd
 
@@ -115,14 +152,28 @@ def refine_hologram(hologram: np.ndarray, config: ExperimentConfig, *, index_con
 
     volume = config.volume
     window = depth_window_um if depth_window_um is not None else min(RefineSettings().depth_window_um, 0.25 * (volume.z_max_um - volume.z_min_um))
-    settings = RefineSettings(medium_index=medium_index, index_contrast=index_contrast, depth_window_um=window, workers=workers)
+    factor = fringe_binning(config, medium_index=medium_index)
+    patch_px = RefineSettings().patch_px // factor if patch_um is None else int(round(patch_um / (factor * config.optics.pixel_um)))
+    if patch_px < 16:
+        raise InputError(f"patch_um: expected a patch of at least 16 pixels of {factor * config.optics.pixel_um:g} µm, got {patch_um!r} µm")
+    settings = RefineSettings(medium_index=medium_index, index_contrast=index_contrast, depth_window_um=window, patch_px=patch_px, workers=workers)
+    image, fit_config = _binned(np.asarray(hologram, dtype=np.float64), config, factor)
+    # a binned pixel's centre lies half a block beyond its first original pixel's
+    shift_um = 0.5 * (factor - 1) * config.optics.pixel_um
     started = time.perf_counter()
-    planes = len(volume.planes_um(2.0 * volume.z_step_um))
-    found = find_particles(hologram, config, max_particles=max_particles, steps=Steps(planes, progress=progress, should_stop=should_stop))
+    if guesses is None:
+        planes = len(volume.planes_um(2.0 * volume.z_step_um))
+        found = find_particles(image, fit_config, max_particles=max_particles, steps=Steps(planes, progress=progress, should_stop=should_stop))
+        starts = pd.DataFrame({name: found[name] for name in ("x_um", "y_um", "z_um", "diameter_um")})
+        detector = "find_particles"
+    else:
+        starts = pd.DataFrame(guesses).reset_index(drop=True)
+        starts[["x_um", "y_um"]] = starts[["x_um", "y_um"]].astype(np.float64) - shift_um
+        detector = "given"
     searched = time.perf_counter() - started
-    guesses = pd.DataFrame({name: found[name] for name in ("x_um", "y_um", "z_um", "diameter_um")})
-    table = refine_particles(hologram, guesses, config, settings=settings, progress=progress, should_stop=should_stop)
-    record = {"detector": "find_particles", "settings": asdict(settings), "detections": len(guesses), "kept": len(table),
+    table = refine_particles(image, starts, fit_config, settings=settings, progress=progress, should_stop=should_stop)
+    table[["x_um", "y_um"]] += shift_um
+    record = {"detector": detector, "binning": factor, "settings": asdict(settings), "detections": len(starts), "kept": len(table),
               "seconds": {"search": searched, "fit": time.perf_counter() - started - searched}}
     return {name: table[name].to_numpy() for name in table.columns}, record
 
