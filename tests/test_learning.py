@@ -174,8 +174,8 @@ def test_training_is_deterministic_and_resumes_to_the_same_weights(tiny_data, ti
     settings = TrainingSettings(formulation="seed", epochs=3, batch_size=4, device="cpu", validation_groups=1, foreground_weight=20.0)
     batches_per_epoch = -(-5 * 3 // 4)  # 5 training groups of 3 planes, batches of 4
     done = []
-    first = train_model(tiny_data, tmp_path / "a.pt", settings=settings, progress=lambda d, t: done.append(d), should_stop=lambda: len(done) >= 2 * batches_per_epoch)
-    assert first.stopped and len(first.log["epochs"]) == 2  # interrupted at the start of epoch 3
+    first = train_model(tiny_data, tmp_path / "a.pt", settings=settings, progress=lambda d, t: done.append(d), should_stop=lambda: len(done) > 2 * batches_per_epoch)
+    assert first.stopped and len(first.log["epochs"]) == 2  # interrupted after the first batch of epoch 3
     from dataclasses import replace
 
     from napari_lbs._core import InputError
@@ -209,15 +209,60 @@ def test_validating_only_the_last_epochs_trains_the_same_weights(tiny_data, tiny
     assert [r["epoch"] for r in records if "batch" not in r] == [1, 2, 3]
 
 
-def test_stopping_mid_epoch_keeps_a_usable_model(tiny_data, tmp_path):
+def _stop_after(batches: int):
+    """progress and should_stop callbacks asking to stop once ``batches`` batches are done; ``asked[0]`` is when."""
+    import time
+
+    asked = []
+
+    def progress(done, total):
+        if done >= batches and not asked:
+            asked.append(time.monotonic())
+
+    return progress, lambda: bool(asked), asked
+
+
+def test_a_stop_in_the_first_epoch_ends_at_once_without_validating_a_part_epoch(tiny_data, tmp_path):
+    import time
+
+    from napari_lbs._core import TrainingSettings, train_model
+
+    progress, should_stop, asked = _stop_after(3)
+    records = []
+    with pytest.raises(Stopped, match="before any epoch was validated: no model written"):
+        train_model(tiny_data, tmp_path / "s.pt", settings=TrainingSettings(formulation="seed", epochs=5, batch_size=2, device="cpu", validation_groups=1),
+                    progress=progress, should_stop=should_stop, report=records.append)
+    assert time.monotonic() - asked[0] < 2.0
+    assert not (tmp_path / "s.pt").exists() and not any("validation" in r for r in records)
+    assert [r["batch"] for r in records] == [1, 2, 3]  # every finished batch's loss was reported
+
+
+def test_a_stop_mid_epoch_keeps_the_last_validated_model(tiny_data, tmp_path):
+    import time
+
     from napari_lbs._core import TrainingSettings, load_model, train_model
 
-    done = []
-    result = train_model(tiny_data, tmp_path / "s.pt", settings=TrainingSettings(formulation="seed", epochs=5, batch_size=2, device="cpu", validation_groups=1), progress=lambda d, t: done.append(d), should_stop=lambda: len(done) >= 3)
-    assert result.stopped and done[-1] == 3  # stopped after the third batch of the first epoch
+    batches = -(-5 * 3 // 2)  # 5 training groups of 3 planes, batches of 2
+    progress, should_stop, asked = _stop_after(batches + 2)
+    records = []
+    result = train_model(tiny_data, tmp_path / "s.pt", settings=TrainingSettings(formulation="seed", epochs=5, batch_size=2, device="cpu", validation_groups=1),
+                         progress=progress, should_stop=should_stop, report=records.append)
+    assert time.monotonic() - asked[0] < 2.0
+    assert result.stopped and result.log["stop_reason"] == "stopped by you"
+    assert [e["epoch"] for e in result.log["epochs"]] == [1] and [r["epoch"] for r in records if "validation" in r] == [1]
     assert json.loads((tmp_path / "s.json").read_text())["stopped"] is True
     model = load_model(tmp_path / "s.pt")
-    assert model.meta["epoch"] == 1 and model.meta["threshold"] > 0
+    assert model.meta["epoch"] == 1 and model.meta["threshold"] > 0 and result.log["best"]["epoch"] == 1
+
+
+def test_a_stop_during_a_validation_pass_drops_that_pass(tiny_data, tmp_path):
+    from napari_lbs._core import TrainingSettings, train_model
+
+    batches = -(-5 * 3 // 2)
+    progress, should_stop, asked = _stop_after(2 * batches)  # the last batch of epoch 2: its validation sees the stop
+    result = train_model(tiny_data, tmp_path / "v.pt", settings=TrainingSettings(formulation="seed", epochs=5, batch_size=2, device="cpu", validation_groups=1),
+                         progress=progress, should_stop=should_stop)
+    assert result.stopped and [e["epoch"] for e in result.log["epochs"]] == [1] and result.log["best"]["epoch"] == 1
 
 
 def test_model_files_never_execute_code_and_bad_files_are_refused(tmp_path):

@@ -7,6 +7,10 @@ private modules; each name is imported on first use.
     Better synthetic training data: random groups through HCS and Holo-processing, on disk.
 `_detection`
     From network output planes to particles.
+`_device_planes`
+    The prediction's reconstruction planes on the network's device: back-propagation with ``torch.fft``.
+`_device_samples`
+    Training samples assembled where the network runs: crops, dihedral turns, targets and augmentation, batched.
 `_heatmaps`
     Training targets of the ``focus`` formulation: particle-centre heatmaps, depth offsets, diameters.
 `_metrics`

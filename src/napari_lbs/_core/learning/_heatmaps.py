@@ -30,7 +30,7 @@ import numpy as np
 
 from napari_lbs._core.foundation import InputError
 
-__all__ = ["FocusSpec", "FocusTargets", "focus_targets", "context_indices"]
+__all__ = ["FocusSpec", "FocusTargets", "FocusMarks", "focus_marks", "focus_targets", "context_indices"]
 
 _TRUNCATE = 3.0  # Gaussians are drawn out to 3 sigma
 
@@ -76,7 +76,23 @@ class FocusTargets:
     positive: np.ndarray
 
 
-def focus_targets(
+@dataclass
+class FocusMarks:
+    """The targets of one window as sparse entries (flat pixel indices into ``rows * cols``).
+
+    ``heat_index``/``heat_value``: each particle's Gaussian, the largest value at a pixel
+    wins; ``peak_index`` with ``offset`` and ``diameter``: the peak pixels, where the heat is 1
+    (a later particle's peak overwrites an earlier one's at the same pixel).
+    """
+
+    heat_index: np.ndarray
+    heat_value: np.ndarray
+    peak_index: np.ndarray
+    offset: np.ndarray
+    diameter: np.ndarray
+
+
+def focus_marks(
     particles: dict[str, np.ndarray],
     *,
     plane_um: float,
@@ -86,8 +102,8 @@ def focus_targets(
     origin_px: tuple[int, int] = (0, 0),
     diameter_scale_um: float,
     spec: FocusSpec = FocusSpec(),
-) -> FocusTargets:
-    """The targets of the plane at ``plane_um`` for a window of ``shape`` starting at pixel ``origin_px``.
+) -> FocusMarks:
+    """The sparse targets of the plane at ``plane_um`` for a window of ``shape`` starting at pixel ``origin_px``.
 
     Parameters
     ----------
@@ -104,30 +120,42 @@ def focus_targets(
     spec : FocusSpec
     """
     rows, cols = shape
-    heat = np.zeros(shape, np.float32)
-    offset = np.zeros(shape, np.float32)
-    diameter = np.zeros(shape, np.float32)
-    positive = np.zeros(shape, bool)
     dz = (np.asarray(particles["z_um"], np.float64) - plane_um) / step_um
     near = np.abs(dz) <= _TRUNCATE * spec.sigma_planes
+    depth = dz[near]
+    row = np.rint(np.asarray(particles["y_um"], np.float64)[near] / pixel_um).astype(np.int64) - origin_px[0]
+    col = np.rint(np.asarray(particles["x_um"], np.float64)[near] / pixel_um).astype(np.int64) - origin_px[1]
     radius = int(np.ceil(_TRUNCATE * spec.sigma_px))
     lateral = np.arange(-radius, radius + 1)
     window = np.exp(-(lateral[:, None] ** 2 + lateral[None, :] ** 2) / (2 * spec.sigma_px**2)).astype(np.float32)
-    for x, y, d, depth in zip(np.asarray(particles["x_um"])[near], np.asarray(particles["y_um"])[near], np.asarray(particles["diameter_um"])[near], dz[near], strict=True):
-        row, col = int(round(y / pixel_um)) - origin_px[0], int(round(x / pixel_um)) - origin_px[1]
-        r0, r1, c0, c1 = max(row - radius, 0), min(row + radius + 1, rows), max(col - radius, 0), min(col + radius + 1, cols)
-        if r0 >= r1 or c0 >= c1:
-            continue
-        weight = np.float32(np.exp(-depth**2 / (2 * spec.sigma_planes**2)))
-        box = heat[r0:r1, c0:c1]
-        np.maximum(box, weight * window[r0 - row + radius : r1 - row + radius, c0 - col + radius : c1 - col + radius], out=box)
-        # the plane nearest the particle (half-open, so a particle between two planes has one) holds its peak
-        if -0.5 <= depth < 0.5 and 0 <= row < rows and 0 <= col < cols:
-            heat[row, col] = 1.0
-            positive[row, col] = True
-            offset[row, col] = depth
-            diameter[row, col] = d / diameter_scale_um
-    return FocusTargets(heat, offset, diameter, positive)
+    weight = np.exp(-(depth**2) / (2 * spec.sigma_planes**2)).astype(np.float32)
+    box_rows = row[:, None, None] + lateral[None, :, None]
+    box_cols = col[:, None, None] + lateral[None, None, :]
+    inside = (box_rows >= 0) & (box_rows < rows) & (box_cols >= 0) & (box_cols < cols)
+    values = weight[:, None, None] * window[None]
+    # the plane nearest the particle (half-open, so a particle between two planes has one) holds its peak
+    peak = (depth >= -0.5) & (depth < 0.5) & (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
+    return FocusMarks(
+        heat_index=(box_rows * cols + box_cols)[inside],
+        heat_value=values[inside],
+        peak_index=(row * cols + col)[peak],
+        offset=depth[peak].astype(np.float32),
+        diameter=(np.asarray(particles["diameter_um"], np.float64)[near][peak] / diameter_scale_um).astype(np.float32),
+    )
+
+
+def focus_targets(particles: dict[str, np.ndarray], **window) -> FocusTargets:
+    """The dense targets of a window: `focus_marks` (its keyword arguments) drawn on ``window["shape"]``."""
+    shape = window["shape"]
+    marks = focus_marks(particles, **window)
+    heat = np.zeros(shape[0] * shape[1], np.float32)
+    np.maximum.at(heat, marks.heat_index, marks.heat_value)
+    offset, diameter, positive = np.zeros_like(heat), np.zeros_like(heat), np.zeros(heat.shape, bool)
+    heat[marks.peak_index] = 1.0
+    positive[marks.peak_index] = True
+    offset[marks.peak_index] = marks.offset
+    diameter[marks.peak_index] = marks.diameter
+    return FocusTargets(*(a.reshape(shape) for a in (heat, offset, diameter, positive)))
 
 
 def context_indices(centres: Sequence[int], context: Sequence[int], n_planes: int) -> np.ndarray:

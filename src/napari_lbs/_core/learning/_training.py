@@ -55,12 +55,13 @@ import torch
 from napari_lbs import __version__
 from napari_lbs._core.learning._dataset import SyntheticDataset, dataset_summary, open_dataset
 from napari_lbs._core.learning._detection import PeakDecoder, PlaneLinker, suppress
-from napari_lbs._core.learning._heatmaps import FocusSpec, context_indices, focus_targets
+from napari_lbs._core.learning._device_samples import augment_planes, dihedral_crops, render_marks
+from napari_lbs._core.learning._heatmaps import FocusSpec, context_indices, focus_marks
 from napari_lbs._core.foundation import atomic_write_bytes, write_json
 from napari_lbs._core.foundation import InputError
 from napari_lbs._core.learning._metrics import depth_errors_um, diameter_errors_um, score_particles
 from napari_lbs._core.learning._network import FORMULATIONS, PRESETS, build_network, focus_maps, network_outputs, resolve_device, resolve_precision, save_model, weights_sha256
-from napari_lbs._core.foundation import ProgressCallback, ReportCallback, Steps, StopCallback
+from napari_lbs._core.foundation import ProgressCallback, ReportCallback, Steps, StopCallback, Stopped
 from napari_lbs._core.physics import LABEL_SCALE
 from napari_lbs._core.foundation import process_threads
 from napari_lbs._core.foundation import check_resume_matches, load_resume_state
@@ -74,6 +75,18 @@ FOCUS_THRESHOLDS = (0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8)
 _AXIAL_PLANES = (2.0, 5.0, 1e6)  # axial suppression radii tried on validation, in planes (1e6: any depth)
 _DEFAULT_RATE = {"paper": 3e-4, "medium": 1e-3, "small": 2e-3}
 _FOCAL_ALPHA, _FOCAL_BETA = 2.0, 4.0
+# Batch losses come to the host (one wait for the device) and are reported at most this often.
+_REPORT_S = 0.5
+
+
+def training_precision(precision: str, device: torch.device) -> str:
+    """The network's arithmetic for training: `resolve_precision`, except that ``auto`` is float32 on a CPU.
+
+    On a CPU with native bfloat16, training in it learned more slowly (docs/learning.md,
+    "Arithmetic precision"); on a CUDA GPU, ``auto`` is bfloat16 where it is native, the
+    tensor cores' fast path.
+    """
+    return "float32" if precision == "auto" and device.type == "cpu" else resolve_precision(precision, device)
 
 
 @dataclass(frozen=True)
@@ -109,7 +122,8 @@ class TrainingSettings:
         validation pass costs about a fifth of an epoch, and with the cosine decay the best
         epoch is nearly always among the last.
     precision : {"float32", "auto", "bfloat16"}
-        The network's arithmetic (`resolve_precision`). Training in bfloat16 ran 1.6x faster per
+        The network's arithmetic (`training_precision`: ``auto`` is bfloat16 on a CUDA GPU that
+        has it natively and float32 on a CPU). Training in bfloat16 ran 1.6x faster per
         epoch on an AMX CPU but learned more slowly (demo recipe, two runs: training loss 4-5 %
         higher at every epoch, validation JI 0.90 instead of 0.95 after 5 epochs), so float32
         is the default; prediction runs bfloat16 where it is native (the same detections).
@@ -159,7 +173,7 @@ class TrainingSettings:
         if self.minutes < 0 or self.patience < 0 or self.validate_last < 0:
             raise InputError(f"minutes / patience / validate_last: expected >= 0, got {self.minutes} / {self.patience} / {self.validate_last}")
         FocusSpec(context=tuple(self.context))
-        resolve_precision(self.precision, resolve_device(self.device))
+        training_precision(self.precision, resolve_device(self.device))
 
     @property
     def rate(self) -> float:
@@ -195,7 +209,7 @@ class _SeedFormulation:
 
     name = "seed"
 
-    def __init__(self, dataset: SyntheticDataset, training: list[int], settings: TrainingSettings) -> None:
+    def __init__(self, dataset: SyntheticDataset, training: list[int], settings: TrainingSettings, device: torch.device = torch.device("cpu")) -> None:
         config = dataset.config
         self.settings = settings
         self.dataset = dataset
@@ -206,6 +220,8 @@ class _SeedFormulation:
         self.targets = labels.reshape(self.inputs.shape) / np.float32(self.output_scale)
         self.samples = len(self.inputs)
         self.patch = settings.patch_size or dataset.spec["tile_size"]
+        # cached on the device once (on the CPU, views of the arrays): a batch is an index, not a copy from the host
+        self.inputs_t, self.targets_t = torch.from_numpy(self.inputs).to(device), torch.from_numpy(self.targets).to(device)
 
     def network(self):
         return build_network(self.settings.preset)
@@ -214,20 +230,23 @@ class _SeedFormulation:
         size = self.inputs.shape[-1]
         index = np.sort(order)
         r0, c0 = (rng.integers(0, size - self.patch + 1, 2) if self.patch < size else (0, 0))
-        x = torch.from_numpy(self.inputs[index, r0 : r0 + self.patch, c0 : c0 + self.patch])[:, None]
-        y = torch.from_numpy(self.targets[index, r0 : r0 + self.patch, c0 : c0 + self.patch])[:, None]
-        return x.to(device).contiguous(memory_format=torch.channels_last), (y.to(device),)
+        index = torch.from_numpy(index).to(device)
+        x = self.inputs_t[index, r0 : r0 + self.patch, c0 : c0 + self.patch][:, None]
+        y = self.targets_t[index, r0 : r0 + self.patch, c0 : c0 + self.patch][:, None]
+        return x.contiguous(memory_format=torch.channels_last), (y,)
 
     def loss(self, prediction: torch.Tensor, targets: tuple) -> torch.Tensor:
         (y,) = targets
         weight = 1.0 + (self.settings.foreground_weight - 1.0) * (y > 0).float()
         return torch.mean(weight * (prediction - y) ** 2)
 
-    def validate(self, network, groups: list[int]) -> dict:
+    def validate(self, network, groups: list[int], stop: StopCallback) -> dict | None:
         config = self.dataset.config
         totals = {fraction: {"tp": 0, "fp": 0, "fn": 0} for fraction in THRESHOLD_FRACTIONS}
         squared, count = 0.0, 0
         for group in groups:
+            if stop():
+                return None
             inputs, labels, description = self.dataset.read_group(group)
             outputs = network_outputs(network, inputs, output_scale=self.output_scale)
             squared += float(np.sum(((outputs - labels) / self.output_scale) ** 2))
@@ -257,7 +276,7 @@ class _FocusFormulation:
 
     name = "focus"
 
-    def __init__(self, dataset: SyntheticDataset, training: list[int], settings: TrainingSettings) -> None:
+    def __init__(self, dataset: SyntheticDataset, training: list[int], settings: TrainingSettings, device: torch.device = torch.device("cpu")) -> None:
         layout = dataset.layout
         if layout.kind != "stack":
             raise InputError(f"{dataset.path}: the focus formulation needs a data set of the stack layout (generate --layout stack), this one has {layout.kind}")
@@ -273,7 +292,9 @@ class _FocusFormulation:
         self.margin = layout.context_planes
         self.planes_um = np.asarray(dataset.planes_um)
         self.centres = np.arange(self.margin, len(self.planes_um) - self.margin)
-        self.inputs, _, self.tables = dataset.arrays(training, dtype=np.float16)
+        inputs, _, self.tables = dataset.arrays(training, dtype=np.float16)
+        # the stack cached on the device once, in float16 (on the CPU, a view of the array): crops are cut there
+        self.stack = torch.from_numpy(inputs).to(device)
         self.size = dataset.spec["tile_size"]
         self.patch = min(settings.patch_size or 128, self.size)
         self.samples = len(training) * len(self.centres)
@@ -285,8 +306,9 @@ class _FocusFormulation:
             network.head.bias[0] = -math.log(99.0)
         return network
 
-    def _sample(self, rng: np.random.Generator) -> tuple[np.ndarray, tuple]:
-        group = int(rng.integers(len(self.inputs)))
+    def _draw(self, rng: np.random.Generator) -> tuple:
+        """One sample's random choices: group, centre plane, crop origin, dihedral turn and flip, augmentation (None or its parameters)."""
+        group = int(rng.integers(len(self.tables)))
         table = self.tables[group]
         pixel_um = self.config.optics.pixel_um
         if len(table["x_um"]) and rng.random() < 0.5:  # a particle at or near its focal plane
@@ -300,50 +322,48 @@ class _FocusFormulation:
         else:
             centre = int(rng.choice(self.centres))
             r0, c0 = (int(v) for v in rng.integers(0, self.size - self.patch + 1, 2))
-        planes = context_indices([centre], self.spec.context, len(self.planes_um))[0]
-        x = self.inputs[group, planes, r0 : r0 + self.patch, c0 : c0 + self.patch].astype(np.float32)
-        t = focus_targets(table, plane_um=float(self.planes_um[centre]), step_um=self.step_um, pixel_um=pixel_um, shape=(self.patch, self.patch), origin_px=(r0, c0), diameter_scale_um=self.diameter_scale_um, spec=self.spec)
-        maps = [t.heat, t.offset, t.diameter, t.positive.astype(np.float32)]
         turns, flip = int(rng.integers(4)), bool(rng.integers(2))  # the physics has no preferred lateral direction
-        x = np.rot90(x, turns, axes=(-2, -1))
-        maps = [np.rot90(m, turns) for m in maps]
-        if flip:
-            x, maps = x[..., ::-1], [m[:, ::-1] for m in maps]
+        augment = None
         if self.settings.augment and rng.random() < 0.5:
-            x = self._augment(x, rng)
-        return np.ascontiguousarray(x), tuple(np.ascontiguousarray(m) for m in maps)
-
-    @staticmethod
-    def _augment(x: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """Gamma, contrast about the mean, Gaussian noise and sometimes 8-bit quantisation, kept in [0, 1]."""
-        x = np.clip(x, 0.0, 1.0) ** np.float32(np.exp(rng.uniform(-0.3, 0.3)))
-        mean = x.mean(axis=(-2, -1), keepdims=True)
-        x = mean + np.float32(rng.uniform(0.8, 1.2)) * (x - mean)
-        x = x + np.float32(rng.uniform(0.0, 0.03)) * rng.standard_normal(x.shape, dtype=np.float32)
-        if rng.random() < 0.5:
-            x = np.round(x * 255.0) / 255.0
-        return np.clip(x, 0.0, 1.0).astype(np.float32)
+            # gamma, contrast about the mean, noise level, 8-bit quantisation
+            augment = (np.exp(rng.uniform(-0.3, 0.3)), rng.uniform(0.8, 1.2), rng.uniform(0.0, 0.03), rng.random() < 0.5)
+        return group, centre, r0, c0, turns, flip, augment
 
     def batch(self, order: np.ndarray, rng: np.random.Generator, device) -> tuple[torch.Tensor, tuple]:
-        samples = [self._sample(rng) for _ in range(len(order))]
-        x = torch.from_numpy(np.stack([s[0] for s in samples])).to(device).contiguous(memory_format=torch.channels_last)
-        maps = tuple(torch.from_numpy(np.stack([s[1][i] for s in samples])).to(device) for i in range(4))
-        return x, maps
+        """A batch of crops and their targets, assembled on ``device`` from the cached stack (the host only draws the choices)."""
+        draws = [self._draw(rng) for _ in range(len(order))]
+        noise_seed = int(rng.integers(2**62))
+        group, centre, r0, c0, turns, flip, _ = (np.array(v) for v in zip(*[d[:6] + (0,) for d in draws], strict=True))
+        p, count = self.patch, len(draws)
+        marks = [focus_marks(self.tables[g], plane_um=float(self.planes_um[c]), step_um=self.step_um, pixel_um=self.config.optics.pixel_um, shape=(p, p),
+                             origin_px=(int(r), int(col)), diameter_scale_um=self.diameter_scale_um, spec=self.spec)
+                 for g, c, r, col in zip(group, centre, r0, c0, strict=True)]
+        x = dihedral_crops(self.stack, group * self.stack.shape[1], context_indices(centre, self.spec.context, len(self.planes_um)), r0, c0, turns, flip,
+                           size=p, device=device)
+        maps = dihedral_crops(render_marks(marks, size=p, device=device), np.arange(count) * 4, np.tile(np.arange(4), (count, 1)), np.zeros(count, np.int64),
+                              np.zeros(count, np.int64), turns, flip, size=p, device=device)
+        augmented = [i for i, d in enumerate(draws) if d[6] is not None]
+        if augmented:
+            parameters = np.array([draws[i][6] for i in augmented], np.float64).astype(np.float32)
+            x[augmented] = augment_planes(x[augmented], torch.from_numpy(parameters).to(device), seed=noise_seed)
+        return x.contiguous(memory_format=torch.channels_last), tuple(maps.unbind(1))
 
     def loss(self, prediction: torch.Tensor, targets: tuple) -> torch.Tensor:
         heat, offset, diameter, positive = targets
+        # masks, not boolean indexing: the loss has the same shape whatever the batch holds, so the
+        # host never waits for the device to count its particles
         positive = positive > 0
+        zero = torch.zeros((), dtype=torch.float32, device=prediction.device)
         logit = prediction[:, 0].float()
         log_p, log_not_p = torch.nn.functional.logsigmoid(logit), torch.nn.functional.logsigmoid(-logit)
         p = torch.sigmoid(logit)
-        positive_loss = -((1 - p) ** _FOCAL_ALPHA * log_p)[positive].sum()
-        negative_loss = -((1 - heat) ** _FOCAL_BETA * p**_FOCAL_ALPHA * log_not_p)[~positive].sum()
+        positive_loss = -torch.where(positive, (1 - p) ** _FOCAL_ALPHA * log_p, zero).sum()
+        negative_loss = -torch.where(positive, zero, (1 - heat) ** _FOCAL_BETA * p**_FOCAL_ALPHA * log_not_p).sum()
         count = positive.sum().clamp(min=1)
-        loss = (positive_loss + negative_loss) / count
-        if positive.any():
-            loss = loss + (prediction[:, 1][positive] - offset[positive]).abs().mean()
-            loss = loss + self.settings.diameter_weight * (torch.nn.functional.softplus(prediction[:, 2][positive]) - diameter[positive]).abs().mean()
-        return loss
+        offset_l1 = torch.where(positive, (prediction[:, 1].float() - offset).abs(), zero).sum()
+        diameter_l1 = torch.where(positive, (torch.nn.functional.softplus(prediction[:, 2].float()) - diameter).abs(), zero).sum()
+        # with no particle in the batch the L1 sums are 0: only the heat is learnt from it
+        return (positive_loss + negative_loss + offset_l1 + self.settings.diameter_weight * diameter_l1) / count
 
     def candidates(self, network, stack: np.ndarray) -> dict[str, np.ndarray]:
         """Decoded candidates of one group's stack (all centre planes)."""
@@ -352,12 +372,14 @@ class _FocusFormulation:
             decoder.add(int(centre), probability, offset, diameter)
         return decoder.candidates()
 
-    def validate(self, network, groups: list[int]) -> dict:
+    def validate(self, network, groups: list[int], stop: StopCallback) -> dict | None:
         settings = [(t, a) for t in FOCUS_THRESHOLDS for a in _AXIAL_PLANES]
         totals = {key: {"tp": 0, "fp": 0, "fn": 0} for key in settings}
         depth_errors = {key: [] for key in settings}
         diameter_errors = {key: [] for key in settings}
         for group in groups:
+            if stop():
+                return None
             stack, _, description = self.dataset.read_group(group)
             truth = {key: np.asarray(values) for key, values in description["particles"].items()}
             candidates = self.candidates(network, stack)
@@ -427,13 +449,22 @@ def train_model(
     resume : bool
         Continue from ``MODEL.last.pt`` if it exists (same settings and data required).
     progress, should_stop
-        One step per batch. A stop (or the ``minutes`` budget) ends training after the current
-        batch; the best model so far stays (if no epoch had finished, the current weights are
-        validated and saved). The log's ``stop_reason`` says which ended it ("stopped by you",
-        "time budget reached"; None when training ran its epochs).
+        One step per batch. A stop ends training after the current batch, or within one
+        validation group during a validation pass (that pass is dropped): the best validated
+        model so far stays and no part epoch is validated. The ``minutes`` budget ends it after
+        the current batch and validates the part epoch. The log's ``stop_reason`` says which
+        ended it ("stopped by you", "time budget reached"; None when training ran its epochs).
     report : callable, optional
-        Called with a dict after every batch (``{"epoch", "batch", "loss"}``) and after every
-        epoch (``{"epoch", "train_loss", "validation": {...}}``), for live plots.
+        Called with a dict for every batch (``{"epoch", "batch", "loss"}``; the batches' losses
+        come at most every half second, several at once, so that the device is not waited for
+        at every batch) and after every epoch (``{"epoch", "train_loss", "validation": {...}}``),
+        for live plots.
+
+    Raises
+    ------
+    Stopped
+        When a stop came before any epoch was validated: no model is written (``MODEL.last.pt``
+        keeps the last finished epoch, if any, for ``resume``).
     """
     dataset = data if isinstance(data, SyntheticDataset) else open_dataset(data)
     out = Path(out)
@@ -454,9 +485,9 @@ def train_model(
     threads = process_threads()
     torch.manual_seed(settings.seed)
     rng = np.random.default_rng(settings.seed)
-    formulation = (_FocusFormulation if settings.formulation == "focus" else _SeedFormulation)(dataset, training, settings)
+    formulation = (_FocusFormulation if settings.formulation == "focus" else _SeedFormulation)(dataset, training, settings, device)
     network = formulation.network().to(device)
-    network.precision = resolve_precision(settings.precision, device)
+    network.precision = training_precision(settings.precision, device)
     batches = -(-formulation.samples // settings.batch_size)
     optimizer = torch.optim.AdamW(network.parameters(), lr=settings.rate, weight_decay=1e-4)
     total_steps = settings.epochs * batches
@@ -511,11 +542,14 @@ def train_model(
     log["stop_reason"] = None  # or why this run ended early: "stopped by you", "time budget reached"
     start = time.perf_counter()
     deadline = start + 60.0 * settings.minutes if settings.minutes else math.inf
-    batch_seconds = 0.0  # training steps alone, for the throughput figure (validation excluded)
+    batch_seconds = 0.0  # the training loop with its sample assembly, for the throughput figure (validation excluded)
 
-    def finish_epoch(epoch: int, losses: list[float]) -> None:
+    def finish_epoch(epoch: int, losses: list[float]) -> bool:
+        """Validate, keep the model if it is the best, log the epoch; False when a stop ended the validation (nothing recorded)."""
         nonlocal best_score
-        validation_metrics = formulation.validate(network, validation)
+        validation_metrics = formulation.validate(network, validation, steps.stop_requested)
+        if validation_metrics is None:
+            return False
         record = {"epoch": epoch, "train_loss": float(np.mean(losses)) if losses else None, "validation": validation_metrics, "seconds": round(time.perf_counter() - start, 2)}
         log["epochs"].append(record)
         score = (validation_metrics["ji"], validation_metrics["er"])
@@ -528,6 +562,7 @@ def train_model(
         if report is not None:
             report(record)
         write_json(log_path, log)
+        return True
 
     def out_of_patience() -> bool:
         if not settings.patience or not log["best"]:
@@ -538,31 +573,52 @@ def train_model(
         network.train()
         order = rng.permutation(formulation.samples)
         losses: list[float] = []
+        losses_pending: list[torch.Tensor] = []  # the batches' losses still on the device
+        flushed = time.perf_counter()
+        epoch_start = time.perf_counter()
+
+        def flush(epoch: int = epoch, losses: list[float] = losses, pending: list[torch.Tensor] = losses_pending) -> None:
+            """Bring the pending batch losses to the host (one wait for the device) and report them."""
+            if not pending:
+                return
+            values = torch.stack(pending).tolist()
+            pending.clear()
+            for value in values:
+                losses.append(value)
+                if report is not None:
+                    report({"epoch": epoch, "batch": len(losses), "batches": batches, "loss": value})
+
         for b in range(batches):
             if steps.stop_requested() or time.perf_counter() > deadline:
                 stopped = True
                 log["stop_reason"] = "stopped by you" if steps.stop_requested() else "time budget reached"
                 break
             x, targets = formulation.batch(order[b * settings.batch_size : (b + 1) * settings.batch_size], rng, device)
-            batch_start = time.perf_counter()
             optimizer.zero_grad(set_to_none=True)
             loss = formulation.loss(network(x), targets)
             loss.backward()
             optimizer.step()
             schedule.step()
-            losses.append(float(loss.detach()))
-            batch_seconds += time.perf_counter() - batch_start
+            losses_pending.append(loss.detach())
             steps.advance()
-            if report is not None:
-                report({"epoch": epoch, "batch": b + 1, "batches": batches, "loss": losses[-1]})
+            if time.perf_counter() - flushed >= _REPORT_S:
+                flush()
+                flushed = time.perf_counter()
+        flush()
+        batch_seconds += time.perf_counter() - epoch_start
         if stopped:
-            # The budget's part epoch is validated like any (the best model may be the latest); a
-            # user's stop only when nothing was saved yet, so that it ends within seconds.
-            if log["best"] is None or (losses and not steps.stop_requested()):
+            if steps.stop_requested():
+                # a user's stop: no validation of a part epoch (it would take a validation pass's
+                # time and score a half-trained network); the best model so far stays
+                break
+            # the budget's part epoch is validated like any (the best model may be the latest)
+            if losses:
                 finish_epoch(epoch, losses)
             break
         if not settings.validate_last or epoch > settings.epochs - settings.validate_last:
-            finish_epoch(epoch, losses)
+            if not finish_epoch(epoch, losses):
+                stopped, log["stop_reason"] = True, "stopped by you"
+                break
         else:
             record = {"epoch": epoch, "train_loss": float(np.mean(losses)) if losses else None, "seconds": round(time.perf_counter() - start, 2)}
             log["epochs"].append(record)
@@ -578,4 +634,8 @@ def train_model(
     log["seconds"] = round(time.perf_counter() - start, 2)
     log["planes_per_second"] = round(steps.done * settings.batch_size / max(batch_seconds, 1e-9), 2)
     write_json(log_path, log)
+    if log["best"] is None:
+        done = len(log["epochs"])
+        kept = f"; {state_path.name} holds epoch {log['epochs'][-1]['epoch']} (train again with resume to go on)" if done else ""
+        raise Stopped(f"training stopped before any epoch was validated: no model written{kept}")
     return TrainingResult(out, log, stopped)
