@@ -33,9 +33,10 @@ from napari_lbs import __version__
 from napari_lbs._core.calibration import experimental_planes
 from napari_lbs._core.foundation import ExperimentConfig
 from napari_lbs._core.learning._detection import PeakDecoder, PlaneLinker, suppress
+from napari_lbs._core.learning._device_planes import backpropagated_planes
 from napari_lbs._core.foundation import InputError, as_hologram
 from napari_lbs._core.learning._network import LoadedModel, check_model_matches, inference_network, load_model, network_outputs, resolve_precision
-from napari_lbs._core.physics import backpropagate, backpropagated_blocks, padded_shape
+from napari_lbs._core.physics import backpropagate, padded_shape
 from napari_lbs._core.foundation import ProgressCallback, Steps, StopCallback
 from napari_lbs._core.foundation import check_memory, check_prediction_meta
 
@@ -347,7 +348,8 @@ def window_layout(length: int, *, most: int, margin: int) -> list[tuple[int, int
 def _decode_focus(hologram, loaded: LoadedModel, planes, layout, *, background, optics, steps, margin_px: int, window_px: int, threshold: float) -> tuple[dict, dict]:
     """The focus formulation: context planes in, 3-D peaks of the centre probability, one particle per peak.
 
-    The stack is streamed: planes are back-propagated batch by batch (`backpropagated_blocks`)
+    The stack is streamed: planes are back-propagated batch by batch (`backpropagated_planes`:
+    on a CUDA device with ``torch.fft``, else numpy)
     and normalised as they come, each centre plane goes through the network window by window
     as soon as its context is there, and its maps go straight to the `PeakDecoder`; a plane is
     dropped once no later centre needs it. Memory is thus the context's planes plus one batch,
@@ -372,7 +374,7 @@ def _decode_focus(hologram, loaded: LoadedModel, planes, layout, *, background, 
     device = next(network.parameters()).device
     diameter_scale_um = float(meta["diameter_scale_um"])
     decoder = PeakDecoder(planes, pixel_um=optics["pixel_um"], step_um=step)
-    blocks = backpropagated_blocks(hologram, extended, background=background, steps=steps, **optics)
+    blocks = backpropagated_planes(hologram, extended, background=background, device=device, steps=steps, **optics)
     held: dict[int, np.ndarray] = {}  # normalised planes by index in ``extended``
     buffer = np.empty((1, *window_size, len(context)), np.float32)  # one window, channels last
     with torch.inference_mode():
@@ -380,7 +382,7 @@ def _decode_focus(hologram, loaded: LoadedModel, planes, layout, *, background, 
             while centre + 2 * reach not in held:
                 start, stop, block = next(blocks)
                 for j in range(stop - start):
-                    plane = np.abs(block[j])  # as `backpropagate` writes it
+                    plane = block[j]
                     normalise(plane)
                     held[start + j] = plane
             for gone in [k for k in held if k < centre]:
