@@ -166,33 +166,34 @@ def _neighbour_fields(all_params: np.ndarray, index: np.ndarray, *, present: np.
     pixel = optics.pixel_um if settings.pixel_integration else None
     reach = 1.5 * settings.patch_px * optics.pixel_um
 
-    def others(patches: Patches) -> torch.Tensor:
-        out = torch.zeros((4,) + tuple(patches.data.shape), dtype=torch.complex128, device=device)
-        crowded = False
+    def others(patches: Patches) -> torch.Tensor | None:
+        rows, near = [], []
         for row, i in enumerate(index):
             distance = np.hypot(all_params[:, 0] - all_params[i, 0], all_params[:, 1] - all_params[i, 1])
             # detections nearer than a quarter diameter laterally may be one particle twice (a
             # network's depth-shifted twin): neither is in the other's model (`_duplicates` settles them)
             same_line = distance < 0.25 * np.minimum(all_params[:, 3], all_params[i, 3])
-            near = np.flatnonzero((distance < reach) & present & ~same_line)
-            if near.size == 0:
-                continue
-            crowded = True
-            p = torch.as_tensor(all_params[near], dtype=torch.float64, device=device)
-            dx = patches.x_um[row : row + 1] - p[:, :1]
-            dy = patches.y_um[row : row + 1] - p[:, 1:2]
-            optics_kw = {"wavelength_um": optics.wavelength_um, "medium_index": settings.medium_index}
-            fields = sphere_fields(dx, dy, p[:, 2], p[:, 3], p[:, 4], p[:, 5], terms=terms, **optics_kw)
-            summed = tuple(f.sum(dim=0, keepdim=True) for f in fields)
-            # the neighbours' own hologram: each one's interference with the plane wave through
-            # its pixel transfer, plus the intensity of their summed field
-            single = holograms_from_fields(fields, dx, dy, p[:, 2], pixel_um=pixel, **optics_kw)
-            own_sq = sum(f.real**2 + f.imag**2 for f in fields)
-            total = (single - 1.0 - own_sq).sum(dim=0) + sum(f.real**2 + f.imag**2 for f in summed)[0]
-            out[0, row] = total * patches.mask[row]
-            for axis in range(3):
-                out[1 + axis, row] = summed[axis][0] * patches.mask[row]
-        return out if crowded else None  # a batch of particles alone: no cross terms to carry
+            found = np.flatnonzero((distance < reach) & present & ~same_line)
+            rows.append(np.full(found.size, row))
+            near.append(found)
+        rows, near = np.concatenate(rows).astype(np.int64), np.concatenate(near).astype(np.int64)
+        if rows.size == 0:
+            return None  # a batch of particles alone: no cross terms to carry
+        # every (patch, neighbour) pair in one batch of fields, summed per patch
+        row_t = torch.as_tensor(rows, device=device)
+        p = torch.as_tensor(all_params[near], dtype=torch.float64, device=device)
+        dx = patches.x_um[row_t] - p[:, :1]
+        dy = patches.y_um[row_t] - p[:, 1:2]
+        optics_kw = {"wavelength_um": optics.wavelength_um, "medium_index": settings.medium_index}
+        fields = sphere_fields(dx, dy, p[:, 2], p[:, 3], p[:, 4], p[:, 5], terms=terms, **optics_kw)
+        shape = tuple(patches.data.shape)
+        summed = [torch.zeros(shape, dtype=torch.complex128, device=device).index_add_(0, row_t, f) for f in fields]
+        # the neighbours' own hologram: each one's interference with the plane wave through
+        # its pixel transfer, plus the intensity of their summed field
+        single = holograms_from_fields(fields, dx, dy, p[:, 2], pixel_um=pixel, **optics_kw)
+        own_sq = sum(f.real**2 + f.imag**2 for f in fields)
+        total = torch.zeros(shape, dtype=torch.float64, device=device).index_add_(0, row_t, single - 1.0 - own_sq) + sum(f.real**2 + f.imag**2 for f in summed)
+        return torch.stack([total.to(torch.complex128)] + summed) * patches.mask[None]
 
     return others
 

@@ -98,11 +98,12 @@ _LM_RELATIVE = 1e-4
 def residual_inflation(residual: torch.Tensor, mask: torch.Tensor, shapes: list[tuple[int, int]]) -> torch.Tensor:
     """Variance inflation ``(1+ρx)/(1-ρx) · (1+ρy)/(1-ρy)`` from the residuals' lag-1 correlations (≥ 1)."""
     out = []
+    host = residual.cpu()  # one copy for the batch: the per-patch sums below then never wait for a device
     for i, (rows, cols) in enumerate(shapes):
         if rows < 3 or cols < 3:
             out.append(1.0)
             continue
-        r = residual[i, : rows * cols].reshape(rows, cols)
+        r = host[i, : rows * cols].reshape(rows, cols)
         r = r - r.mean()
         var = float((r * r).mean())
         if var <= 0:

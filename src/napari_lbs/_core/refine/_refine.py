@@ -88,6 +88,21 @@ def _duplicates(result: dict[str, np.ndarray]) -> np.ndarray:
     return duplicate
 
 
+def fit_batch(settings: RefineSettings, device: torch.device) -> int:
+    """Particles fitted together: ``settings.batch`` on the CPU, at least `DEVICE_BATCH` on a GPU.
+
+    A batch costs the same number of kernel launches and waits for the device whatever its
+    size, and a GPU runs one batch at a time, so there the particles go in as few batches as
+    fit; on the CPU, small batches split over worker processes keep every core busy.
+    """
+    return settings.batch if device.type == "cpu" else max(settings.batch, DEVICE_BATCH)
+
+
+# Particles per batch on a GPU: 128 patches of 128² pixels with the Jacobian's perturbed copies
+# hold a few GiB of complex128 fields.
+DEVICE_BATCH = 128
+
+
 def _kept(result: dict[str, np.ndarray], *, settings: RefineSettings) -> np.ndarray:
     """Detections kept: a fit that lowers the cost of the model without it by ``min_gain`` and is no other's duplicate; an unfitted one as it is."""
     return np.where(result["ok"], result["gain"] >= settings.min_gain, True) & ~_duplicates(result)
@@ -169,7 +184,8 @@ def refine_particles(
         axis = FIT_PARAMETERS.index(name)
         start[:, axis] = value * to_physical if name == "z_um" else value
         free[:, axis] = False
-    chunks = max(1, -(-count // settings.batch))
+    batch = fit_batch(settings, device)
+    chunks = max(1, -(-count // batch))
     steps = Steps(chunks * settings.rounds, progress=progress, should_stop=should_stop, heartbeat_s=HEARTBEAT_S)
     current = start.copy()
     result: dict[str, np.ndarray] = {}
@@ -189,7 +205,7 @@ def refine_particles(
             # enough for the largest sphere of the round's starts (a later round's fits may be larger
             # than any guess); a batch whose size search goes further sums more (`scattered_terms`)
             terms = scattered_terms(float(np.max(snapshot[:, 3])), wavelength_um=optics.wavelength_um, medium_index=settings.medium_index)
-            parts = -(-todo.size // settings.batch)
+            parts = -(-todo.size // batch)
             tasks = [FitTask(image=image, start=snapshot[index], free=free[index], anchor=start[index], neighbours=snapshot, present=present, index=index,
                              settings=settings, config=config, terms=terms, device=device.type, search=round_index == 0)
                      for index in (np.array_split(todo, parts) if parts else [])]

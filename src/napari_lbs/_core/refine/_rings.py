@@ -77,11 +77,13 @@ def symmetric_centres(residual: torch.Tensor, patches: Patches, guess_x: np.ndar
     twice.
     """
     out_x, out_y = guess_x.copy(), guess_y.copy()
+    # one copy to the host for the whole batch (the searches are numpy FFTs of each patch)
+    residual_host, x_first, y_first = residual.cpu().numpy(), patches.x_um[:, 0].cpu().numpy(), patches.y_um[:, 0].cpu().numpy()
     for i, (rows, cols) in enumerate(patches.shape):
         if rows < 8 or cols < 8:
             continue
-        image = residual[i, : rows * cols].reshape(rows, cols).cpu().numpy()
-        x0, y0 = float(patches.x_um[i, 0]) / pixel_um, float(patches.y_um[i, 0]) / pixel_um
+        image = residual_host[i, : rows * cols].reshape(rows, cols)
+        x0, y0 = float(x_first[i]) / pixel_um, float(y_first[i]) / pixel_um
         guess = np.array([guess_x[i] / pixel_um - x0, guess_y[i] / pixel_um - y0])
         centre = guess.copy()
         yy, xx = np.mgrid[0:rows, 0:cols].astype(float)
