@@ -357,6 +357,7 @@ class StepWidget(Container):
         self._started = 0.0
         self._marks: list[tuple[float, int]] = []  # (time, done) of each progress report: the ETA's throughput
         self._phases: Phases | None = None  # a job of several phases: one bar over them all
+        self._described = ""  # the phase napari's activity dock names
         self._budget: float | None = None
         self._counts = ""  # the last "done/total" reported
         self._result_message: str | None = None
@@ -524,6 +525,7 @@ class StepWidget(Container):
 
         weights = self.phase_weights(job)
         self._phases = Phases(weights, self._started) if weights else None
+        self._described = ""
 
         @thread_worker(connect={"returned": self.show, "errored": self._on_errored, "finished": self._on_finished}, start_thread=False)
         def run():
@@ -546,7 +548,6 @@ class StepWidget(Container):
         if phases is not None:
             if phase != phases.name:
                 phases.begin(phase, at)
-                bar.set_description(f"{self.title}: {phase}")
             if total:
                 phases.step(done, total, at)
             maximum, value = Phases.RESOLUTION, round(Phases.RESOLUTION * phases.fraction())
@@ -568,6 +569,11 @@ class StepWidget(Container):
         if not self._stop_requested.is_set():
             self._status.value = f"{self.title}: running"
         # Last: napari's progress may process events, and with them this job's end.
+        if phases is not None and phase != self._described:
+            self._described = phase
+            bar.set_description(f"{self.title}: {phase}")
+            if self._progress_bar is not bar:
+                return
         if bar.total != maximum:
             bar.total = maximum
         bar.update(value - bar.n)  # update() emits the value the activity dock shows
