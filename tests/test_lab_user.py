@@ -274,7 +274,10 @@ def test_training_names_why_it_ended(tmp_path, tiny_config):
     settings = TrainingSettings(epochs=50, batch_size=2, device="cpu", validation_groups=1, minutes=0.002)
     assert train_model(data, tmp_path / "a.pt", settings=settings).log["stop_reason"] == "time budget reached"
     settings = TrainingSettings(epochs=50, batch_size=2, device="cpu", validation_groups=1)
-    assert train_model(data, tmp_path / "b.pt", settings=settings, should_stop=lambda: True).log["stop_reason"] == "stopped by you"
+    validated = []  # stopped once an epoch is validated: a model to keep
+    stopped = train_model(data, tmp_path / "b.pt", settings=settings, report=lambda record: validated.append(record) if "validation" in record else None,
+                          should_stop=lambda: bool(validated))
+    assert stopped.log["stop_reason"] == "stopped by you"
 
 
 REFINED = ("index_contrast", "absorption", "z_err_um", "diameter_err_um", "index_err", "fit_residual", "refined")

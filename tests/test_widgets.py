@@ -206,6 +206,8 @@ def test_generate_train_predict_widgets_from_data_to_points(make_napari_viewer, 
 
 
 def test_training_widget_stop_keeps_a_model(make_napari_viewer, qtbot, tmp_path):
+    import time
+
     from napari_lbs._core import generate_dataset
 
     _, config = tiny_config_file(tmp_path / "c.toml")
@@ -217,9 +219,13 @@ def test_training_widget_stop_keeps_a_model(make_napari_viewer, qtbot, tmp_path)
     train.epochs.value = 500
     train.device.value = "cpu"
     train._run.clicked.emit()
-    qtbot.waitUntil(lambda: len(train._plot.batches) >= 1, timeout=60_000)
+    qtbot.waitUntil(lambda: len(train._plot.epochs) >= 1, timeout=TIMEOUT_MS)  # a validated model to keep
+    qtbot.wait(300)  # into the next epoch's batches
+    clicked = time.perf_counter()
     train._stop.clicked.emit()
     qtbot.waitUntil(lambda: train._worker is None, timeout=TIMEOUT_MS)
+    ended = time.perf_counter() - clicked
+    assert ended < 2.0, f"training ended {ended:.1f} s after Stop"  # 500 epochs were asked for
     assert train._run.enabled and (tmp_path / "m.pt").is_file() and train.result.stopped
 
 

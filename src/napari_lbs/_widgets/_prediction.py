@@ -166,8 +166,12 @@ class PredictionWidget(StepWidget):
         if layer is None or layer not in self._viewer.layers or not len(layer.data):
             return
         if self.colour_by.value in layer.features.columns:
+            values = np.asarray(layer.features[self.colour_by.value], float)
+            finite = values[np.isfinite(values)]
             layer.border_colormap = "viridis"
             layer.border_color = self.colour_by.value
+            if finite.size:  # this feature's range, not the one coloured by before
+                layer.border_contrast_limits = (float(finite.min()), float(finite.max()) if finite.max() > finite.min() else float(finite.min()) + 1.0)
         else:
             layer.border_color = self._match_colours
 
