@@ -21,7 +21,10 @@ from pathlib import Path
 
 import napari
 import numpy as np
+from qtpy.QtCore import QSettings
 from qtpy.QtWidgets import QApplication
+
+from napari_lbs._layers import show_every_depth
 
 FIGURES = Path(__file__).resolve().parents[1] / "docs" / "figures"
 TAB_FIGURES = ("widget_1_back-propagation", "widget_2_calibration", "widget_3_synthetic_data", "widget_4_training", "widget_5_prediction", "widget_6_gap_diagnosis")
@@ -137,9 +140,8 @@ def lab_user(viewer, work: Path, figures: Path) -> None:
         settle(0.2)
     viewer.layers.remove(f"{image.name} z-stack")
     particles = viewer.open(work / "camera-particles.csv", plugin="napari-lbs")[0]
-    particles.out_of_slice_display = True  # every particle, whatever its depth, over the 2-D hologram
+    show_every_depth(viewer, particles)  # every particle, whatever its depth, over the 2-D hologram
     particles.border_color, particles.border_width = "cyan", 0.12
-    viewer.dims.set_point(0, 2000.0)
     viewer.reset_view()
     settle(1.0)
     window.grab().save(str(figures / "user_file_aligned.png"))
@@ -168,6 +170,8 @@ def main() -> None:
     work = args.out or Path(tempfile.mkdtemp(prefix="lbs-screenshots-"))
     work.mkdir(parents=True, exist_ok=True)
     figures.mkdir(parents=True, exist_ok=True)
+    # the steps' remembered settings of this run only: the figures show the defaults, whatever was typed before
+    QSettings.setPath(QSettings.Format.NativeFormat, QSettings.Scope.UserScope, str(work / "settings"))
 
     viewer = napari.Viewer()
     window = viewer.window._qt_window

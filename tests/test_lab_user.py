@@ -540,7 +540,7 @@ def test_predicted_particles_are_all_shown_coloured_by_depth(make_napari_viewer)
     for z_um in (1800.0, 3300.0, 4800.0):  # whatever the plane shown
         viewer.dims.set_point(0, z_um)
         assert len(points._view_data) == 40
-    assert step.colour_by.value == "z_um"
+    assert step.colour_by.value == "z_um" and viewer.dims.axis_labels[0] == "z"  # the slider is labelled z, not -3
     colours = np.asarray(points.border_color)
     assert len(np.unique(colours.round(3), axis=0)) > 10  # a colour per depth
 

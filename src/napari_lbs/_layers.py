@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["UNITS", "PlaneGrid", "frame_points", "particle_points", "points_table", "prefer_particle_writer", "recording_image", "track_lines"]
+__all__ = ["UNITS", "PlaneGrid", "frame_points", "particle_points", "points_table", "prefer_particle_writer", "recording_image", "show_every_depth", "track_lines"]
 
 UNITS = "µm"
 
@@ -81,8 +81,9 @@ def particle_points(table: dict, grid: PlaneGrid) -> tuple[np.ndarray, dict]:
     data : (n, 3) array
         ``(plane index, row, col)``, fractional.
     keywords : dict
-        ``scale``, ``translate``, ``units``, ``features`` (``diameter_um``, ``z_um``,
-        ``score``, then the further columns), ``size`` (the diameter in pixels) and ``face_color``.
+        ``scale``, ``translate``, ``units``, ``axis_labels`` (z, y, x), ``features``
+        (``diameter_um``, ``z_um``, ``score``, then the further columns), ``size`` (the
+        diameter in pixels) and ``face_color``.
     """
     count = len(np.asarray(table["x_um"]))
     world = np.stack([np.asarray(table[c], float) for c in ("z_um", "y_um", "x_um")], axis=1) if count else np.zeros((0, 3))
@@ -97,6 +98,7 @@ def particle_points(table: dict, grid: PlaneGrid) -> tuple[np.ndarray, dict]:
         "scale": grid.scale,
         "translate": grid.translate,
         "units": UNITS,
+        "axis_labels": ("z", "y", "x"),  # napari's slider is then labelled z (not -3)
         "features": features,
         "size": diameter / grid.pixel_um if count else 10.0,
         "face_color": "transparent",
@@ -107,6 +109,27 @@ def particle_points(table: dict, grid: PlaneGrid) -> tuple[np.ndarray, dict]:
 def _recording_keywords(grid: PlaneGrid) -> dict:
     """The ``(frame, plane, row, col)`` axes of a recording's layers: scale, translate, units, labels."""
     return {"scale": (1.0, *grid.scale), "translate": (0.0, *grid.translate), "units": ("", UNITS, UNITS, UNITS), "axis_labels": ("frame", "z", "y", "x")}
+
+
+def show_every_depth(viewer, layer) -> None:
+    """Draw every particle of a Points ``layer`` whatever the plane the viewer shows.
+
+    The layer projects all its points in the slice (``projection_mode="all"``) and the
+    viewer's slice along the layer's depth axis is made twice as thick as the particles'
+    depth range, so every particle is in it wherever the slider stands; the slider is put
+    on the particles' middle depth when it stands outside them. Setting the layer's
+    projection mode back to ``"none"`` shows the particles of the plane shown only.
+    """
+    if not len(layer.data):
+        return
+    axis = viewer.dims.ndim - 3  # the particles' (z, y, x) are the viewer's last three axes
+    low, high = layer.extent.world[:, -3]
+    layer.projection_mode = "all"
+    thickness = list(viewer.dims.thickness)
+    thickness[axis] = max(thickness[axis], 2 * (high - low) + layer.scale[-3])
+    viewer.dims.thickness = tuple(thickness)
+    if not low <= viewer.dims.point[axis] <= high:
+        viewer.dims.set_point(axis, (low + high) / 2)
 
 
 def recording_image(frames, grid: PlaneGrid, *, planes: int) -> tuple[object, dict]:

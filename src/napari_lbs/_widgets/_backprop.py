@@ -61,6 +61,7 @@ class BackpropWidget(StepWidget):
             scale=grid.scale,
             translate=grid.translate,
             units=UNITS,
+            axis_labels=("z", "y", "x"),
             metadata={"z_um": list(z_um), "config": config.to_dict(), "source": name, "lazy": not isinstance(stack, np.ndarray)},
         )
         self.done(f"{len(z_um)} planes {z_um[0]:g}–{z_um[-1]:g} µm")

@@ -11,7 +11,7 @@ from magicgui.widgets import CheckBox, ComboBox, LineEdit, create_widget
 from napari_lbs._core import InputError, load_model, match_particles, predict_particles, read_particles, score_particles
 from napari_lbs._core.refine import MATERIAL_SIGMAS, MATERIAL_TOLERANCE
 from napari_lbs._core.pipeline import refined_prediction
-from napari_lbs._layers import PlaneGrid, particle_points
+from napari_lbs._layers import PlaneGrid, particle_points, show_every_depth
 from napari_lbs._widgets._backprop import HOLOGRAM_TOOLTIP
 from napari_lbs._widgets._base import StepWidget, chosen, config_problem, doc_of, hologram_data, hologram_problem, missing, model_config, model_problem, path_edit
 from napari_lbs._widgets._plots import SizeIndexPlot
@@ -135,24 +135,13 @@ class PredictionWidget(StepWidget):
             metadata["metrics"] = metrics
             message += f"; ER {100 * metrics['er']:.1f} %, JI {metrics['ji']:.3f} (one-to-one)"
         # every particle drawn over the hologram whatever the plane shown, its rim coloured by its depth (with a truth CSV: by its match)
-        self._points = self._viewer.add_points(data, **keywords, border_color=colours if len(data) else "cyan", border_width=0.15, name=f"{name} particles", metadata=metadata,
-                                               projection_mode="all")
-        self._show_all_depths(self._points)
+        self._points = self._viewer.add_points(data, **keywords, border_color=colours if len(data) else "cyan", border_width=0.15, name=f"{name} particles", metadata=metadata)
+        show_every_depth(self._viewer, self._points)
         self._match_colours = colours
         self.colour_by.reset_choices()
         self.colour_by.value = _MATCH if reference is not None or not len(data) else "z_um"
         self._recolour()
         self.done(message)
-
-    def _show_all_depths(self, layer) -> None:
-        """Make the depth axis's slice as thick as the particles' depth range, twice over, so a layer projecting all points (``projection_mode="all"``) shows all of them at any plane."""
-        if not len(layer.data):
-            return
-        axis = self._viewer.dims.ndim - 3  # the particles' (z, y, x) are the viewer's last three axes
-        low, high = layer.extent.world[:, 0]
-        thickness = list(self._viewer.dims.thickness)
-        thickness[axis] = max(thickness[axis], 2 * (high - low) + layer.scale[0])
-        self._viewer.dims.thickness = tuple(thickness)
 
     def _colour_choices(self, *_) -> list[str]:
         """match, then the last result's numeric features."""
