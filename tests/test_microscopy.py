@@ -66,7 +66,7 @@ def test_backprop_takes_a_microscope_config_and_a_background(tmp_path):
 def test_refine_fits_the_built_in_example_with_no_training(tmp_path):
     out = tmp_path / "fit.csv"
     argv = ["refine", str(EXAMPLE["_hologram.tif"]), "--config", str(EXAMPLE[".toml"]), "--background", str(EXAMPLE["_background.tif"]),
-            "--dark", str(EXAMPLE["_dark.tif"]), "--max-particles", "1", "--out", str(out)]
+            "--dark", str(EXAMPLE["_dark.tif"]), "--max-particles", "1", "--patch-um", "12.8", "--out", str(out)]
     assert main(argv) == 0
     fit, truth = read_particles(out), read_particles(EXAMPLE["_truth.csv"])
     assert fit["x_um"].size == 1 and bool(fit["refined"][0])
@@ -101,3 +101,15 @@ def test_the_fit_bins_only_pixels_finer_than_the_fringes_need():
     assert fringe_binning(ExperimentConfig(), medium_index=1.33) == 1  # a lensless sensor's 2.2 µm
     assert fringe_binning(MICROSCOPE, medium_index=1.33) == 2  # 0.0851 µm: 0.17 µm still samples n/λ
     assert fringe_binning(MICROSCOPE, medium_index=1.0) == 3
+
+
+def test_simulate_and_generate_take_a_microscope_config(tmp_path):
+    config = tmp_path / "tiny.toml"
+    config.write_text(EXAMPLE[".toml"].read_text(encoding="utf-8").replace("size = 256", "size = 32"), encoding="utf-8")
+    assert main(["simulate", "--config", str(config), "--out", str(tmp_path / "sim"), "--size", "48", "--particles", "2", "--seed", "1"]) == 0
+    truth = read_particles(tmp_path / "sim" / "particles.csv")
+    assert truth["x_um"].size == 2 and np.all((truth["z_um"] >= 5.0) & (truth["z_um"] <= 45.0)) and np.all(truth["diameter_um"] <= 3.0)
+    assert np.all(truth["x_um"] < 48 * 0.1)  # positions in µm at the sample's 0.1 µm pitch
+    assert main(["generate", "--config", str(config), "--out", str(tmp_path / "data"), "--groups", "2", "--seed", "0"]) == 0
+    spec = json.loads((tmp_path / "data" / "dataset.json").read_text())
+    assert spec["config"]["optics"]["magnification"] == 60.0 and spec["config"]["volume"]["z_step_um"] == 0.5

@@ -46,6 +46,10 @@ class RefineRequest:
     depth_window_um : float, optional
         Depths each fit scans on both sides of its guess (µm, the config's convention);
         default a quarter of the config's depth range, at most `RefineSettings`'s.
+    patch_um : float, optional
+        Largest patch edge (µm); default `RefineSettings.patch_px` pixels of the pitch the fit
+        sees (the binned one, `fringe_binning`): the same count of pixels, each sampling the
+        fringes as finely as they need.
     workers : int
         Fitting processes (`RefineSettings.workers`).
     replace : bool
@@ -63,6 +67,7 @@ class RefineRequest:
     medium_index: float = 1.33
     max_particles: int = 64
     depth_window_um: float | None = None
+    patch_um: float | None = None
     workers: int = 1
     replace: bool = False
     source: str | None = None
@@ -118,7 +123,8 @@ def refine_hologram(hologram: np.ndarray, config: ExperimentConfig, *, guesses=N
 
     Where the pitch is finer than half the medium wavelength, the hologram is first binned
     (`fringe_binning`): the fit sees every propagating fringe on a fraction of the pixels,
-    each binned pixel integrating its area as the model's pixels do. Positions are reported in the
+    each binned pixel integrating its area as the model's pixels do, and its patches of
+    `RefineSettings.patch_px` pixels reach as many times farther. Positions are reported in the
     hologram's own coordinates (pixel ``(r, c)`` at ``(c, r) × pixel_um``).
 
     Parameters
@@ -129,11 +135,8 @@ def refine_hologram(hologram: np.ndarray, config: ExperimentConfig, *, guesses=N
     guesses : pandas.DataFrame or dict of arrays, optional
         Starting guesses (``x_um, y_um, z_um, diameter_um`` at least; ``index_contrast``
         where known); default `find_particles`' in the (binned) hologram.
-    index_contrast, medium_index, max_particles, depth_window_um, workers
+    index_contrast, medium_index, max_particles, depth_window_um, patch_um, workers
         As `RefineRequest`'s.
-    patch_um : float, optional
-        Largest patch edge (µm); default `RefineSettings.patch_px` pixels of the hologram's
-        own pitch (the same area whether binned or not).
     progress, should_stop
         One step per depth searched (without ``guesses``), then one per fitted batch;
         `Stopped` when asked.
@@ -153,7 +156,7 @@ def refine_hologram(hologram: np.ndarray, config: ExperimentConfig, *, guesses=N
     volume = config.volume
     window = depth_window_um if depth_window_um is not None else min(RefineSettings().depth_window_um, 0.25 * (volume.z_max_um - volume.z_min_um))
     factor = fringe_binning(config, medium_index=medium_index)
-    patch_px = RefineSettings().patch_px // factor if patch_um is None else int(round(patch_um / (factor * config.optics.pixel_um)))
+    patch_px = RefineSettings().patch_px if patch_um is None else int(round(patch_um / (factor * config.optics.pixel_um)))
     if patch_px < 16:
         raise InputError(f"patch_um: expected a patch of at least 16 pixels of {factor * config.optics.pixel_um:g} µm, got {patch_um!r} µm")
     settings = RefineSettings(medium_index=medium_index, index_contrast=index_contrast, depth_window_um=window, patch_px=patch_px, workers=workers)
@@ -210,7 +213,7 @@ def refine(request: RefineRequest, *, progress: ProgressCallback | None = None, 
     normalised = _normalised(hologram, background, dark)
     started = time.perf_counter()
     table, find = refine_hologram(normalised, request.config, index_contrast=request.index_contrast, medium_index=request.medium_index,
-                                  max_particles=request.max_particles, depth_window_um=request.depth_window_um, workers=request.workers,
+                                  max_particles=request.max_particles, depth_window_um=request.depth_window_um, patch_um=request.patch_um, workers=request.workers,
                                   progress=progress, should_stop=should_stop)
     seconds = time.perf_counter() - started
     record = {**provenance(request.config, source=source, background_file=request.background_path and str(request.background_path),
