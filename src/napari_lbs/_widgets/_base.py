@@ -209,6 +209,8 @@ def time_left(marks: list[tuple[float, int]], total: int) -> float | None:
     does not; the share of the elapsed time keeps a long job's estimate from jumping with a few
     slow or quick steps (training's validation batches).
     """
+    if len(marks) < 2:
+        return None
     start = len(marks) - 1 - _RECENT_STEPS
     horizon = marks[-1][0] - _RECENT_SHARE * (marks[-1][0] - marks[0][0])
     while start > 0 and marks[start][0] > horizon:
