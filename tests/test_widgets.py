@@ -315,6 +315,7 @@ def test_batch_widget_turns_a_recording_into_points_over_time_and_tracks_and_sto
     assert points.metadata["provenance"]["model_sha256"] == detector.sha256 and points.metadata["provenance"]["background"] == "auto"
     assert tracks.metadata["linking"] == {"search_range_um": 10.0, "axial_search_range_um": None, "memory": 1}
     assert "4 frames" in widget._status.value and "tracks" in widget._status.value
+    assert widget._timing.value.startswith("tracks 4/4") and widget._bar.value == widget._bar.max  # its last phase, linking frame by frame, named
 
     layers = len(viewer.layers)
     widget._run.clicked.emit()
