@@ -544,13 +544,14 @@ def train_model(
     deadline = start + 60.0 * settings.minutes if settings.minutes else math.inf
     batch_seconds = 0.0  # the training loop with its sample assembly, for the throughput figure (validation excluded)
 
-    def finish_epoch(epoch: int, losses: list[float]) -> bool:
+    def finish_epoch(epoch: int, losses: list[float], train_seconds: float) -> bool:
         """Validate, keep the model if it is the best, log the epoch; False when a stop ended the validation (nothing recorded)."""
         nonlocal best_score
         validation_metrics = formulation.validate(network, validation, steps.stop_requested)
         if validation_metrics is None:
             return False
-        record = {"epoch": epoch, "train_loss": float(np.mean(losses)) if losses else None, "validation": validation_metrics, "seconds": round(time.perf_counter() - start, 2)}
+        record = {"epoch": epoch, "train_loss": float(np.mean(losses)) if losses else None, "validation": validation_metrics, "seconds": round(time.perf_counter() - start, 2),
+                  "train_seconds": round(train_seconds, 3)}
         log["epochs"].append(record)
         score = (validation_metrics["ji"], validation_metrics["er"])
         if score > best_score or log["best"] is None:
@@ -605,7 +606,8 @@ def train_model(
                 flush()
                 flushed = time.perf_counter()
         flush()
-        batch_seconds += time.perf_counter() - epoch_start
+        epoch_seconds = time.perf_counter() - epoch_start
+        batch_seconds += epoch_seconds
         if stopped:
             if steps.stop_requested():
                 # a user's stop: no validation of a part epoch (it would take a validation pass's
@@ -613,14 +615,15 @@ def train_model(
                 break
             # the budget's part epoch is validated like any (the best model may be the latest)
             if losses:
-                finish_epoch(epoch, losses)
+                finish_epoch(epoch, losses, epoch_seconds)
             break
         if not settings.validate_last or epoch > settings.epochs - settings.validate_last:
-            if not finish_epoch(epoch, losses):
+            if not finish_epoch(epoch, losses, epoch_seconds):
                 stopped, log["stop_reason"] = True, "stopped by you"
                 break
         else:
-            record = {"epoch": epoch, "train_loss": float(np.mean(losses)) if losses else None, "seconds": round(time.perf_counter() - start, 2)}
+            record = {"epoch": epoch, "train_loss": float(np.mean(losses)) if losses else None, "seconds": round(time.perf_counter() - start, 2),
+                      "train_seconds": round(epoch_seconds, 3)}
             log["epochs"].append(record)
             if report is not None:
                 report(record)

@@ -70,7 +70,9 @@ def levenberg_marquardt(model: Model, params: torch.Tensor, free: torch.Tensor, 
         lam = damping[active]
         for _attempt in range(4):
             system = normal[rows] + torch.diag_embed(lam[rows, None] * torch.where(f[rows], diagonal[rows], torch.zeros_like(diagonal[rows])))
-            delta = torch.linalg.solve(system, gradient[rows, :, None])[:, :, 0]
+            # solve_ex: no check of the result on the host (a wait for the device); a singular
+            # system gives a non-finite step, whose cost no patch accepts
+            delta = torch.linalg.solve_ex(system, gradient[rows, :, None])[0][:, :, 0]
             trial = clamp(p[rows] + delta * freef[rows], low[active][rows], high[active][rows])
             subset = sub if rows.numel() == active.numel() else sub.select(rows)
             _, trial_cost = huber(data[rows] - subset(trial), s[rows], mask[rows], settings.huber)
@@ -130,7 +132,7 @@ def flat_model(patches: Patches, others: torch.Tensor | None = None) -> tuple[to
     normal = basis.transpose(1, 2) @ basis
     empty = torch.diagonal(normal, dim1=1, dim2=2) == 0.0  # a column no pixel reaches: held at 0
     normal = normal + torch.diag_embed(empty.to(normal.dtype))
-    solution = torch.linalg.solve(normal, basis.transpose(1, 2) @ (patches.data * patches.mask)[:, :, None])
+    solution = torch.linalg.solve_ex(normal, basis.transpose(1, 2) @ (patches.data * patches.mask)[:, :, None])[0]
     residual = (patches.data - (basis @ solution)[:, :, 0]) * patches.mask
     return residual, robust_scale(residual, patches.mask), (plane @ solution)[:, :, 0]
 

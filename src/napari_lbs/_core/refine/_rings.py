@@ -238,7 +238,7 @@ def _ring_fit(rings: Rings, start: torch.Tensor, free: torch.Tensor, kappa: torc
         normal = normal + torch.diag_embed(torch.where(free, _RING_DAMPING * diagonal, torch.ones_like(diagonal)))
         # Gauss–Newton on the envelope, every step taken (the ripple would reject good ones),
         # each at most a few secant widths; the best point visited is kept
-        delta = torch.linalg.solve(normal, gradient[:, :, None])[:, :, 0] * freef
+        delta = torch.linalg.solve_ex(normal, gradient[:, :, None])[0][:, :, 0] * freef  # no host check (`levenberg_marquardt`)
         reach = _RING_REACH * steps
         reach[:, 0] = depth_reach_um
         delta = torch.maximum(torch.minimum(delta, reach), -reach)
