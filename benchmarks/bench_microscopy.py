@@ -6,8 +6,9 @@ focal plane; the radius is one of 0.5, 1, 2, 5 µm (within ±10 %) and the index
 ``n_p - n_m`` uniform in 0.05–0.3. The hologram is pylorenzmie's (an independent
 implementation; its partial-wave sum carried 40 orders further, as `benchmarks/pseudoreal.py`
 does), each pixel the mean of 2 × 2 point samples, times an off-centre Gaussian illumination,
-recorded by a 12-bit camera (3000 photo-electrons at the unobstructed light, Poisson noise,
-3 counts of read noise, a dark offset of 100 counts) and divided by a background frame (the
+recorded by a camera (3000 photo-electrons at the unobstructed light, Poisson noise,
+3 counts of read noise, a dark offset of 100 counts; 16-bit counts, or with ``--bits 12`` a
+full scale of 4095 at which the brightest focal spots saturate) and divided by a background frame (the
 same illumination, its own noise) after the dark offset is taken off — what
 ``napari-lbs refine --background --dark`` does. The cases are laid side by side in one frame,
 each in its own 400² cell (34 µm: a cell holds one sphere's hologram only, and the fits'
@@ -30,8 +31,9 @@ Reported: median |Δd|/d, |Δ(n_p - n_m)|, |Δz|, the fraction within twice the 
 standard deviation per parameter, and seconds per particle of the fit, wall and core (user +
 system CPU of the process; one process on this machine's threads; the load average is logged).
 
-    python benchmarks/bench_microscopy.py --set dev --out benchmarks/results/microscopy/dev_2026-11-27.json
-    python benchmarks/bench_microscopy.py --set frozen --out benchmarks/results/microscopy/frozen_2026-11-27.json
+    python benchmarks/bench_microscopy.py --set dev --out benchmarks/results/microscopy/dev_16bit_2026-11-27.json
+    python benchmarks/bench_microscopy.py --set frozen --out benchmarks/results/microscopy/frozen_16bit_2026-11-27.json
+    python benchmarks/bench_microscopy.py --set frozen --bits 12 --out benchmarks/results/microscopy/frozen_2026-11-27.json
 """
 
 from __future__ import annotations
@@ -104,7 +106,7 @@ def pylorenzmie_intensity(case: dict) -> np.ndarray:
     return np.asarray(hologram, dtype=np.float64).reshape(CELL, s, CELL, s).mean(axis=(1, 3))
 
 
-def mosaic(cases: list[dict], rng: np.random.Generator) -> tuple[np.ndarray, int]:
+def mosaic(cases: list[dict], rng: np.random.Generator, *, bits: int = 16) -> tuple[np.ndarray, int]:
     """The normalised frame of every case's cell, as `refine --background --dark` sees it, and the cells per row."""
     per_row = int(np.ceil(np.sqrt(len(cases))))
     rows = -(-len(cases) // per_row)
@@ -117,13 +119,13 @@ def mosaic(cases: list[dict], rng: np.random.Generator) -> tuple[np.ndarray, int
 
     def camera(light: np.ndarray) -> np.ndarray:
         counts = rng.poisson(3000.0 * light) + rng.normal(100.0, 3.0, light.shape)
-        return np.clip(np.round(counts), 0, 4095)
+        return np.clip(np.round(counts), 0, 2**bits - 1)
 
     hologram, background = camera(intensity * beam), camera(beam)
     return (hologram - 100.0) / (background - 100.0), per_row
 
 
-def run(which: str, *, patch_um: float | None = None) -> dict:
+def run(which: str, *, patch_um: float | None = None, bits: int = 16) -> dict:
     import pandas as pd
     import torch
 
@@ -133,7 +135,7 @@ def run(which: str, *, patch_um: float | None = None) -> dict:
     cases = cases_of(which)
     load_before = os.getloadavg()
     started = time.perf_counter()
-    frame, per_row = mosaic(cases, np.random.default_rng(SEEDS[which] + 100))
+    frame, per_row = mosaic(cases, np.random.default_rng(SEEDS[which] + 100), bits=bits)
     render_s = time.perf_counter() - started
     offsets = [(divmod(i, per_row)[1] * CELL * PIXEL_UM, divmod(i, per_row)[0] * CELL * PIXEL_UM) for i in range(len(cases))]
     guesses = pd.DataFrame([{name: case["start"][name] + (dx if name == "x_um" else dy if name == "y_um" else 0.0)
@@ -166,7 +168,7 @@ def run(which: str, *, patch_um: float | None = None) -> dict:
                           "median_z_um": float(np.median(np.abs(g["z_err"])))} for r, g in frame_rows.groupby("radius_class_um")}
     return {"set": which, "summary": summary, "per_radius": per_class, "targets": TARGETS, "particles": rows, "render_s": render_s, "fit_s": fit_s,
             "threads": torch.get_num_threads(), "load_before": load_before, "load_after": os.getloadavg(),
-            "setup": {"wavelength_um": WAVELENGTH_UM, "pixel_um": PIXEL_UM, "n_medium": N_MEDIUM, "cell_px": CELL, "supersample": SUPERSAMPLE,
+            "setup": {"wavelength_um": WAVELENGTH_UM, "pixel_um": PIXEL_UM, "n_medium": N_MEDIUM, "cell_px": CELL, "supersample": SUPERSAMPLE, "bits": bits,
                       "radii_um": RADII_UM, "per_radius": PER_RADIUS, "fit": record}}
 
 
@@ -175,8 +177,9 @@ def main() -> None:
     parser.add_argument("--set", choices=("dev", "frozen"), default="dev")
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--patch-um", type=float, help="largest patch edge (µm; default the refine command's)")
+    parser.add_argument("--bits", type=int, choices=(12, 16), default=16, help="the camera's counts (12: the brightest focal spots saturate)")
     args = parser.parse_args()
-    result = run(args.set, patch_um=args.patch_um)
+    result = run(args.set, patch_um=args.patch_um, bits=args.bits)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1, default=float) + "\n")
     print(json.dumps({"summary": result["summary"], "per_radius": result["per_radius"], "load": [result["load_before"], result["load_after"]]}, indent=1))

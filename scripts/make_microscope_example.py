@@ -6,8 +6,8 @@ Four polystyrene spheres (index contrast 0.26) of 0.8–3 µm diameter in water,
 the focal plane, seen through a 60× objective on a camera of 6 µm pixels (0.1 µm at the
 sample), 660 nm: 256² pixels. The hologram is the project's own Lorenz–Mie model
 (`particle_hologram`: every sphere's field added coherently, each pixel integrating its area)
-times a Gaussian illumination, recorded as 12-bit camera counts with photon and read noise
-and a dark offset; a background frame (the same illumination, other noise) and a dark frame
+times a Gaussian illumination, recorded as 16-bit camera counts with photon and read noise
+and a dark offset (none saturates: the brightest focal spot reaches twice the unobstructed light); a background frame (the same illumination, other noise) and a dark frame
 go with it. Writes, deterministically (one seed):
 
 - ``microscope_example.toml``: the config (camera pitch and magnification);
@@ -75,7 +75,7 @@ def make(out: Path) -> None:
 
     def camera(intensity: np.ndarray) -> np.ndarray:
         electrons = rng.poisson(FULL_WELL * intensity) + rng.normal(DARK, READ_NOISE, SHAPE)
-        return np.clip(np.round(electrons), 0, 4095).astype(np.uint16)
+        return np.clip(np.round(electrons), 0, 65535).astype(np.uint16)
 
     import tifffile
 

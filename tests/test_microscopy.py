@@ -113,3 +113,15 @@ def test_simulate_and_generate_take_a_microscope_config(tmp_path):
     assert main(["generate", "--config", str(config), "--out", str(tmp_path / "data"), "--groups", "2", "--seed", "0"]) == 0
     spec = json.loads((tmp_path / "data" / "dataset.json").read_text())
     assert spec["config"]["optics"]["magnification"] == 60.0 and spec["config"]["volume"]["z_step_um"] == 0.5
+
+
+def test_refine_says_when_the_camera_may_have_saturated(tmp_path):
+    from napari_lbs._core.pipeline import RefineRequest, refine
+
+    frame = 1000.0 + 30.0 * np.random.default_rng(3).standard_normal((48, 48))
+    lines = []
+    for image, name in ((frame, "free"), (np.minimum(frame, np.quantile(frame, 0.98)), "clipped")):  # a clipped camera: a plateau at the maximum
+        refine(RefineRequest(image, tmp_path / f"{name}.csv", load_config(EXAMPLE[".toml"])), log=lines.append)
+    assert len(lines) == 1 and "pixels at the frame's maximum" in lines[0]
+    assert json.loads((tmp_path / "free.json").read_text())["pixels_at_maximum"] == 1
+    assert json.loads((tmp_path / "clipped.json").read_text())["pixels_at_maximum"] >= 40

@@ -20,6 +20,10 @@ from napari_lbs._core.pipeline._common import Log, StepResult, _background, _hol
 
 __all__ = ["RefineRequest", "fringe_binning", "refine", "refine_hologram"]
 
+# A camera's clipped focal spot shows as a plateau at the frame's maximum; a measured frame's
+# maximum is otherwise reached by a pixel or two. Clipping biases the fit (docs/microscopy.md).
+_SATURATED_PIXELS = 5
+
 
 @dataclass(frozen=True)
 class RefineRequest:
@@ -208,6 +212,10 @@ def refine(request: RefineRequest, *, progress: ProgressCallback | None = None, 
     out, record_path = _refine_outputs(request)
     source = str(request.inputs) if isinstance(request.inputs, (str, Path)) else _source("array", request.source)
     hologram = _hologram(request.inputs, log=log)
+    top = float(np.max(hologram))
+    at_top = int(np.count_nonzero(hologram >= top))
+    if at_top >= _SATURATED_PIXELS:
+        log(f"{source}: {at_top} pixels at the frame's maximum ({top:g}): if the camera saturated there, the fits through those pixels are biased")
     background = _background(request.background_path, hologram.shape, log=log)
     dark = _background(request.dark_path, hologram.shape, log=log)
     normalised = _normalised(hologram, background, dark)
@@ -217,7 +225,7 @@ def refine(request: RefineRequest, *, progress: ProgressCallback | None = None, 
                                   progress=progress, should_stop=should_stop)
     seconds = time.perf_counter() - started
     record = {**provenance(request.config, source=source, background_file=request.background_path and str(request.background_path),
-                           dark_file=request.dark_path and str(request.dark_path)), "find": find, "seconds": seconds, "particles": str(out)}
+                           dark_file=request.dark_path and str(request.dark_path)), "find": find, "pixels_at_maximum": at_top, "seconds": seconds, "particles": str(out)}
     write_particles(out, table, metadata=record)
     write_json(record_path, record)
     return StepResult(f"refined {find['kept']} of {find['detections']} detections in {source} in {seconds:.1f} s -> {out} (provenance: {record_path})",

@@ -78,7 +78,11 @@ def check_fixed(fixed: Mapping[str, float] | None) -> dict[str, float]:
 
 
 def patch_edge(z_um: float, *, settings: RefineSettings, wavelength_um: float, pixel_um: float) -> int:
-    """Patch edge (px): the disc of fringes below the Nyquist frequency, at most ``patch_px``."""
+    """Patch edge (px): the disc of fringes below the Nyquist frequency, at most ``patch_px``.
+
+    At a pitch of ``λ/(2n)`` or finer (a microscope's, binned or not) every propagating
+    fringe is sampled, the disc reaches grazing angles, and the edge is ``patch_px``.
+    """
     sin_nyquist = min(wavelength_um / settings.medium_index / (2.0 * pixel_um), 0.99)
     radius_px = z_um * sin_nyquist / math.sqrt(1.0 - sin_nyquist**2) / pixel_um
     return int(max(16, min(settings.patch_px, 2 * round(radius_px))))
