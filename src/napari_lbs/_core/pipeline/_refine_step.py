@@ -98,8 +98,8 @@ def _normalised(hologram: np.ndarray, background: np.ndarray | None, dark: np.nd
 def fringe_binning(config: ExperimentConfig, *, medium_index: float) -> int:
     """Pixels binned per side for the fit: as many as keep the pitch within half the medium wavelength.
 
-    The fringes at the sensor hold no spatial frequency above ``n/λ`` (the light that reaches
-    it propagates), so a pitch up to ``λ/(2n)`` samples them all: a microscope's pitch at the
+    The fringes of the scattered light with the beam hold no spatial frequency above ``n/λ``
+    (only propagating light reaches the camera), so a pitch up to ``λ/(2n)`` samples them all: a microscope's pitch at the
     sample (0.0851 µm behind 85× in water, λ/(2n) = 0.248 µm) is binned by 2, which makes the
     same patch twice as wide for a quarter of the pixels. A lensless sensor's pitch is never
     binned (1).
