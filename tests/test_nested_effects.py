@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from napari_lbs._core.gap._heldout import TileSplit, model_probabilities, tile_spectra, whittle_loglik
-from napari_lbs._core.gap._nested import fit_frame, select_effects
+from napari_lbs._core.gap._levels import levels_test
+from napari_lbs._core.gap._nested import Scene, fit_frame, select_effects
 from napari_lbs._core.physics import sensor_image
 
 SIZE = 256
@@ -41,6 +42,45 @@ def test_the_effect_present_is_selected_and_nothing_else(effects, expected):
     if expected == ("sensor_blur",):
         fitted = [fit["sensor_blur.sigma_px"] for fit in selection.fits["sensor_blur"].params]
         assert all(abs(value - 1.2) < 0.15 for value in fitted)
+
+
+def _depth_scene() -> Scene:
+    """Two depth groups of ring patterns: shallow ones (1 mm) and deep ones (5 mm), on 2 µm pixels."""
+    groups = np.stack([_scene(seed) - 1.0 for seed in (0, 5)]).astype(np.float32)
+    return Scene(1.0 + groups.sum(axis=0), (1000.0, 5000.0), groups, 2.0)
+
+
+@pytest.mark.parametrize(("effect", "expected"), [("coherence", ("coherence",)), ("sensor_blur", ("sensor_blur",))])
+def test_a_source_size_blurs_by_depth_and_a_sensor_blurs_every_depth_alike(effect, expected):
+    """Coherence (σ = θ·z: 0.8 px shallow, 4 px deep) and sensor blur (1.5 px everywhere) are told apart by depth."""
+    scene = _depth_scene()
+    blurred = scene.coherent_blur(1.6) if effect == "coherence" else scene.image
+    effects = {"sensor_blur": {"sigma_px": 1.5}} if effect == "sensor_blur" else {}
+    noise = np.random.default_rng(3).standard_normal((SIZE, SIZE)).astype(np.float32)
+    image = sensor_image(blurred.astype(np.float32), {"contrast": 1.0, "sigma": 0.01, "gamma": 1.0}, effects, noise=noise).astype(np.float64)
+    data = image / image.mean()
+    selection = select_effects(data, scene, TileSplit.of(data.shape))
+    assert selection.chosen == expected
+    if effect == "coherence":
+        assert all(abs(fit["coherence.theta_mrad"] - 1.6) < 0.2 for fit in selection.fits["coherence"].params)
+
+
+def test_an_array_scene_has_no_depth_dependent_candidate():
+    data, scene = _frame({})
+    selection = select_effects(data, scene, TileSplit.of(data.shape))
+    assert "coherence" not in selection.steps[0]["gains"]
+
+
+@pytest.mark.parametrize(("step", "selected"), [(1, False), (8, True)])
+def test_the_converter_step_is_read_from_the_levels_used(step, selected):
+    """8-bit counts on a grid of 8 (a 5-bit converter) name quantization with its bits; every level used names nothing."""
+    rng = np.random.default_rng(0)
+    counts = (np.clip(np.round((150 + rng.normal(0, 2.0, (128, 128))) / step), 0, 255 // step) * step).astype(np.uint8)
+    result = levels_test(counts, floor_variance=(2.0 / 150) ** 2)
+    assert result["step_counts"] == step and result["selected"] is selected
+    if selected:
+        assert abs(result["params"]["bits"] - np.log2(255 / 8 + 1)) < 1e-9
+    assert not levels_test(counts.astype(np.float64) + 0.5, floor_variance=1e-4)["integer"]
 
 
 def test_a_wrong_effect_gains_nothing_held_out():
@@ -102,6 +142,21 @@ def test_a_frame_of_spheres_is_diagnosed_end_to_end_with_the_report_fields():
     report = json.loads(first.to_json())
     assert {"gap", "effects", "verdict", "posterior"} <= set(report)
     assert {"id", "shrink", "residual", "undecided", "catalog_explains"} <= set(report["verdict"])
-    assert {e["id"] for e in report["effects"]} == {"illumination", "sensor_blur", "parasitic_fringes", "particle_phase", "shot_noise"}
+    assert {e["id"] for e in report["effects"]} == {"illumination", "sensor_blur", "parasitic_fringes", "coherence", "particle_phase", "shot_noise", "quantization"}
+    levels = next(e for e in report["effects"] if e["id"] == "quantization")["levels"]
+    assert levels["integer"] is False  # a float frame holds no converter levels to read
     assert report["particle_optics"]["particles"] == 2 and abs(report["particle_optics"]["diameter_median_um"] - 25.0) < 2.0
     assert first.to_json() == second.to_json()
+
+
+def test_the_structured_share_of_white_noise_is_nothing_and_of_a_fringe_its_power():
+    """Pure white noise has no structured share (a floor bin by bin would call half of it structure); a fringe of twice its power has 2/3."""
+    from napari_lbs._core.gap._scene_diagnosis import _structure
+
+    split = TileSplit.of((SIZE, SIZE), grid=4)
+    rng = np.random.default_rng(0)
+    white = (rng.normal(0.0, 0.01, (SIZE, SIZE)), rng.normal(0.0, 0.01, (SIZE, SIZE)))
+    share, _, tiles, floor = _structure(white, split)
+    assert share < 0.03 and tiles.max() < 0.1 and abs(floor - 1e-4) < 1e-5
+    fringe = 0.02 * np.sin(np.arange(SIZE) / 7.0)[None, :]
+    assert abs(_structure(tuple(w + fringe for w in white), split)[0] - 2 / 3) < 0.05

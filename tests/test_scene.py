@@ -26,6 +26,23 @@ def test_one_sphere_is_its_lorenz_mie_hologram_inside_its_fringe_disc_and_light_
     assert np.max(np.abs(exact[~inside] - 1.0)) < 0.1  # what is left out: faint, aliased fringes
 
 
+def test_the_whole_reach_renders_the_aliased_rings_a_pixel_records():
+    """To 1 cycle per pixel the sphere is its pixel-integrated hologram over the whole frame; inside the Nyquist disc both reaches agree."""
+    shape = (300, 300)
+    x, y, z, d = 120.0 * PIXEL_UM, 150.0 * PIXEL_UM, 1500.0, 22.0
+    near, whole = (particle_hologram(shape, guess_table([(x, y, z, d)]), default_config(), reach_cycles_per_px=reach) for reach in (0.5, 1.0))
+    rows, cols = np.mgrid[0 : shape[0], 0 : shape[1]] * PIXEL_UM
+    exact = sphere_holograms(torch.tensor(cols.ravel() - x)[None], torch.tensor(rows.ravel() - y)[None], torch.tensor([z * WATER]), torch.tensor([d]),
+                             torch.tensor([0.26]), torch.tensor([0.0]), wavelength_um=WAVELENGTH_UM, medium_index=WATER, pixel_um=PIXEL_UM)[0].numpy().reshape(shape)
+    inside = near != 1.0
+    np.testing.assert_allclose(whole[inside], near[inside], rtol=0, atol=1e-9)
+    assert np.all(whole != 1.0)  # the far corner too
+    np.testing.assert_allclose(whole, exact, rtol=0, atol=1e-6)
+    for reach in (0.0, 1.5, float("nan")):
+        with pytest.raises(InputError, match="reach_cycles_per_px"):
+            particle_hologram(shape, guess_table([(x, y, z, d)]), default_config(), reach_cycles_per_px=reach)
+
+
 def test_overlapping_spheres_add_as_fields():
     table = guess_table([(60.0 * PIXEL_UM, 60.0 * PIXEL_UM, 900.0, 25.0), (70.0 * PIXEL_UM, 64.0 * PIXEL_UM, 1100.0, 20.0)])
     rendered = particle_hologram((120, 120), table, default_config(), settings=None)

@@ -69,9 +69,10 @@ def find_particles(hologram: np.ndarray, config: ExperimentConfig, *, max_partic
     spread = 1.4826 * float(np.median(np.abs(best - median))) or 1e-12
     from skimage.feature import peak_local_max
 
-    border = int(np.ceil(radius_px))
+    # a particle centred a few pixels inside the edge is as much the frame's as any (its rings
+    # are mostly in the frame): peaks are kept up to the last pixel but one
     peaks = peak_local_max(best, min_distance=max(int(round(2 * radius_px)), 1), threshold_abs=median + _PEAK_SPREADS * spread,
-                           num_peaks=max_particles, exclude_border=border)
+                           num_peaks=max_particles, exclude_border=1)
     rows, cols = (peaks[:, 0], peaks[:, 1]) if peaks.size else (np.empty(0, int), np.empty(0, int))
     return {
         "x_um": cols * optics.pixel_um,

@@ -11,9 +11,12 @@ response). Each effect adds its catalog parameters and is nothing at their neutr
 the baseline is nested in every model and a model with an effect in every model with one more.
 
 Effects of the mean: ``illumination`` (the beam's envelope: depth and centre),
-``sensor_blur`` (σ in pixels, blurring the light before the noise is added) and
+``sensor_blur`` (σ in pixels, blurring the light before the noise is added),
 ``parasitic_fringes`` (an etalon's straight fringe: amplitude, period, angle, started at the
-residual's strongest spectral peak). ``shot_noise`` changes the noise, not the mean: it is
+residual's strongest spectral peak) and ``coherence`` (a source of angular size θ: each
+particle's pattern blurred by σ = θ·z, so that deep particles lose their fine fringes and
+shallow ones keep them, where a sensor's blur takes the same from every depth; the scene's
+particles are rendered in depth groups for it, `Scene`). ``shot_noise`` changes the noise, not the mean: it is
 judged on the high-passed residual, whose variance grows with the light by ``1 / photons``.
 
 Parameters are fitted by least squares on the tiles of one colour (`TileSplit`), every other
@@ -25,7 +28,7 @@ gain (``z``: the gain over its tile-to-tile error), refits, and stops when no ef
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import ndimage, optimize
@@ -34,14 +37,54 @@ from napari_lbs._core.foundation import Stopped
 from napari_lbs._core.gap._heldout import TileSplit, model_probabilities, tile_spectra, whittle_loglik
 from napari_lbs._core.physics import EFFECTS, sensor_image
 
-__all__ = ["MEAN_EFFECTS", "FrameFit", "Selection", "fit_frame", "select_effects"]
+__all__ = ["MEAN_EFFECTS", "FrameFit", "Scene", "Selection", "fit_frame", "select_effects"]
 
 # the parameters each effect of the mean fits (the others of its catalog entry stay neutral)
 MEAN_EFFECTS = {
     "illumination": ("depth", "x0", "y0"),
     "sensor_blur": ("sigma_px",),
     "parasitic_fringes": ("amplitude", "period_px", "angle_rad"),
+    "coherence": ("theta_mrad",),
 }
+_BY_DEPTH = ("coherence",)  # effects that need the scene's depth groups
+
+
+@dataclass(frozen=True)
+class Scene:
+    """The hologram of the frame's fitted particles, whole and in depth groups.
+
+    Attributes
+    ----------
+    image : (rows, cols) array
+        Every particle rendered together (unobstructed light 1).
+    depths_um : tuple of float
+        Each group's mean depth (µm, the config's convention).
+    groups : (groups, rows, cols) array
+        Each group's particles rendered alone, less 1: what a depth-dependent effect acts on.
+    pixel_um : float
+        Pixel pitch (µm).
+    """
+
+    image: np.ndarray = field(repr=False)
+    depths_um: tuple[float, ...] = ()
+    groups: np.ndarray | None = field(default=None, repr=False)
+    pixel_um: float = 1.0
+
+    @classmethod
+    def of(cls, scene) -> "Scene":
+        """``scene`` as a `Scene`; an array is a scene without depth groups."""
+        return scene if isinstance(scene, Scene) else cls(np.asarray(scene, np.float64))
+
+    def coherent_blur(self, theta_mrad: float) -> np.ndarray:
+        """The scene with each depth group blurred by σ = θ·z (a source of angular size θ)."""
+        image = self.image.astype(np.float32)
+        if theta_mrad <= 0 or self.groups is None:
+            return image
+        image = image.copy()
+        for depth, group in zip(self.depths_um, self.groups, strict=True):
+            sigma_px = theta_mrad * 1e-3 * depth / self.pixel_um
+            image += ndimage.gaussian_filter(group, sigma_px) - group
+        return image
 _BASELINE = (("gain", 1.0, (0.2, 5.0)), ("contrast", 1.0, (0.0, 3.0)), ("gamma", 1.0, (0.3, 3.0)))
 _STEPS = 12  # least-squares steps per fit: the starts are the simpler model's optimum
 _HIGH_PASS_PX = 1.5  # the shot-noise test's high pass: the residual less its Gaussian blur of this σ
@@ -84,16 +127,18 @@ def _fringe_start(residual: np.ndarray) -> dict:
 def _starts(effect: str, residual: np.ndarray) -> dict:
     if effect == "parasitic_fringes":
         return _fringe_start(residual)
-    return {"illumination": {"depth": 0.1, "x0": 0.0, "y0": 0.0}, "sensor_blur": {"sigma_px": 0.6}}[effect]
+    return {"illumination": {"depth": 0.1, "x0": 0.0, "y0": 0.0}, "sensor_blur": {"sigma_px": 0.6}, "coherence": {"theta_mrad": 0.5}}[effect]
 
 
-def _mean(scene: np.ndarray, values: dict, effects: tuple[str, ...], zeros: np.ndarray) -> np.ndarray:
-    chosen = {e: {**EFFECTS[e].neutral, **{p: values[f"{e}.{p}"] for p in MEAN_EFFECTS[e]}} for e in effects}
+def _mean(scene: Scene, values: dict, effects: tuple[str, ...], zeros: np.ndarray) -> np.ndarray:
+    image = scene.coherent_blur(values["coherence.theta_mrad"]) if "coherence" in effects else scene.image
+    camera = [e for e in effects if e not in _BY_DEPTH]
+    chosen = {e: {**EFFECTS[e].neutral, **{p: values[f"{e}.{p}"] for p in MEAN_EFFECTS[e]}} for e in camera}
     baseline = {"contrast": values["contrast"], "sigma": 0.0, "gamma": values["gamma"]}
-    return values["gain"] * sensor_image(scene, baseline, chosen, noise=zeros).astype(np.float64)
+    return values["gain"] * sensor_image(image, baseline, chosen, noise=zeros).astype(np.float64)
 
 
-def _fit(data: np.ndarray, scene: np.ndarray, mask: np.ndarray, effects: tuple[str, ...], start: dict, zeros: np.ndarray) -> dict:
+def _fit(data: np.ndarray, scene: Scene, mask: np.ndarray, effects: tuple[str, ...], start: dict, zeros: np.ndarray) -> dict:
     names = [name for name, _, _ in _BASELINE] + [f"{e}.{p}" for e in effects for p in MEAN_EFFECTS[e]]
     bounds = {name: limits for name, _, limits in _BASELINE}
     bounds.update({f"{e}.{p}": EFFECTS[e].bounds[p] for e in effects for p in MEAN_EFFECTS[e]})
@@ -112,10 +157,14 @@ def _fit(data: np.ndarray, scene: np.ndarray, mask: np.ndarray, effects: tuple[s
     return dict(zip(names, (float(v) for v in result.x), strict=True))
 
 
-def fit_frame(data: np.ndarray, scene: np.ndarray, split: TileSplit, effects: tuple[str, ...], *, starts: tuple[dict, dict] | None = None) -> FrameFit:
-    """Fit ``effects`` (and the baseline) on each colour's tiles; the held-out log-likelihood of every tile."""
+def fit_frame(data: np.ndarray, scene, split: TileSplit, effects: tuple[str, ...], *, starts: tuple[dict, dict] | None = None) -> FrameFit:
+    """Fit ``effects`` (and the baseline) on each colour's tiles; the held-out log-likelihood of every tile.
+
+    ``scene``: a `Scene`, or the particles' hologram as an array (no depth-dependent effect then).
+    """
     zeros = np.zeros(data.shape, np.float32)
-    scene32 = scene.astype(np.float32)
+    scene = Scene.of(scene)
+    scene32 = replace(scene, image=scene.image.astype(np.float32))
     params, residuals, means, spectra = [], [], [], []
     for colour in (0, 1):
         start = {name: value for name, value, _ in _BASELINE}
@@ -123,7 +172,7 @@ def fit_frame(data: np.ndarray, scene: np.ndarray, split: TileSplit, effects: tu
             start.update(starts[colour])
         for effect in effects:
             if not all(f"{effect}.{p}" in start for p in MEAN_EFFECTS[effect]):
-                guess = _starts(effect, np.where(split.mask(colour), data - start["gain"] * scene, 0.0))
+                guess = _starts(effect, np.where(split.mask(colour), data - start["gain"] * scene.image, 0.0))
                 start.update({f"{effect}.{p}": v for p, v in guess.items()})
         fitted = _fit(data, scene32, split.mask(colour), effects, start, zeros)
         mean = _mean(scene32, fitted, effects, zeros)
@@ -184,9 +233,15 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
     return {"gain": total, "z": z, "log10_photons": float(np.log10(1.0 / slope)) if slope > 0 else None}
 
 
-def select_effects(data: np.ndarray, scene: np.ndarray, split: TileSplit, *, candidates=tuple(MEAN_EFFECTS), level_z: float = 3.0,
+def select_effects(data: np.ndarray, scene, split: TileSplit, *, candidates=tuple(MEAN_EFFECTS), level_z: float = 3.0,
                    max_effects: int = 3, should_stop=None) -> Selection:
-    """Forward selection over ``candidates`` by held-out gain (module docstring); the shot-noise test on the final model."""
+    """Forward selection over ``candidates`` by held-out gain (module docstring); the shot-noise test on the final model.
+
+    ``scene``: a `Scene` (an array: no depth groups, so no depth-dependent candidate).
+    """
+    scene = Scene.of(scene)
+    if scene.groups is None:
+        candidates = tuple(c for c in candidates if c not in _BY_DEPTH)
     chosen: tuple[str, ...] = ()
     fits = {"baseline": fit_frame(data, scene, split, ())}
     steps = []

@@ -7,13 +7,18 @@
    each value of ``index_grid`` (absorption 0), every other parameter fitted.
 2. **Particle optics** (``particle_phase``) is judged particle by particle: each particle's
    relative squared residual under opaque spheres less its best under transparent ones, the
-   mean over the particles against its standard error. The frame's scene is every particle
-   found (up to ``scene_particles``), fitted with its index contrast and absorption free.
-3. **The frame's effects** (`select_effects`): the catalog's camera around the scene's
+   mean over the particles against its standard error.
+3. **The frame's scene** is every particle found (up to ``scene_particles``), fitted with its
+   index contrast and absorption free, the residual searched again ``looks`` times for the
+   particles the first search missed (`_scene`), and rendered as far as a pixel records
+   fringes: to 1 cycle per pixel, aliased (`particle_hologram`'s ``reach_cycles_per_px``).
+4. **The frame's effects** (`select_effects`): the catalog's camera around the scene's
    hologram, each effect a nested model fitted on one colour of a checkerboard of tiles and
    judged on the other by a Whittle likelihood; forward selection by held-out gain; then the
-   shot-noise test on the final model.
-4. **What is left**: the residual's power spectrum over the frequencies, less its white floor
+   shot-noise test on the final model. Coherence (a source's size) blurs each depth group
+   of the scene by its own depth. Quantization and saturation are read from the levels the
+   frame's counts use (`levels_test`).
+5. **What is left**: the residual's power spectrum over the frequencies, less its white floor
    (the median power above ``0.35`` cycles per pixel, where neither particles nor structure
    reach after the camera's blur): the *structured share* of the residual power, per band and
    per tile. The catalog explains the frame where that share is at most ``structure_level``.
@@ -30,19 +35,20 @@ import numpy as np
 from napari_lbs._core.foundation import ExperimentConfig, InputError, Stopped, as_hologram, json_safe
 from napari_lbs._core.gap._detect import find_particles
 from napari_lbs._core.gap._heldout import TileSplit, tile_spectra
-from napari_lbs._core.gap._nested import MEAN_EFFECTS, select_effects
+from napari_lbs._core.gap._levels import levels_test
+from napari_lbs._core.gap._nested import MEAN_EFFECTS, Scene, select_effects
 from napari_lbs._core.refine import RefineSettings, particle_hologram, refine_particles
 
 __all__ = ["SceneDiagnosisSettings", "SceneDiagnosis", "diagnose_scene", "OPAQUE_KAPPA"]
 
 OPAQUE_KAPPA = 1.0  # an absorption length λ/(4πκ) of 0.05 µm at 660 nm: opaque for a sphere of microns
+_DEPTH_GROUPS = 6  # depth groups of the scene's particles for a depth-dependent effect
 _FLOOR_CYCLES = 0.35  # cycles per pixel above which the residual's power is its white floor
 _BANDS = (0.0, 0.02, 0.05, 0.1, 0.2, 0.35, 0.5)  # cycles per pixel, the report's frequency bands
 _NOT_TESTED = {
-    "coherence": "needs the particles' fields blurred by depth; not modelled by this engine yet",
+    "coherence.bandwidth_nm": "a spectrum's width washes fringes out with their order; not modelled by this engine yet",
     "spherical_wave": "on one frame a point source's magnification is a change of each particle's depth and size",
     "multiple_scattering": "not modelled by this engine yet",
-    "quantization": "a file of integer counts states its bit depth (known, not diagnosed)",
 }
 
 
@@ -58,6 +64,9 @@ class SceneDiagnosisSettings:
     scene_particles : int
         The most particles found and fitted (index contrast and absorption free) for the frame's scene:
         every particle left out stays in the residual as structure.
+    looks : int
+        How many times the residual the fitted scene leaves is searched for particles the
+        first search missed (each find fitted with all the others).
     index_grid : tuple of float
         Index contrasts at which transparent spheres are fitted.
     level_z : float
@@ -74,6 +83,7 @@ class SceneDiagnosisSettings:
 
     particles: int = 24
     scene_particles: int = 256
+    looks: int = 2
     index_grid: tuple[float, ...] = (0.12, 0.26, 0.40)
     level_z: float = 3.0
     structure_level: float = 0.25
@@ -87,6 +97,8 @@ class SceneDiagnosisSettings:
                 raise InputError(f"scene diagnosis: {name} must be an integer 2-2000, got {value!r}")
         if not self.index_grid or not all(0.0 < float(v) <= 1.0 for v in self.index_grid):
             raise InputError(f"scene diagnosis: index_grid must hold index contrasts in (0, 1], got {self.index_grid!r}")
+        if not (isinstance(self.looks, int) and 0 <= self.looks <= 10):
+            raise InputError(f"scene diagnosis: looks must be an integer 0-10, got {self.looks!r}")
         if not (isinstance(self.grid, int) and 2 <= self.grid <= 16):
             raise InputError(f"scene diagnosis: grid must be an integer 2-16, got {self.grid!r}")
         for name in ("level_z", "structure_level"):
@@ -146,8 +158,65 @@ def _particle_optics(data: np.ndarray, guesses, config: ExperimentConfig, settin
     return record
 
 
-def _structure(residuals: tuple[np.ndarray, np.ndarray], split: TileSplit) -> tuple[float, list, np.ndarray]:
-    """The structured share of the held-out residual's power: in all, per band, per tile."""
+def _scene(data: np.ndarray, found, config: ExperimentConfig, settings: SceneDiagnosisSettings, should_stop) -> tuple:
+    """The frame's particles fitted, with what the fits leave looked at again; their hologram as the camera records it.
+
+    Every particle is fitted with its index and absorption free, the model closest to the
+    data, so that what the frame's effects are judged on is as little of the particles'
+    misfit as the fit can make it. A particle hidden by a neighbour (a pair closer than the
+    finder's least distance, one behind another) is found in what the fits leave (``looks``
+    times, `find_particles` on the residual hologram) and fitted there, the particles
+    already fitted taken out of the data. The scene is rendered as far as a pixel records
+    fringes (1 cycle per pixel, aliased): rendered to the Nyquist disc only, the rings beyond
+    it stay in the residual over most of the frame. Depth groups of the particles are
+    rendered alone too, for an effect that acts by depth (`Scene`).
+    """
+    import pandas as pd
+
+    def render(table, reach: float) -> np.ndarray:
+        return particle_hologram(data.shape, table, config, settings=settings.refine, reach_cycles_per_px=reach, should_stop=should_stop) if len(table) else np.ones(data.shape)
+
+    def fit(image: np.ndarray, guesses):
+        if not len(guesses):
+            return guesses
+        fitted = refine_particles(image, guesses, config, settings=settings.refine, should_stop=should_stop)
+        return fitted[fitted["refined"]].reset_index(drop=True)
+
+    columns = ["x_um", "y_um", "z_um", "diameter_um"]
+    table = fit(data, found[columns])
+    least_um = 0.25 * (config.particles.diameter_min_um + config.particles.diameter_max_um)
+    for _ in range(settings.looks):
+        if len(table) >= settings.scene_particles:
+            break
+        # the Nyquist disc is enough to find what is missing; the whole reach is rendered once, at the end
+        residual = data - (render(table, 0.5) - 1.0)
+        new = pd.DataFrame(find_particles(residual, config, max_particles=settings.scene_particles - len(table)))[columns]
+        if len(table) and len(new):
+            # a find on a kept particle is what its fit left of it, not another particle
+            apart = np.hypot(new["x_um"].to_numpy()[:, None] - table["x_um"].to_numpy()[None], new["y_um"].to_numpy()[:, None] - table["y_um"].to_numpy()[None])
+            new = new[apart.min(axis=1) > least_um]
+        new = fit(residual, new)
+        if new.empty:
+            break
+        table = pd.concat([table, new], ignore_index=True)
+    scene = render(table, 1.0)
+    if len(table) < 2:
+        return table, Scene(scene, pixel_um=config.optics.pixel_um)
+    # depth groups of about equal counts, each rendered alone: what a depth-dependent effect (coherence) blurs
+    bins = np.array_split(np.argsort(table["z_um"].to_numpy()), min(_DEPTH_GROUPS, len(table)))
+    groups = np.stack([render(table.iloc[rows], 1.0) - 1.0 for rows in bins]).astype(np.float32)
+    depths = tuple(float(table["z_um"].to_numpy()[rows].mean()) for rows in bins)
+    return table, Scene(scene, depths, groups, config.optics.pixel_um)
+
+
+def _structure(residuals: tuple[np.ndarray, np.ndarray], split: TileSplit) -> tuple[float, list, np.ndarray, float]:
+    """The structured share of the held-out residual's power: in all, per band, per tile; and the white floor's variance.
+
+    The floor is the mean power per frequency above ``_FLOOR_CYCLES`` (a white residual's
+    variance); the structured power is what a band or a tile holds beyond the floor times its
+    frequencies. Sums, not bin by bin: a periodogram's bins scatter exponentially about their
+    mean, and clipping each at a floor would call half of pure white noise structure.
+    """
     colours = split.colours()
     spectra = np.empty((len(colours), split.size, split.size))
     for fitted_on, residual in enumerate(residuals):
@@ -155,17 +224,18 @@ def _structure(residuals: tuple[np.ndarray, np.ndarray], split: TileSplit) -> tu
         spectra[judged] = tile_spectra(residual, split)[judged]
     f = np.hypot(*np.meshgrid(np.fft.fftfreq(split.size), np.fft.fftfreq(split.size), indexing="ij"))
     high = (f >= _FLOOR_CYCLES) & (f <= 0.5)
-    floors = np.median(spectra[:, high], axis=1)
-    excess = np.maximum(spectra - floors[:, None, None], 0.0)
+    floors = spectra[:, high].mean(axis=1)
     total = spectra.sum(axis=(1, 2))
-    per_tile = excess.sum(axis=(1, 2)) / np.maximum(total, 1e-30)
-    share = float(excess.sum() / max(float(total.sum()), 1e-30))
+    grand = max(float(total.sum()), 1e-30)
+    per_tile = np.clip(1.0 - floors * f.size / np.maximum(total, 1e-30), 0.0, 1.0)
+    share = float(np.clip(1.0 - floors.sum() * f.size / grand, 0.0, 1.0))
     bands = []
     for low, high_f in zip(_BANDS[:-1], _BANDS[1:], strict=True):
         inside = (f >= low) & (f < high_f)
-        bands.append({"cycles_per_px": [low, high_f], "share_of_power": float(spectra[:, inside].sum() / max(float(total.sum()), 1e-30)),
-                      "structured": float(excess[:, inside].sum() / max(float(total.sum()), 1e-30))})
-    return share, bands, per_tile.reshape(split.grid, split.grid)
+        power = float(spectra[:, inside].sum())
+        bands.append({"cycles_per_px": [low, high_f], "share_of_power": power / grand,
+                      "structured": max(power - float(floors.sum()) * int(inside.sum()), 0.0) / grand})
+    return share, bands, per_tile.reshape(split.grid, split.grid), float(np.mean(floors))
 
 
 def diagnose_scene(hologram: np.ndarray, config: ExperimentConfig, *, settings: SceneDiagnosisSettings | None = None,
@@ -204,16 +274,12 @@ def diagnose_scene(hologram: np.ndarray, config: ExperimentConfig, *, settings: 
     found = pd.DataFrame(find_particles(data, config, max_particles=max(settings.particles, settings.scene_particles))).drop(columns="focus")
     found["guess"] = np.arange(len(found))
     optics = _particle_optics(data, found.iloc[: settings.particles], config, settings, should_stop)
-    # the scene: every particle with its index and absorption free, the model closest to the data, so that what
-    # the frame's effects are judged on is as little of the particles' misfit as the fit can make it
-    table = refine_particles(data, found, config, settings=settings.refine, should_stop=should_stop) if len(found) else found
-    table = table[table["refined"]].reset_index(drop=True) if len(table) else table
-    scene = particle_hologram(data.shape, table, config, settings=settings.refine, should_stop=should_stop) if len(table) else np.ones(data.shape)
+    table, scene = _scene(data, found, config, settings, should_stop)
     split = TileSplit.of(data.shape, grid=settings.grid)
     selection = select_effects(data, scene, split, level_z=settings.level_z, should_stop=should_stop)
-    baseline_share, _, _ = _structure(selection.fits["baseline"].residuals, split)
+    baseline_share = _structure(selection.fits["baseline"].residuals, split)[0]
     final = selection.fits["+".join(selection.chosen) or "baseline"]
-    share, bands, tile_map = _structure(final.residuals, split)
+    share, bands, tile_map, floor_variance = _structure(final.residuals, split)
     effects = []
     first_round = selection.steps[0]["gains"] if selection.steps else {}
     for effect in MEAN_EFFECTS:
@@ -230,6 +296,9 @@ def diagnose_scene(hologram: np.ndarray, config: ExperimentConfig, *, settings: 
     shot_selected = bool(shot["z"] >= settings.level_z and shot["gain"] > 0)
     effects.append({"id": "shot_noise", "gap_after": None, "shrink": None, "z": shot["z"], "heldout_gain_nats": shot["gain"], "selected": shot_selected,
                     "params": {"log10_photons": shot["log10_photons"]} if shot["log10_photons"] is not None else {}})
+    levels = levels_test(np.asarray(hologram), floor_variance=floor_variance)
+    effects.append({"id": "quantization", "gap_after": None, "shrink": None, "z": None, "selected": levels["selected"], "params": levels["params"],
+                    "levels": {k: levels[k] for k in ("integer", "step_counts", "noise_share", "saturated_share")}})
     effects.sort(key=lambda entry: -(entry["z"] if entry["z"] is not None and np.isfinite(entry["z"]) else -np.inf))
     named = sorted([e["id"] for e in effects if e["selected"]])
     catalog_explains = share <= settings.structure_level
