@@ -18,7 +18,8 @@ both figures come from one machine under one load):
 ``--demo`` also times a whole ``napari-lbs demo`` (a subprocess; its ``summary.json`` steps).
 
     python benchmarks/bench_gpu.py                       # on a CUDA machine: about 5 minutes
-    python benchmarks/bench_gpu.py --device cpu --quick  # the plumbing on any machine, about a minute
+    python benchmarks/bench_gpu.py --device cpu --quick  # the plumbing on any machine, a few minutes
+    python benchmarks/bench_gpu.py --profile             # and torch.profiler's top ops of prediction and refinement
 
 Writes ``benchmarks/results/gpu/bench_gpu_<device>[_quick].json`` (or ``--out``) and prints the
 table.
@@ -71,6 +72,34 @@ class GpuBusy:
     @property
     def mean(self) -> float | None:
         return round(float(np.mean(self.samples)), 1) if self.samples else None
+
+
+class Profile:
+    """With ``folder``: `torch.profiler` over the block (CPU and, on CUDA, kernels); its top ops by device and by host time written to ``folder/profile_NAME.txt``."""
+
+    def __init__(self, folder: Path | None, name: str, device: str) -> None:
+        self.folder, self.name, self.device, self._profiler = folder, name, device, None
+
+    def __enter__(self) -> "Profile":
+        if self.folder is not None:
+            from torch.profiler import ProfilerActivity, profile
+
+            activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if self.device == "cuda" else [])
+            self._profiler = profile(activities=activities)
+            self._profiler.__enter__()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._profiler is None:
+            return
+        self._profiler.__exit__(*exc)
+        averages = self._profiler.key_averages()
+        launches = sum(e.count for e in averages if e.key.startswith("aten::"))
+        text = [f"{self.name} on {self.device}: {launches} aten ops"]
+        for key in (["self_cuda_time_total"] if self.device == "cuda" else []) + ["self_cpu_time_total"]:
+            text.append(averages.table(sort_by=key, row_limit=25))
+        self.folder.mkdir(parents=True, exist_ok=True)
+        (self.folder / f"profile_{self.name}_{self.device}.txt").write_text("\n\n".join(text))
 
 
 def synchronise(device: str) -> None:
@@ -154,16 +183,17 @@ def model_for_prediction(data: Path, out: Path, device: str) -> Path:
     return train_model(open_dataset(data), out, settings=TrainingSettings(epochs=1, device=device, seed=0)).model_path
 
 
-def bench_predict(model: Path, device: str, quick: bool, crop: int | None = None) -> dict:
+def bench_predict(model: Path, device: str, quick: bool, crop: int | None = None, profile: Path | None = None) -> dict:
     from napari_lbs._core import load_sample_hologram, predict_particles
 
     hologram = load_sample_hologram()
     hologram = hologram[: crop or (256 if quick else None), : crop or (256 if quick else None)]
     times = []
-    for _ in range(2):
+    for repeat in range(2):
         start = time.perf_counter()
-        result = predict_particles(hologram, model, device=device)
-        synchronise(device)
+        with Profile(profile if repeat else None, "predict", device):
+            result = predict_particles(hologram, model, device=device)
+            synchronise(device)
         times.append(time.perf_counter() - start)
     return {"size": f"{hologram.shape[0]}²", "seconds": round(times[1], 3), "cold_seconds": round(times[0], 3), "particles": len(result.particles["x_um"]),
             "pixels": int(hologram.size)}
@@ -178,7 +208,7 @@ def sphere_table(count: int, size: int, seed: int):
                          "z_um": rng.uniform(2000.0, 4500.0, count), "diameter_um": rng.uniform(20.0, 30.0, count), "index_contrast": np.full(count, 0.26)})
 
 
-def bench_refine(device: str, count: int, size: int, workers: int) -> dict:
+def bench_refine(device: str, count: int, size: int, workers: int, profile: Path | None = None) -> dict:
     from napari_lbs._core import ExperimentConfig
     from napari_lbs._core.refine import RefineSettings, particle_hologram, refine_particles
 
@@ -190,8 +220,9 @@ def bench_refine(device: str, count: int, size: int, workers: int) -> dict:
     for column, sigma in (("x_um", 1.5), ("y_um", 1.5), ("z_um", 15.0), ("diameter_um", 1.5)):
         guesses[column] = guesses[column] + rng.normal(0.0, sigma, count)
     start = time.perf_counter()
-    table = refine_particles(hologram, guesses, config, settings=RefineSettings(device=device, workers=workers))
-    synchronise(device)
+    with Profile(profile, "refine", device):
+        table = refine_particles(hologram, guesses, config, settings=RefineSettings(device=device, workers=workers))
+        synchronise(device)
     seconds = time.perf_counter() - start
     return {"particles": count, "seconds": round(seconds, 2), "seconds_per_particle": round(seconds / count, 4), "kept": len(table),
             "median_abs_dz_um": round(float(np.median(np.abs(table["z_um"].to_numpy()[: len(table)] - truth["z_um"].to_numpy()[: len(table)]))), 2) if len(table) == count else None}
@@ -206,7 +237,7 @@ def bench_demo(device: str, quick: bool) -> dict:
     return {"seconds": round(wall, 1), "steps": summary["seconds"], "particles": summary["particle_count"]}
 
 
-def run_leg(device: str, quick: bool, work: Path, *, shared: Path | None) -> dict:
+def run_leg(device: str, quick: bool, work: Path, *, shared: Path | None, profile: Path | None = None) -> dict:
     """Every step on ``device``. The CPU leg (``shared``: the device leg's folder) trains on its data sets and predicts with its model, at reduced sizes."""
     from napari_lbs._core.foundation import process_threads
 
@@ -231,9 +262,9 @@ def run_leg(device: str, quick: bool, work: Path, *, shared: Path | None) -> dic
     if shared is None:
         figures["train_128_b32"] = bench_train(data128, work / "m128b.pt", device, batch=32)
         figures["train_128_b32_bf16"] = bench_train(data128, work / "m128c.pt", device, batch=32, precision="auto")
-    figures["predict"] = bench_predict(model, device, quick, crop=512 if shared is not None and not quick else None)
+    figures["predict"] = bench_predict(model, device, quick, crop=512 if shared is not None and not quick else None, profile=profile)
     count = 3 if quick else (12 if shared is not None else 100)
-    figures["refine"] = bench_refine(device, count, 256 if quick else 1024, workers=2 if shared is not None else 1)
+    figures["refine"] = bench_refine(device, count, 256 if quick else 1024, workers=2 if shared is not None else 1, profile=profile)
     return figures
 
 
@@ -276,6 +307,7 @@ def main() -> None:
     parser.add_argument("--demo", action="store_true", help="also time a whole `napari-lbs demo` (--quick: the quick demo)")
     parser.add_argument("--leg", type=Path, help=argparse.SUPPRESS)  # the CPU leg's child process: the device leg's folder
     parser.add_argument("--out", type=Path)
+    parser.add_argument("--profile", action="store_true", help="torch.profiler over the (warm) prediction and the refinement: top ops in results/gpu/profile_*.txt")
     args = parser.parse_args()
     from napari_lbs._core.foundation import process_threads
 
@@ -287,7 +319,8 @@ def main() -> None:
     started = time.perf_counter()
     load_before = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as folder:
-        figures = run_leg(args.device, args.quick, Path(folder), shared=args.leg)
+        out = args.out or Path(__file__).parent / "results" / "gpu" / f"bench_gpu_{args.device}{'_quick' if args.quick else ''}.json"
+        figures = run_leg(args.device, args.quick, Path(folder), shared=args.leg, profile=out.parent if args.profile and not args.leg else None)
         if args.demo and not args.leg:
             figures["demo"] = bench_demo(args.device, args.quick)
         report = {"device": torch.cuda.get_device_name() if args.device == "cuda" else f"cpu ({process_threads()} threads)", "quick": args.quick,
@@ -297,7 +330,6 @@ def main() -> None:
             report["table"] = table(figures, report["cpu_2_cores"])
             report["load_after"] = os.getloadavg()[0]
     report["seconds"] = round(time.perf_counter() - started, 1)
-    out = args.out or Path(__file__).parent / "results" / "gpu" / f"bench_gpu_{args.device}{'_quick' if args.quick else ''}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(report, indent=1))
     if args.leg:
