@@ -83,7 +83,7 @@ def _hologram(folder: Path, name: str, count: int, seed: int, distractors: dict 
         start = time.perf_counter()
         image, truth = pseudoreal.pseudo_real(count, seed=seed, **(distractors or {}))
         tifffile.imwrite(image_path, image)
-        write_particles(truth_path, truth)
+        write_particles(truth_path, truth, force=True)  # a run stopped before its image left the truth: made again
         print(f"{name}: {count} Lorenz-Mie spheres in {time.perf_counter() - start:.0f} s", flush=True)
     return read_hologram(image_path), read_particles(truth_path)
 

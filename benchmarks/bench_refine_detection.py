@@ -109,7 +109,7 @@ def hologram(folder: Path, name: str) -> tuple[np.ndarray, dict]:
             image, truth = wide_sizes(count, seed=seed)
         else:
             image, truth = pseudoreal.pseudo_real(count, seed=seed, **(DISTRACTORS if how == "distractors" else {}))
-        write_particles(truth_path, truth)
+        write_particles(truth_path, truth, force=True)  # made again with its image
         partial = image_path.with_name(image_path.name + ".partial.tif")
         tifffile.imwrite(partial, image)
         os.replace(partial, image_path)
@@ -229,8 +229,8 @@ def evaluate(name: str, image: np.ndarray, truth: dict, model, config, *, tables
         result["residual"] = residual
     if tables is not None:
         tables.mkdir(parents=True, exist_ok=True)
-        write_particles(tables / f"{name}_network.csv", network)
-        write_particles(tables / f"{name}_refined.csv", refined)
+        write_particles(tables / f"{name}_network.csv", network, force=True)  # each run's tables replace the last run's
+        write_particles(tables / f"{name}_refined.csv", refined, force=True)
     return result
 
 

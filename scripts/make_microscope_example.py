@@ -82,7 +82,7 @@ def make(out: Path) -> None:
     tifffile.imwrite(out / "microscope_example_hologram.tif", camera(model * beam))
     tifffile.imwrite(out / "microscope_example_background.tif", camera(beam))
     tifffile.imwrite(out / "microscope_example_dark.tif", camera(np.zeros(SHAPE)))
-    write_particles(out / "microscope_example_truth.csv", TRUTH)
+    write_particles(out / "microscope_example_truth.csv", TRUTH, force=True)  # the example is made again whole
 
 
 def main() -> None:

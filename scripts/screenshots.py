@@ -129,7 +129,7 @@ def lab_user(viewer, work: Path, figures: Path) -> None:
     config = ExperimentConfig.from_dict({"volume": {"z_min_um": 1800.0, "z_max_um": 2200.0, "z_step_um": 100.0}, "particles": {"per_tile": 3, "layer_step_um": 200.0}, "tile": {"size": 64}})
     field = random_particle_field((384, 384), count=14, diameter_min_um=20, diameter_max_um=30, layers_um=config.layer_depths_um(), pixel_um=2.2, seed=4)
     tifffile.imwrite(work / "camera.tif", simulate_hologram(field, wavelength_um=0.66))
-    write_particles(work / "camera-particles.csv", field.table())
+    write_particles(work / "camera-particles.csv", field.table(), force=True)  # --out may hold an earlier run
     image = viewer.open(work / "camera.tif", plugin="napari")[0]
     _, step = viewer.window.add_plugin_dock_widget("napari-lbs", "1 Back-propagation")
     step.hologram.value = image

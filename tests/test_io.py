@@ -78,6 +78,6 @@ def test_failed_write_keeps_the_previous_file(tmp_path):
     write_stack(target, np.zeros((1, 16, 16), np.float32), z_um=[1.0])
     before = target.read_bytes()
     with pytest.raises(InputError):
-        write_stack(target, np.zeros((2, 16, 16), np.float32), z_um=[1.0])
+        write_stack(target, np.zeros((2, 16, 16), np.float32), z_um=[1.0], force=True)
     assert target.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["s.tif"]

@@ -408,11 +408,50 @@ def test_the_file_helpers_refuse_links_devices_and_fifos_and_clobber_only_with_f
         for force in (False, True):
             with pytest.raises(InputError, match=message):
                 atomic_write_bytes(path, b"x", force=force)
-    with pytest.raises(InputError, match="exists; add --force"):
+    with pytest.raises(InputError, match=r"exists; add force=True"):  # a Python caller is told the keyword
         atomic_write_bytes(victim, b"x", force=False)
+    with pytest.raises(InputError, match="exists; add --force"):
+        check_target(victim, flag="--out")
     assert victim.read_bytes() == b"keep" and link.is_symlink() and check_target(tmp_path / "new") == tmp_path / "new"
     assert atomic_write_bytes(tmp_path / "new", b"new", force=False).read_bytes() == b"new"
     assert atomic_write_bytes(victim, b"x", force=True).read_bytes() == b"x"
+
+
+def _public_writers(folder: Path) -> dict:
+    """Each public function that writes a file, as ``name: (path, write(path, force))``."""
+    from napari_lbs._core import write_config, write_particles, write_stack
+
+    table = {name: np.array([1.0, 2.0]) for name in PARTICLE_COLUMNS}
+    return {
+        "write_config": (folder / "c.toml", lambda path, force: write_config(path, force=force)),
+        "write_stack": (folder / "s.tif", lambda path, force: write_stack(path, np.ones((2, 16, 16), np.float32), z_um=[1.0, 2.0], force=force)),
+        "write_particles": (folder / "p.csv", lambda path, force: write_particles(path, table, force=force)),
+    }
+
+
+@pytest.mark.parametrize("writer", ["write_config", "write_stack", "write_particles"])
+def test_the_public_writers_replace_a_file_only_with_force_and_never_write_through_a_link_fifo_or_device(tmp_path, umask_002, writer):
+    import stat
+
+    path, write = _public_writers(tmp_path)[writer]
+    path.write_text("mine")
+    path.chmod(0o640)
+    with pytest.raises(InputError, match=rf"^{path}: exists; add force=True to replace it"):
+        write(path, False)
+    assert path.read_text() == "mine"
+    assert write(path, True) == path and path.read_bytes() != b"mine" and path.stat().st_mode & 0o777 == 0o640  # replaced, keeping its mode
+    fresh = tmp_path / "new" / path.name
+    assert write(fresh, False) == fresh and fresh.stat().st_mode & 0o777 == 0o664
+    victim, fifo, link = tmp_path / "victim", tmp_path / f"fifo{path.suffix}", tmp_path / f"link{path.suffix}"
+    victim.write_text("keep")
+    os.mkfifo(fifo)
+    link.symlink_to(victim)
+    for target, message in ((link, "symbolic link"), (fifo, "not a regular file"), (Path("/dev/null"), "not a regular file"), (tmp_path / "new", "is a folder")):
+        for force in (False, True):
+            with pytest.raises(InputError, match=message):
+                write(target, force)
+    assert victim.read_text() == "keep" and link.is_symlink() and stat.S_ISFIFO(os.lstat(fifo).st_mode) and stat.S_ISCHR(os.stat("/dev/null").st_mode)
+    assert not [p for p in tmp_path.rglob(".*")]  # no temporary left
 
 
 def test_unexpected_errors_exit_1_with_one_line_and_debug_prints_the_traceback(monkeypatch, capsys, tmp_path):
@@ -779,6 +818,40 @@ def test_garbage_is_refused_damaged_tiffs_huge_floats_nan_weights_and_tables_the
         assert not (workspace / "p.csv").exists()
     write_particles(workspace / "p.csv", {**table, "x_um": np.ones(2), "note": np.array(["a,b", "c\\nd"], dtype=object)})
     assert read_particles(workspace / "p.csv")["note"].tolist() == ["a,b", "c\\nd"]
+
+
+def _damage_tag(path: Path, page: int, tag: int) -> None:
+    """Give tag number ``tag`` of page ``page`` an invalid data type: tifffile warns and reads on."""
+    import struct
+
+    with tifffile.TiffFile(path) as handle:
+        offset = handle.pages[page].offset
+    data = bytearray(path.read_bytes())
+    at = offset + 2 + 12 * tag + 2  # past the tag count, then the tag's code
+    data[at:at + 2] = struct.pack("<H", 0)
+    path.write_bytes(bytes(data))
+
+
+def test_a_recording_refuses_a_damaged_page_naming_the_file_and_page(tmp_path, capsys, detector):
+    from napari_lbs._core import open_frames
+
+    recording, single = tmp_path / "rec.tif", tmp_path / "one.tif"
+    frames = 1.0 + 0.1 * np.random.default_rng(0).random((3, 64, 64), np.float32)
+    tifffile.imwrite(recording, frames, photometric="minisblack")
+    tifffile.imwrite(single, frames[0], photometric="minisblack")
+    _damage_tag(recording, page=1, tag=9)  # XResolution: the pixels still decode, so nothing else would notice
+    _damage_tag(single, page=0, tag=9)
+    with open_frames([recording]) as opened:
+        assert np.array_equal(opened.read(0), frames[0]) and np.array_equal(opened.read(2), frames[2])
+        with pytest.raises(InputError, match=rf"^{recording}\[page 1\]: cannot be read as an image \(a damaged TIFF: .*invalid data type 0"):
+            opened.read(1)
+        with pytest.raises(InputError, match=rf"^{recording}\[page 1\]: cannot be read as an image \(a damaged TIFF"):
+            opened.check()  # from the page's tags, before any frame is predicted
+    for path, culprit in ((recording, f"{recording}[page 1]"), (single, f"{single}")):  # the first page is parsed as the file opens
+        before = {p.name for p in tmp_path.rglob("*")}
+        line = refusal(capsys, ["predict", str(path), "--model", str(detector.path), "--out", str(tmp_path / "p.csv")])
+        assert line.startswith(f"napari-lbs predict: error: {culprit}: cannot be read as an image (a damaged TIFF"), line
+        assert nothing_written(tmp_path, before)
 
 
 def torch_no_grad():

@@ -127,7 +127,7 @@ def _cmd_config(args) -> None:
         return
     if not args.write:
         raise ValueError("--write: expected a file to write the default config to")
-    path = write_config(check_output_path(args.write, flag="--write", force=args.force))
+    path = write_config(check_output_path(args.write, flag="--write", force=args.force), force=args.force)
     _summary(f"wrote the default experiment config to {path}")
 
 

@@ -81,7 +81,7 @@ def write_particle_csv(path: str, data, attributes: dict) -> list[str]:
         return [written] if written else []
     path = str(path) if str(path).lower().endswith(".csv") else f"{path}.csv"
     table = points_table(data, scale=attributes.get("scale", (1.0, 1.0, 1.0)), translate=attributes.get("translate", (0.0, 0.0, 0.0)), features=attributes.get("features"), size=attributes.get("size"))
-    write_particles(path, table)
+    write_particles(path, table, force=True)  # napari's save dialog asked before replacing
     return [path]
 
 

@@ -285,7 +285,10 @@ def config_to_toml(config: ExperimentConfig) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_config(path: str | Path, config: ExperimentConfig | None = None) -> Path:
-    """Write ``config`` (default: the contract's defaults) as TOML, atomically."""
+def write_config(path: str | Path, config: ExperimentConfig | None = None, *, force: bool = False) -> Path:
+    """Write ``config`` (default: the contract's defaults) as TOML, atomically.
+
+    An existing ``path`` is replaced only with ``force`` (and only a regular file: `check_target`).
+    """
     text = config_to_toml(ExperimentConfig() if config is None else config)
-    return atomic_write_bytes(Path(path), text.encode("utf-8"))
+    return atomic_write_bytes(Path(path), text.encode("utf-8"), force=force)

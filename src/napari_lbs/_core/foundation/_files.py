@@ -69,10 +69,11 @@ def check_target(path: str | Path, *, force: bool = False, flag: str | None = No
     path : path
         The file about to be written.
     force : bool
-        Replace an existing regular file (the user asked: ``--force``, or a save dialog that
-        asked already).
+        Replace an existing regular file (the user asked: ``--force``, ``force=True``, or a
+        save dialog that asked already).
     flag : str, optional
-        The flag that named it (``--out``), for the message.
+        The flag that named it (``--out``), for the message; the refusal of an existing file
+        then names ``--force``, else the keyword ``force=True``.
 
     Returns
     -------
@@ -97,8 +98,8 @@ def check_target(path: str | Path, *, force: bool = False, flag: str | None = No
         raise InputError(f"{name}: is a folder; expected a file name")
     if not stat.S_ISREG(mode):
         raise InputError(f"{name}: is not a regular file (a device, FIFO or socket); choose a file name")
-    if not force:
-        raise InputError(f"{name}: exists; add --force to replace it, or choose another name")
+    if not force:  # the console script names its flag; a Python caller, the keyword
+        raise InputError(f"{name}: exists; add {'--force' if flag else 'force=True'} to replace it, or choose another name")
     return path
 
 

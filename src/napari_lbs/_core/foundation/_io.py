@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from napari_lbs._core.foundation._errors import InputError
-from napari_lbs._core.foundation._files import atomic_path, atomic_write_bytes, json_safe, read_text
+from napari_lbs._core.foundation._files import atomic_path, atomic_write_bytes, check_target, json_safe, read_text
 from napari_lbs._core.foundation._validation import check_intensity_image
 
 __all__ = [
@@ -27,6 +27,7 @@ __all__ = [
     "read_stack",
     "write_stack",
     "tiff_pages",
+    "refusing_damaged_tiff",
     "read_particles",
     "write_particles",
     "check_table_name",
@@ -74,11 +75,12 @@ def as_hologram(image: np.ndarray, *, name: str = "hologram", channel: int | Non
 
 
 @contextmanager
-def tiff_complaints() -> Iterator[list[str]]:
-    """The warnings tifffile logs within the block (one line each), kept off the terminal.
+def refusing_damaged_tiff(name: str) -> Iterator[None]:
+    """Refuse a TIFF that tifffile complains about while the block reads it: `InputError` naming ``name``.
 
     tifffile reports a damaged tag or strip as a logged warning and goes on with what it could
-    parse; a reader that gets any refuses the file rather than using what came back.
+    parse, so what comes back is not the recorded image. Its warnings are kept off the
+    terminal; the first one (and how many more) goes into the one-line refusal.
     """
     import logging
 
@@ -93,10 +95,13 @@ def tiff_complaints() -> Iterator[list[str]]:
     logger.addHandler(handler)
     logger.propagate = False
     try:
-        yield complaints
+        yield
     finally:
         logger.removeHandler(handler)
         logger.propagate = propagate
+    if complaints:
+        more = f" and {len(complaints) - 1} more" if len(complaints) > 1 else ""
+        raise InputError(f"{name}: cannot be read as an image (a damaged TIFF: {complaints[0]}{more})")
 
 
 def read_hologram(path: str | Path, *, channel: int | None = None, log: Callable[[str], None] | None = None) -> np.ndarray:
@@ -109,12 +114,9 @@ def read_hologram(path: str | Path, *, channel: int | None = None, log: Callable
         if suffix in (".tif", ".tiff"):
             import tifffile
 
-            with tiff_complaints() as complaints, tifffile.TiffFile(path) as handle:
+            with refusing_damaged_tiff(str(path)), tifffile.TiffFile(path) as handle:
                 pages = len(handle.pages)
                 image = handle.asarray()
-            if complaints:  # tifffile skips what it cannot parse and reads on: what it returns is not the recorded image
-                more = f" and {len(complaints) - 1} more" if len(complaints) > 1 else ""
-                raise InputError(f"{path}: cannot be read as an image (a damaged TIFF: {complaints[0]}{more})")
         else:
             from PIL import Image
 
@@ -132,7 +134,7 @@ def read_hologram(path: str | Path, *, channel: int | None = None, log: Callable
 
 
 @contextmanager
-def tiff_pages(path: str | Path, shape: tuple[int, ...], *, description: dict) -> Iterator[np.ndarray]:
+def tiff_pages(path: str | Path, shape: tuple[int, ...], *, description: dict, force: bool = False) -> Iterator[np.ndarray]:
     """The one TIFF writer: a float32 TIFF of ``shape`` to fill in place, renamed onto ``path`` when the block succeeds.
 
     Parameters
@@ -143,6 +145,8 @@ def tiff_pages(path: str | Path, shape: tuple[int, ...], *, description: dict) -
         One hologram, or a stack of planes or frames (one page each).
     description : dict
         Provenance (and a stack's ``z_um``), stored as the first page's ImageDescription JSON.
+    force : bool
+        Replace an existing regular file at ``path`` (`check_target`, before any page is made).
 
     Yields
     ------
@@ -152,18 +156,18 @@ def tiff_pages(path: str | Path, shape: tuple[int, ...], *, description: dict) -
     """
     import tifffile
 
-    with atomic_path(Path(path)) as temporary:
+    with atomic_path(Path(path), force=force) as temporary:
         pages = tifffile.memmap(temporary, shape=tuple(shape), dtype=np.float32, description=json.dumps(json_safe(description)), metadata=None, photometric="minisblack")
         yield pages
         pages.flush()
 
 
-def write_stack(path: str | Path, stack: np.ndarray, *, z_um: Sequence[float], metadata: dict | None = None) -> Path:
-    """Write a float32 ``(z, y, x)`` stack as TIFF with ``{"z_um": [...], ...}`` as ImageDescription JSON (`tiff_pages`)."""
+def write_stack(path: str | Path, stack: np.ndarray, *, z_um: Sequence[float], metadata: dict | None = None, force: bool = False) -> Path:
+    """Write a float32 ``(z, y, x)`` stack as TIFF with ``{"z_um": [...], ...}`` as ImageDescription JSON (`tiff_pages`; an existing file only with ``force``)."""
     stack = np.asarray(stack)
     if stack.ndim != 3 or stack.shape[0] != len(z_um):
         raise InputError(f"stack: expected shape (len(z_um)={len(z_um)}, y, x), got {stack.shape}")
-    with tiff_pages(path, stack.shape, description={"z_um": [float(z) for z in z_um], **(metadata or {})}) as pages:
+    with tiff_pages(path, stack.shape, description={"z_um": [float(z) for z in z_um], **(metadata or {})}, force=force) as pages:
         pages[:] = stack
     return Path(path)
 
@@ -185,7 +189,7 @@ def read_stack(path: str | Path) -> tuple[np.ndarray, dict]:
     return stack, description
 
 
-def write_particles(path: str | Path, table: dict[str, np.ndarray], *, metadata: dict | None = None) -> Path:
+def write_particles(path: str | Path, table: dict[str, np.ndarray], *, metadata: dict | None = None, force: bool = False) -> Path:
     """Write a particle table (docs/formats.md): ``x_um,y_um,z_um,diameter_um`` then any other columns.
 
     Parameters
@@ -197,18 +201,22 @@ def write_particles(path: str | Path, table: dict[str, np.ndarray], *, metadata:
     metadata : dict, optional
         Parquet only: stored as JSON in the file's key-value metadata under ``napari_lbs``
         (e.g. the provenance; a CSV's goes in a JSON file beside it).
+    force : bool
+        Replace an existing regular file at ``path``; without it an existing file is refused
+        (`check_target`), as are a link, a folder, a device or a FIFO in any case.
     """
+    check_target(path, force=force)  # before the table is formatted
     _check_table_to_write(path, table)
     columns = list(PARTICLE_COLUMNS) + [c for c in table if c not in PARTICLE_COLUMNS]
     if _is_parquet(path):
-        return _write_parquet(Path(path), {c: np.asarray(table[c]) for c in columns}, metadata)
+        return _write_parquet(Path(path), {c: np.asarray(table[c]) for c in columns}, metadata, force=force)
     count = len(np.asarray(table["x_um"]))
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
     writer.writerow(columns)
     for i in range(count):
         writer.writerow([_format(table[c][i]) for c in columns])
-    return atomic_write_bytes(Path(path), buffer.getvalue().encode("utf-8"))
+    return atomic_write_bytes(Path(path), buffer.getvalue().encode("utf-8"), force=force)
 
 
 def _is_parquet(path: str | Path) -> bool:
@@ -239,12 +247,12 @@ def _pyarrow(path: Path):
     return pyarrow
 
 
-def _write_parquet(path: Path, table: dict[str, np.ndarray], metadata: dict | None) -> Path:
+def _write_parquet(path: Path, table: dict[str, np.ndarray], metadata: dict | None, *, force: bool) -> Path:
     pyarrow = _pyarrow(path)
     arrow = pyarrow.table(table)
     if metadata is not None:
         arrow = arrow.replace_schema_metadata({**(arrow.schema.metadata or {}), b"napari_lbs": json.dumps(json_safe(metadata)).encode("utf-8")})
-    with atomic_path(path) as temporary:
+    with atomic_path(path, force=force) as temporary:
         pyarrow.parquet.write_table(arrow, temporary)
     return path
 

@@ -179,7 +179,7 @@ def _write_table(out: Path, record_path: Path, particles: dict, record: dict) ->
     """The particle table (CSV, or Parquet with ``record`` in its key-value metadata too) and its provenance JSON beside it."""
     from napari_lbs._core.foundation import write_particles
 
-    write_particles(out, particles, metadata=record)
+    write_particles(out, particles, metadata=record, force=True)  # prediction_outputs checked it with the user's --force
     write_json(record_path, record)
 
 
@@ -387,7 +387,7 @@ def track(request: TrackRequest, *, progress: ProgressCallback | None = None, sh
             record["prediction"] = json.loads(prediction_json.read_text(encoding="utf-8"))
         except (json.JSONDecodeError, UnicodeDecodeError):
             record["prediction"] = None
-    write_particles(out, tracks, metadata=record)
+    write_particles(out, tracks, metadata=record, force=request.replace)
     write_json(provenance_json, record)
     lengths = np.bincount(tracks["track"]) if tracks["track"].size else np.zeros(0, int)
     frames = len(np.unique(tracks["frame"]))

@@ -226,7 +226,7 @@ def refine(request: RefineRequest, *, progress: ProgressCallback | None = None, 
     seconds = time.perf_counter() - started
     record = {**provenance(request.config, source=source, background_file=request.background_path and str(request.background_path),
                            dark_file=request.dark_path and str(request.dark_path)), "find": find, "pixels_at_maximum": at_top, "seconds": seconds, "particles": str(out)}
-    write_particles(out, table, metadata=record)
-    write_json(record_path, record)
+    write_particles(out, table, metadata=record, force=request.replace)
+    write_json(record_path, record, force=request.replace)
     return StepResult(f"refined {find['kept']} of {find['detections']} detections in {source} in {seconds:.1f} s -> {out} (provenance: {record_path})",
                       table, (out, record_path))

@@ -99,9 +99,9 @@ def simulate(request: SimulateRequest, *, progress: ProgressCallback | None = No
     hologram = simulate_hologram(field_, wavelength_um=optics.wavelength_um, medium_index=optics.medium_index, shadowing=request.shadowing)
     out.mkdir(parents=True, exist_ok=True)
     description = provenance(config, seed=request.seed, particles=len(field_), shadowing=request.shadowing, pixel_um=optics.pixel_um)
-    with tiff_pages(out / "hologram.tif", hologram.shape, description=description) as page:
+    with tiff_pages(out / "hologram.tif", hologram.shape, description=description, force=request.replace) as page:
         page[:] = hologram
-    write_particles(out / "particles.csv", field_.table())
+    write_particles(out / "particles.csv", field_.table(), force=request.replace)
     paths = (out / "hologram.tif", out / "particles.csv")
     return StepResult(f"simulated a {size}x{size} hologram of {len(field_)} particles -> {paths[0]}, {paths[1]}", field_, paths)
 
@@ -119,10 +119,10 @@ def _simulate_recording(request: SimulateRequest, *, size: int, count: int, prog
     out.mkdir(parents=True, exist_ok=True)
     description = provenance(config, seed=request.seed, particles=count, shadowing=request.shadowing, pixel_um=config.optics.pixel_um, flow=request.flow,
                              speed_um=request.speed_um, frames=frames)
-    with tiff_pages(out / "frames.tif", (frames, size, size), description=description) as pages:
+    with tiff_pages(out / "frames.tif", (frames, size, size), description=description, force=request.replace) as pages:
         truth = simulate_sequence(config, frames=frames, flow=request.flow, size=size, count=count, speed_um=request.speed_um, seed=request.seed,
                                   shadowing=request.shadowing, out=pages, progress=progress, should_stop=should_stop).truth
-    write_particles(out / "particles.csv", truth)
+    write_particles(out / "particles.csv", truth, force=request.replace)
     tracks = len(np.unique(truth["track"]))
     paths = (out / "frames.tif", out / "particles.csv")
     return StepResult(f"simulated {frames} frames of {size}x{size} pixels, {count} particles in a {request.flow} flow ({tracks} tracks) -> {paths[0]}, {paths[1]}", truth, paths)
@@ -180,7 +180,7 @@ def backprop(request: BackpropRequest, *, progress: ProgressCallback | None = No
     description = {"z_um": list(z_um), **provenance(config, source=source, background=request.background_path and str(request.background_path))}
     start = time.perf_counter()
     # Written straight into a memory-mapped TIFF: a deep stack never has to fit in RAM.
-    with tiff_pages(out, (len(z_um),) + hologram.shape, description=description) as stack:
+    with tiff_pages(out, (len(z_um),) + hologram.shape, description=description, force=request.replace) as stack:
         backpropagate(hologram, z_um, wavelength_um=config.optics.wavelength_um, pixel_um=config.optics.pixel_um, medium_index=config.optics.medium_index,
                       background=background, out=stack, progress=progress, should_stop=should_stop)
     seconds = time.perf_counter() - start
@@ -240,7 +240,7 @@ def calibrate(request: CalibrateRequest, *, progress: ProgressCallback | None = 
                                 report=report)
     payload = result.to_json()
     payload["provenance"] = provenance(config, source=_source(request.hologram, request.source), background=request.background_path and str(request.background_path), seed=settings.seed)
-    write_json(request.out_path, payload)
+    write_json(request.out_path, payload, force=request.replace)
     p = result.params
     x, y, size = result.roi
     chosen = "" if request.roi else f" (chosen: {result.roi_choice})"

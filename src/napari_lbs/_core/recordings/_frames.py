@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from napari_lbs._core.foundation import InputError
-from napari_lbs._core.foundation import as_hologram
+from napari_lbs._core.foundation import as_hologram, refusing_damaged_tiff
 
 __all__ = ["HologramFrames", "open_frames", "IMAGE_SUFFIXES", "VIDEO_SUFFIXES"]
 
@@ -31,19 +31,28 @@ class _TiffPages:
         import tifffile
 
         self.path = path
-        self._handle = tifffile.TiffFile(path)
-        self._handle.pages.cache = False  # keep only page offsets, never the pages read
-        self.count = len(self._handle.pages)
+        self._handle = None
+        try:
+            with refusing_damaged_tiff(str(path)):  # a damaged header or page list
+                self._handle = tifffile.TiffFile(path)
+                self._handle.pages.cache = False  # keep only page offsets, never the pages read
+                self.count = len(self._handle.pages)
+        except BaseException:
+            self.close()
+            raise
 
     def read(self, index: int) -> np.ndarray:
-        return self._handle.pages[index].asarray()
+        with refusing_damaged_tiff(f"{self.path}[page {index}]"):  # a damaged strip or tag reads on as other pixels
+            return self._handle.pages[index].asarray()
 
     def shape(self, index: int) -> tuple[int, int]:
-        page = self._handle.pages[index]  # its tags only
-        return int(page.imagelength), int(page.imagewidth)
+        with refusing_damaged_tiff(f"{self.path}[page {index}]"):
+            page = self._handle.pages[index]  # its tags only
+            return int(page.imagelength), int(page.imagewidth)
 
     def close(self) -> None:
-        self._handle.close()
+        if self._handle is not None:
+            self._handle.close()
 
 
 class _ImageFile:
@@ -186,6 +195,8 @@ class HologramFrames:
             source, local = self._locate(index)
             try:
                 shape = source.shape(local)
+            except InputError:
+                raise
             except Exception as error:  # an unreadable header is the file's fault: say which frame
                 raise InputError(f"{self.name(index)}: cannot be read as an image ({type(error).__name__}: {error})") from None
             first = first or shape
@@ -214,6 +225,8 @@ def _source(path: Path):
     if suffix in (".tif", ".tiff"):
         try:
             return _TiffPages(path)
+        except InputError:
+            raise
         except Exception as error:  # not a TIFF after all, truncated: the file's fault
             raise InputError(f"{path}: cannot be read as a TIFF ({type(error).__name__}: {error})") from None
     if suffix in IMAGE_SUFFIXES:
