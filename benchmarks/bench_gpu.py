@@ -45,26 +45,26 @@ TARGETS = {"backprop": "", "generate": "", "train_64": "", "train_128": "≤ 5 s
 
 
 class GpuBusy:
-    """The GPU's utilisation (%) sampled by ``nvidia-smi`` every 100 ms while the block runs; None without it."""
+    """The GPU's utilisation (%) sampled by ``nvidia-smi`` every 100 ms between `start` and `stop`; None without a GPU or ``nvidia-smi``."""
 
     def __init__(self, device: str) -> None:
         self.samples: list[int] = []
+        self._on = device == "cuda" and shutil.which("nvidia-smi") is not None
         self._process = None
-        if device == "cuda" and shutil.which("nvidia-smi"):
+
+    def start(self) -> None:
+        if self._on and self._process is None:
             self._process = subprocess.Popen(["nvidia-smi", "--query-gpu=utilization.gpu", "--format=csv,noheader,nounits", "-lms", "100"],
                                              stdout=subprocess.PIPE, text=True)
-            self._reader = threading.Thread(target=self._read, daemon=True)
-            self._reader.start()
+            threading.Thread(target=self._read, args=(self._process,), daemon=True).start()
 
-    def _read(self) -> None:
-        for line in self._process.stdout:
-            if line.strip().split(",")[0].strip().isdigit():
-                self.samples.append(int(line.strip().split(",")[0]))
+    def _read(self, process) -> None:
+        for line in process.stdout:
+            value = line.strip().split(",")[0].strip()
+            if value.isdigit():
+                self.samples.append(int(value))
 
-    def __enter__(self) -> "GpuBusy":
-        return self
-
-    def __exit__(self, *exc) -> None:
+    def stop(self) -> None:
         if self._process is not None:
             self._process.terminate()
             self._process.wait()
@@ -157,16 +157,23 @@ def bench_train(data: Path, out: Path, device: str, *, batch: int = 8, precision
     marks: dict[int, float] = {}
     per_epoch = []
 
+    busy = GpuBusy(device)  # sampled over the epoch's batches only (not the data's loading)
+
     def progress(done: int, total: int) -> None:
         per_epoch.append(total // 2)
         marks[done] = time.perf_counter()
+        if done == 1:
+            busy.start()
+        if done == per_epoch[0]:
+            busy.stop()
 
-    with GpuBusy(device) as busy:
-        try:
-            train_model(dataset, out, settings=settings, progress=progress,
-                        should_stop=lambda: bool(per_epoch) and max(marks) >= (batches if batches is not None else per_epoch[0] + 1))
-        except Stopped:
-            pass
+    try:
+        train_model(dataset, out, settings=settings, progress=progress,
+                    should_stop=lambda: bool(per_epoch) and max(marks) >= (batches if batches is not None else per_epoch[0] + 1))
+    except Stopped:
+        pass
+    finally:
+        busy.stop()
     log = json.loads(out.with_suffix(".json").read_text())
     samples = per_epoch[0] * batch
     if batches is None:
