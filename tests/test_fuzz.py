@@ -63,6 +63,47 @@ def test_a_damaged_tiff_is_read_as_a_valid_hologram_or_refused(tmp_path, tiff_by
         assert image.ndim == 2 and np.all(np.isfinite(image)) and float(np.abs(image).max()) < 1.9e19
 
 
+# --- BMP ------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def bmp_bytes(tmp_path_factory) -> dict[str, bytes]:
+    """A 32x32 hologram as an 8-bit grey (a palette) and a 24-bit colour BMP."""
+    from PIL import Image
+
+    folder = tmp_path_factory.mktemp("bmp")
+    grey = (100 + 100 * np.random.default_rng(0).random((32, 32))).astype(np.uint8)
+    images = {"L": Image.fromarray(grey), "RGB": Image.fromarray(np.stack([grey, grey // 2, grey // 3], axis=-1))}
+    for mode, image in images.items():
+        image.save(folder / f"{mode}.bmp")
+    return {mode: (folder / f"{mode}.bmp").read_bytes() for mode in images}
+
+
+@BOUNDED
+@given(data=st.data())
+def test_a_damaged_bmp_is_read_as_a_valid_hologram_or_refused_by_both_readers(tmp_path, bmp_bytes, data):
+    from napari_lbs._core.foundation import read_hologram
+    from napari_lbs._core.recordings import open_frames
+
+    damaged = bytearray(bmp_bytes[data.draw(st.sampled_from(sorted(bmp_bytes)))])
+    for _ in range(data.draw(st.integers(1, 6))):
+        at = data.draw(st.integers(0, 60) | st.integers(0, len(damaged) - 1))  # the headers often: sizes, offsets, depth, compression
+        damaged[at] = data.draw(st.integers(0, 255))
+    cut = data.draw(st.none() | st.integers(0, len(damaged)))
+    path = tmp_path / "fuzz.bmp"
+    path.write_bytes(bytes(damaged[:cut]))
+
+    def frame(path):
+        with open_frames([path]) as frames:
+            frames.check()
+            return frames.read(0)
+
+    for read in (read_hologram, frame):
+        image = _read_or_refused(read, path)
+        if image is not None:
+            assert image.ndim == 2 and min(image.shape) >= 16 and np.all(np.isfinite(image)), image.shape
+
+
 # --- CSV particle tables ----------------------------------------------------------------------------
 
 _CELLS = st.one_of(st.floats(allow_nan=True, allow_infinity=True).map(repr), st.integers(-(10**30), 10**30).map(str),
