@@ -434,7 +434,7 @@ def backpropagated_blocks(
     _check_optics(wavelength_um, pixel_um, medium_index)
     normalised = _normalised_hologram(hologram, background)
     distances = _distances(z_um)
-    steps = steps if steps is not None else Steps(distances.size)
+    steps = steps if steps is not None else Steps(distances.size, progress=None, should_stop=None)
     yield from _propagated_batches(normalised, -distances, wavelength_um=wavelength_um, pixel_um=pixel_um, medium_index=medium_index, steps=steps)
 
 

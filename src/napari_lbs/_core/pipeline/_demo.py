@@ -7,7 +7,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from napari_lbs._core.foundation import ExperimentConfig
+from napari_lbs._core.foundation import ExperimentConfig, available_threads
 from napari_lbs._core.foundation import ProgressCallback
 from napari_lbs._core.foundation import write_json
 from napari_lbs._core.pipeline._common import Log, StepResult, _quiet, check_outputs
@@ -123,7 +123,7 @@ def demo(request: DemoRequest, *, progress_for: Callable[[str], ProgressCallback
     start = time.perf_counter()
     source = {"explicit": ["the built-in sample: polystyrene (n 1.59) spheres in water (n 1.33), 25 um, 660 nm"]} if effects else None
     generate(GenerateRequest(out / "data", config, groups=groups, calibration_path=out / "calibration.json", processing=processing, effects=effects, effects_source=source,
-                             distractors=distractors, seed=seed), progress=progress_for("generate"))
+                             distractors=distractors, seed=seed, workers=available_threads()), progress=progress_for("generate"))
     timings["generate"] = time.perf_counter() - start
 
     start = time.perf_counter()
