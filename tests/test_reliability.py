@@ -578,6 +578,52 @@ def test_sigterm_during_simulate_train_and_predict_leaves_no_partial_file(tmp_pa
     assert not [p.name for p in tmp_path.rglob(".*")]  # no temporary file anywhere
 
 
+def _group_processes(group: int) -> set[int]:
+    """The live processes of process group ``group`` (Linux /proc): a command's children stay in its group, even once orphaned."""
+    members = set()
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()  # after the command name, which may hold spaces
+        except (OSError, IndexError):  # ended meanwhile
+            continue
+        if int(fields[2]) == group and fields[0] != "Z":
+            members.add(int(stat.parent.name))
+    return members
+
+
+def test_ctrl_c_while_the_local_cluster_starts_exits_130_within_2_s_and_leaves_no_process(tmp_path, detector):
+    recording = tmp_path / "rec.tif"
+    tifffile.imwrite(recording, 1.0 + 0.1 * np.random.default_rng(0).random((3, 64, 64), np.float32), photometric="minisblack")
+    command = ["predict", str(recording), "--model", str(detector.path), "--out", str(tmp_path / "p.csv"), "--workers", "2"]
+    errors = tmp_path / "stderr.txt"  # a file, not a pipe: the workers write there too, and may outlive the command
+    with errors.open("w") as stream:
+        process = subprocess.Popen([sys.executable, "-m", "napari_lbs._cli", *command], stderr=stream, start_new_session=True)
+    deadline = time.monotonic() + 120
+    while not _catches_sigterm(process.pid):  # SIGINT is caught from Python's start; the command's handlers for both come together
+        assert process.poll() is None and time.monotonic() < deadline, "the command ended before it installed its handler"
+        time.sleep(0.01)
+    while not _group_processes(process.pid) - {process.pid}:  # the cluster's first worker process: the cluster is starting
+        assert process.poll() is None and time.monotonic() < deadline, "the command ended before it started a cluster"
+        time.sleep(0.01)
+    process.send_signal(signal.SIGINT)
+    sent = time.monotonic()
+    try:
+        process.wait(timeout=60)
+        seconds = time.monotonic() - sent
+        # a worker still starting Python when its parent ended leaves by itself once it runs (dask watches its parent's pipe)
+        while _group_processes(process.pid) and time.monotonic() < sent + 20:
+            time.sleep(0.1)
+    finally:
+        left = _group_processes(process.pid)
+        for pid in left:  # never leave them to the next test
+            os.kill(pid, signal.SIGKILL)
+    stderr = errors.read_text()
+    assert process.returncode == 130 and seconds < 2.0, (process.returncode, seconds, stderr)
+    assert "interrupted" in stderr and "Traceback" not in stderr, stderr
+    assert not left, f"{len(left)} processes of the run left"
+    assert not (tmp_path / "p.csv").exists()
+
+
 def test_an_interrupt_inside_an_import_waits_for_the_import_to_end(tmp_path, monkeypatch):
     """SIGTERM inside a module's top level is raised only once the import is over (an extension's initialisation would abort)."""
     import importlib

@@ -5,6 +5,10 @@ the way out. An exception raised in a module's top level can cross an extension'
 initialisation (torch's pybind11 modules), which aborts the whole process instead of
 unwinding it: a signal that lands inside an import is looked at again every 50 ms (SIGALRM)
 until the import is over.
+
+CPython runs signal handlers in the main thread, between bytecodes. A signal the kernel hands
+to another thread while the main thread waits on a lock is handled only when that wait ends
+(dask waits 10 s at a time while a cluster starts): `run_interruptibly` waits in short slices.
 """
 
 from __future__ import annotations
@@ -12,9 +16,12 @@ from __future__ import annotations
 import contextlib
 import signal
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from typing import TypeVar
 
-__all__ = ["interruptible"]
+T = TypeVar("T")
+
+__all__ = ["interruptible", "run_interruptibly"]
 
 _RETRY_S = 0.05
 
@@ -52,3 +59,45 @@ def interruptible() -> Iterator[None]:
             signal.setitimer(signal.ITIMER_REAL, 0.0)
         for number, handler in previous.items():
             signal.signal(number, handler)
+
+
+def run_interruptibly(work: Callable[[], T], *, abandoned: Callable[[T], None]) -> T:
+    """``work()``, run in a helper thread while the main thread waits for it in slices of 50 ms, so that Ctrl-C and SIGTERM are heard at once.
+
+    Interrupted, the caller unwinds immediately; ``work`` goes on in its thread and what it
+    makes is handed to ``abandoned`` (to close it) once it is done; its error, if any, is
+    dropped. Outside the main thread ``work`` runs in place (no handler runs there).
+    """
+    if threading.current_thread() is not threading.main_thread():
+        return work()
+    outcome: dict = {}
+    lock = threading.Lock()
+
+    def run() -> None:
+        try:
+            value = work()
+        except BaseException as error:  # noqa: BLE001 - handed to the waiting caller
+            with lock:
+                outcome["error"] = error
+            return
+        with lock:
+            outcome["value"] = value
+            late = outcome.get("abandoned", False)
+        if late:
+            abandoned(value)
+
+    helper = threading.Thread(target=run, name="napari-lbs-interruptible", daemon=True)
+    helper.start()
+    try:
+        while helper.is_alive():
+            helper.join(_RETRY_S)
+    except BaseException:
+        with lock:
+            outcome["abandoned"] = True
+            made = "value" in outcome
+        if made:
+            abandoned(outcome["value"])
+        raise
+    if "error" in outcome:
+        raise outcome["error"]
+    return outcome["value"]

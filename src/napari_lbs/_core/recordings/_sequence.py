@@ -41,7 +41,7 @@ from napari_lbs._core.foundation import atomic_path, read_json_object, write_jso
 from napari_lbs._core.recordings._frames import HologramFrames, open_frames
 from napari_lbs._core.foundation import as_hologram
 from napari_lbs._core.foundation import ProgressCallback, Steps, StopCallback, Stopped
-from napari_lbs._core.foundation import available_threads, process_threads, size_threads
+from napari_lbs._core.foundation import available_threads, process_threads, run_interruptibly, size_threads
 from napari_lbs._core.foundation import InputError
 
 __all__ = ["SequenceResult", "local_cluster", "predict_sequence"]
@@ -200,7 +200,8 @@ class _Scheduler:
                     except OSError as error:
                         raise InputError(f"scheduler: cannot reach the dask scheduler at {scheduler} ({error})") from None
                 else:
-                    self.cluster = local_cluster(workers, processes=local_processes)
+                    # its worker processes take seconds to start: a Ctrl-C meanwhile must not wait for them
+                    self.cluster = run_interruptibly(lambda: local_cluster(workers, processes=local_processes), abandoned=lambda cluster: cluster.close(timeout=10))
                     self.client = Client(self.cluster)
                 self.model = self.client.scatter(model, broadcast=True, hash=False)  # sent once, kept by every worker
             except BaseException:  # Ctrl-C or a failure while the cluster starts: no worker process outlives the run
