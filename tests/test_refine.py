@@ -463,7 +463,7 @@ def test_predict_refine_writes_the_refined_columns(tmp_path, monkeypatch, flags)
     thresholds = []
     monkeypatch.setattr(_network, "load_model", lambda *a, **k: Model())
     monkeypatch.setattr(_prediction, "predict_particles",
-                        lambda *a, **k: thresholds.append(k["threshold"]) or _prediction.PredictionResult(guesses, {"model_sha256": "stub"}, 0.1))
+                        lambda *a, **k: thresholds.append(k["settings"].threshold) or _prediction.PredictionResult(guesses, {"model_sha256": "stub"}, 0.1))
     from napari_lbs._core.refine import _refine
 
     made, settings = [], _refine.RefineSettings

@@ -31,7 +31,7 @@ __getattr__, __dir__, __all__ = lazy_exports(
         "_dataset": ("DatasetLayout", "InputProcessing", "SyntheticDataset", "generate_dataset", "open_dataset"),
         "_metrics": ("AXIAL_TOL_UM", "LATERAL_TOL_UM", "match_particles", "score_particles", "seed_scores"),
         "_network": ("LoadedModel", "check_model_matches", "load_model", "model_mismatches", "resolve_device", "resolve_precision"),
-        "_prediction": ("PredictionResult", "check_threshold", "predict_particles"),
+        "_prediction": ("PredictionResult", "PredictionSettings", "check_threshold", "predict_particles", "prediction_settings"),
         "_training": ("TrainingResult", "TrainingSettings", "train_model"),
     },
 )

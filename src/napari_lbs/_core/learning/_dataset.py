@@ -29,7 +29,7 @@ a rerun with the same settings only writes the groups that are missing.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -203,7 +203,7 @@ def synthetic_group(
     return inputs, label_planes(particles, planes_um), particles
 
 
-@dataclass
+@dataclass(frozen=True)
 class SyntheticDataset:
     """A data set folder: its description and the groups present on disk."""
 
@@ -370,23 +370,22 @@ def generate_dataset(
         spec["effects_source"] = effects_source
     (out / "groups").mkdir(parents=True, exist_ok=True)
     write_json(manifest, {**spec, "complete": False})
-    dataset = SyntheticDataset(out, spec, [], complete=False)
+    dataset = SyntheticDataset(out, spec, [], complete=False)  # its group paths
     planes_um = spec["planes_um"]
     steps = Steps(int(groups), progress=progress, should_stop=should_stop)
     valid = {g: _group_is_valid(dataset.group_path(g), len(planes_um), config.tile.size) for g in range(int(groups))}
     present, missing = [g for g, ok in valid.items() if ok], [g for g, ok in valid.items() if not ok]
-    dataset.groups.extend(present)
+    written, stopped = list(present), False
     if present:
         steps.advance(len(present))
     jobs = [(dataset.group_path(g), config, processing, layout, effects, distractors, int(seed), g) for g in missing]
     try:
-        dataset.groups.extend(run_in_workers(_write_job, jobs, workers=workers, steps=steps))
+        written.extend(run_in_workers(_write_job, jobs, workers=workers, steps=steps))
     except Stopped:
         # each group is written atomically: the ones on disk are whole, whichever worker wrote them
-        dataset.stopped = True
-        dataset.groups.extend(g for g in missing if _group_is_valid(dataset.group_path(g), len(planes_um), config.tile.size))
-    dataset.groups.sort()
-    dataset.complete = len(dataset.groups) == int(groups)
+        stopped = True
+        written.extend(g for g in missing if _group_is_valid(dataset.group_path(g), len(planes_um), config.tile.size))
+    dataset = replace(dataset, groups=sorted(written), complete=len(written) == int(groups), stopped=stopped)
     write_json(manifest, {**spec, "complete": dataset.complete})
     return dataset
 
@@ -433,9 +432,8 @@ def open_dataset(path: str | Path) -> SyntheticDataset:
     if not manifest.is_file():
         raise InputError(f"{path}: not a napari-lbs data set (no dataset.json)")
     spec = check_dataset_manifest(read_json_object(manifest, what="data set manifest"), name=str(manifest), formats={DATASET_FORMAT: (1, _FORMAT_VERSION)})
-    dataset = SyntheticDataset(path, spec, [], complete=bool(spec.get("complete")))
-    dataset.groups = [g for g in range(int(spec["groups"])) if dataset.group_path(g).is_file()]
-    return dataset
+    dataset = SyntheticDataset(path, spec, [], complete=bool(spec.get("complete")))  # its group paths
+    return replace(dataset, groups=[g for g in range(int(spec["groups"])) if dataset.group_path(g).is_file()])
 
 
 def dataset_summary(dataset: SyntheticDataset) -> dict:

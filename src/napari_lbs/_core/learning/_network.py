@@ -154,7 +154,7 @@ def resolve_precision(precision: str, device: torch.device) -> str:
     return "bfloat16" if _native_bfloat16(device) else "float32"
 
 
-@dataclass
+@dataclass(frozen=True)
 class LoadedModel:
     """A network ready for inference with its description and file hash."""
 
@@ -165,7 +165,7 @@ class LoadedModel:
     weights_sha256: str = ""  # `weights_sha256` of ``network``, computed when not given
 
     def __post_init__(self) -> None:
-        self.weights_sha256 = self.weights_sha256 or weights_sha256(self.network)
+        object.__setattr__(self, "weights_sha256", self.weights_sha256 or weights_sha256(self.network))  # frozen: set once, here
 
     @property
     def config(self) -> ExperimentConfig:

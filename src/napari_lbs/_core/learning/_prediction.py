@@ -40,7 +40,7 @@ from napari_lbs._core.physics import backpropagate, padded_shape
 from napari_lbs._core.foundation import ProgressCallback, Steps, StopCallback
 from napari_lbs._core.foundation import check_memory, check_prediction_meta
 
-__all__ = ["PredictionResult", "check_threshold", "predict_particles", "tile_layout", "tile_normalisation", "window_layout"]
+__all__ = ["PredictionResult", "PredictionSettings", "check_threshold", "predict_particles", "prediction_settings", "tile_layout", "tile_normalisation", "window_layout"]
 
 _PLANES_PER_CHUNK = 8
 # Per pixel, one network call on one window of up to ~640² ran 1.2x cheaper than batches of
@@ -50,13 +50,71 @@ _PLANES_PER_CHUNK = 8
 _WINDOW_PX = 640
 
 
-@dataclass
+@dataclass(frozen=True)
 class PredictionResult:
-    """Particles (docs/formats.md table plus ``score`` and ``planes``) and how they were found."""
+    """Particles (docs/formats.md table plus ``score`` and ``planes``) and how they were found.
+
+    Attributes
+    ----------
+    particles : dict of arrays
+        The particle table: ``x_um, y_um, z_um, diameter_um`` (µm), ``score`` and the model's
+        own columns; a refined prediction's adds `refine_particles`' columns.
+    provenance : dict
+        Model, decoding, config, tiles and timings (the ``.json`` beside a written table).
+    seconds : float
+        Wall time of the call (s).
+    """
 
     particles: dict[str, np.ndarray]
     provenance: dict
     seconds: float
+
+
+@dataclass(frozen=True)
+class PredictionSettings:
+    """How `predict_particles` runs the network and decodes its output (also each frame of `predict_sequence`).
+
+    Attributes
+    ----------
+    threshold : float, optional
+        The smallest score a detection keeps; default the model's.
+    device : {"auto", "cpu", "cuda"}
+        Where the network runs.
+    precision : {"auto", "float32", "bfloat16"}
+        The network's arithmetic.
+    force : bool
+        Run a model made for other optics or depths anyway.
+    margin_px : int
+        Half the minimum overlap of neighbouring tiles (pixels).
+    window_px : int, optional
+        ``focus`` models: the largest edge of the windows the network runs on (pixels).
+
+    Each is the `predict_particles` keyword of the same name, described there.
+    """
+
+    threshold: float | None = None
+    device: str = "auto"
+    precision: str = "auto"
+    force: bool = False
+    margin_px: int = 32
+    window_px: int | None = None
+
+
+def prediction_settings(settings: PredictionSettings | None, **keywords) -> PredictionSettings:
+    """The `PredictionSettings` of a call: ``settings``, else one of the call's flat ``keywords`` (its field names).
+
+    A call gives its options one way or the other: a keyword away from its default next to
+    ``settings`` is refused.
+    """
+    if settings is None:
+        return PredictionSettings(**keywords)
+    if not isinstance(settings, PredictionSettings):
+        raise InputError(f"settings: expected PredictionSettings, got {type(settings).__name__}")
+    defaults = PredictionSettings()
+    both = sorted(name for name, value in keywords.items() if value != getattr(defaults, name))
+    if both:
+        raise InputError(f"{', '.join(both)}: give the prediction's options either in settings or as keywords, not both")
+    return settings
 
 
 def tile_layout(length: int, *, size: int, margin: int) -> list[tuple[int, int, int]]:
@@ -86,6 +144,7 @@ def predict_particles(
     precision: str = "auto",
     force: bool = False,
     threshold: float | None = None,
+    settings: PredictionSettings | None = None,
     progress: ProgressCallback | None = None,
     should_stop: StopCallback | None = None,
 ) -> PredictionResult:
@@ -126,11 +185,17 @@ def predict_particles(
         output value); default the model's, the one that scored best on its validation data.
         A lower one finds more particles and more false ones: a table that a fit then checks
         (`refine_particles`) can afford it.
+    settings : PredictionSettings, optional
+        ``margin_px``, ``window_px``, ``device``, ``precision``, ``force`` and ``threshold``
+        in one object, instead of the keywords (a call gives one or the other).
     progress, should_stop
         One step per reconstruction plane (``focus``: also one per back-propagated plane,
         context included, first); a stop raises `Stopped`.
     """
     start_time = time.perf_counter()
+    settings = prediction_settings(settings, margin_px=margin_px, window_px=window_px, device=device, precision=precision, force=force, threshold=threshold)
+    margin_px, window_px, device, precision, force, threshold = (settings.margin_px, settings.window_px, settings.device, settings.precision, settings.force,
+                                                                 settings.threshold)
     hologram = as_hologram(hologram)
     if background is not None:
         background = as_hologram(background, name="background")

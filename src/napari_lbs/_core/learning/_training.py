@@ -180,7 +180,7 @@ class TrainingSettings:
         return self.learning_rate if self.learning_rate is not None else _DEFAULT_RATE[self.preset]
 
 
-@dataclass
+@dataclass(frozen=True)
 class TrainingResult:
     """Where the model went and how training went."""
 

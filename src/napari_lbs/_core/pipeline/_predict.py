@@ -6,7 +6,7 @@ import json
 import shutil
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -19,7 +19,8 @@ from napari_lbs._core.pipeline._common import Log, StepResult, _background, _qui
 if TYPE_CHECKING:  # for the annotations only: the steps import these modules when they run
     import numpy as np
 
-    from napari_lbs._core.learning import LoadedModel
+    from napari_lbs._core.learning import LoadedModel, PredictionResult, PredictionSettings
+    from napari_lbs._core.refine import RefineSettings
 
 __all__ = ["PredictRequest", "REFINE_PROPOSAL_FRACTION", "refined_prediction", "prediction_outputs", "predict", "TrackRequest", "track"]
 
@@ -92,6 +93,12 @@ class PredictRequest:
         """The files the step writes: the table and its provenance beside it (checked by `prediction_outputs`)."""
         return Path(self.out_path), Path(self.out_path).with_suffix(".json")
 
+    def settings(self) -> PredictionSettings:
+        """The network's options (`PredictionSettings`): ``threshold``, ``device``, ``precision`` and ``force``."""
+        from napari_lbs._core.learning import PredictionSettings
+
+        return PredictionSettings(threshold=self.threshold, device=self.device, precision=self.precision, force=self.force)
+
 
 # With a fit to check them, detections are proposed at this fraction of the model's score
 # threshold: on the development holograms of docs/refinement.md the fit turned the extra
@@ -105,47 +112,87 @@ def _proposal_threshold(meta: dict, threshold: float | None) -> float:
     return float(threshold) if threshold is not None else REFINE_PROPOSAL_FRACTION * float(meta["threshold"])
 
 
-def _network_proposals(model, config: ExperimentConfig | None, *, threshold: float, device: str, precision: str, force: bool, progress, should_stop):
-    """``propose(image)``: the network's proposals (down to ``threshold``) in an image as the fit sees it (divided by the background, else by its mean), for `residual_particles`."""
+def _network_proposals(model, config: ExperimentConfig | None, settings: PredictionSettings, *, progress, should_stop):
+    """``propose(image)``: the network's proposals with ``settings`` (`PredictionSettings`, its threshold the proposals') in an image as the fit sees it (divided by the background, else by its mean), for `residual_particles`."""
     from napari_lbs._core.learning import predict_particles
 
-    return lambda image: predict_particles(image, model, config, device=device, precision=precision, force=force, threshold=threshold, progress=progress,
-                                           should_stop=should_stop).particles
+    return lambda image: predict_particles(image, model, config, settings=settings, progress=progress, should_stop=should_stop).particles
+
+
+def _fit_settings(settings: RefineSettings | None, *, device: str, material: float | None) -> RefineSettings:
+    """The `RefineSettings` of a refined prediction: ``settings``, else the prediction's device with one fitting process per available core; a declared ``material`` is where every fit starts."""
+    from napari_lbs._core.foundation import available_threads
+    from napari_lbs._core.refine import RefineSettings
+
+    start = {} if material is None else {"index_contrast": float(material)}
+    if settings is None:  # the prediction's device (CUDA where it ran there); on the CPU one fitting process per core
+        return RefineSettings(device=device, workers=available_threads(), **start)
+    return replace(settings, **start)
 
 
 def refined_prediction(hologram: np.ndarray, model, config: ExperimentConfig | None = None, *, background: np.ndarray | None = None, device: str = "auto",
                        precision: str = "auto", force: bool = False, threshold: float | None = None, material_index_contrast: float | None = None,
-                       progress: ProgressCallback | None = None, should_stop: StopCallback | None = None):
-    """`predict_particles` down to `REFINE_PROPOSAL_FRACTION` of the model's threshold (or ``threshold``), then `refine_particles`.
+                       settings: PredictionSettings | None = None, refine_settings: RefineSettings | None = None,
+                       progress: ProgressCallback | None = None, should_stop: StopCallback | None = None) -> PredictionResult:
+    """The particles of one hologram as ``napari-lbs predict --refine`` finds them: the network, a fit of every detection, a second look in the residual.
 
-    The fit sees the hologram divided by ``background``, else by its mean. The network then
-    looks again in what the refined table leaves unexplained (`residual_particles`: spheres
-    hidden in their neighbours' fringes, sizes it scored low), and the sample's particles
-    the fit measures there join the table. Returns a `PredictionResult` whose particles are
-    the refined table (`REFINE_COLUMNS` after the first four) and whose provenance gains
-    ``refine`` (settings, counts, seconds; ``residual``: the second look's proposals, finds
-    and seconds). With
-    ``material_index_contrast`` (the sample's ``n_p - n_m``) the fits start there and the
-    particles of another material (`same_material`) leave the table for the provenance's
-    ``refine.material.other_particles``. ``progress`` counts the prediction's planes, then
-    the fit's batches, then the same for the second look, each phase named as it begins
-    (`begin_phase`: "network", "fit N particles", "second look").
+    `predict_particles` proposes down to `REFINE_PROPOSAL_FRACTION` of the model's threshold
+    (or the given threshold), then `refine_particles` fits every proposal on the hologram
+    divided by ``background``, else by its mean. The network then looks again in what the
+    refined table leaves unexplained (`residual_particles`: spheres hidden in their
+    neighbours' fringes, sizes it scored low), and the sample's particles the fit measures
+    there join the table.
+
+    Parameters
+    ----------
+    hologram : (rows, cols) array
+        Intensity hologram.
+    model : LoadedModel or path
+        A model file from `train_model`.
+    config : ExperimentConfig, optional
+        Optics and depths; default the model's own.
+    background : (rows, cols) array, optional
+        Hologram without particles.
+    device, precision, force, threshold
+        The network's options (`predict_particles`); ``threshold`` is the proposals'.
+    material_index_contrast : float, optional
+        The sample's ``n_p - n_m``: the fits start there, and the particles of another
+        material (`same_material`) leave the table for the provenance's
+        ``refine.material.other_particles``.
+    settings : PredictionSettings, optional
+        The network's options in one object instead of the keywords (a call gives one or the
+        other).
+    refine_settings : RefineSettings, optional
+        How the fits run; default ``RefineSettings(device=device, workers=<available cores>)``
+        (more than 1 worker spawns processes: a script's ``if __name__ == "__main__":`` guard).
+    progress, should_stop
+        ``progress`` counts the prediction's planes, then the fit's batches, then the same for
+        the second look, each phase named as it begins (`begin_phase`: "network",
+        "fit N particles", "second look"); a stop raises `Stopped`.
+
+    Returns
+    -------
+    PredictionResult
+        Particles: the refined table (`refine_particles`' columns after the first four).
+        Provenance: the network's, plus ``refine`` (settings, counts, seconds; ``residual``:
+        the second look's proposals, finds and seconds; ``material`` with
+        ``material_index_contrast``).
     """
     import numpy as np
 
     from napari_lbs._core.learning import LoadedModel, load_model
-    from napari_lbs._core.learning import PredictionResult, predict_particles
+    from napari_lbs._core.learning import PredictionResult, predict_particles, prediction_settings
 
     started = time.perf_counter()
-    model = model if isinstance(model, LoadedModel) else load_model(model, device=device)
-    proposal = _proposal_threshold(model.meta, threshold)
+    settings = prediction_settings(settings, device=device, precision=precision, force=force, threshold=threshold)
+    model = model if isinstance(model, LoadedModel) else load_model(model, device=settings.device)
+    settings = replace(settings, threshold=_proposal_threshold(model.meta, settings.threshold))
     begin_phase(progress, "network")
-    result = predict_particles(hologram, model, config, background=background, device=device, precision=precision, force=force,
-                               threshold=proposal, progress=progress, should_stop=should_stop)
+    result = predict_particles(hologram, model, config, background=background, settings=settings, progress=progress, should_stop=should_stop)
     normalised = np.asarray(hologram, dtype=np.float64) / (background if background is not None else float(np.mean(hologram)))
-    propose = _network_proposals(model, config, threshold=proposal, device=device, precision=precision, force=force, progress=progress,
-                                 should_stop=should_stop)
-    particles, record = _refined(normalised, result.particles, config or model.config, material=material_index_contrast, device=device, propose=propose,
+    propose = _network_proposals(model, config, settings, progress=progress, should_stop=should_stop)
+    fit = _fit_settings(refine_settings, device=settings.device, material=material_index_contrast)
+    particles, record = _refined(normalised, result.particles, config or model.config, fit, material=material_index_contrast, propose=propose,
                                  progress=progress, should_stop=should_stop)
     return PredictionResult(particles, {**result.provenance, "refine": record}, time.perf_counter() - started)
 
@@ -201,8 +248,7 @@ def predict(request: PredictRequest, *, progress: ProgressCallback | None = None
         source, hologram = _source("array", request.source), request.inputs
     background = _background(request.background_path, hologram.shape, log=log)
     model = request.model if not isinstance(request.model, (str, Path)) else load_model(request.model, device=request.device)
-    options = {"background": background, "device": request.device, "precision": request.precision, "force": request.force, "threshold": request.threshold,
-               "progress": progress, "should_stop": should_stop}
+    options = {"background": background, "settings": request.settings(), "progress": progress, "should_stop": should_stop}
     refine = request.refine or request.material_index_contrast is not None  # the fit measures the material
     if refine:
         options["material_index_contrast"] = request.material_index_contrast
@@ -222,9 +268,9 @@ def _refine_summary(record: dict) -> str:
     return line
 
 
-def _refined_frames(frames, particles: dict, config: ExperimentConfig, *, background, material: float | None, device: str, propose, log: Log, progress,
+def _refined_frames(frames, particles: dict, config: ExperimentConfig, settings: RefineSettings, *, background, material: float | None, propose, log: Log, progress,
                     should_stop) -> tuple[dict, dict]:
-    """Each frame's rows of a recording's table refined on that frame (divided by the background file, else by its mean)."""
+    """Each frame's rows of a recording's table refined with ``settings`` on that frame (divided by the background file, else by its mean)."""
     import numpy as np
 
     frame_of = np.asarray(particles["frame"]).astype(np.int64)
@@ -233,7 +279,7 @@ def _refined_frames(frames, particles: dict, config: ExperimentConfig, *, backgr
         rows = frame_of == index
         hologram = np.asarray(frames.read(int(index), log=log), dtype=np.float64)
         divisor = background if isinstance(background, np.ndarray) else float(hologram.mean())
-        table, record = _refined(hologram / divisor, {name: np.asarray(values)[rows] for name, values in particles.items()}, config, material=material, device=device,
+        table, record = _refined(hologram / divisor, {name: np.asarray(values)[rows] for name, values in particles.items()}, config, settings, material=material,
                                  propose=propose, progress=progress, should_stop=should_stop)
         if len(table["x_um"]) and "frame" in table:
             table["frame"] = np.full(len(table["x_um"]), index, dtype=np.asarray(particles["frame"]).dtype)
@@ -253,22 +299,18 @@ def _refined_frames(frames, particles: dict, config: ExperimentConfig, *, backgr
     return merged, summary
 
 
-def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, *, material: float | None, device: str, propose, progress,
+def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, settings: RefineSettings, *, material: float | None, propose, progress,
              should_stop) -> tuple[dict, dict]:
-    """The particle table refined by `refine_particles`, with the finds in its residual (`residual_particles`, ``propose``), of the ``material`` where given (as a dict of arrays), and its provenance."""
+    """The particle table refined by `refine_particles` with ``settings``, with the finds in its residual (`residual_particles`, ``propose``), of the ``material`` where given (as a dict of arrays), and its provenance."""
     from dataclasses import asdict
 
     import numpy as np
     import pandas as pd
 
     from napari_lbs._core.refine import MATERIAL_SIGMAS, MATERIAL_TOLERANCE, same_material
-    from napari_lbs._core.refine import RefineSettings, refine_particles
+    from napari_lbs._core.refine import refine_particles
     from napari_lbs._core.refine import residual_particles
-    from napari_lbs._core.foundation import available_threads
 
-    # the prediction's device (CUDA where it ran there); on the CPU one fitting process per core;
-    # a declared material is also where every fit starts
-    settings = RefineSettings(device=device, workers=available_threads(), **({} if material is None else {"index_contrast": float(material)}))
     started = time.perf_counter()
     begin_phase(progress, f"fit {len(particles['x_um'])} particles")
     table = refine_particles(hologram, pd.DataFrame(particles), config, settings=settings, progress=progress, should_stop=should_stop)
@@ -304,19 +346,20 @@ def _predict_recording(request: PredictRequest, frames, out: Path, record_path: 
     background = read_hologram(request.background_path, log=log) if request.background_path else request.sequence_background
     model = load_model(request.model, device="cpu")  # each worker moves it to the device
     refine = request.refine or request.material_index_contrast is not None  # the fit measures the material
+    settings = request.settings()
+    if refine:
+        settings = replace(settings, threshold=_proposal_threshold(model.meta, request.threshold))
     result = predict_sequence(frames, model, request.config, background=background, background_window=request.background_window, workers=request.workers,
-                              scheduler=request.scheduler, force=request.force, work_dir=work_dir, device=request.device, precision=request.precision,
-                              threshold=_proposal_threshold(model.meta, request.threshold) if refine else request.threshold, progress=progress,
-                              should_stop=should_stop)
+                              scheduler=request.scheduler, work_dir=work_dir, settings=settings, progress=progress, should_stop=should_stop)
     particles, provenance = result.particles, dict(result.provenance)
     if refine:
         # the second look runs in this process, on the prediction's device (the workers moved their own copies there)
         looker = load_model(request.model, device=request.device) if isinstance(request.model, (str, Path)) else model
-        propose = _network_proposals(looker, request.config, threshold=_proposal_threshold(model.meta, request.threshold), device=request.device,
-                                     precision=request.precision, force=request.force, progress=progress, should_stop=should_stop)
-        particles, provenance["refine"] = _refined_frames(frames, particles, request.config or model.config, background=background,
-                                                          material=request.material_index_contrast, device=request.device, propose=propose, log=log,
-                                                          progress=progress, should_stop=should_stop)
+        propose = _network_proposals(looker, request.config, settings, progress=progress, should_stop=should_stop)
+        fit = _fit_settings(None, device=request.device, material=request.material_index_contrast)
+        particles, provenance["refine"] = _refined_frames(frames, particles, request.config or model.config, fit, background=background,
+                                                          material=request.material_index_contrast, propose=propose, log=log, progress=progress,
+                                                          should_stop=should_stop)
     _write_table(out, record_path, particles, {**provenance, "background_file": request.background_path, "particles": str(out)})
     shutil.rmtree(work_dir)
     count, done = len(result.particles["x_um"]), result.provenance["frames"]

@@ -30,7 +30,7 @@ FLOWS = ("uniform", "vortex", "shear")
 _UNIFORM_DIRECTION = np.array([0.6, 0.48, 0.64])  # a unit vector with a component along every axis
 
 
-@dataclass
+@dataclass(frozen=True)
 class SimulatedSequence:
     """A simulated recording and its truth.
 

@@ -31,6 +31,7 @@ from collections.abc import Sequence
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -44,13 +45,16 @@ from napari_lbs._core.foundation import ProgressCallback, Steps, StopCallback, S
 from napari_lbs._core.foundation import available_threads, process_threads, run_interruptibly, size_threads
 from napari_lbs._core.foundation import InputError
 
+if TYPE_CHECKING:  # for the annotations only: torch is imported when a recording is predicted
+    from napari_lbs._core.learning import PredictionSettings
+
 __all__ = ["SequenceResult", "local_cluster", "predict_sequence"]
 
 _WORK_FORMAT = "napari-lbs-sequence-work"
 _IN_FLIGHT_PER_WORKER = 2
 
 
-@dataclass
+@dataclass(frozen=True)
 class SequenceResult:
     """One particle table for a whole recording and how it was made.
 
@@ -62,7 +66,7 @@ class SequenceResult:
         The first frame's provenance (model, decoding, config) plus the recording's sources,
         background, scheduler and timings.
     seconds : float
-        Wall time of this call.
+        Wall time of this call (s).
     resumed : int
         Frames found finished in the work folder (not predicted again).
     """
@@ -73,18 +77,19 @@ class SequenceResult:
     resumed: int
 
 
-def _frame_particles(hologram: np.ndarray, model, config: ExperimentConfig, background: np.ndarray | None, device: str, precision: str,
-                     threshold: float | None, should_stop: StopCallback | None = None) -> tuple[dict, dict]:
-    """One frame's `predict_particles` (the dask task). ``model`` is the worker's copy, moved to ``device`` on first use; ``should_stop`` (threads of this process only) ends it between planes."""
+def _frame_particles(hologram: np.ndarray, model, config: ExperimentConfig, background: np.ndarray | None, settings: PredictionSettings, should_stop: StopCallback | None = None) -> tuple[dict, dict]:
+    """One frame's `predict_particles` with ``settings`` (the dask task). ``model`` is the worker's copy, moved to the settings' device on first use; ``should_stop`` (threads of this process only) ends it between planes."""
+    from dataclasses import replace
+
     from napari_lbs._core.learning import resolve_device
     from napari_lbs._core.learning import predict_particles
 
     size_threads(1)  # the same rounding on every worker (module docstring), and the cores split between frames
-    target = resolve_device(device)
+    target = resolve_device(settings.device)
     if next(model.network.parameters()).device != target:
         model.network.to(target)
     # predict_sequence checked the model against the config once, before any frame
-    result = predict_particles(hologram, model, config, background=background, precision=precision, force=True, threshold=threshold, should_stop=should_stop)
+    result = predict_particles(hologram, model, config, background=background, settings=replace(settings, force=True), should_stop=should_stop)
     return result.particles, result.provenance
 
 
@@ -220,10 +225,9 @@ class _Scheduler:
         """``value`` as every task will receive it: sent once to each worker (distributed), else as it is."""
         return value if self.client is None or value is None else self.client.scatter(value, broadcast=True, hash=False)
 
-    def submit(self, index: int, hologram: np.ndarray, config: ExperimentConfig, background, device: str, precision: str, threshold: float | None,
-               should_stop: StopCallback | None = None):
-        """Frame ``index``'s task: a future (distributed) or a delayed call (local, which ``should_stop`` can end between planes)."""
-        arguments = (hologram, self.model, config, background, device, precision, threshold)
+    def submit(self, index: int, hologram: np.ndarray, config: ExperimentConfig, background, settings: PredictionSettings, should_stop: StopCallback | None = None):
+        """Frame ``index``'s task with the `PredictionSettings` ``settings``: a future (distributed) or a delayed call (local, which ``should_stop`` can end between planes)."""
+        arguments = (hologram, self.model, config, background, settings)
         if self.client is not None:
             return self.client.submit(_frame_particles, *arguments, key=f"napari-lbs-frame-{index}-{id(self)}", pure=False)
         import dask
@@ -263,6 +267,7 @@ def predict_sequence(
     config: ExperimentConfig | None = None,
     *,
     background: str | np.ndarray = "auto",
+    settings: PredictionSettings | None = None,
     background_window: int = 21,
     background_samples: int = 32,
     workers: int | None = None,
@@ -297,6 +302,11 @@ def predict_sequence(
         nothing (each frame's own mean, as a single hologram); or a background image taken
         without particles. A recording of one frame has no median background (it would be
         the frame): ``global`` and ``running`` become ``none``, ``auto`` becomes ``flat``.
+    settings : PredictionSettings, optional
+        Each frame's ``device``, ``precision``, ``force`` and ``threshold``, and its
+        ``margin_px`` and ``window_px`` (`predict_particles`), in one object instead of the
+        keywords (a call gives one or the other). The recording's own options (its
+        background, the workers, the work folder) stay keywords.
     workers : int, optional
         Run on a ``dask.distributed`` ``LocalCluster`` of this many single-threaded workers
         (default: the local threaded scheduler, one frame per core at a time).
@@ -326,9 +336,11 @@ def predict_sequence(
     -------
     SequenceResult
     """
-    from napari_lbs._core.learning import LoadedModel, check_model_matches, check_threshold, load_model, resolve_device, resolve_precision
+    from napari_lbs._core.learning import LoadedModel, check_model_matches, check_threshold, load_model, prediction_settings, resolve_device, resolve_precision
 
     start_time = time.perf_counter()
+    settings = prediction_settings(settings, device=device, precision=precision, force=force, threshold=threshold)
+    device, precision, force, threshold = settings.device, settings.precision, settings.force, settings.threshold
     if workers is not None and scheduler is not None:
         raise InputError("workers: give either a number of local workers or a scheduler address, not both")
     if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or not 1 <= workers <= available_threads()):
@@ -362,6 +374,8 @@ def predict_sequence(
             "model_sha256": loaded.sha256,
             "precision": precision,
             "threshold": threshold,
+            "margin_px": settings.margin_px,
+            "window_px": settings.window_px,
             "config": config.to_dict(),
             "background": mode,
             "background_window": background_window if mode == "running" else None,
@@ -400,7 +414,7 @@ def predict_sequence(
                     frame_background = flat_field(hologram)
                 else:
                     hologram, frame_background = frames.read(index), shared_background
-                pending[index] = runner.submit(index, hologram, config, frame_background, device, precision, threshold, should_stop)
+                pending[index] = runner.submit(index, hologram, config, frame_background, settings, should_stop)
                 if len(pending) >= runner.slots:
                     break
             if not pending:
