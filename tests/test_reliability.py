@@ -707,6 +707,10 @@ def test_track_refuses_absurd_frames_links_across_long_gaps_at_once_and_stops_be
     table.write_text("x_um,y_um,z_um,diameter_um,frame\n1,1,1,20,0\n2,2,2,20,1000000000000000\n")
     line = refusal(capsys, ["track", str(table), "--out", str(workspace / "t.csv")])
     assert str(table) in line and "frame" in line and "10000000" in line, line
+    table.write_text("x_um,y_um,z_um,diameter_um,frame\n1,1,1,20,0\n2,2,2,20,1\n")
+    for flag in ("--search-range-um", "--axial-search-range-um"):  # their squares would overflow
+        line = refusal(capsys, ["track", str(table), "--out", str(workspace / "t.csv"), flag, "1e308"])
+        assert "search_range_um: expected a positive distance up to 1e+06 µm, got 1e+308" in line, line
     rows = {"x_um": np.array([1.0, 2.0, 3.0]), "y_um": np.ones(3), "z_um": np.ones(3), "diameter_um": np.ones(3), "frame": np.array([0, 1, 5_000_000])}
     started = time.monotonic()
     tracks = link_tracks(rows, search_range_um=60.0, memory=3)  # trackpy alone steps through every empty frame of the gap

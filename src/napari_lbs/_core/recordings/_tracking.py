@@ -24,6 +24,7 @@ DISPLACEMENT_COLUMNS = ("dx_um", "dy_um", "dz_um")
 
 MAX_FRAME = 10**7  # a frame number beyond this is no recording's (a million frames is hours of high-speed video)
 MAX_MEMORY = 10**4  # frames a particle may be missed
+MAX_SEARCH_UM = 1e6  # a metre, beyond any sample; trackpy squares the distances, which overflow near 1e154
 
 
 def _levels(frames: np.ndarray, positions: np.ndarray, memory: int) -> Iterator[tuple[int, np.ndarray]]:
@@ -80,8 +81,8 @@ def link_tracks(particles: dict[str, np.ndarray], *, search_range_um: float, axi
     if "frame" not in particles:
         raise InputError("particle table: no frame column; tracks need the table of a recording (predict with several frames)")
     for name, value in (("search_range_um", search_range_um), ("axial_search_range_um", axial_search_range_um)):
-        if value is not None and not (isinstance(value, (int, float, np.number)) and np.isfinite(value) and value > 0):
-            raise InputError(f"{name}: expected a positive distance, got {value!r}")
+        if value is not None and not (isinstance(value, (int, float, np.number)) and np.isfinite(value) and 0 < value <= MAX_SEARCH_UM):
+            raise InputError(f"{name}: expected a positive distance up to {MAX_SEARCH_UM:g} µm, got {value!r}")
     if not isinstance(memory, (int, np.integer)) or isinstance(memory, bool) or not 0 <= memory <= MAX_MEMORY:
         raise InputError(f"memory: expected an integer number of frames in [0, {MAX_MEMORY}], got {memory!r}")
     try:
