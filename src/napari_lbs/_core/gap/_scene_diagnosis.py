@@ -10,8 +10,8 @@
    mean over the particles against its standard error.
 3. **The frame's scene** is every particle found (up to ``scene_particles``), fitted with its
    index contrast and absorption free, the residual searched again ``looks`` times for the
-   particles the first search missed (`_scene`), and rendered as far as a pixel records
-   fringes: to 1 cycle per pixel, aliased (`particle_hologram`'s ``reach_cycles_per_px``).
+   particles the first search missed (`_scene`), and rendered to the Nyquist disc
+   (``reach_cycles_per_px``: the aliased rings beyond it are the camera's to pass or not).
 4. **The frame's effects** (`select_effects`): the catalog's camera around the scene's
    hologram, each effect a nested model fitted on one colour of a checkerboard of tiles and
    judged on the other by a Whittle likelihood; forward selection by held-out gain; then the
@@ -66,7 +66,14 @@ class SceneDiagnosisSettings:
         every particle left out stays in the residual as structure.
     looks : int
         How many times the residual the fitted scene leaves is searched for particles the
-        first search missed (each find fitted with all the others).
+        first search missed (each find fitted with the others taken out of the data).
+    reach_cycles_per_px : float
+        Fringe frequency up to which the scene's particles are rendered (`particle_hologram`).
+        ``1`` renders the aliased rings a pixel records, which leaves far less structure in
+        the residual, but how strongly a camera passes fringes above Nyquist depends on its
+        pixels (fill factor, microlenses): on pixel-integrated Lorenz–Mie frames with nothing
+        withheld, rendering them named blur and coherence where ``0.5`` (the Nyquist disc,
+        what the fits model) named nothing.
     index_grid : tuple of float
         Index contrasts at which transparent spheres are fitted.
     level_z : float
@@ -84,6 +91,7 @@ class SceneDiagnosisSettings:
     particles: int = 24
     scene_particles: int = 256
     looks: int = 2
+    reach_cycles_per_px: float = 0.5
     index_grid: tuple[float, ...] = (0.12, 0.26, 0.40)
     level_z: float = 3.0
     structure_level: float = 0.25
@@ -97,6 +105,8 @@ class SceneDiagnosisSettings:
                 raise InputError(f"scene diagnosis: {name} must be an integer 2-2000, got {value!r}")
         if not self.index_grid or not all(0.0 < float(v) <= 1.0 for v in self.index_grid):
             raise InputError(f"scene diagnosis: index_grid must hold index contrasts in (0, 1], got {self.index_grid!r}")
+        if not (isinstance(self.reach_cycles_per_px, int | float) and 0.0 < self.reach_cycles_per_px <= 1.0):
+            raise InputError(f"scene diagnosis: reach_cycles_per_px must be in (0, 1], got {self.reach_cycles_per_px!r}")
         if not (isinstance(self.looks, int) and 0 <= self.looks <= 10):
             raise InputError(f"scene diagnosis: looks must be an integer 0-10, got {self.looks!r}")
         if not (isinstance(self.grid, int) and 2 <= self.grid <= 16):
@@ -166,10 +176,9 @@ def _scene(data: np.ndarray, found, config: ExperimentConfig, settings: SceneDia
     misfit as the fit can make it. A particle hidden by a neighbour (a pair closer than the
     finder's least distance, one behind another) is found in what the fits leave (``looks``
     times, `find_particles` on the residual hologram) and fitted there, the particles
-    already fitted taken out of the data. The scene is rendered as far as a pixel records
-    fringes (1 cycle per pixel, aliased): rendered to the Nyquist disc only, the rings beyond
-    it stay in the residual over most of the frame. Depth groups of the particles are
-    rendered alone too, for an effect that acts by depth (`Scene`).
+    already fitted taken out of the data. The scene is rendered to ``reach_cycles_per_px``
+    (`SceneDiagnosisSettings`). Depth groups of the particles are rendered alone too, for an
+    effect that acts by depth (`Scene`).
     """
     import pandas as pd
 
@@ -188,7 +197,7 @@ def _scene(data: np.ndarray, found, config: ExperimentConfig, settings: SceneDia
     for _ in range(settings.looks):
         if len(table) >= settings.scene_particles:
             break
-        # the Nyquist disc is enough to find what is missing; the whole reach is rendered once, at the end
+        # the Nyquist disc is enough to find what is missing
         residual = data - (render(table, 0.5) - 1.0)
         new = pd.DataFrame(find_particles(residual, config, max_particles=settings.scene_particles - len(table)))[columns]
         if len(table) and len(new):
@@ -199,12 +208,12 @@ def _scene(data: np.ndarray, found, config: ExperimentConfig, settings: SceneDia
         if new.empty:
             break
         table = pd.concat([table, new], ignore_index=True)
-    scene = render(table, 1.0)
+    scene = render(table, settings.reach_cycles_per_px)
     if len(table) < 2:
         return table, Scene(scene, pixel_um=config.optics.pixel_um)
     # depth groups of about equal counts, each rendered alone: what a depth-dependent effect (coherence) blurs
     bins = np.array_split(np.argsort(table["z_um"].to_numpy()), min(_DEPTH_GROUPS, len(table)))
-    groups = np.stack([render(table.iloc[rows], 1.0) - 1.0 for rows in bins]).astype(np.float32)
+    groups = np.stack([render(table.iloc[rows], settings.reach_cycles_per_px) - 1.0 for rows in bins]).astype(np.float32)
     depths = tuple(float(table["z_um"].to_numpy()[rows].mean()) for rows in bins)
     return table, Scene(scene, depths, groups, config.optics.pixel_um)
 
