@@ -1,4 +1,4 @@
-"""The pipeline every front uses: one step per task, a frozen request in, a `StepResult` out.
+"""The pipeline every front uses: one step per task, a frozen request in (its data positional, its options keyword-only), a `StepResult` out.
 
 The top wing: stands on every other. Other wings import these names from ``napari_lbs._core.pipeline``, never from its
 private modules; each name is imported on first use. The console script and the widgets only build requests and show

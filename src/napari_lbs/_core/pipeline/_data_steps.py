@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import KW_ONLY, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -50,6 +50,7 @@ class GenerateRequest:
 
     out_dir: Path
     config: ExperimentConfig = ExperimentConfig()
+    _: KW_ONLY  # the data above, the options below
     groups: int = 256
     calibration_path: str | Path | None = None
     processing: InputProcessing | None = None
@@ -139,6 +140,7 @@ class TrainRequest:
 
     data: str | Path
     out_path: Path
+    _: KW_ONLY  # the data above, the options below
     settings: TrainingSettings | None = None
     resume: bool = False
     replace: bool = False

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import KW_ONLY, dataclass, replace
 from pathlib import Path
 
 from napari_lbs._core.foundation import ExperimentConfig, available_threads
@@ -52,6 +52,7 @@ class DemoRequest:
     """
 
     out_dir: Path
+    _: KW_ONLY  # the data above, the options below
     quick: bool = False
     calibrated: bool = False
     seed: int = 0

@@ -6,7 +6,7 @@ import json
 import shutil
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import KW_ONLY, dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -75,6 +75,7 @@ class PredictRequest:
     model: str | Path | LoadedModel
     out_path: Path
     config: ExperimentConfig | None = None
+    _: KW_ONLY  # the data above, the options below
     background_path: str | Path | None = None
     device: str = "auto"
     precision: str = "auto"
@@ -394,6 +395,7 @@ class TrackRequest:
 
     particles_path: str | Path
     out_path: Path
+    _: KW_ONLY  # the data above, the options below
     search_range_um: float = 60.0
     axial_search_range_um: float | None = None
     memory: int = 0

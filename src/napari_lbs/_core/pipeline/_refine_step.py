@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import KW_ONLY, asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -65,6 +65,7 @@ class RefineRequest:
     inputs: object
     out_path: str | Path
     config: ExperimentConfig = field(default_factory=ExperimentConfig)
+    _: KW_ONLY  # the data above, the options below
     background_path: str | Path | None = None
     dark_path: str | Path | None = None
     index_contrast: float = 0.26

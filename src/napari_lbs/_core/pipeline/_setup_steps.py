@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import KW_ONLY, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -55,6 +55,7 @@ class SimulateRequest:
 
     out_dir: Path
     config: ExperimentConfig = ExperimentConfig()
+    _: KW_ONLY  # the data above, the options below
     size_px: int | None = None
     particles: int | None = None
     seed: int = 0
@@ -152,6 +153,7 @@ class BackpropRequest:
     hologram: str | Path | np.ndarray
     out_path: Path
     config: ExperimentConfig = ExperimentConfig()
+    _: KW_ONLY  # the data above, the options below
     background_path: str | Path | None = None
     source: str | None = None
     replace: bool = False
@@ -213,6 +215,7 @@ class CalibrateRequest:
     hologram: str | Path | np.ndarray
     out_path: Path
     config: ExperimentConfig = ExperimentConfig()
+    _: KW_ONLY  # the data above, the options below
     settings: CalibrationSettings | None = None
     roi: tuple[int, int] | None = None
     background_path: str | Path | None = None
