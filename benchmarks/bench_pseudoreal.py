@@ -107,7 +107,7 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None, real
     if needs_report and not report_path.is_file():
         start = time.perf_counter()
         diagnosis = diagnose_hologram(experiment, config, settings=DiagnosisSettings())
-        write_report(diagnosis, out / "diagnosis", provenance={"source": "pseudo-real hologram, real density"})
+        write_report(diagnosis, out / "diagnosis", provenance={"source": "pseudo-real hologram, real density"}, force=True)
         print(f"diagnosis: {time.perf_counter() - start:.0f} s, verdict {diagnosis.report['verdict']}", flush=True)
     report = json.loads(report_path.read_text()) if needs_report else {"verdict": None, "posterior": None}
     effects = effects_from_report(report, name=str(report_path)) if needs_report else {}

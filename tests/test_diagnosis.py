@@ -252,6 +252,17 @@ def test_a_diagnosis_pools_frames_states_what_is_known_and_writes_strict_json(sm
     text = (tmp_path / "r" / "report.json").read_text()
     json.loads(text, parse_constant=lambda name: pytest.fail(f"report.json holds {name}"))
     assert all(p.exists() for p in paths) and (tmp_path / "r" / "gap_effects.png").stat().st_size > 1000
+    # written again: refused without force, nothing touched; replaced with it; a link is never written through
+    (tmp_path / "r" / "report.md").write_text("mine")
+    with pytest.raises(InputError, match="report.json: exists; add force=True"):
+        write_report(diagnosis, tmp_path / "r")
+    assert (tmp_path / "r" / "report.md").read_text() == "mine"
+    assert write_report(diagnosis, tmp_path / "r", force=True) == paths and (tmp_path / "r" / "report.md").read_text() != "mine"
+    (tmp_path / "linked").mkdir()
+    (tmp_path / "linked" / "gap_where.png").symlink_to(tmp_path / "r" / "report.md")
+    with pytest.raises(InputError, match="symbolic link"):
+        write_report(diagnosis, tmp_path / "linked", force=True)
+    assert not (tmp_path / "linked" / "report.json").exists()
     assert not diagnose_hologram(frames[0], CONFIG, known=False, settings=settings).report["known"]
 
 

@@ -7,23 +7,32 @@ from pathlib import Path
 import numpy as np
 
 from napari_lbs._core.gap._diagnose import Diagnosis
-from napari_lbs._core.foundation import atomic_path, atomic_write_bytes, write_json
+from napari_lbs._core.foundation import atomic_path, atomic_write_bytes, check_target, write_json
 
 __all__ = ["write_report"]
 
 
-def write_report(diagnosis: Diagnosis, out_dir, *, provenance: dict | None = None) -> list:
-    """Write ``report.json`` (docs/formats.md), ``report.md`` and PNG figures into ``out_dir``; return the paths."""
+_FILES = ("report.json", "report.md", "gap_where.png", "gap_effects.png")
+
+
+def write_report(diagnosis: Diagnosis, out_dir, *, provenance: dict | None = None, force: bool = False) -> list:
+    """Write ``report.json`` (docs/formats.md), ``report.md`` and PNG figures into ``out_dir``; return the paths.
+
+    An existing file of those names is replaced only with ``force`` (and never a link, FIFO,
+    device or folder): every name is checked before anything is written.
+    """
     import matplotlib
 
     matplotlib.use("Agg", force=False)
     from matplotlib.figure import Figure
 
     out = Path(out_dir)
+    for name in _FILES:
+        check_target(out / name, force=force)
     out.mkdir(parents=True, exist_ok=True)
     report = {**diagnosis.report, "provenance": provenance or {}}
     gap = report["gap"]
-    paths = [write_json(out / "report.json", report)]
+    paths = [write_json(out / "report.json", report, force=force)]
 
     figure = Figure(figsize=(11, 3.4), tight_layout=True)
     axes = figure.subplots(1, 3)
@@ -43,7 +52,7 @@ def write_report(diagnosis: Diagnosis, out_dir, *, provenance: dict | None = Non
     axes[2].set_title(f"where: by tile ({report['tiles']['tile_px']} px tiles)")
     axes[2].set_xlabel("tile column")
     axes[2].set_ylabel("tile row")
-    with atomic_path(out / "gap_where.png") as temporary:
+    with atomic_path(out / "gap_where.png", force=force) as temporary:
         figure.savefig(temporary, dpi=110, format="png")
     paths.append(out / "gap_where.png")
 
@@ -61,7 +70,7 @@ def write_report(diagnosis: Diagnosis, out_dir, *, provenance: dict | None = Non
     axes[1].set_xlabel("gap with the effect added (MMD²)")
     axes[1].legend(fontsize=7)
     axes[1].set_title("how much: the gap with each effect")
-    with atomic_path(out / "gap_effects.png") as temporary:
+    with atomic_path(out / "gap_effects.png", force=force) as temporary:
         figure.savefig(temporary, dpi=110, format="png")
     paths.append(out / "gap_effects.png")
 
@@ -104,7 +113,7 @@ def write_report(diagnosis: Diagnosis, out_dir, *, provenance: dict | None = Non
         "",
     ]
     paths.append(out / "report.md")
-    atomic_write_bytes(out / "report.md", "\n".join(lines).encode("utf-8"))
+    atomic_write_bytes(out / "report.md", "\n".join(lines).encode("utf-8"), force=force)
     return paths
 
 

@@ -120,7 +120,7 @@ def diagnose(request: DiagnoseRequest, *, progress: ProgressCallback | None = No
     diagnosis.report["tiles"]["frame_names"] = names
     record = provenance(config, source=source, background=request.background_path and str(request.background_path), calibration=calibration, seed=settings.seed,
                         diagnoser=diagnosis.report["diagnoser"]["key"])
-    paths = write_report(diagnosis, request.out_dir, provenance=record)
+    paths = write_report(diagnosis, request.out_dir, provenance=record, force=request.replace)
     verdict = diagnosis.report["verdict"]
     named = verdict["id"] or ("undecided between " + " and ".join(verdict["undecided"]) if verdict["undecided"] else "nothing missing")
     summary = (f"verdict: {named} (P {verdict['probability']:.2f}); gap {diagnosis.report['gap']['baseline']:.2f} (baseline) -> {verdict['residual']:.2f}; "
