@@ -132,7 +132,7 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None, real
             start = time.perf_counter()
             dataset = generate_dataset(out / f"data_{stage}", config, groups=groups, processing=processing, effects=stage_effects, distractors=distractors, seed=0)
             generated = time.perf_counter() - start
-            trained = train_model(dataset, model_path, settings=TrainingSettings(epochs=epochs, seed=0), resume=model_path.with_suffix(".last.pt").is_file())
+            trained = train_model(dataset, model_path, settings=TrainingSettings(epochs=epochs, seed=0), resume=model_path.with_suffix(".last.pt").is_file(), force=True)
             print(f"{stage}: generated {groups} groups in {generated:.0f} s, trained {epochs} epochs (from epoch {done}) in {trained.log['seconds']:.0f} s", flush=True)
         scores_path = out / f"{stage}_scores.json"
         log = json.loads(log_path.read_text())

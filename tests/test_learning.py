@@ -356,3 +356,18 @@ def test_detections_of_one_particle_at_distant_depths_merge_laterally_only_when_
     merged = linker.particles()
     assert len(merged["x_um"]) == 2
     assert sorted(merged["z_um"]) == pytest.approx([2000.0, 2300.0])  # the stronger detection is kept
+
+
+def test_training_replaces_a_model_only_with_force(tiny_data, tmp_path):
+    """An existing model or log is refused before any work unless force (or resume) says so; a link is never written through."""
+    from napari_lbs._core import InputError, TrainingSettings, train_model
+
+    mine = tmp_path / "m.json"
+    mine.write_text("mine")
+    with pytest.raises(InputError, match="m.json: exists; add force=True"):
+        train_model(tiny_data, tmp_path / "m.pt", settings=TrainingSettings(formulation="seed", epochs=1, batch_size=4, device="cpu", validation_groups=1))
+    assert mine.read_text() == "mine" and not (tmp_path / "m.pt").exists()
+    (tmp_path / "l.pt").symlink_to(mine)
+    with pytest.raises(InputError, match="symbolic link"):
+        train_model(tiny_data, tmp_path / "l.pt", settings=TrainingSettings(formulation="seed", epochs=1, batch_size=4, device="cpu", validation_groups=1), force=True)
+    assert mine.read_text() == "mine"

@@ -57,7 +57,7 @@ from napari_lbs._core.learning._dataset import SyntheticDataset, dataset_summary
 from napari_lbs._core.learning._detection import PeakDecoder, PlaneLinker, suppress
 from napari_lbs._core.learning._device_samples import augment_planes, dihedral_crops, render_marks
 from napari_lbs._core.learning._heatmaps import FocusSpec, context_indices, focus_marks
-from napari_lbs._core.foundation import atomic_write_bytes, write_json
+from napari_lbs._core.foundation import atomic_write_bytes, check_target, write_json
 from napari_lbs._core.foundation import InputError
 from napari_lbs._core.learning._metrics import depth_errors_um, diameter_errors_um, score_particles
 from napari_lbs._core.learning._network import FORMULATIONS, PRESETS, build_network, focus_maps, network_outputs, resolve_device, resolve_precision, save_model, weights_sha256
@@ -437,6 +437,7 @@ def train_model(
     progress: ProgressCallback | None = None,
     should_stop: StopCallback | None = None,
     report: ReportCallback | None = None,
+    force: bool = False,
 ) -> TrainingResult:
     """Train a network on a data set folder (the `napari-lbs train` step).
 
@@ -459,6 +460,9 @@ def train_model(
         come at most every half second, several at once, so that the device is not waited for
         at every batch) and after every epoch (``{"epoch", "train_loss", "validation": {...}}``),
         for live plots.
+    force : bool
+        Replace an existing model and log (a resumed training replaces its own); links,
+        FIFOs, devices and folders are refused regardless.
 
     Raises
     ------
@@ -471,6 +475,8 @@ def train_model(
     if out.suffix != ".pt":
         raise InputError(f"{out}: expected a model file name ending in .pt")
     log_path, state_path = out.with_suffix(".json"), out.with_suffix(".last.pt")
+    for path in (out, log_path):
+        check_target(path, force=force or resume)
     groups = list(dataset.groups)
     n_validation = settings.validation_groups or max(1, len(groups) // 8)
     if len(groups) < n_validation + 1:

@@ -167,7 +167,7 @@ def train(request: TrainRequest, *, progress: ProgressCallback | None = None, sh
     if len(dataset.groups) < expected:  # a stopped generate, or group files removed since
         log(f"{request.data}: warning: {len(dataset.groups)} of {expected} groups present; training on those (run generate again to finish the set)")
     result = train_model(dataset, request.out_path, settings=settings, resume=request.resume, progress=progress, should_stop=should_stop,
-                         report=report)
+                         report=report, force=request.replace or request.resume)
     best = result.log["best"]
     record = next(e for e in result.log["epochs"] if e["epoch"] == best["epoch"])["validation"]
     stopped = f" ({result.log['stop_reason']})" if result.stopped else ""
