@@ -335,7 +335,7 @@ def test_batch_stops_within_two_seconds_without_running_the_other_frames(make_na
     started = []
     lock = threading.Lock()
 
-    def slow_frame(hologram, model, config, background, device, precision, threshold, should_stop=None):  # a large frame: 20 s of planes
+    def slow_frame(hologram, model, config, background, settings, should_stop=None):  # a large frame: 20 s of planes
         with lock:
             started.append(time.perf_counter())
         for _ in range(400):
