@@ -47,7 +47,7 @@ _NO_GAP = 1e-3  # squared MMD below which two samples of tile summaries are as a
 _MOST_TILES = 512  # experiment tiles the two-sample tests take at most (evenly spaced): their cost grows with the square
 
 
-@dataclass
+@dataclass(frozen=True)
 class Diagnosis:
     """The report (docs/formats.md ``report.json``) plus what the figures need: ``tile_map`` (rows, cols), each tile's held-out probability of being the experiment's against the baseline's closest simulations (near 1: told apart; NaN where no tile was read)."""
 
