@@ -42,7 +42,7 @@ def test_results_and_settings_are_frozen():
     import dataclasses
 
     frozen = ("PredictionResult", "PredictionSettings", "SequenceResult", "SimulatedSequence", "TrainingResult", "TrainingSettings", "LoadedModel",
-              "SyntheticDataset", "RefineSettings", "DiagnosisSettings", "CalibrationSettings", "ExperimentConfig", "ParticleField")
+              "SyntheticDataset", "RefineSettings", "DiagnosisSettings", "CalibrationSettings", "CalibrationResult", "Diagnosis", "ExperimentConfig", "ParticleField")
     for name in frozen:
         cls = getattr(core, name)
         assert dataclasses.is_dataclass(cls) and cls.__dataclass_params__.frozen, f"{name} is not a frozen dataclass"

@@ -27,7 +27,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
@@ -114,7 +114,7 @@ class CalibrationSettings:
             raise InputError(f"population: expected at least {self.parents} (the parents mating each generation), got {self.population}")
 
 
-@dataclass
+@dataclass(frozen=True)
 class CalibrationResult:
     """The fitted parameters with the SSIM they reach and how they were found."""
 
@@ -551,6 +551,4 @@ def calibrate_hologram(
         )
         holograms.append(simulate_hologram(particles, wavelength_um=config.optics.wavelength_um, medium_index=config.optics.medium_index))
     result = calibrate(reference, holograms, planes_um=planes_um, settings=settings, progress=progress, should_stop=should_stop, report=report, **optics)
-    result.roi = (x, y, size)
-    result.roi_choice = reason
-    return result
+    return replace(result, roi=(x, y, size), roi_choice=reason)
