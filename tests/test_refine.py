@@ -354,7 +354,11 @@ def test_worker_processes_give_the_same_table_report_progress_and_stop_at_once()
 
     with pytest.raises(Stopped):
         refine_particles(hologram, starts, default_config(), settings=RefineSettings(**settings, workers=2), should_stop=stop_soon)
-    assert time.perf_counter() - asked[-1] < 2.0 and not multiprocessing.active_children()
+    assert time.perf_counter() - asked[-1] < 2.0
+    # every worker gone within the 2 s too (a process ended is reaped by active_children itself)
+    while multiprocessing.active_children() and time.perf_counter() < asked[-1] + 2.0:
+        time.sleep(0.05)
+    assert not multiprocessing.active_children()
 
 
 def test_the_model_without_the_particle_rounds_the_same_wherever_its_buffers_lie():
