@@ -198,11 +198,13 @@ def refined_prediction(hologram: np.ndarray, model, config: ExperimentConfig | N
     return PredictionResult(particles, {**result.provenance, "refine": record}, time.perf_counter() - started)
 
 
-def prediction_outputs(out_path, *, replace: bool = False) -> tuple[Path, Path]:
+def prediction_outputs(out_path, *, replace: bool = False, marker: str = "model_sha256") -> tuple[Path, Path]:
     """The particle table and its provenance JSON beside it, refused where they exist (unless ``replace``) or would overwrite something else.
 
     Even with ``replace`` an existing ``.json`` is replaced only when it is this table's
-    provenance from an earlier prediction (never a model's training log).
+    provenance from an earlier run of the same step (it names the table and holds
+    ``marker``: a prediction's ``model_sha256``, a refinement's ``find``), never a model's
+    training log or another file.
     """
     from napari_lbs._core.foundation import check_table_name
 
@@ -218,7 +220,7 @@ def prediction_outputs(out_path, *, replace: bool = False) -> tuple[Path, Path]:
         except (json.JSONDecodeError, UnicodeDecodeError):
             previous = None
         # only a previous run's provenance of this same table may be replaced (never a model's training log)
-        if not (isinstance(previous, dict) and previous.get("particles") == str(out) and "model_sha256" in previous):
+        if not (isinstance(previous, dict) and previous.get("particles") == str(out) and marker in previous):
             raise InputError(f"--out {out}: {record} exists and is not this table's provenance; choose another name")
     return out, record
 

@@ -8,14 +8,13 @@ as well as a lensless sensor's — is refined from its config alone (docs/micros
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import KW_ONLY, asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from napari_lbs._core.foundation import ExperimentConfig, InputError, ProgressCallback, StopCallback, check_target, write_json
+from napari_lbs._core.foundation import ExperimentConfig, InputError, ProgressCallback, StopCallback, write_json
 from napari_lbs._core.pipeline._common import Log, StepResult, _background, _hologram, _quiet, _source, provenance
 
 __all__ = ["RefineRequest", "fringe_binning", "refine", "refine_hologram"]
@@ -188,22 +187,9 @@ def refine_hologram(hologram: np.ndarray, config: ExperimentConfig, *, guesses=N
 
 def _refine_outputs(request: RefineRequest) -> tuple[Path, Path]:
     """The table and its provenance, refused before any work where they exist (unless replaced) or would overwrite another file."""
-    from napari_lbs._core.foundation import check_table_name
+    from napari_lbs._core.pipeline._predict import prediction_outputs
 
-    out, record = request.outputs()
-    if out.suffix.lower() == ".json":
-        raise InputError(f"--out {out}: expected a particle table (.csv, or .parquet); its provenance is written beside it as .json")
-    check_table_name(out)
-    check_target(out, force=request.replace, flag="--out")
-    if check_target(record, force=request.replace, flag="--out").is_file():
-        try:
-            previous = json.loads(record.read_text(encoding="utf-8"))
-        except (json.JSONDecodeError, UnicodeDecodeError):
-            previous = None
-        # only this table's provenance from an earlier refine is replaced, never another JSON
-        if not (isinstance(previous, dict) and previous.get("particles") == str(out) and "find" in previous):
-            raise InputError(f"--out {out}: {record} exists and is not this table's provenance; choose another name")
-    return out, record
+    return prediction_outputs(request.outputs()[0], replace=request.replace, marker="find")
 
 
 def refine(request: RefineRequest, *, progress: ProgressCallback | None = None, should_stop: StopCallback | None = None, log: Log = _quiet) -> StepResult:
