@@ -96,8 +96,13 @@ def sphere_field(points_x_px: np.ndarray, points_y_px: np.ndarray, radius_um: fl
     return tuple(f * window for f in fields)
 
 
-def mie_intensity(shape: tuple[int, int], x_um, y_um, z_air_um, diameter_um, n_particle=None) -> np.ndarray:
-    """Pixel-integrated Lorenz–Mie intensity of spheres (unobstructed light = 1), float32; ``n_particle`` per sphere (default polystyrene; complex: absorbing)."""
+def mie_fields(shape: tuple[int, int], x_um, y_um, z_air_um, diameter_um, n_particle=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The spheres' scattered field ``(E_x, E_y, E_z)`` relative to the incident wave (x-polarised, amplitude 1), complex64.
+
+    Sampled at the centres of `SUPERSAMPLE` × `SUPERSAMPLE` sub-pixels of every pixel: arrays of
+    ``(rows · SUPERSAMPLE, cols · SUPERSAMPLE)``. The total field is ``(1 + E_x, E_y, E_z)``;
+    `mie_intensity` is its squared modulus averaged over each pixel.
+    """
     rows, cols = shape
     s = SUPERSAMPLE
     ex = np.zeros((rows * s, cols * s), np.complex64)
@@ -118,8 +123,20 @@ def mie_intensity(shape: tuple[int, int], x_um, y_um, z_air_um, diameter_um, n_p
         ex[r0:r1, c0:c1] += fx
         ey[r0:r1, c0:c1] += fy
         ez[r0:r1, c0:c1] += fz
-    intensity = np.abs(1 + ex) ** 2 + np.abs(ey) ** 2 + np.abs(ez) ** 2
-    return intensity.reshape(rows, s, cols, s).mean(axis=(1, 3)).astype(np.float32)
+    return ex, ey, ez
+
+
+def pixel_average(sub_intensity: np.ndarray) -> np.ndarray:
+    """A sub-pixel intensity (`mie_fields`' grid) averaged over each pixel, float32."""
+    s = SUPERSAMPLE
+    rows, cols = sub_intensity.shape[0] // s, sub_intensity.shape[1] // s
+    return sub_intensity.reshape(rows, s, cols, s).mean(axis=(1, 3)).astype(np.float32)
+
+
+def mie_intensity(shape: tuple[int, int], x_um, y_um, z_air_um, diameter_um, n_particle=None) -> np.ndarray:
+    """Pixel-integrated Lorenz–Mie intensity of spheres (unobstructed light = 1), float32; ``n_particle`` per sphere (default polystyrene; complex: absorbing)."""
+    ex, ey, ez = mie_fields(shape, x_um, y_um, z_air_um, diameter_um, n_particle)
+    return pixel_average(np.abs(1 + ex) ** 2 + np.abs(ey) ** 2 + np.abs(ez) ** 2)
 
 
 def camera(intensity: np.ndarray, *, rng: np.random.Generator, photons: float = 2000.0, mean_level: float = 180.0, envelope_waist: float = 3.0) -> np.ndarray:

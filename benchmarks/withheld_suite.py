@@ -12,8 +12,37 @@ of the diagnosis is chosen on. Multiple scattering is absent from both: no indep
 forward model of shadowing between Lorenz–Mie spheres is at hand (pylorenzmie superposes
 single-scattered fields).
 
-Run ``python benchmarks/withheld_suite.py make frozen DIR`` to write the holograms and
-``design.json`` (a few minutes on 2 cores); ``bench_diagnosis.py suite DIR`` scores them.
+Effects outside the catalog. The outside sets hold effects no catalog effect models, keyed in
+``Case.effects`` by names that are not catalog ids (`OUTSIDE`); ``Case.expected`` keeps its
+meaning (the catalog effects a case holds, what the verdict should name) and ``Case.outside``
+lists the outside ones, both written to ``design.json``. A case with an outside effect is right
+when the diagnosis says the catalog does not explain the hologram (or is undecided), not when it
+confidently names catalog effects. Parameterised here, as a 660 nm, 2.2 µm-pixel in-line set-up:
+
+- ``astigmatism`` (``delta_um``, ``angle_rad``): an astigmatic optical path between the volume
+  and the sensor (a capillary's curved wall, a tilted window in a non-collimated beam, a relay):
+  each sphere's scattered field (`pseudoreal.mie_fields`, on sub-pixels) is propagated paraxially
+  by +δ along the axis at ``angle_rad`` and by −δ across it (δ air-equivalent, as the depths),
+  so its rings are those of a sphere farther along one axis than along the other — ellipses of
+  axis ratio about 1 + δ/z.
+- ``motion`` (``streak_um``, ``angle_rad``): the sample flows during the exposure (a uniform
+  flow, every sphere displaced alike): the intensity averaged over the scene's positions along
+  a straight streak of that length, in sub-pixel steps; fringes whose wave vector lies along the
+  flow are washed out, those across it are kept.
+- ``column_pattern`` (``column_rms``, ``row_rms``): the sensor's fixed-pattern offsets, one per
+  column (column amplifiers) and one per row, Gaussian, in counts, added before quantization.
+- ``pixel_gain`` (``rms``): photo-response non-uniformity, each pixel's own gain 1 + g, g
+  Gaussian of that rms, white in space, applied to the light before photon and read noise.
+
+`OUTSIDE_DEVELOPMENT` (seed 4321, 512²: one case per outside effect, and motion beside
+vignetting) is what any choice about them is made on. `OUTSIDE_FROZEN` (seed 9157, 512²: two
+controls, astigmatism, motion and pixel gain at two strengths, the column pattern once) is
+judged on only: its design and seed were written and committed before its first run.
+
+Run ``python benchmarks/withheld_suite.py make frozen DIR`` (or ``development``,
+``outside-development``, ``outside-frozen``) to write the holograms and ``design.json`` (a few
+minutes on 2 cores); ``bench_diagnosis.py suite DIR`` scores the catalog sets and
+``bench_scene_diagnosis.py suite DIR`` every set, the outside ones included.
 """
 
 from __future__ import annotations
@@ -33,9 +62,15 @@ ABSORBING = 1.59 + 0.5j
 WATER = pseudoreal.N_MEDIUM
 
 
+# the diagnosis' catalog (the answers a case can expect) and the effects outside it (no catalog
+# effect models them: a case holding one is right when the catalog is said not to explain it)
+CATALOG = ("illumination", "shot_noise", "quantization", "sensor_blur", "coherence", "particle_phase", "multiple_scattering", "parasitic_fringes", "spherical_wave")
+OUTSIDE = ("astigmatism", "motion", "column_pattern", "pixel_gain")
+
+
 @dataclass(frozen=True)
 class Case:
-    """One pseudo-experiment: ``effects`` maps a catalog id (the expected answer) to this suite's own parameters."""
+    """One pseudo-experiment: ``effects`` maps a catalog id (the expected answer) or an effect outside the catalog (`OUTSIDE`) to this suite's own parameters."""
 
     name: str
     size: int
@@ -44,9 +79,20 @@ class Case:
     level: float = 150.0  # counts of unobstructed light
     read_noise: float = 1.5  # counts (rms)
 
+    def __post_init__(self) -> None:
+        unknown = set(self.effects) - set(CATALOG) - set(OUTSIDE)
+        if unknown:
+            raise ValueError(f"{self.name}: effects neither in the catalog nor outside it: {sorted(unknown)}")
+
     @property
     def expected(self) -> list[str]:
-        return sorted(self.effects)
+        """The catalog effects the case holds: what the verdict should name."""
+        return sorted(e for e in self.effects if e in CATALOG)
+
+    @property
+    def outside(self) -> list[str]:
+        """The effects outside the catalog the case holds: where there are any, the catalog should be said not to explain it."""
+        return sorted(e for e in self.effects if e in OUTSIDE)
 
 
 FROZEN_SEED = 7331
@@ -96,7 +142,32 @@ DEVELOPMENT = (
     Case("point-source-30mm", 512, {"spherical_wave": {"source_mm": 30.0}}),
     Case("photons+crosstalk", 512, {"shot_noise": {"photons": 60.0}, "sensor_blur": {"kernel": "binomial5"}}),
 )
-SUITES = {"frozen": (FROZEN, FROZEN_SEED), "development": (DEVELOPMENT, DEVELOPMENT_SEED)}
+
+# effects outside the catalog, alone and beside a catalog effect (512²)
+OUTSIDE_DEVELOPMENT_SEED = 4321
+OUTSIDE_DEVELOPMENT = (
+    Case("astigmatism", 512, {"astigmatism": {"delta_um": 250.0, "angle_rad": 0.3}}),
+    Case("motion", 512, {"motion": {"streak_um": 20.0, "angle_rad": 0.5}}),
+    Case("column-pattern", 512, {"column_pattern": {"column_rms": 1.5, "row_rms": 0.5}}),
+    Case("pixel-gain", 512, {"pixel_gain": {"rms": 0.02}}),
+    Case("motion+vignetting", 512, {"motion": {"streak_um": 15.0, "angle_rad": 2.0}, "illumination": {"falloff": 0.3, "centre": (0.4, 0.6)}}),
+)
+
+OUTSIDE_FROZEN_SEED = 9157
+OUTSIDE_FROZEN = (
+    Case("control-a", 512, spheres_per_512=25, level=160, read_noise=2.0), Case("control-b", 512, spheres_per_512=35, level=140, read_noise=1.2),
+    Case("astigmatism-weak", 512, {"astigmatism": {"delta_um": 150.0, "angle_rad": 1.2}}),
+    Case("astigmatism-strong", 512, {"astigmatism": {"delta_um": 400.0, "angle_rad": 0.0}}),
+    Case("motion-weak", 512, {"motion": {"streak_um": 10.0, "angle_rad": 2.6}}),
+    Case("motion-strong", 512, {"motion": {"streak_um": 30.0, "angle_rad": 0.0}}),
+    Case("column-pattern", 512, {"column_pattern": {"column_rms": 1.0, "row_rms": 0.5}}),
+    Case("pixel-gain-weak", 512, {"pixel_gain": {"rms": 0.01}}),
+    Case("pixel-gain-strong", 512, {"pixel_gain": {"rms": 0.03}}),
+)
+SUITES = {
+    "frozen": (FROZEN, FROZEN_SEED), "development": (DEVELOPMENT, DEVELOPMENT_SEED),
+    "outside-frozen": (OUTSIDE_FROZEN, OUTSIDE_FROZEN_SEED), "outside-development": (OUTSIDE_DEVELOPMENT, OUTSIDE_DEVELOPMENT_SEED),
+}
 
 
 def _fresnel_discs(shape: tuple[int, int], rng: np.random.Generator, *, distance_mm: float, grains_per_mpx: float, grain_um: tuple[float, float]) -> np.ndarray:
@@ -118,6 +189,47 @@ def _fresnel_discs(shape: tuple[int, int], rng: np.random.Generator, *, distance
     return (np.abs(field) ** 2)[rows // 2 : rows // 2 + rows, cols // 2 : cols // 2 + cols]
 
 
+def _mie(case: Case, shape: tuple[int, int], x, y, z, d, index) -> np.ndarray:
+    """Pixel-integrated Lorenz–Mie intensity of spheres, with the case's astigmatism and motion (outside the catalog)."""
+    astigmatism, motion = case.effects.get("astigmatism"), case.effects.get("motion")
+    if not (astigmatism or motion):
+        return pseudoreal.mie_intensity(shape, x, y, z, d, index)
+    pixel, s = pseudoreal.PIXEL_UM, pseudoreal.SUPERSAMPLE
+    wavelength = pseudoreal.WAVELENGTH_UM
+    # the field is computed over the window and a margin: spheres' fringes there are moved into
+    # the window by the astigmatic propagation (up to λ·δ/pixel for the finest fringe kept) and
+    # by the streak; the cyclic propagation's wrap-around stays in the margin
+    margin = 16
+    if astigmatism:
+        margin += int(np.ceil(wavelength * astigmatism["delta_um"] / pixel**2))
+    if motion:
+        margin += int(np.ceil(motion["streak_um"] / 2 / pixel))
+    rows, cols = shape
+    fields = pseudoreal.mie_fields((rows + 2 * margin, cols + 2 * margin), np.asarray(x) + margin * pixel, np.asarray(y) + margin * pixel, z, d, index)
+    if astigmatism:
+        # paraxial propagation by +δ along the axis at angle_rad and by −δ across it (δ air-equivalent,
+        # as z): each sphere's fringes as if it were farther along one axis than along the other
+        fy = np.fft.fftfreq(fields[0].shape[0], pixel / s)[:, None]
+        fx = np.fft.fftfreq(fields[0].shape[1], pixel / s)[None, :]
+        cos, sin = np.cos(astigmatism["angle_rad"]), np.sin(astigmatism["angle_rad"])
+        along, across = fx * cos + fy * sin, -fx * sin + fy * cos
+        transfer = np.exp(-1j * np.pi * wavelength * astigmatism["delta_um"] * (along**2 - across**2)).astype(np.complex64)
+        fields = tuple(np.fft.ifft2(np.fft.fft2(f) * transfer).astype(np.complex64) for f in fields)
+    sub = np.abs(1 + fields[0]) ** 2 + np.abs(fields[1]) ** 2 + np.abs(fields[2]) ** 2
+    start, height, width = margin * s, rows * s, cols * s
+    if not motion:
+        return pseudoreal.pixel_average(sub[start : start + height, start : start + width])
+    # uniform flow during the exposure: the intensity averaged over the scene displaced along a
+    # straight streak, in steps of at most one sub-pixel (a sub-pixel is a third of a pixel)
+    steps = int(np.ceil(motion["streak_um"] / (pixel / s))) + 1
+    shifts = np.linspace(-0.5, 0.5, steps) * motion["streak_um"] / (pixel / s)
+    total = np.zeros((height, width))
+    for t in shifts:
+        dy, dx = int(round(t * np.sin(motion["angle_rad"]))), int(round(t * np.cos(motion["angle_rad"])))
+        total += sub[start - dy : start - dy + height, start - dx : start - dx + width]
+    return pseudoreal.pixel_average(total / steps)
+
+
 def _scene(case: Case, rng: np.random.Generator) -> np.ndarray:
     """Pixel-integrated Lorenz–Mie intensity of the case's spheres with its optical effects (unobstructed light = 1)."""
     size = case.size
@@ -137,7 +249,7 @@ def _scene(case: Case, rng: np.random.Generator) -> np.ndarray:
         # a uniform disc source of that angular diameter, sampled at its centre and on two rings (6 and 12 points)
         radius = coherence["source_mrad"] / 2 * 1e-3
         angles = [(0.0, 0.0)] + [(f * radius * np.cos(a), f * radius * np.sin(a)) for f, n in ((0.45, 6), (0.85, 12)) for a in np.arange(n) * 2 * np.pi / n]
-        return np.mean([pseudoreal.mie_intensity(shape, x + z * tx, y + z * ty, z, d, index) for tx, ty in angles], axis=0)
+        return np.mean([_mie(case, shape, x + z * tx, y + z * ty, z, d, index) for tx, ty in angles], axis=0)
     if "bandwidth_nm" in coherence:
         # a flat spectrum of that full width: incoherent sum over 7 wavelengths
         original = pseudoreal.WAVELENGTH_UM
@@ -145,11 +257,11 @@ def _scene(case: Case, rng: np.random.Generator) -> np.ndarray:
             images = []
             for offset in np.linspace(-0.5, 0.5, 7) * coherence["bandwidth_nm"] * 1e-3:
                 pseudoreal.WAVELENGTH_UM = original + offset
-                images.append(pseudoreal.mie_intensity(shape, x, y, z, d, index))
+                images.append(_mie(case, shape, x, y, z, d, index))
         finally:
             pseudoreal.WAVELENGTH_UM = original
         return np.mean(images, axis=0)
-    return pseudoreal.mie_intensity(shape, x, y, z, d, index)
+    return _mie(case, shape, x, y, z, d, index)
 
 
 def _camera(intensity: np.ndarray, case: Case, rng: np.random.Generator) -> np.ndarray:
@@ -174,10 +286,15 @@ def _camera(intensity: np.ndarray, case: Case, rng: np.random.Generator) -> np.n
         taps = {"binomial3": [1, 2, 1], "binomial5": [1, 4, 6, 4, 1]}[blur["kernel"]]
         kernel = np.asarray(taps, float) / sum(taps)
         image = ndimage.convolve1d(ndimage.convolve1d(image, kernel, axis=0, mode="reflect"), kernel, axis=1, mode="reflect")
+    if "pixel_gain" in case.effects:  # photo-response non-uniformity: each pixel's own gain, white in space
+        image = image * (1 + rng.normal(0.0, case.effects["pixel_gain"]["rms"], image.shape))
     if "shot_noise" in case.effects:  # photo-electrons of unobstructed light
         photons = case.effects["shot_noise"]["photons"]
         image = rng.poisson(np.clip(image, 0, None) * photons) / photons
     counts = image * case.level + rng.normal(0.0, case.read_noise, image.shape)
+    pattern = case.effects.get("column_pattern")
+    if pattern:  # fixed-pattern offsets of the column amplifiers and of the rows (counts, before quantization)
+        counts = counts + rng.normal(0.0, pattern["column_rms"], cols)[None, :] + rng.normal(0.0, pattern.get("row_rms", 0.0), rows)[:, None]
     step = case.effects.get("quantization", {}).get("step_counts", 1)
     return (np.clip(np.round(counts / step), 0, 255 // step) * step).astype(np.uint8)
 
@@ -191,16 +308,16 @@ def make(suite: str, folder: str, only: list[str] | None = None) -> None:
     out.mkdir(parents=True, exist_ok=True)
     design = []
     for index, case in enumerate(cases):
-        design.append({**asdict(case), "expected": case.expected, "file": f"{case.name}.tif"})
+        design.append({**asdict(case), "expected": case.expected, "outside": case.outside, "file": f"{case.name}.tif"})
         if only and case.name not in only:
             continue
         rng = np.random.default_rng([index, seed])
         tifffile.imwrite(out / f"{case.name}.tif", _camera(_scene(case, rng), case, rng))
-        print(f"{case.name}: {case.size}² {case.expected or 'control'}", flush=True)
+        print(f"{case.name}: {case.size}² {case.expected + case.outside or 'control'}", flush=True)
     (out / "design.json").write_text(json.dumps({"suite": suite, "seed": seed, "cases": design}, indent=1))
 
 
 if __name__ == "__main__":
     if len(sys.argv) < 4 or sys.argv[1] != "make" or sys.argv[2] not in SUITES:
-        raise SystemExit("usage: withheld_suite.py make frozen|development DIR [CASE ...]")
+        raise SystemExit(f"usage: withheld_suite.py make {'|'.join(SUITES)} DIR [CASE ...]")
     make(sys.argv[2], sys.argv[3], sys.argv[4:] or None)
