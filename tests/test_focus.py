@@ -171,7 +171,8 @@ def test_focal_loss_falls_on_a_tiny_set_and_validation_chooses_the_decoding(focu
 def test_the_loss_rewards_a_peak_at_the_particle_and_punishes_far_false_positives(stack_data):
     import torch
 
-    from napari_lbs._core.learning._training import TrainingSettings, _FocusFormulation
+    from napari_lbs._core.learning._formulations import _FocusFormulation
+    from napari_lbs._core.learning._training_settings import TrainingSettings
 
     formulation = _FocusFormulation(stack_data, [0, 1], TrainingSettings(context=CONTEXT, patch_size=32))
     heat = torch.zeros(1, 8, 8)

@@ -11,6 +11,8 @@ private modules; each name is imported on first use.
     The prediction's reconstruction planes on the network's device: back-propagation with ``torch.fft``.
 `_device_samples`
     Training samples assembled where the network runs: crops, dihedral turns, targets and augmentation, batched.
+`_formulations`
+    The training formulations, ``focus`` and the seed's: each one's network, batches, loss and validation by detection.
 `_heatmaps`
     Training targets of the ``focus`` formulation: particle-centre heatmaps, depth offsets, diameters.
 `_metrics`
@@ -21,6 +23,8 @@ private modules; each name is imported on first use.
     Prediction: a whole hologram → reconstruction planes → U-Net tile by tile → particles.
 `_training`
     Training a network on a synthetic data set, validated by detection on held-out synthetic groups.
+`_training_settings`
+    How to train: `TrainingSettings`, checked when made.
 """
 
 from napari_lbs._core.foundation import lazy_exports
@@ -32,6 +36,7 @@ __getattr__, __dir__, __all__ = lazy_exports(
         "_metrics": ("AXIAL_TOL_UM", "LATERAL_TOL_UM", "match_particles", "score_particles", "seed_scores"),
         "_network": ("LoadedModel", "check_model_matches", "load_model", "model_mismatches", "resolve_device", "resolve_precision"),
         "_prediction": ("PredictionResult", "PredictionSettings", "check_threshold", "predict_particles", "prediction_settings"),
-        "_training": ("TrainingResult", "TrainingSettings", "train_model"),
+        "_training": ("TrainingResult", "train_model"),
+        "_training_settings": ("TrainingSettings",),
     },
 )
