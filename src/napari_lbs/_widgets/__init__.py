@@ -1,7 +1,8 @@
 """napari dock widgets: thin fronts over `napari_lbs._core`, one per step, and the workflow dock.
 
 `_base` holds what every step shares (Run/Stop, validation, progress, results, settings);
-one module per step; `_workflow` puts the seven steps in one dock.
+`_fields` the form's fields, their readers and checks; one module per step; `_workflow` puts
+the seven steps in one dock.
 """
 
 from napari_lbs._widgets._backprop import BackpropWidget

@@ -7,7 +7,8 @@ from magicgui.widgets import create_widget
 
 from napari_lbs._core import backpropagate, load_config
 from napari_lbs._layers import UNITS, PlaneGrid
-from napari_lbs._widgets._base import StepWidget, chosen, config_from, config_problem, hologram_data, hologram_problem, path_edit
+from napari_lbs._widgets._base import StepWidget
+from napari_lbs._widgets._fields import chosen, config_from, config_problem, hologram_data, hologram_problem, path_edit
 from napari_lbs._widgets._setup import place_hologram
 
 __all__ = ["BackpropWidget", "CONFIG_TOOLTIP", "HOLOGRAM_TOOLTIP"]

@@ -12,7 +12,8 @@ from magicgui.widgets import ComboBox, FloatSpinBox, LineEdit, SpinBox
 from napari_lbs._core import Stopped, link_tracks, open_frames, predict_sequence, sequence_background
 from napari_lbs._core.recordings import BACKGROUND_MODES
 from napari_lbs._layers import PlaneGrid, frame_points, recording_image, track_lines
-from napari_lbs._widgets._base import StepWidget, chosen, config_problem, doc_of, model_config, model_problem, path_edit
+from napari_lbs._widgets._base import StepWidget
+from napari_lbs._widgets._fields import chosen, config_problem, doc_of, model_config, model_problem, path_edit
 from napari_lbs._widgets._setup import file_of, model_setup
 
 __all__ = ["BatchWidget"]

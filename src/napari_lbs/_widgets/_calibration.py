@@ -19,7 +19,8 @@ from napari_lbs._core.calibration import experimental_reference, reference_plane
 from napari_lbs._core.pipeline import CalibrateRequest, calibrate
 from napari_lbs._layers import UNITS
 from napari_lbs._widgets._backprop import CONFIG_TOOLTIP, HOLOGRAM_TOOLTIP
-from napari_lbs._widgets._base import StepWidget, chosen, config_from, config_problem, doc_of, hologram_data, hologram_problem, output_problem, path_edit, replacing
+from napari_lbs._widgets._base import StepWidget
+from napari_lbs._widgets._fields import chosen, config_from, config_problem, doc_of, hologram_data, hologram_problem, output_problem, path_edit, replacing
 from napari_lbs._widgets._plots import FitnessPlot
 from napari_lbs._widgets._setup import place_hologram
 

@@ -11,7 +11,8 @@ from magicgui.widgets import FloatSpinBox, LineEdit, SpinBox, create_widget
 from napari_lbs._core import DiagnosisSettings
 from napari_lbs._layers import UNITS
 from napari_lbs._widgets._backprop import CONFIG_TOOLTIP, HOLOGRAM_TOOLTIP
-from napari_lbs._widgets._base import StepWidget, chosen, config_from, config_problem, effects_problem, hologram_problem, output_problem, parsed_effects, path_edit, replacing
+from napari_lbs._widgets._base import StepWidget
+from napari_lbs._widgets._fields import chosen, config_from, config_problem, effects_problem, hologram_problem, output_problem, parsed_effects, path_edit, replacing
 from napari_lbs._widgets._plots import ColourBarPlot, PosteriorPlot
 from napari_lbs._widgets._setup import place_hologram
 

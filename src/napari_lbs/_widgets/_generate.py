@@ -11,7 +11,8 @@ from napari_lbs._core import DatasetLayout, Distractors, generate_dataset
 from napari_lbs._core.pipeline import GenerateRequest, generate, requested_effects
 from napari_lbs._layers import UNITS, PlaneGrid
 from napari_lbs._widgets._backprop import CONFIG_TOOLTIP
-from napari_lbs._widgets._base import StepWidget, config_from, config_problem, doc_of, effects_problem, missing, output_problem, path_edit
+from napari_lbs._widgets._base import StepWidget
+from napari_lbs._widgets._fields import config_from, config_problem, doc_of, effects_problem, missing, output_problem, path_edit
 
 __all__ = ["GenerateWidget"]
 

@@ -13,7 +13,8 @@ from napari_lbs._core.refine import MATERIAL_SIGMAS, MATERIAL_TOLERANCE
 from napari_lbs._core.pipeline import refined_prediction
 from napari_lbs._layers import PlaneGrid, particle_points, show_every_depth
 from napari_lbs._widgets._backprop import HOLOGRAM_TOOLTIP
-from napari_lbs._widgets._base import StepWidget, chosen, config_problem, doc_of, hologram_data, hologram_problem, missing, model_config, model_problem, path_edit
+from napari_lbs._widgets._base import StepWidget
+from napari_lbs._widgets._fields import chosen, config_problem, doc_of, hologram_data, hologram_problem, missing, model_config, model_problem, path_edit
 from napari_lbs._widgets._plots import SizeIndexPlot
 from napari_lbs._widgets._setup import model_setup
 

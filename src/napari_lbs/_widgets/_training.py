@@ -8,7 +8,8 @@ from magicgui.widgets import ComboBox, FloatSpinBox, SpinBox
 
 from napari_lbs._core import InputError, TrainingSettings, open_dataset
 from napari_lbs._core.pipeline import TrainRequest, train
-from napari_lbs._widgets._base import StepWidget, doc_of, output_problem, path_edit, replacing
+from napari_lbs._widgets._base import StepWidget
+from napari_lbs._widgets._fields import doc_of, output_problem, path_edit, replacing
 from napari_lbs._widgets._plots import LossPlot
 
 __all__ = ["TrainingWidget"]
