@@ -2,9 +2,13 @@
 
 ``suite DIR``: every hologram of a folder written by ``withheld_suite.py make`` is
 diagnosed; a case is right when the verdict names exactly the effects withheld in it
-(nothing for a control). Printed per case: the verdict, the selected effects' z, the
-structured share, the particle optics' z, the seconds; then the score, the controls' false
-alarms and the load average before and after. ``real``: the built-in hologram's report.
+(nothing for a control). A case holding an effect outside the catalog (its ``outside``, in
+the outside sets) is right when the verdict says the catalog does not explain it
+(``catalog_explains`` false) or is undecided, and wrong when the catalog is said to explain
+it, whatever is named. Printed per case: the verdict, the selected effects' z, the structured
+share, the particle optics' z, the seconds, the outside effects; then the score, the outside
+cases' score, the controls' false alarms and the load average before and after. ``real``:
+the built-in hologram's report.
 
     python benchmarks/withheld_suite.py make development /tmp/dev
     python benchmarks/bench_scene_diagnosis.py suite /tmp/dev --out benchmarks/results/diagnosis/scene_development.json
@@ -41,7 +45,7 @@ def _case_line(name: str, report: dict, seconds: float) -> dict:
 def suite(folder: Path) -> dict:
     design = json.loads((folder / "design.json").read_text())
     config = ExperimentConfig()
-    lines, right, alarms, controls = [], 0, 0, 0
+    lines, right, alarms, controls, outside_right, outside_cases = [], 0, 0, 0, 0, 0
     for case in design["cases"]:
         path = folder / case["file"]
         if not path.is_file():
@@ -51,14 +55,25 @@ def suite(folder: Path) -> dict:
         line = _case_line(case["name"], report, time.perf_counter() - started)
         named = sorted((line["verdict"] or "").split("+")) if line["verdict"] else []
         line["expected"] = case["expected"]
-        line["right"] = named == sorted(case["expected"])
+        line["outside"] = case.get("outside", [])  # designs written before the outside sets have none
+        line["undecided"] = report["verdict"]["undecided"]
+        if line["outside"]:
+            # the catalog cannot explain it: right when that is said (or the verdict is undecided),
+            # wrong when the catalog is said to explain it, whatever effects are named
+            line["right"] = not line["catalog_explains"] or bool(line["undecided"])
+            line["names_expected"] = set(case["expected"]) <= set(named)  # the catalog effects beside the outside one
+            outside_cases += 1
+            outside_right += line["right"]
+        else:
+            line["right"] = named == sorted(case["expected"])
+            if not case["expected"]:
+                controls += 1
+                alarms += bool(named)
         right += line["right"]
-        if not case["expected"]:
-            controls += 1
-            alarms += bool(named)
         lines.append(line)
         print(json.dumps(line), flush=True)
-    return {"suite": design["suite"], "cases": lines, "right": right, "of": len(lines), "control_false_alarms": alarms, "controls": controls}
+    return {"suite": design["suite"], "cases": lines, "right": right, "of": len(lines), "control_false_alarms": alarms, "controls": controls,
+            "outside_right": outside_right, "outside_cases": outside_cases}
 
 
 def main() -> None:
@@ -79,7 +94,8 @@ def main() -> None:
     result["load_average"] = load
     Path(args.out).write_text(json.dumps(result, indent=1, default=float))
     if args.what == "suite":
-        print(f"{result['right']}/{result['of']} right; {result['control_false_alarms']} false alarms in {result['controls']} controls; load {load}")
+        outside = f"; outside the catalog {result['outside_right']}/{result['outside_cases']} right" if result["outside_cases"] else ""
+        print(f"{result['right']}/{result['of']} right{outside}; {result['control_false_alarms']} false alarms in {result['controls']} controls; load {load}")
 
 
 if __name__ == "__main__":
