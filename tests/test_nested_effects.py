@@ -149,14 +149,74 @@ def test_a_frame_of_spheres_is_diagnosed_end_to_end_with_the_report_fields():
     assert first.to_json() == second.to_json()
 
 
-def test_the_structured_share_of_white_noise_is_nothing_and_of_a_fringe_its_power():
-    """Pure white noise has no structured share (a floor bin by bin would call half of it structure); a fringe of twice its power has 2/3."""
+def test_the_unexplained_share_is_nothing_for_white_noise_and_a_quarter_for_half_the_frame_s_fringe():
+    """A white residual leaves none of the frame's structure unexplained (a floor bin by bin would call half of it structure); half the fringe's amplitude leaves a quarter of its power."""
+    from napari_lbs._core.gap._heldout import tile_spectra
     from napari_lbs._core.gap._scene_diagnosis import _structure
 
     split = TileSplit.of((SIZE, SIZE), grid=4)
     rng = np.random.default_rng(0)
     white = (rng.normal(0.0, 0.01, (SIZE, SIZE)), rng.normal(0.0, 0.01, (SIZE, SIZE)))
-    share, _, tiles, floor = _structure(white, split)
-    assert share < 0.03 and tiles.max() < 0.1 and abs(floor - 1e-4) < 1e-5
-    fringe = 0.02 * np.sin(np.arange(SIZE) / 7.0)[None, :]
-    assert abs(_structure(tuple(w + fringe for w in white), split)[0] - 2 / 3) < 0.05
+    fringe = 0.05 * np.sin(np.arange(SIZE) / 7.0)[None, :]
+    frame = tile_spectra(fringe + rng.normal(0.0, 0.01, (SIZE, SIZE)), split)
+    share, _, tiles, floor = _structure(white, split, frame)
+    assert share < 0.01 and tiles.max() < 0.03 and abs(floor - 1e-4) < 1e-5
+    share, _, tiles, _ = _structure(tuple(w + 0.5 * fringe for w in white), split, frame)
+    assert abs(share - 0.25) < 0.03 and np.ptp(tiles) < 0.05
+
+
+def test_a_column_pattern_is_found_and_white_noise_or_a_smooth_envelope_hold_none():
+    """Offsets per column (a camera's column amplifiers) stand far above white noise in the column means; an envelope and white noise do not."""
+    from napari_lbs._core.gap._scene_diagnosis import _line_pattern
+
+    rng = np.random.default_rng(1)
+    yy, xx = np.mgrid[0:SIZE, 0:SIZE] / SIZE
+    plain = tuple(rng.normal(0.0, 0.01, (SIZE, SIZE)) + 0.05 * ((xx - 0.4) ** 2 + (yy - 0.6) ** 2) for _ in range(2))
+    ratios = _line_pattern(plain)
+    assert max(ratios.values()) < 2.0
+    columns = rng.normal(0.0, 0.005, SIZE)[None, :]
+    ratios = _line_pattern(tuple(r + columns for r in plain))
+    assert ratios["columns"] > 20.0 and ratios["rows"] < 2.0
+
+
+def test_a_scene_diagnosis_names_its_phases_reports_every_second_and_stops_at_once():
+    """Progress is heard at least every second through every phase; a stop asked in the effects' selection ends the diagnosis within 2 s."""
+    import time
+
+    import pandas as pd
+
+    from napari_lbs._core import ExperimentConfig, Stopped, particle_hologram
+    from napari_lbs._core.gap import SceneDiagnosisSettings, diagnose_scene
+
+    config = ExperimentConfig.from_dict({"volume": {"z_min_um": 1800.0, "z_max_um": 2600.0, "z_step_um": 50.0}})
+    spheres = pd.DataFrame({"x_um": [150.0, 420.0], "y_um": [160.0, 400.0], "z_um": [2000.0, 2400.0], "diameter_um": [24.0, 26.0], "index_contrast": [0.26, 0.26]})
+    frame = particle_hologram((256, 256), spheres, config) + np.random.default_rng(2).normal(0.0, 0.01, (256, 256))
+    settings = SceneDiagnosisSettings(particles=4, scene_particles=8, index_grid=(0.26,), grid=2)
+
+    class Listener:
+        def __init__(self):
+            self.phases, self.times, self.stop_at = [], [time.monotonic()], None
+
+        def __call__(self, done, total):
+            self.times.append(time.monotonic())
+
+        def phase(self, name):
+            self.phases.append(name)
+            self.times.append(time.monotonic())
+
+    listener = Listener()
+    diagnose_scene(frame, config, settings=settings, progress=listener)
+    assert any("found" in p for p in listener.phases) and any("optics" in p for p in listener.phases) and any("effects" in p for p in listener.phases)
+    assert np.diff(listener.times).max() < 1.5
+
+    asked = []
+
+    def stop() -> bool:
+        if not asked and any("effects" in p for p in listener.phases[-1:]):
+            asked.append(time.monotonic())
+        return bool(asked)
+
+    listener = Listener()
+    with pytest.raises(Stopped):
+        diagnose_scene(frame, config, settings=settings, progress=listener, should_stop=stop)
+    assert asked and time.monotonic() - asked[0] < 2.0

@@ -23,7 +23,11 @@ Parameters are fitted by least squares on the tiles of one colour (`TileSplit`),
 pixel of them, and judged on the other colour's tiles by the held-out likelihood
 (`whittle_loglik`). Forward selection adds the effect of the largest significant held-out
 gain (``z``: the gain over its tile-to-tile error), refits, and stops when no effect gains
-``level_z`` errors.
+``level_z`` errors; backward elimination then drops, one at a time, a selected effect that
+no longer gains ``level_z`` errors given the others. A selected effect that does not beat,
+by 2 errors, a rival put in its place (one that gained alone) is undecided between the two:
+spatial coherence and a sensor's blur both soften fine fringes, and only their growth with
+depth tells them apart.
 """
 
 from __future__ import annotations
@@ -33,7 +37,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy import ndimage, optimize
 
-from napari_lbs._core.foundation import Stopped
+from napari_lbs._core.foundation import ProgressCallback, Steps, StopCallback
 from napari_lbs._core.gap._heldout import TileSplit, model_probabilities, tile_spectra, whittle_loglik
 from napari_lbs._core.physics import EFFECTS, sensor_image
 
@@ -87,7 +91,8 @@ class Scene:
         return image
 _BASELINE = (("gain", 1.0, (0.2, 5.0)), ("contrast", 1.0, (0.0, 3.0)), ("gamma", 1.0, (0.3, 3.0)))
 _STEPS = 12  # least-squares steps per fit: the starts are the simpler model's optimum
-_HIGH_PASS_PX = 1.5  # the shot-noise test's high pass: the residual less its Gaussian blur of this σ
+_HIGH_PASS_PX = 1.5
+_DECIDED_Z = 2.0  # held-out tile-to-tile errors by which a selected effect must beat a rival in its place  # the shot-noise test's high pass: the residual less its Gaussian blur of this σ
 
 
 @dataclass(frozen=True)
@@ -103,23 +108,44 @@ class FrameFit:
 
 @dataclass(frozen=True)
 class Selection:
-    """What forward selection found: the models it fitted, the gains it judged, the effects it kept."""
+    """What forward selection found: the models it fitted, the gains it judged, the effects it kept.
+
+    ``undecided`` holds a record per selected effect and rival (one that gained alone) that
+    predicts the held-out tiles about as well in its place: ``selected``, ``rival``,
+    ``gain_nats`` and ``z`` of the selected model over the swapped one.
+    """
 
     chosen: tuple[str, ...]
     fits: dict
     steps: list
     probabilities: dict
     shot_noise: dict
+    undecided: tuple = ()
 
 
 def _fringe_start(residual: np.ndarray) -> dict:
-    """Period (px) and angle (rad) of the residual's strongest spectral peak beyond the lowest frequencies."""
+    """Period (px) and angle (rad) of the residual's most prominent spectral peak within the catalog's periods.
+
+    Prominent over its ring: the spectrum divided by its median at the same radius. A
+    particle's misfit spreads its power round a ring of frequencies (its fringes point every
+    way); a straight fringe puts all of its power at one frequency, however weak it is beside
+    the rings.
+    """
     spectrum = np.abs(np.fft.rfft2(residual - residual.mean())) ** 2
     fy = np.fft.fftfreq(residual.shape[0])[:, None]
     fx = np.fft.rfftfreq(residual.shape[1])[None, :]
     radius = np.hypot(fx, fy)
-    spectrum[(radius < 1.0 / 24.0) | (radius > 0.25)] = 0.0  # within the catalog's periods, 4-24 px
-    row, col = np.unravel_index(int(np.argmax(spectrum)), spectrum.shape)
+    ring = np.minimum((radius * min(residual.shape)).astype(int), min(residual.shape))  # rings one frequency step wide
+    medians = np.zeros(ring.max() + 1)
+    order = np.argsort(ring, axis=None)
+    bounds = np.searchsorted(ring.ravel()[order], np.arange(ring.max() + 2))
+    values = spectrum.ravel()[order]
+    for k in range(ring.max() + 1):
+        if bounds[k + 1] > bounds[k]:
+            medians[k] = np.median(values[bounds[k] : bounds[k + 1]])
+    prominence = spectrum / np.maximum(medians[ring], 1e-30)
+    prominence[(radius < 1.0 / 24.0) | (radius > 0.25)] = 0.0  # within the catalog's periods, 4-24 px
+    row, col = np.unravel_index(int(np.argmax(prominence)), prominence.shape)
     f_x, f_y = float(fx[0, col]), float(fy[row, 0])
     return {"amplitude": 0.01, "period_px": 1.0 / max(np.hypot(f_x, f_y), 1e-6), "angle_rad": float(np.arctan2(f_y, f_x) % np.pi)}
 
@@ -138,7 +164,7 @@ def _mean(scene: Scene, values: dict, effects: tuple[str, ...], zeros: np.ndarra
     return values["gain"] * sensor_image(image, baseline, chosen, noise=zeros).astype(np.float64)
 
 
-def _fit(data: np.ndarray, scene: Scene, mask: np.ndarray, effects: tuple[str, ...], start: dict, zeros: np.ndarray) -> dict:
+def _fit(data: np.ndarray, scene: Scene, mask: np.ndarray, effects: tuple[str, ...], start: dict, zeros: np.ndarray, check) -> dict:
     names = [name for name, _, _ in _BASELINE] + [f"{e}.{p}" for e in effects for p in MEAN_EFFECTS[e]]
     bounds = {name: limits for name, _, limits in _BASELINE}
     bounds.update({f"{e}.{p}": EFFECTS[e].bounds[p] for e in effects for p in MEAN_EFFECTS[e]})
@@ -149,6 +175,8 @@ def _fit(data: np.ndarray, scene: Scene, mask: np.ndarray, effects: tuple[str, .
     target = data[sample]
 
     def residual(x: np.ndarray) -> np.ndarray:
+        if check is not None:
+            check()  # a stop is heard, and progress reported, within an evaluation
         return _mean(scene, dict(zip(names, x, strict=True)), effects, zeros)[sample] - target
 
     low, high = np.array([bounds[n][0] for n in names]), np.array([bounds[n][1] for n in names])
@@ -157,10 +185,11 @@ def _fit(data: np.ndarray, scene: Scene, mask: np.ndarray, effects: tuple[str, .
     return dict(zip(names, (float(v) for v in result.x), strict=True))
 
 
-def fit_frame(data: np.ndarray, scene, split: TileSplit, effects: tuple[str, ...], *, starts: tuple[dict, dict] | None = None) -> FrameFit:
+def fit_frame(data: np.ndarray, scene, split: TileSplit, effects: tuple[str, ...], *, starts: tuple[dict, dict] | None = None, check=None) -> FrameFit:
     """Fit ``effects`` (and the baseline) on each colour's tiles; the held-out log-likelihood of every tile.
 
     ``scene``: a `Scene`, or the particles' hologram as an array (no depth-dependent effect then).
+    ``check``: called before each evaluation of the model (`Steps.check`: raises `Stopped`).
     """
     zeros = np.zeros(data.shape, np.float32)
     scene = Scene.of(scene)
@@ -174,7 +203,7 @@ def fit_frame(data: np.ndarray, scene, split: TileSplit, effects: tuple[str, ...
             if not all(f"{effect}.{p}" in start for p in MEAN_EFFECTS[effect]):
                 guess = _starts(effect, np.where(split.mask(colour), data - start["gain"] * scene.image, 0.0))
                 start.update({f"{effect}.{p}": v for p, v in guess.items()})
-        fitted = _fit(data, scene32, split.mask(colour), effects, start, zeros)
+        fitted = _fit(data, scene32, split.mask(colour), effects, start, zeros, check)
         mean = _mean(scene32, fitted, effects, zeros)
         params.append(fitted)
         means.append(mean)
@@ -195,13 +224,15 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
     """Does the residual's variance grow with the light? A held-out test of a signed slope in the mean.
 
     The residual is high-passed (less its Gaussian blur of σ = 1.5 px) to keep the noise and
-    little of the structure. Its squares are regressed, over one colour's tiles, on the local
-    fringe amplitude ``|mean - blur(mean, 8 px)|`` (what an imperfect particle model leaves
-    grows with it, on bright and dark fringes alike) with and without the mean itself (photon
-    noise is larger on the bright fringes than on the dark ones), and the Gaussian
-    log-likelihoods of the two are compared on the other colour's tiles, every other pixel of
-    every other row. ``log10_photons`` is the catalog's parameter: photons per unit of
-    normalised light, from the slope corrected for the high pass's share of white noise.
+    little of the structure. Its squares are regressed, over one colour's tiles, on what an
+    imperfect particle model leaves — the local fringe amplitude ``|mean - blur(mean, 8 px)|``
+    and the model's own local fine-fringe power ``blur((mean - blur(mean, 1.5 px))², 3 px)``,
+    where the rings beyond the scene's rendered reach lie, which a pixel records and the
+    model does not — with and without the mean itself (photon noise is larger on the bright
+    fringes than on the dark ones), and the Gaussian log-likelihoods of the two are compared
+    on the other colour's tiles, every other pixel of every other row. ``log10_photons`` is
+    the catalog's parameter: photons per unit of normalised light, from the slope corrected
+    for the high pass's share of white noise.
     """
     impulse = np.zeros((15, 15))
     impulse[7, 7] = 1.0
@@ -212,19 +243,23 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
     for fitted_on in (0, 1):
         residual, mean = fit.residuals[fitted_on], fit.means[fitted_on]
         high = residual - ndimage.gaussian_filter(residual, _HIGH_PASS_PX)
-        fringe = np.abs(mean - ndimage.gaussian_filter(mean, 8.0))
-        samples = [(high[w][::2, ::2].ravel(), mean[w][::2, ::2].ravel(), fringe[w][::2, ::2].ravel(), c) for w, c in zip(split.windows(), colours, strict=True)]
-        h2 = np.concatenate([s[0] for s in samples if s[3] == fitted_on]) ** 2
-        m = np.concatenate([s[1] for s in samples if s[3] == fitted_on])
-        e = np.concatenate([s[2] for s in samples if s[3] == fitted_on])
-        null, *_ = np.linalg.lstsq(np.stack([np.ones_like(e), e], axis=1), h2, rcond=None)
-        alternative, *_ = np.linalg.lstsq(np.stack([np.ones_like(e), e, m], axis=1), h2, rcond=None)
-        slopes.append(float(alternative[2]))
-        for k, (h, m_t, e_t, colour) in enumerate(samples):
+        misfit = (np.abs(mean - ndimage.gaussian_filter(mean, 8.0)), ndimage.gaussian_filter((mean - ndimage.gaussian_filter(mean, _HIGH_PASS_PX)) ** 2, 3.0))
+        # per tile: the high-passed residual, the null's regressors (1 and the misfit's), the mean
+        samples = [(high[w][::2, ::2].ravel(), np.stack([np.ones(high[w][::2, ::2].size)] + [m[w][::2, ::2].ravel() for m in misfit], axis=1), mean[w][::2, ::2].ravel(), c)
+                   for w, c in zip(split.windows(), colours, strict=True)]
+        fitted = [s for s in samples if s[3] == fitted_on]
+        h2 = np.concatenate([s[0] for s in fitted]) ** 2
+        x_null = np.concatenate([s[1] for s in fitted])
+        x_photon = np.concatenate([x_null, np.concatenate([s[2] for s in fitted])[:, None]], axis=1)
+        null, *_ = np.linalg.lstsq(x_null, h2, rcond=None)
+        alternative, *_ = np.linalg.lstsq(x_photon, h2, rcond=None)
+        slopes.append(float(alternative[-1]))
+        least = 0.1 * float(np.mean(h2))  # a linear variance may fall below zero off the fitted range: a tenth of the mean bounds it
+        for k, (h, x_t, m_t, colour) in enumerate(samples):
             if colour == fitted_on:
                 continue
-            v0 = np.maximum(null[0] + null[1] * e_t, 1e-12)
-            v1 = np.maximum(alternative[0] + alternative[1] * e_t + alternative[2] * m_t, 1e-12)
+            v0 = np.maximum(x_t @ null, least)
+            v1 = np.maximum(x_t @ alternative[:-1] + alternative[-1] * m_t, least)
             gains[k] = -0.5 * float(np.sum(h**2 / v1 + np.log(v1)) - np.sum(h**2 / v0 + np.log(v0)))
     total, z = _gain(gains, np.zeros_like(gains))
     slope = float(np.mean(slopes)) / kept
@@ -234,37 +269,75 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
 
 
 def select_effects(data: np.ndarray, scene, split: TileSplit, *, candidates=tuple(MEAN_EFFECTS), level_z: float = 3.0,
-                   max_effects: int = 3, should_stop=None) -> Selection:
+                   max_effects: int = 3, progress: ProgressCallback | None = None, should_stop: StopCallback | None = None) -> Selection:
     """Forward selection over ``candidates`` by held-out gain (module docstring); the shot-noise test on the final model.
 
-    ``scene``: a `Scene` (an array: no depth groups, so no depth-dependent candidate).
+    ``scene``: a `Scene` (an array: no depth-dependent candidate). ``progress`` hears one step
+    per model fitted, out of the most forward selection may fit, and again at least every
+    half second within a fit; ``should_stop`` is heard within a fit (`Stopped`).
     """
     scene = Scene.of(scene)
     if scene.groups is None:
         candidates = tuple(c for c in candidates if c not in _BY_DEPTH)
+    rounds = min(max_effects, len(candidates))
+    steps = Steps(1 + sum(len(candidates) - k for k in range(rounds)), progress=progress, should_stop=should_stop, heartbeat_s=0.5)
     chosen: tuple[str, ...] = ()
-    fits = {"baseline": fit_frame(data, scene, split, ())}
-    steps = []
+    fits = {"baseline": fit_frame(data, scene, split, (), check=steps.check)}
+    steps.advance()
+    record = []
     while len(chosen) < max_effects:
         base = fits["+".join(chosen) or "baseline"]
         round_gains = {}
         for effect in candidates:
             if effect in chosen:
                 continue
-            if should_stop is not None and should_stop():
-                raise Stopped()
             model = tuple(sorted((*chosen, effect)))
-            fit = fit_frame(data, scene, split, model, starts=base.params)
+            fit = fit_frame(data, scene, split, model, starts=base.params, check=steps.check)
+            steps.advance()
             fits["+".join(model)] = fit
             round_gains[effect] = _gain(fit.loglik, base.loglik)
         if not round_gains:
             break
         best = max(round_gains, key=lambda e: round_gains[e][1])
-        steps.append({"given": list(chosen), "gains": {e: {"gain_nats": g, "z": z} for e, (g, z) in round_gains.items()}, "added": None})
+        record.append({"given": list(chosen), "gains": {e: {"gain_nats": g, "z": z} for e, (g, z) in round_gains.items()}, "added": None})
         if round_gains[best][1] < level_z or round_gains[best][0] <= 0:
             break
         chosen = tuple(sorted((*chosen, best)))
-        steps[-1]["added"] = best
+        record[-1]["added"] = best
+    while len(chosen) >= 2:
+        # backward: an effect added early may be one that a later one explains better (a source's
+        # size blurs like a sensor, more at depth): each is judged again given all the others
+        full = fits["+".join(chosen)]
+        kept_gains = {}
+        for effect in chosen:
+            reduced = tuple(e for e in chosen if e != effect)
+            key = "+".join(reduced)
+            if key not in fits:
+                fits[key] = fit_frame(data, scene, split, reduced, starts=full.params, check=steps.check)
+            kept_gains[effect] = _gain(full.loglik, fits[key].loglik)
+        weakest = min(kept_gains, key=lambda e: kept_gains[e][1])
+        record.append({"given": [e for e in chosen if e != weakest], "gains": {e: {"gain_nats": g, "z": z} for e, (g, z) in kept_gains.items()},
+                       "removed": None})
+        if kept_gains[weakest][1] >= level_z and kept_gains[weakest][0] > 0:
+            break
+        chosen = tuple(e for e in chosen if e != weakest)
+        record[-1]["removed"] = weakest
     final = fits["+".join(chosen) or "baseline"]
+    # each selected effect against every candidate that gained alone, in its place: one that
+    # predicts the held-out tiles about as well is an alternative the frame cannot rule out
+    alone = record[0]["gains"] if record else {}
+    undecided = []
+    for effect in chosen:
+        for rival in candidates:
+            if rival in chosen or alone.get(rival, {}).get("z", -np.inf) < level_z:
+                continue
+            swapped = tuple(sorted((*(e for e in chosen if e != effect), rival)))
+            key = "+".join(swapped)
+            if key not in fits:
+                fits[key] = fit_frame(data, scene, split, swapped, starts=final.params, check=steps.check)
+            gain, z = _gain(final.loglik, fits[key].loglik)
+            if z < _DECIDED_Z:
+                undecided.append({"selected": effect, "rival": rival, "gain_nats": gain, "z": z})
     probabilities = model_probabilities({name: fit.loglik for name, fit in fits.items()})
-    return Selection(chosen, fits, steps, probabilities, shot_noise_test(final, split))
+    steps.advance(steps.total - steps.done)
+    return Selection(chosen, fits, record, probabilities, shot_noise_test(final, split), tuple(undecided))

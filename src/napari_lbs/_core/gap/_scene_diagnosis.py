@@ -18,10 +18,15 @@
    shot-noise test on the final model. Coherence (a source's size) blurs each depth group
    of the scene by its own depth. Quantization and saturation are read from the levels the
    frame's counts use (`levels_test`).
-5. **What is left**: the residual's power spectrum over the frequencies, less its white floor
-   (the median power above ``0.35`` cycles per pixel, where neither particles nor structure
-   reach after the camera's blur): the *structured share* of the residual power, per band and
-   per tile. The catalog explains the frame where that share is at most ``structure_level``.
+5. **What is left**, tile by tile: the structured power of the held-out residual (its power
+   less its white floor, the median power above ``0.35`` cycles per pixel, where neither
+   particles nor structure reach after the camera's blur) over the structured power of the
+   frame itself, the *unexplained share* of the frame's structure. Its median over the tiles
+   is the gap: a pair fitted as one particle or a particle cut by the frame's edge spoils a
+   few tiles, an effect the model lacks spoils them all. The catalog explains the frame where
+   that median is at most ``structure_level`` and the residual's column and row means hold no
+   fixed pattern (`_line_pattern`: what a camera's column amplifiers and row read-out leave,
+   the EMVA 1288 standard's check of non-uniformity).
 """
 
 from __future__ import annotations
@@ -31,8 +36,9 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import ndimage
 
-from napari_lbs._core.foundation import ExperimentConfig, InputError, Stopped, as_hologram, json_safe
+from napari_lbs._core.foundation import ExperimentConfig, InputError, ProgressCallback, Steps, StopCallback, Stopped, as_hologram, begin_phase, json_safe
 from napari_lbs._core.gap._detect import find_particles
 from napari_lbs._core.gap._heldout import TileSplit, tile_spectra
 from napari_lbs._core.gap._levels import levels_test
@@ -80,8 +86,11 @@ class SceneDiagnosisSettings:
         Held-out gain, in tile-to-tile errors, an effect needs to be selected (and particle
         optics, in particle-to-particle errors).
     structure_level : float
-        Largest structured share of the residual's power for which the catalog explains the
-        frame.
+        Largest unexplained share of the frame's structure (median over the tiles) for which
+        the catalog explains the frame.
+    line_level : float
+        Largest variance of the high-passed residual's column (or row) means, in units of what
+        white noise gives them, for which the frame holds no fixed line pattern.
     grid : int
         Tiles per side of the held-out checkerboard.
     refine : RefineSettings
@@ -94,7 +103,8 @@ class SceneDiagnosisSettings:
     reach_cycles_per_px: float = 0.5
     index_grid: tuple[float, ...] = (0.12, 0.26, 0.40)
     level_z: float = 3.0
-    structure_level: float = 0.25
+    structure_level: float = 0.07
+    line_level: float = 4.0
     grid: int = 4
     refine: RefineSettings = field(default_factory=lambda: RefineSettings(min_gain=0.0))
 
@@ -111,7 +121,7 @@ class SceneDiagnosisSettings:
             raise InputError(f"scene diagnosis: looks must be an integer 0-10, got {self.looks!r}")
         if not (isinstance(self.grid, int) and 2 <= self.grid <= 16):
             raise InputError(f"scene diagnosis: grid must be an integer 2-16, got {self.grid!r}")
-        for name in ("level_z", "structure_level"):
+        for name in ("level_z", "structure_level", "line_level"):
             value = getattr(self, name)
             if not (isinstance(value, int | float) and np.isfinite(value) and value >= 0):
                 raise InputError(f"scene diagnosis: {name} must be a finite number >= 0, got {value!r}")
@@ -131,7 +141,7 @@ class SceneDiagnosis:
         return json.dumps(json_safe(self.report), indent=1, allow_nan=False)
 
 
-def _particle_optics(data: np.ndarray, guesses, config: ExperimentConfig, settings: SceneDiagnosisSettings, should_stop) -> dict:
+def _particle_optics(data: np.ndarray, guesses, config: ExperimentConfig, settings: SceneDiagnosisSettings, progress, should_stop) -> dict:
     """Opaque against transparent spheres, particle by particle: the test and the fitted numbers."""
     fits = {}
     models = {"opaque": {"index_contrast": 0.0, "absorption": OPAQUE_KAPPA}}
@@ -139,7 +149,8 @@ def _particle_optics(data: np.ndarray, guesses, config: ExperimentConfig, settin
     for name, fixed in models.items():
         if should_stop is not None and should_stop():
             raise Stopped()
-        fitted = refine_particles(data, guesses, config, fixed=fixed, settings=settings.refine, should_stop=should_stop)
+        begin_phase(progress, f"particle optics: {len(guesses)} particles as {'opaque' if name == 'opaque' else 'transparent, index contrast ' + name} spheres")
+        fitted = refine_particles(data, guesses, config, fixed=fixed, settings=settings.refine, progress=progress, should_stop=should_stop)
         # a fit may drop a guess (a twin of another): rows stay aligned by the guess they started from
         fits[name] = fitted.set_index("guess").reindex(np.arange(len(guesses)))
     costs = np.stack([fits[name]["fit_residual"].to_numpy(np.float64) ** 2 for name in models])
@@ -168,7 +179,7 @@ def _particle_optics(data: np.ndarray, guesses, config: ExperimentConfig, settin
     return record
 
 
-def _scene(data: np.ndarray, found, config: ExperimentConfig, settings: SceneDiagnosisSettings, should_stop) -> tuple:
+def _scene(data: np.ndarray, found, config: ExperimentConfig, settings: SceneDiagnosisSettings, progress, should_stop) -> tuple:
     """The frame's particles fitted, with what the fits leave looked at again; their hologram as the camera records it.
 
     Every particle is fitted with its index and absorption free, the model closest to the
@@ -188,7 +199,8 @@ def _scene(data: np.ndarray, found, config: ExperimentConfig, settings: SceneDia
     def fit(image: np.ndarray, guesses):
         if not len(guesses):
             return guesses
-        fitted = refine_particles(image, guesses, config, settings=settings.refine, should_stop=should_stop)
+        begin_phase(progress, f"the frame's scene: {len(guesses)} particles fitted")
+        fitted = refine_particles(image, guesses, config, settings=settings.refine, progress=progress, should_stop=should_stop)
         return fitted[fitted["refined"]].reset_index(drop=True)
 
     columns = ["x_um", "y_um", "z_um", "diameter_um"]
@@ -197,9 +209,12 @@ def _scene(data: np.ndarray, found, config: ExperimentConfig, settings: SceneDia
     for _ in range(settings.looks):
         if len(table) >= settings.scene_particles:
             break
+        begin_phase(progress, "particles the fits missed, looked for in what they leave")
         # the Nyquist disc is enough to find what is missing
         residual = data - (render(table, 0.5) - 1.0)
-        new = pd.DataFrame(find_particles(residual, config, max_particles=settings.scene_particles - len(table)))[columns]
+        planes = len(config.volume.planes_um(2.0 * config.volume.z_step_um))  # `find_particles`' planes
+        new = pd.DataFrame(find_particles(residual, config, max_particles=settings.scene_particles - len(table),
+                                          steps=Steps(planes, progress=progress, should_stop=should_stop)))[columns]
         if len(table) and len(new):
             # a find on a kept particle is what its fit left of it, not another particle
             apart = np.hypot(new["x_um"].to_numpy()[:, None] - table["x_um"].to_numpy()[None], new["y_um"].to_numpy()[:, None] - table["y_um"].to_numpy()[None])
@@ -208,23 +223,33 @@ def _scene(data: np.ndarray, found, config: ExperimentConfig, settings: SceneDia
         if new.empty:
             break
         table = pd.concat([table, new], ignore_index=True)
+    # depth groups of about equal counts, each rendered alone: what a depth-dependent effect (coherence) blurs
+    bins = np.array_split(np.argsort(table["z_um"].to_numpy()), min(_DEPTH_GROUPS, len(table))) if len(table) >= 2 else []
+    begin_phase(progress, f"the scene of {len(table)} particles rendered, whole and in {len(bins)} depth groups")
+    steps = Steps(1 + len(bins), progress=progress, should_stop=should_stop)
     scene = render(table, settings.reach_cycles_per_px)
+    steps.advance()
     if len(table) < 2:
         return table, Scene(scene, pixel_um=config.optics.pixel_um)
-    # depth groups of about equal counts, each rendered alone: what a depth-dependent effect (coherence) blurs
-    bins = np.array_split(np.argsort(table["z_um"].to_numpy()), min(_DEPTH_GROUPS, len(table)))
-    groups = np.stack([render(table.iloc[rows], settings.reach_cycles_per_px) - 1.0 for rows in bins]).astype(np.float32)
+    groups = []
+    for rows in bins:
+        groups.append(render(table.iloc[rows], settings.reach_cycles_per_px) - 1.0)
+        steps.advance()
+    groups = np.stack(groups).astype(np.float32)
     depths = tuple(float(table["z_um"].to_numpy()[rows].mean()) for rows in bins)
     return table, Scene(scene, depths, groups, config.optics.pixel_um)
 
 
-def _structure(residuals: tuple[np.ndarray, np.ndarray], split: TileSplit) -> tuple[float, list, np.ndarray, float]:
-    """The structured share of the held-out residual's power: in all, per band, per tile; and the white floor's variance.
+def _structure(residuals: tuple[np.ndarray, np.ndarray], split: TileSplit, frame_spectra: np.ndarray) -> tuple[float, list, np.ndarray, float]:
+    """The unexplained share of the frame's structure: its median over the tiles, per band, per tile; and the white floor's variance.
 
-    The floor is the mean power per frequency above ``_FLOOR_CYCLES`` (a white residual's
-    variance); the structured power is what a band or a tile holds beyond the floor times its
-    frequencies. Sums, not bin by bin: a periodogram's bins scatter exponentially about their
-    mean, and clipping each at a floor would call half of pure white noise structure.
+    ``frame_spectra`` are the frame's own tile spectra (`tile_spectra` of the frame less its
+    mean). The floor is the residual's mean power per frequency above ``_FLOOR_CYCLES`` (a
+    white residual's variance); a tile's structured power is what it holds beyond the floor
+    times its frequencies, for the residual and for the frame alike. Sums, not bin by bin: a
+    periodogram's bins scatter exponentially about their mean, and clipping each at a floor
+    would call half of pure white noise structure. The bands split the residual's own
+    structured power.
     """
     colours = split.colours()
     spectra = np.empty((len(colours), split.size, split.size))
@@ -234,21 +259,39 @@ def _structure(residuals: tuple[np.ndarray, np.ndarray], split: TileSplit) -> tu
     f = np.hypot(*np.meshgrid(np.fft.fftfreq(split.size), np.fft.fftfreq(split.size), indexing="ij"))
     high = (f >= _FLOOR_CYCLES) & (f <= 0.5)
     floors = spectra[:, high].mean(axis=1)
-    total = spectra.sum(axis=(1, 2))
-    grand = max(float(total.sum()), 1e-30)
-    per_tile = np.clip(1.0 - floors * f.size / np.maximum(total, 1e-30), 0.0, 1.0)
-    share = float(np.clip(1.0 - floors.sum() * f.size / grand, 0.0, 1.0))
+    structured = spectra.sum(axis=(1, 2)) - floors * f.size
+    frame = np.maximum(frame_spectra.sum(axis=(1, 2)) - floors * f.size, 1e-30)
+    per_tile = np.clip(structured / frame, 0.0, None)
+    grand = max(float(spectra.sum()), 1e-30)
     bands = []
     for low, high_f in zip(_BANDS[:-1], _BANDS[1:], strict=True):
         inside = (f >= low) & (f < high_f)
         power = float(spectra[:, inside].sum())
         bands.append({"cycles_per_px": [low, high_f], "share_of_power": power / grand,
                       "structured": max(power - float(floors.sum()) * int(inside.sum()), 0.0) / grand})
-    return share, bands, per_tile.reshape(split.grid, split.grid), float(np.mean(floors))
+    return float(np.median(per_tile)), bands, per_tile.reshape(split.grid, split.grid), float(np.mean(floors))
+
+
+def _line_pattern(residuals: tuple[np.ndarray, np.ndarray]) -> dict:
+    """Fixed column and row patterns: the variance of the high-passed residual's column and row means over what white noise gives.
+
+    A camera's column amplifiers and row read-out add an offset per column or row, white
+    along the other axis; particles, illumination and fringes at an angle average out in a
+    column's mean, and the high pass (less a Gaussian blur of 1.5 px) keeps a smooth envelope
+    out. White noise gives a ratio near 1.
+    """
+    ratios = {"columns": [], "rows": []}
+    for residual in residuals:
+        high = residual - ndimage.gaussian_filter(residual, 1.5)
+        white = float(high.var())
+        for axis, name in ((0, "columns"), (1, "rows")):
+            ratios[name].append(float(high.mean(axis=axis).var() / max(white / residual.shape[axis], 1e-30)))
+    return {name: float(np.mean(values)) for name, values in ratios.items()}
 
 
 def diagnose_scene(hologram: np.ndarray, config: ExperimentConfig, *, settings: SceneDiagnosisSettings | None = None,
-                   background: np.ndarray | None = None, should_stop=None) -> SceneDiagnosis:
+                   background: np.ndarray | None = None, progress: ProgressCallback | None = None,
+                   should_stop: StopCallback | None = None) -> SceneDiagnosis:
     """Which catalog effects the experiment's frame holds, given its own particles (module docstring).
 
     Parameters
@@ -260,8 +303,10 @@ def diagnose_scene(hologram: np.ndarray, config: ExperimentConfig, *, settings: 
     settings : SceneDiagnosisSettings, optional
     background : (rows, cols) array, optional
         A frame without particles: the hologram is divided by it (else by its mean).
-    should_stop : callable, optional
-        Polled between fits; `Stopped` is raised when it returns True.
+    progress, should_stop : callable, optional
+        ``progress(done, total)`` per phase (`begin_phase` names each: the particle models'
+        fits, the scene's, the effects' selection), at least every second; ``should_stop``
+        is heard within 2 s and raises `Stopped`.
 
     Returns
     -------
@@ -280,50 +325,63 @@ def diagnose_scene(hologram: np.ndarray, config: ExperimentConfig, *, settings: 
     data = data / float(np.mean(data))
     import pandas as pd
 
-    found = pd.DataFrame(find_particles(data, config, max_particles=max(settings.particles, settings.scene_particles))).drop(columns="focus")
+    planes = len(config.volume.planes_um(2.0 * config.volume.z_step_um))  # `find_particles`' planes
+    begin_phase(progress, "particles found in the back-propagated volume")
+    found = pd.DataFrame(find_particles(data, config, max_particles=max(settings.particles, settings.scene_particles),
+                                        steps=Steps(planes, progress=progress, should_stop=should_stop))).drop(columns="focus")
     found["guess"] = np.arange(len(found))
-    optics = _particle_optics(data, found.iloc[: settings.particles], config, settings, should_stop)
-    table, scene = _scene(data, found, config, settings, should_stop)
+    optics = _particle_optics(data, found.iloc[: settings.particles], config, settings, progress, should_stop)
+    table, scene = _scene(data, found, config, settings, progress, should_stop)
     split = TileSplit.of(data.shape, grid=settings.grid)
-    selection = select_effects(data, scene, split, level_z=settings.level_z, should_stop=should_stop)
-    baseline_share = _structure(selection.fits["baseline"].residuals, split)[0]
+    begin_phase(progress, f"the catalog's effects around {len(table)} fitted particles")
+    selection = select_effects(data, scene, split, level_z=settings.level_z, progress=progress, should_stop=should_stop)
+    frame_spectra = tile_spectra(data - 1.0, split)
+    baseline_share = _structure(selection.fits["baseline"].residuals, split, frame_spectra)[0]
     final = selection.fits["+".join(selection.chosen) or "baseline"]
-    share, bands, tile_map, floor_variance = _structure(final.residuals, split)
+    share, bands, tile_map, floor_variance = _structure(final.residuals, split, frame_spectra)
+    lines = _line_pattern(final.residuals)
     effects = []
     first_round = selection.steps[0]["gains"] if selection.steps else {}
     for effect in MEAN_EFFECTS:
         fit = selection.fits.get(effect)
-        after = _structure(fit.residuals, split)[0] if fit is not None else None
+        after = _structure(fit.residuals, split, frame_spectra)[0] if fit is not None else None
         params = {name.split(".", 1)[1]: float(np.mean([fit.params[0][name], fit.params[1][name]])) for name in fit.params[0] if name.startswith(f"{effect}.")} if fit else {}
         gain = first_round.get(effect, {})
         effects.append({"id": effect, "gap_after": after, "shrink": 1.0 - after / baseline_share if after is not None and baseline_share > 0 else None,
                         "params": params, "heldout_gain_nats": gain.get("gain_nats"), "z": gain.get("z"), "selected": effect in selection.chosen})
     phase_selected = bool(optics["model"] == "transparent")
-    effects.append({"id": "particle_phase", "gap_after": None, "shrink": None, "z": optics["z"], "selected": phase_selected,
+    # the particles' optics and the camera's noise and levels leave the fitted mean, so the gap, as it is
+    effects.append({"id": "particle_phase", "gap_after": baseline_share, "shrink": 0.0, "z": optics["z"], "selected": phase_selected,
                     "params": {"index_contrast": optics["index_contrast_median"], "transmission": 1.0} if phase_selected else {}})
     shot = selection.shot_noise
     shot_selected = bool(shot["z"] >= settings.level_z and shot["gain"] > 0)
-    effects.append({"id": "shot_noise", "gap_after": None, "shrink": None, "z": shot["z"], "heldout_gain_nats": shot["gain"], "selected": shot_selected,
+    effects.append({"id": "shot_noise", "gap_after": baseline_share, "shrink": 0.0, "z": shot["z"], "heldout_gain_nats": shot["gain"], "selected": shot_selected,
                     "params": {"log10_photons": shot["log10_photons"]} if shot["log10_photons"] is not None else {}})
     levels = levels_test(np.asarray(hologram), floor_variance=floor_variance)
-    effects.append({"id": "quantization", "gap_after": None, "shrink": None, "z": None, "selected": levels["selected"], "params": levels["params"],
+    effects.append({"id": "quantization", "gap_after": baseline_share, "shrink": 0.0, "z": None, "selected": levels["selected"], "params": levels["params"],
                     "levels": {k: levels[k] for k in ("integer", "step_counts", "noise_share", "saturated_share")}})
     effects.sort(key=lambda entry: -(entry["z"] if entry["z"] is not None and np.isfinite(entry["z"]) else -np.inf))
     named = sorted([e["id"] for e in effects if e["selected"]])
-    catalog_explains = share <= settings.structure_level
+    undecided = sorted({name for pair in selection.undecided for name in (pair["selected"], pair["rival"])})
+    between = "; ".join(f"{pair['selected']} or {pair['rival']} (z {pair['z']:.1f} in its favour)" for pair in selection.undecided)
+    patterned = [name for name, ratio in lines.items() if ratio > settings.line_level]
+    catalog_explains = share <= settings.structure_level and not patterned
+    left = (f"unexplained share of the frame's structure {share:.3f} (median over the tiles; {'at most' if share <= settings.structure_level else 'above'} "
+            f"{settings.structure_level:g})" + (f"; a fixed pattern in the {' and '.join(patterned)} (variance of their means {max(lines.values()):.1f}x white noise's)" if patterned else ""))
     posterior = {("null" if name == "baseline" else name): p for name, p in selection.probabilities.items()}
     report = {
         "method": "scene",
-        "gap": {"metric": "structured share of the held-out residual's power", "baseline": baseline_share, "by_band": bands,
-                "particles": optics["particles"], "tiles": split.grid**2, "tile_px": split.size},
+        "gap": {"metric": "unexplained share of the frame's structure (median over the held-out tiles)", "baseline": baseline_share, "by_band": bands,
+                "line_pattern": lines, "particles": optics["particles"], "tiles": split.grid**2, "tile_px": split.size},
         "effects": effects,
-        "verdict": {"id": "+".join(named) or None, "shrink": 1.0 - share / baseline_share if baseline_share > 0 else 0.0, "residual": share,
-                    "undecided": [], "catalog_explains": bool(catalog_explains),
-                    "reason": (f"selected by held-out gain (z >= {settings.level_z:g}): {', '.join(named) or 'nothing'}; "
-                               f"structured share of the residual {share:.3f} ({'at most' if catalog_explains else 'above'} {settings.structure_level:g})")},
+        "verdict": {"id": None if undecided else "+".join(named) or None, "shrink": 1.0 - share / baseline_share if baseline_share > 0 else 0.0,
+                    "residual": share, "undecided": undecided, "catalog_explains": bool(catalog_explains),
+                    "reason": (f"selected by held-out gain (z >= {settings.level_z:g}): {', '.join(named) or 'nothing'}"
+                               + (f"; undecided between {between}" if between else "") + f"; {left}")},
         "posterior": posterior,
         "particle_optics": optics,
         "selection": selection.steps,
+        "undecided": list(selection.undecided),
         "not_tested": _NOT_TESTED,
     }
     return SceneDiagnosis(report, tile_map, table, round(time.perf_counter() - started, 2))
