@@ -4,9 +4,10 @@ A step widget collects parameters, runs one `_core` function in napari's ``threa
 (``progress`` relayed to a bar in napari's activity dock and to the widget's own bar with
 elapsed time and ETA; ``should_stop`` wired to Stop) and shows the result as µm layers.
 A job of several phases (a refined prediction: the network, the fit, the second look) has
-one bar over the whole job, each phase named as it begins (`Phases`). While its inputs are
-invalid Run is disabled and the reason shown. A step's last result stays on its status line
-until it runs again. Settings persist between napari sessions as typed, all fields of a step
+one bar over the whole job, each phase named as it begins (`Phases`); a job whose phases have
+no expected shares of the time (a diagnosis's frames) shows each phase's name and count, and
+no time left. While its inputs are invalid Run is disabled and the reason shown. A step's
+last result stays on its status line until it runs again. Settings persist between napari sessions as typed, all fields of a step
 as one record, so they come back as the consistent whole they were saved as (an empty path
 stays empty; a remembered input that has gone falls back to the default; a record that no
 longer fits the fields is not used at all).
@@ -416,8 +417,9 @@ class StepWidget(Container):
         elif total:
             maximum, value = total, min(done, total)
             self._marks.append((at, done))
-            left = time_left(self._marks, total) if done < total else None
-            self._counts = f"{done}/{total}"
+            # phases without weights restart their counts: their throughputs say nothing of the time left
+            left = time_left(self._marks, total) if done < total and not phase else None
+            self._counts = f"{phase} {done}/{total}" if phase else f"{done}/{total}"
         else:
             return  # a phase named to a step that shows none
         self._bar.max, self._bar.value = maximum, value
@@ -429,7 +431,7 @@ class StepWidget(Container):
         if not self._stop_requested.is_set():
             self._status.value = f"{self.title}: running"
         # Last: napari's progress may process events, and with them this job's end.
-        if phases is not None and phase != self._described:
+        if phase and phase != self._described:
             self._described = phase
             bar.set_description(f"{self.title}: {phase}")
             if self._progress_bar is not bar:
