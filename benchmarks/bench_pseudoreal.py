@@ -47,12 +47,11 @@ from napari_lbs._core.pipeline import DEMO_SAMPLE_DISTRACTORS  # noqa: E402
 
 from napari_lbs._core import (
     CalibrationSettings,
-    DiagnosisSettings,
     Distractors,
     InputProcessing,
     TrainingSettings,
     calibrate_hologram,
-    diagnose_hologram,
+    diagnose_scene,
     effects_from_report,
     generate_dataset,
     load_config,
@@ -106,7 +105,7 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None, real
     needs_report = not only or {"transparent", "effects", "plain_effects"} & set(only)
     if needs_report and not report_path.is_file():
         start = time.perf_counter()
-        diagnosis = diagnose_hologram(experiment, config, settings=DiagnosisSettings())
+        diagnosis = diagnose_scene(experiment, config)
         write_report(diagnosis, out / "diagnosis", provenance={"source": "pseudo-real hologram, real density"}, force=True)
         print(f"diagnosis: {time.perf_counter() - start:.0f} s, verdict {diagnosis.report['verdict']}", flush=True)
     report = json.loads(report_path.read_text()) if needs_report else {"verdict": None, "posterior": None}

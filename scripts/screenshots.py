@@ -5,8 +5,8 @@ Run under a display: ``xvfb-run -a python scripts/screenshots.py [--out DIR] [--
 tabs as a user would (back-propagation, calibration on a reference ROI, synthetic data,
 training, prediction refined with the sample's material, gap diagnosis), each step's output
 feeding the next. It saves each tab after its run, the window with the particles in 2-D on their plane and in 3-D, into
-docs/figures/. About 16 minutes on 2 idle CPU cores, 10 of them training, which takes as long
-as its 5 epochs need (``--quick``: a token run of about 2 minutes that checks the script, not
+docs/figures/. About 20 minutes on 2 idle CPU cores, 10 of them training, which takes as long
+as its 5 epochs need (``--quick``: a token run of a few minutes that checks the script, not
 the figures). Work files go to ``--out`` (default a temporary folder).
 ``--roi-preview`` makes only roi_preview.png (the reference ROI with its I_e before any run, seconds);
 ``--lab-user`` only the figures of what a new user meets (`lab_user`, seconds).
@@ -228,7 +228,6 @@ def main() -> None:
     step = dock.diagnosis
     step.hologram.value = hologram
     step.config.line_edit.value = ""
-    step.simulations.value = 24 if args.quick else 2000  # the full one is cached after its first run
     step.output.value = work / "diagnosis"
     run_step(dock, step)
 
@@ -238,7 +237,7 @@ def main() -> None:
         dock.grab().save(str(figures / f"{name}.png"))
 
     # 2-D: the plane holding the most particles, the ROI and I_e/I_s beside it
-    viewer.layers["gap: P(tile told apart from simulation)"].visible = False
+    viewer.layers["gap: unexplained share of the structure"].visible = False
     plane = int(np.bincount(np.round(points.data[:, 0]).astype(int)).argmax()) if len(points.data) else 0
     viewer.layers.selection.active = points
     viewer.dims.set_point(0, stack.translate[0] + plane * stack.scale[0])

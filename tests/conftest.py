@@ -3,15 +3,6 @@ from pathlib import Path
 import pytest
 
 
-@pytest.fixture(autouse=True)
-def diagnoser_cache(tmp_path_factory, monkeypatch):
-    """Diagnosers trained by tests are cached in one folder of the test session's, never the user's."""
-    folder = tmp_path_factory.getbasetemp() / "cache"
-    folder.mkdir(exist_ok=True)
-    monkeypatch.setenv("XDG_CACHE_HOME", str(folder))
-    return folder
-
-
 @pytest.fixture(scope="session")
 def real_hologram_bmp(tmp_path_factory) -> Path:
     """The seed's real hologram as the RGB BMP it was published as, written from the shipped sample."""

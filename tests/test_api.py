@@ -42,7 +42,7 @@ def test_results_and_settings_are_frozen():
     import dataclasses
 
     frozen = ("PredictionResult", "PredictionSettings", "SequenceResult", "SimulatedSequence", "TrainingResult", "TrainingSettings", "LoadedModel",
-              "SyntheticDataset", "RefineSettings", "DiagnosisSettings", "CalibrationSettings", "CalibrationResult", "Diagnosis", "ExperimentConfig", "ParticleField")
+              "SyntheticDataset", "RefineSettings", "SceneDiagnosisSettings", "CalibrationSettings", "CalibrationResult", "SceneDiagnosis", "ExperimentConfig", "ParticleField")
     for name in frozen:
         cls = getattr(core, name)
         assert dataclasses.is_dataclass(cls) and cls.__dataclass_params__.frozen, f"{name} is not a frozen dataclass"

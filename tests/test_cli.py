@@ -41,8 +41,8 @@ def test_config_simulate_backprop_end_to_end(tmp_path):
         (["backprop", "{tmp}/rgbstack.tif", "--config", "{config}", "--out", "{tmp}/s.tif"], "rgbstack.tif"),
         (["backprop", "{tmp}/h.tif", "--config", "{tmp}/bad.toml", "--out", "{tmp}/s.tif"], "volume.z_max_um"),
         (["backprop", "{tmp}/h.tif", "--config", "{config}", "--out", "{tmp}/s.tif", "--background", "{tmp}/small.tif"], "small.tif"),
-        (["diagnose", "{tmp}/h.tif", "--config", "{config}", "--out", "{tmp}/s.tif", "--known-effect", "particle_phase:index_contrast"], "--known-effect particle_phase:index_contrast"),
-        (["diagnose", "{tmp}/h.tif", "--config", "{config}", "--out", "{tmp}/s.tif", "--known-effect", "glare"], "'glare'"),
+        (["diagnose", "{tmp}/h.tif", "--config", "{config}", "--out", "{tmp}/s.tif"], "h.tif: expected at least 128 pixels"),
+        (["diagnose", "{tmp}/h.tif", "--config", "{config}", "--out", "{tmp}/s.tif", "--tile", "20"], "--tile 20"),
     ],
 )
 def test_bad_input_exits_2_with_one_line_naming_the_culprit(tmp_path, args, culprit):

@@ -1,258 +1,94 @@
-"""Gap diagnosis as amortized inference: the forest, the posterior, the two-sample test, the cache, the refusals.
+"""The diagnose step, its command and its report, on the scene-conditioned engine (`diagnose_scene`).
 
-A small setup (a 256² sensor read as 4 × 4 tiles of 64 px, a few effects) keeps every
-diagnoser here under a minute on 2 cores; the full-size figures are in benchmarks/bench_diagnosis.py.
+One small frame (two Lorenz–Mie spheres on 256², recorded with 6-bit levels in an 8-bit file)
+is diagnosed once for this module through the command line, with the engine's settings made
+small (about 30 s on 2 cores); the pooling of frames, the progress and the refusals run on a
+stand-in engine (tests/scene_reports.py). The engine's own tests: tests/test_nested_effects.py.
 """
 
 import json
+from functools import partial
 
 import numpy as np
 import pytest
 import tifffile
+from scene_reports import StandIn, scene_report
 
-from napari_lbs._core import ExperimentConfig, InputError, read_hologram
-from napari_lbs._core.physics._effects import optical_hologram, sensor_image
-from napari_lbs._core.gap import DiagnosisSettings, amortized_diagnoser, c2st, diagnose_hologram, mmd, forest_posterior, known_sensor, load_diagnoser, write_report
-from napari_lbs._core.gap._amortized import forest_answers
-from napari_lbs._core.gap._amortized import _simulate
-from napari_lbs._core.gap._forest import ForestArrays, train_forest
-from napari_lbs._core.gap._scenarios import ScenarioPrior, TileGrid, draw_scenario, simulate_tiles
-from napari_lbs._core.foundation._progress import Stopped
-from napari_lbs._core.physics._synthesis import random_particle_field
+from napari_lbs._cli import main
+from napari_lbs._core import InputError, SceneDiagnosis, SceneDiagnosisSettings, Stopped, effects_from_report, write_report
+from napari_lbs._core.pipeline import DIAGNOSED_FRAMES, DiagnoseRequest, diagnose, tiles_per_side
 
-CONFIG = ExperimentConfig()
-GRID = TileGrid((256, 256), 64)
-SMALL = ScenarioPrior(candidates=("illumination", "sensor_blur", "shot_noise"), none=0.25, one=0.75, strength=(0.6, 1.0), density=(0.7, 1.5))
-TRUTH = {"contrast": 0.9, "sigma": 0.02, "gamma": 1.0}
+CONTRACT_EFFECTS = {"illumination", "shot_noise", "quantization", "sensor_blur", "coherence", "particle_phase", "multiple_scattering", "parasitic_fringes", "spherical_wave"}
+SMALL = partial(SceneDiagnosisSettings, particles=4, scene_particles=8, index_grid=(0.26,))
 
 
 @pytest.fixture(scope="module")
-def small(tmp_path_factory):
-    """A diagnoser of the small setup, trained once for this module (and its cache folder)."""
-    cache = tmp_path_factory.mktemp("diagnosers")
-    settings = DiagnosisSettings(simulations=160, trees=60, jobs=1, cache_dir=str(cache))
-    return amortized_diagnoser(CONFIG, GRID, SMALL, settings=settings), settings
+def diagnosed(tmp_path_factory):
+    """``napari-lbs diagnose frame.tif --tile 128 --seed 3`` on a small frame of 6-bit levels (the engine's settings made small); its folder."""
+    import pandas as pd
+
+    import napari_lbs._core.gap as gap
+    from napari_lbs._core import load_config, particle_hologram
+
+    folder = tmp_path_factory.mktemp("diagnosed")
+    config = folder / "c.toml"
+    config.write_text("[volume]\nz_min_um = 1800.0\nz_max_um = 2600.0\nz_step_um = 50.0\n")
+    spheres = pd.DataFrame({"x_um": [150.0, 420.0], "y_um": [160.0, 400.0], "z_um": [2000.0, 2400.0], "diameter_um": [24.0, 26.0], "index_contrast": [0.26, 0.26]})
+    light = particle_hologram((256, 256), spheres, load_config(config)) + np.random.default_rng(2).normal(0.0, 0.01, (256, 256))
+    tifffile.imwrite(folder / "frame.tif", (np.round(light * 40) * 4).astype(np.uint8))  # a 6-bit converter in an 8-bit file
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(gap, "SceneDiagnosisSettings", SMALL)
+        code = main(["diagnose", str(folder / "frame.tif"), "--config", str(config), "--out", str(folder / "report"), "--tile", "128", "--seed", "3"])
+    assert code == 0
+    return folder
 
 
-def hologram(effects=None, *, seed=0, shape=(256, 256), count=16):
-    rng = np.random.default_rng(seed)
-    field = random_particle_field(shape, count=count, diameter_min_um=20, diameter_max_um=30, layers_um=CONFIG.layer_depths_um(), pixel_um=2.2, seed=rng)
-    image = sensor_image(optical_hologram(field, {}, wavelength_um=0.66), TRUTH, effects or {}, noise=rng.standard_normal(shape).astype(np.float32))
-    return np.clip(np.round(image * 140), 0, 255).astype(np.uint8)
+def test_diagnose_writes_the_contract_report_its_figures_and_summary(diagnosed):
+    from PIL import Image
+
+    text = (diagnosed / "report" / "report.json").read_text()
+    report = json.loads(text, parse_constant=lambda name: pytest.fail(f"report.json holds {name}"))
+    gap, verdict = report["gap"], report["verdict"]
+    assert isinstance(gap["metric"], str) and isinstance(gap["baseline"], float) and gap["tiles"] == 4 and gap["tile_px"] == 128
+    effects = report["effects"]
+    z = [e["z"] for e in effects if e["z"] is not None]
+    assert z == sorted(z, reverse=True) and all(e["z"] is None for e in effects[len(z):])  # best first
+    for effect in effects:
+        assert isinstance(effect["gap_after"], float) and isinstance(effect["shrink"], float) and isinstance(effect["params"], dict), effect
+        assert effect["shrink"] == pytest.approx(1.0 - effect["gap_after"] / gap["baseline"])
+    assert {e["id"] for e in effects} | set(report["not_tested"]) >= CONTRACT_EFFECTS
+    assert isinstance(verdict["shrink"], float) and isinstance(verdict["residual"], float) and verdict["undecided"] == [] and verdict["catalog_explains"] is True
+    # the file's levels: a converter of 6 bits at 1.6 times the mean light
+    assert verdict["id"] == "quantization"
+    bits = next(e for e in effects if e["id"] == "quantization")["params"]
+    assert abs(bits["bits"] - 6.0) < 0.1 and abs(bits["saturation"] - 1.6) < 0.1
+    assert sum(report["posterior"].values()) == pytest.approx(1.0)
+    assert report["frames"] == [{"name": str(diagnosed / "frame.tif"), "verdict": "quantization", "catalog_explains": True, "residual": verdict["residual"]}]
+    assert report["provenance"]["seed"] == 3 and report["provenance"]["source"] == str(diagnosed / "frame.tif") and report["settings"]["grid"] == 2
+    summary = (diagnosed / "report" / "report.md").read_text()
+    assert "Verdict: **quantization**" in summary and "bits 6" in summary and "## Not tested" in summary
+    for name in ("gap_where.png", "gap_effects.png"):
+        with Image.open(diagnosed / "report" / name) as image:
+            assert image.size[0] > 1000 and image.size[1] > 400
 
 
-def test_the_forest_as_arrays_answers_as_scikit_learn_does_and_refuses_inconsistent_arrays():
-    from sklearn.ensemble import RandomForestClassifier
-
-    rng = np.random.default_rng(0)
-    x = rng.normal(size=(300, 6)).astype(np.float32)
-    y = np.stack([x[:, 0] > 0, x[:, 1] + x[:, 2] > 0.5], axis=1)
-    forest = train_forest(x, y, trees=20, seed=3)
-    reference = RandomForestClassifier(n_estimators=20, min_samples_leaf=2, max_features="sqrt", random_state=3).fit(x, y.astype(np.int8))
-    expected = np.stack([p[:, 1] for p in reference.predict_proba(x[:50])], axis=1)
-    np.testing.assert_allclose(forest.predict(x[:50]), expected, atol=1e-6)
-    assert forest.leaves(x[:5]).shape == (5, 20)
-    arrays = forest.arrays()
-    np.testing.assert_array_equal(ForestArrays.from_arrays(arrays).predict(x[:9]), forest.predict(x[:9]))
-    arrays["forest_left"] = arrays["forest_left"] + 10**6
-    with pytest.raises(ValueError, match="out of range"):
-        ForestArrays.from_arrays(arrays)
-    cyclic = forest.arrays()
-    inner = int(np.flatnonzero(cyclic["forest_left"] >= 0)[0])
-    cyclic["forest_left"][inner] = inner  # a node its own child: evaluation would never end
-    with pytest.raises(ValueError, match="cycle"):
-        ForestArrays.from_arrays(cyclic)
+def test_a_report_of_diagnose_feeds_generate_effects_from(diagnosed, tmp_path):
+    config = tmp_path / "tiny.toml"
+    config.write_text("[volume]\nz_min_um = 1800.0\nz_max_um = 2200.0\nz_step_um = 100.0\n[tile]\nsize = 48\n")
+    report = diagnosed / "report" / "report.json"
+    assert main(["generate", "--config", str(config), "--groups", "1", "--out", str(tmp_path / "data"), "--effects-from", str(report)]) == 0
+    dataset = json.loads((tmp_path / "data" / "dataset.json").read_text())
+    assert dataset["effects"] == effects_from_report(json.loads(report.read_text())) and set(dataset["effects"]) == {"quantization"}
+    assert dataset["effects_source"]["verdict"] == "quantization"
 
 
-def test_one_forest_learns_the_model_and_each_effect_and_the_posterior_sums_to_one():
-    from types import SimpleNamespace
-
-    present = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 1]], bool)
-    assert forest_answers(present).astype(int).tolist() == [[0, 0, 0, 1, 0, 0, 0, 0], [1, 0, 0, 0, 1, 0, 0, 0], [0, 1, 1, 0, 0, 0, 0, 1]]
-    # the forest says: two effects (0.7), most likely b and c
-    answers = np.array([[0.2, 0.9, 0.8, 0.1, 0.1, 0.1, 0.0, 0.7]])
-    fake = SimpleNamespace(candidates=("a", "b", "c"), forest=SimpleNamespace(predict=lambda x: answers))
-    presence, model = forest_posterior(fake, np.zeros(4))
-    assert presence == pytest.approx({"a": 0.2, "b": 0.9, "c": 0.8})
-    assert sum(model.values()) == pytest.approx(1.0) and max(model, key=model.get) == "b+c" and model["null"] == pytest.approx(0.1)
-    assert model["b+c"] > model["a+b"] > model["a+c"] * 0.99 and model["c"] == 0.0
-
-
-def test_c2st_is_chance_for_two_samples_of_one_distribution_and_near_one_for_different_ones():
-    rng = np.random.default_rng(1)
-    same = [c2st(rng.normal(size=(64, 10)), rng.normal(size=(64, 10)), seed=s)["accuracy"] for s in range(5)]
-    assert abs(np.mean(same) - 0.5) < 0.08
-    apart = c2st(rng.normal(size=(64, 10)), rng.normal(size=(64, 10)) + 1.5, seed=0)
-    assert apart["accuracy"] > 0.95 and apart["interval"][0] > 0.85 and apart["real_probability"].shape == (64,)
-
-
-def test_two_samples_of_one_simulator_are_not_told_apart_and_a_blurred_one_is():
-    from napari_lbs._core.gap._features import set_summaries
-    from napari_lbs._core.gap._scenarios import Scenario
-
-    def tiles(effects, seed):
-        scenario = Scenario((), effects, dict(TRUTH), {}, 1.0)
-        out = []
-        for k in range(4):
-            out += simulate_tiles(scenario, CONFIG, GRID, np.random.default_rng([seed, k]))
-        return set_summaries(out, config=CONFIG)[0]
-
-    first, second, blurred = tiles({}, 1), tiles({}, 2), tiles({"sensor_blur": {"sigma_px": 1.5}}, 3)
-    same, apart = c2st(first, second), c2st(first, blurred)
-    assert abs(same["accuracy"] - 0.5) < 0.15 and apart["accuracy"] > 0.9
-    assert mmd(first, blurred)["value"] > 5 * max(mmd(first, second)["value"], 0.01)
-
-
-def test_mmd_is_near_zero_for_one_distribution_and_grows_with_the_difference():
-    rng = np.random.default_rng(2)
-    same = mmd(rng.normal(size=(64, 10)), rng.normal(size=(96, 10)))
-    near, far = (mmd(rng.normal(size=(64, 10)), rng.normal(size=(96, 10)) + shift)["value"] for shift in (0.5, 2.0))
-    assert abs(same["value"]) < 0.02 and same["interval"][0] <= same["value"] <= same["interval"][1]
-    assert far > near > 0.05
-
-
-def test_a_scenario_has_its_nuisances_and_particle_phase_means_transparent_particles():
-    from napari_lbs._core.gap._scenarios import OPAQUE, TRANSPARENT
-
-    rng = np.random.default_rng(2)
-    prior = ScenarioPrior(candidates=("particle_phase", "sensor_blur"))
-    seen = {"transparent": 0, "opaque spheres": 0, "discs": 0}
-    for _ in range(200):
-        scenario = draw_scenario(prior, rng)
-        spheres = scenario.effects.get("particle_phase")
-        if "particle_phase" in scenario.present:
-            assert spheres["transmission"] >= TRANSPARENT
-            seen["transparent"] += 1
-        elif spheres:
-            assert spheres["transmission"] <= OPAQUE
-            seen["opaque spheres"] += 1
-        else:
-            seen["discs"] += 1
-        assert len(scenario.present) <= 2 and 0.5 <= scenario.baseline["contrast"] <= 1.2
-    assert min(seen.values()) > 20
-    # the tiles of a scenario: the grid's tiles, each at its place on the sensor
-    tiles = simulate_tiles(draw_scenario(SMALL, np.random.default_rng(3)), CONFIG, GRID, np.random.default_rng(4))
-    assert len(tiles) == 16 and all(t.shape == (64, 64) and np.isfinite(t).all() for t in tiles)
-
-
-def test_the_diagnoser_names_the_effect_of_fresh_simulations_from_its_own_prior(small):
-    diagnoser, _ = small
-    right = 0
-    trials = 40
-    for index in range(10_000, 10_000 + trials):  # simulations the forest never saw
-        _, features, _, present, _ = _simulate((index, CONFIG, GRID, SMALL, 0))
-        _, posterior = forest_posterior(diagnoser, features)
-        best = max(posterior, key=posterior.get)
-        right += best == ("+".join(present) if present else "null")
-    assert right / trials >= 0.95
-
-
-def test_the_same_input_gives_the_same_posterior_whatever_the_seed_and_the_cache_is_reused(small, monkeypatch):
-    diagnoser, settings = small
-    image = hologram({"sensor_blur": {"sigma_px": 1.5}}, seed=5)
-    # the module's diagnoser is the small setup's; a hologram's own setup has the whole catalog,
-    # so the small prior is put in by hand here
-    import napari_lbs._core.gap._diagnose as diagnose_module
-
-    monkeypatch.setattr(diagnose_module, "catalog_candidates", lambda known: SMALL.candidates)
-    monkeypatch.setattr(diagnose_module, "ScenarioPrior", lambda **kw: SMALL)
-    import napari_lbs._core.gap._amortized as amortized
-
-    def no_training(*args, **kwargs):
-        raise AssertionError("the cached diagnoser was not reused")
-
-    monkeypatch.setattr(amortized, "_simulations", no_training)
-    first = diagnose_hologram(image, CONFIG, settings=settings).report
-    again = diagnose_hologram(image, CONFIG, settings=DiagnosisSettings(**{**settings.__dict__, "seed": 7})).report
-    assert first["posterior"] == again["posterior"] and first["verdict"]["id"] == again["verdict"]["id"] == "sensor_blur"
-    assert first["diagnoser"]["key"] == diagnoser.key
-    assert first["effects"][0]["id"] == "sensor_blur" and "sigma_px" in first["effects"][0]["params"]
-
-
-def test_a_config_change_makes_another_diagnoser_and_a_stop_caches_nothing(small, tmp_path):
-    _, settings = small
-    other = ExperimentConfig.from_dict({**CONFIG.to_dict(), "optics": {**CONFIG.to_dict()["optics"], "wavelength_um": 0.532}})
-    calls = []
-
-    def stop():
-        calls.append(1)
-        return len(calls) > 3
-
-    quick = DiagnosisSettings(simulations=20, trees=10, jobs=1, cache_dir=str(tmp_path))
-    with pytest.raises(Stopped):
-        amortized_diagnoser(other, GRID, SMALL, settings=quick, should_stop=stop)
-    assert not list(tmp_path.glob("*.npz"))
-    made = amortized_diagnoser(other, GRID, SMALL, settings=quick)
-    assert made.key != small[0].key and len(list(tmp_path.glob("diagnoser-*.npz"))) == 1
-
-
-def test_a_corrupt_or_foreign_cache_file_is_refused_in_one_line_and_never_executed(small, tmp_path):
-    diagnoser, settings = small
-    path = next(p for p in __import__("pathlib").Path(settings.cache_dir).glob(f"diagnoser-{diagnoser.key}.npz"))
-    assert load_diagnoser(path).key == diagnoser.key
-    garbage = tmp_path / "garbage.npz"
-    garbage.write_bytes(b"not a cache")
-    evil = tmp_path / "evil.npz"
-    np.savez(evil, meta=np.array([{"format": "napari-lbs diagnoser 1"}], dtype=object))  # needs pickle to read
-    truncated = tmp_path / "truncated.npz"
-    truncated.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
-    for bad in (garbage, evil, truncated):
-        with pytest.raises(InputError) as refused:
-            load_diagnoser(bad)
-        assert "\n" not in str(refused.value) and bad.name in str(refused.value)
-
-
-@pytest.mark.parametrize(("dtype", "top", "bits"), [(np.uint8, 200, 8), (np.uint8, 255, 8), (np.uint16, 4095, 12), (np.uint16, 60000, 16)])
-def test_known_bit_depth_is_read_from_integer_files(tmp_path, dtype, top, bits):
-    rng = np.random.default_rng(0)
-    counts = rng.integers(1, top + 1, (64, 64)).astype(dtype)
-    counts[0, 0] = top
-    path = tmp_path / "holo.tif"
-    tifffile.imwrite(path, counts)
-    for image in (counts, read_hologram(path)):  # the integer array, and the float32 the CLI reads
-        facts = known_sensor(image)
-        assert facts["bits"] == bits and facts["full_scale"] == 2**bits - 1
-    clipped = np.minimum(counts, dtype(top // 2))  # a clipped camera piles its brightest pixels up at one value
-    assert known_sensor(clipped)["saturation"] == top // 2
-    assert known_sensor(rng.random((64, 64)).astype(np.float32)) is None  # a float simulation states nothing
-    assert known_sensor(counts)["levels_used"] > 0.9 and not known_sensor(counts)["coarse"]
-
-
-def test_values_coarser_than_the_file_format_are_found_coarse():
-    image = hologram(seed=3).astype(np.float32) / 140
-    six_bits = (np.clip(np.round(image * 35), 0, 63) * 4).astype(np.uint8)  # a 6-bit image in a uint8 file: every 4th level
-    facts = known_sensor(six_bits)
-    assert facts["coarse"] and facts["levels_used"] <= 0.3 and abs(facts["effective_bits"] - 6.0) < 0.3
-    assert not known_sensor(np.clip(np.round(image * 140), 0, 255).astype(np.uint8))["coarse"]
-
-
-def test_a_diagnosis_pools_frames_states_what_is_known_and_writes_strict_json(small, tmp_path, monkeypatch):
-    _, settings = small
-    import napari_lbs._core.gap._diagnose as diagnose_module
-
-    seen = {}
-
-    def small_prior(**kwargs):
-        seen.update(kwargs)
-        return SMALL
-
-    monkeypatch.setattr(diagnose_module, "catalog_candidates", lambda known: SMALL.candidates)
-    monkeypatch.setattr(diagnose_module, "ScenarioPrior", small_prior)
-    frames = np.stack([hologram(seed=s) for s in (1, 2)])
-    beads = {"particle_phase": {"index_contrast": 0.26, "transmission": 1.0}}
-    diagnosis = diagnose_hologram(frames, CONFIG, stated=beads, settings=settings)
-    report = diagnosis.report
-    # the file's 8 bits and the stated beads go into every simulation, and are not candidates
-    assert seen["bits"] == 8.0 and seen["known"] == beads and report["stated"] == beads and report["known"]["quantization"] == {"bits": 8.0}
-    assert report["tiles"]["frames"] == 2 and sum(report["posterior"].values()) == pytest.approx(1.0)
-    assert report["verdict"].keys() >= {"id", "shrink", "residual", "undecided", "catalog_explains", "probability"}
-    assert diagnosis.tile_map.shape == (4, 4)
-    report["effects"][0]["shrink"] = float("nan")  # whatever a computation leaves, the file stays strict JSON
+def test_a_report_is_replaced_only_when_forced_and_never_written_through_a_link(diagnosed, tmp_path, capsys):
+    folder = diagnosed / "report"
+    before = {path.name: path.read_bytes() for path in folder.iterdir()}
+    assert main(["diagnose", str(diagnosed / "frame.tif"), "--config", str(diagnosed / "c.toml"), "--out", str(folder)]) == 2  # refused before any work
+    assert "report.json: exists" in capsys.readouterr().err and {path.name: path.read_bytes() for path in folder.iterdir()} == before
+    diagnosis = SceneDiagnosis(json.loads((folder / "report.json").read_text()), np.full((2, 2), 0.01), None, 1.0)
     paths = write_report(diagnosis, tmp_path / "r")
-    text = (tmp_path / "r" / "report.json").read_text()
-    json.loads(text, parse_constant=lambda name: pytest.fail(f"report.json holds {name}"))
-    assert all(p.exists() for p in paths) and (tmp_path / "r" / "gap_effects.png").stat().st_size > 1000
-    # written again: refused without force, nothing touched; replaced with it; a link is never written through
     (tmp_path / "r" / "report.md").write_text("mine")
     with pytest.raises(InputError, match="report.json: exists; add force=True"):
         write_report(diagnosis, tmp_path / "r")
@@ -263,40 +99,84 @@ def test_a_diagnosis_pools_frames_states_what_is_known_and_writes_strict_json(sm
     with pytest.raises(InputError, match="symbolic link"):
         write_report(diagnosis, tmp_path / "linked", force=True)
     assert not (tmp_path / "linked" / "report.json").exists()
-    assert not diagnose_hologram(frames[0], CONFIG, known=False, settings=settings).report["known"]
 
 
-@pytest.mark.parametrize("image", [np.zeros((256, 256), np.float32), np.full((256, 256), 7.0, np.float32), -np.random.default_rng(0).random((256, 256)).astype(np.float32)])
-def test_diagnose_refuses_images_that_are_no_intensity_in_one_line(image):
-    with pytest.raises(InputError) as refused:
-        diagnose_hologram(image, CONFIG)
-    assert "\n" not in str(refused.value)
+class Listener:
+    """A progress callback with phases, as napari's steps have."""
+
+    def __init__(self):
+        self.phases, self.steps = [], []
+
+    def __call__(self, done, total):
+        self.steps.append((done, total))
+
+    def phase(self, name):
+        self.phases.append(name)
 
 
-def test_diagnose_refuses_small_holograms_frames_of_different_shapes_and_unknown_effects():
-    with pytest.raises(InputError, match="at least 64 pixels"):
-        diagnose_hologram(hologram(shape=(200, 200)), CONFIG)
-    with pytest.raises(InputError, match="frame 1"):
-        diagnose_hologram([hologram(), hologram(shape=(256, 320))], CONFIG)
-    with pytest.raises(InputError, match="unknown effect id 'beads'"):
-        diagnose_hologram(hologram(), CONFIG, stated={"beads": {}})
-    with pytest.raises(InputError, match="simulations"):
-        DiagnosisSettings(simulations=3)
+def test_several_frames_are_diagnosed_each_on_one_bar_and_pooled_by_majority(tmp_path, monkeypatch):
+    import napari_lbs._core.gap as gap
+
+    illumination = {"depth": 0.2, "x0": 0.0, "y0": 0.0}
+    engine = StandIn([("illumination", True, {"illumination": illumination}), ("illumination+quantization", True), ("quantization", False)])
+    monkeypatch.setattr(gap, "diagnose_scene", engine)
+    frames = np.stack([1.0 + 0.01 * k + 0.1 * np.random.default_rng(k).random((256, 256)) for k in range(5)]).astype(np.float32)
+    tifffile.imwrite(tmp_path / "rec.tif", frames, photometric="minisblack")
+    listener = Listener()
+    result = diagnose(DiagnoseRequest(tmp_path / "rec.tif", tmp_path / "report", tile_px=64), progress=listener)
+    assert DIAGNOSED_FRAMES == 3 and [float(call["hologram"].mean()) for call in engine.calls] == pytest.approx([float(frames[k].mean()) for k in (0, 2, 4)])
+    assert all(call["settings"].grid == 4 for call in engine.calls)
+    report = json.loads((tmp_path / "report" / "report.json").read_text())
+    assert [f["name"] for f in report["frames"]] == [f"{tmp_path / 'rec.tif'}[frame {k}]" for k in (0, 2, 4)]
+    assert [f["verdict"] for f in report["frames"]] == ["illumination", "illumination+quantization", "quantization"]
+    # each effect named by two frames of three; the catalog explains two of them
+    assert report["verdict"]["id"] == "illumination+quantization" and report["verdict"]["catalog_explains"] is True
+    assert "majority of the 3 frames" in report["verdict"]["reason"] and result.value.report["verdict"] == report["verdict"]
+    # each named effect's parameters are the first naming frame's: what generate --effects-from adds
+    assert effects_from_report(report) == {"illumination": illumination, "quantization": {"bits": 6.0, "saturation": 1.6}}
+    # one bar: each frame's phases named, its steps within its third of the bar
+    assert listener.phases[:2] == ["frame 1 of 3: particles found", "frame 1 of 3: the catalog's effects"] and listener.phases[-1] == "frame 3 of 3: the catalog's effects"
+    assert [done / total for done, total in listener.steps[::2]] == pytest.approx([1 / 6, 1 / 6, 3 / 6, 3 / 6, 5 / 6, 5 / 6])
+    # a stop in the second frame ends the diagnosis and writes nothing
+    with pytest.raises(Stopped):
+        diagnose(DiagnoseRequest(tmp_path / "rec.tif", tmp_path / "stopped"), should_stop=lambda: len(engine.calls) > 4)
+    assert not (tmp_path / "stopped").exists()
 
 
-def test_tiles_are_summarised_on_threads_as_each_would_be_alone_also_after_a_fork():
-    import multiprocessing
+def test_one_frame_s_report_is_its_diagnosis_with_one_frame(tmp_path, monkeypatch):
+    import napari_lbs._core.gap as gap
 
-    from napari_lbs._core.gap import tile_summaries
-    from napari_lbs._core.gap._summaries import _tiles_summaries
+    monkeypatch.setattr(gap, "diagnose_scene", StandIn([("sensor_blur", False)]))
+    frame = 1.0 + 0.1 * np.random.default_rng(0).random((160, 200))
+    result = diagnose(DiagnoseRequest(frame, tmp_path / "report", source="holo", roi=(10, 20)))
+    report = json.loads((tmp_path / "report" / "report.json").read_text())
+    assert report["verdict"] == scene_report("sensor_blur", explains=False, tile_px=40)["verdict"] and report["roi"] == {"x": 10, "y": 20}
+    assert report["frames"] == [{"name": "holo", "verdict": "sensor_blur", "catalog_explains": False, "residual": 0.2}]
+    assert result.summary.startswith("verdict: sensor_blur;") and "does not explain" in result.summary
 
-    rng = np.random.default_rng(4)
-    tiles = [1.0 + 0.1 * rng.standard_normal((64, 64)) for _ in range(5)]
-    means, around = [1.0, 1.1, None, 0.9, 1.0], [None, np.ones((128, 128)), None, None, np.full((128, 128), 1.2)]
-    alone = np.stack([tile_summaries(t, config=CONFIG, fringe_frequency=(0.1, 0.0), field_mean=m, surroundings=a)[0] for t, m, a in zip(tiles, means, around, strict=True)])
-    together, names = _tiles_summaries(tiles, config=CONFIG, fringe_frequency=(0.1, 0.0), field_means=means, surroundings=around)
-    assert np.array_equal(together, alone) and names == tile_summaries(tiles[0], config=CONFIG)[1]
-    # a child forked after the pool started gets threads of its own (else it would wait for ever)
-    with multiprocessing.get_context("fork").Pool(1) as pool:
-        child = pool.apply_async(_tiles_summaries, (tiles,), {"config": CONFIG, "fringe_frequency": (0.1, 0.0), "field_means": means, "surroundings": around}).get(timeout=60)
-    assert np.array_equal(child[0], alone)
+
+@pytest.mark.parametrize(("extra", "shape", "culprit"), [
+    ([], (64, 64), "h.tif: expected at least 128 pixels a side"),
+    (["--tile", "129"], (256, 256), "--tile 129: a 256x256 (x by y) frame holds 1 tile(s)"),
+    (["--roi", "300", "10"], (256, 256), "--roi 300 10: outside the 256x256"),
+    (["--background", "{tmp}/bg.tif"], (256, 256), "bg.tif: expected the hologram's shape"),
+    (["--calibration", "{tmp}/h.tif"], (256, 256), "h.tif"),
+])
+def test_diagnose_refuses_bad_input_in_one_line_before_any_work(tmp_path, capsys, monkeypatch, extra, shape, culprit):
+    import napari_lbs._core.gap as gap
+
+    monkeypatch.setattr(gap, "diagnose_scene", lambda *a, **k: pytest.fail("the diagnosis ran"))
+    tifffile.imwrite(tmp_path / "h.tif", (1.0 + 0.1 * np.random.default_rng(0).random(shape)).astype(np.float32))
+    tifffile.imwrite(tmp_path / "bg.tif", (1.0 + 0.1 * np.random.default_rng(1).random((128, 128))).astype(np.float32))
+    capsys.readouterr()
+    (tmp_path / "c.toml").write_text("")  # the defaults
+    code = main(["diagnose", str(tmp_path / "h.tif"), "--config", str(tmp_path / "c.toml"), "--out", str(tmp_path / "r"), *[part.format(tmp=tmp_path) for part in extra]])
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and culprit in lines[0], lines
+    assert not (tmp_path / "r").exists()
+
+
+def test_tiles_per_side_follows_the_tile_edge_within_2_to_16():
+    assert tiles_per_side((256, 300), 128) == 2 and tiles_per_side((1024, 1024), 32) == 16 and tiles_per_side((1024, 1024), 200) == 5
+    with pytest.raises(InputError, match="^tile 600: a 1024x1024"):
+        tiles_per_side((1024, 1024), 600, flag="tile")

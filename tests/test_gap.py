@@ -1,11 +1,10 @@
-"""The effect catalog's physics and the tile summaries (the diagnosis itself: tests/test_diagnosis.py)."""
+"""The effect catalog's physics (the diagnosis itself: tests/test_nested_effects.py and tests/test_diagnosis.py)."""
 
 import numpy as np
 import pytest
 
 from napari_lbs._core import EFFECTS, ExperimentConfig, InputError, random_particle_field, simulate_hologram
 from napari_lbs._core.physics._effects import BASELINE, optical_hologram, sensor_image
-from napari_lbs._core.gap import SUMMARY_GROUPS, tile_summaries
 
 CONFIG = ExperimentConfig()
 NEUTRAL = dict(BASELINE.neutral)
@@ -114,17 +113,6 @@ def test_shadowing_between_layers_grows_with_the_injection_density():
     assert departure(1) < 1e-3  # one particle: nothing to shadow
 
 
-def test_a_static_fringe_stands_out_of_its_ring_in_the_tile_summaries():
-    rng = np.random.default_rng(4)
-    fringe = {"parasitic_fringes": {"amplitude": 0.1, "period_px": 9.0, "angle_rad": 2.0}}
-    ratio = []
-    for effects in ({}, fringe):
-        tile = sensor_image(simulate_hologram(field((128, 128), count=12, seed=rng), wavelength_um=0.66), NEUTRAL, effects, noise=rng.standard_normal((128, 128)).astype(np.float32) * 0.03)
-        values, names = tile_summaries(tile, config=CONFIG)
-        ratio.append(values[[n for n, _ in names].index("log power at the fringe frequency / its ring's median")])
-    assert ratio[1] > ratio[0] + 0.3
-
-
 def test_a_dust_grains_fresnel_shadow_has_the_arago_spot_and_conserves_light():
     from napari_lbs._core.physics._effects import _dust_mask, _dust_pattern, _fresnel_intensity
 
@@ -167,55 +155,6 @@ def test_dust_on_a_window_is_part_of_the_static_fringes_and_optional_in_a_stated
     assert dust_only["amplitude"] == 0.0 and dust_only["dust_grain_px"] == 12.0  # each part may be stated alone
     with pytest.raises(InputError, match="dust_size"):
         parse_effect("parasitic_fringes:dust_size=3")
-
-
-def test_summaries_cover_every_kind():
-    values, names = tile_summaries(simulate_hologram(field(), wavelength_um=0.66), config=CONFIG)
-    assert {g for _, g in names} == set(SUMMARY_GROUPS) and np.all(np.isfinite(values))
-
-
-def peakedness(tile):
-    values, names = tile_summaries(tile.astype(np.float32), config=CONFIG)
-    return values[[name for name, _ in names].index("log high-band spectral peakedness (32-px blocks)")]
-
-
-def test_high_band_peakedness_is_log2_for_any_white_noise_and_larger_for_aliased_chirps():
-    rng = np.random.default_rng(5)
-    # white noise: exponential periodogram values, mean(P²)/mean(P)² = 2 whatever the power
-    for sigma in (0.003, 0.03):
-        assert abs(peakedness(1 + rng.normal(0, sigma, (256, 256))) - np.log10(2)) < 0.03
-    # Fresnel zones of point scatterers 3 mm away, sampled far beyond their bandwidth (aliased):
-    # a few chirps in each block, as a transparent sphere's wide-angle light arrives
-    y, x = np.mgrid[:256, :256] * 2.2
-    zones = sum(np.cos(np.pi * ((x - cx) ** 2 + (y - cy) ** 2) / (0.66 * 3000.0)) for cx, cy in rng.uniform(-800, 1400, (4, 2)))
-    noise = rng.normal(0, 1.0, zones.shape)
-    faint, strong = (peakedness(1 + amplitude * zones + 1e-4 * noise) for amplitude in (0.002, 0.02))
-    assert faint > np.log10(2) + 0.5 and abs(faint - strong) < 0.05  # the spectrum's shape, not its power
-    # white noise of the chirps' own power takes it most of the way back to log 2
-    mixed = peakedness(1 + 0.002 * zones + 0.002 * zones.std() * noise)
-    assert mixed < faint - 0.3
-
-
-def elasticity(tile):
-    values, names = tile_summaries(tile.astype(np.float32), config=CONFIG)
-    return values[[name for name, _ in names].index("noise variance's elasticity to the local intensity")]
-
-
-def test_noise_elasticity_is_1_for_photon_noise_0_for_read_noise_and_the_photon_share_between():
-    # light varying smoothly by ±40 % across the tile (fringes 40 px wide), so the noise alone is seen
-    rng = np.random.default_rng(11)
-    y, x = np.mgrid[:256, :256]
-    light = 1 + 0.4 * np.sin(2 * np.pi * x / 40) * np.cos(2 * np.pi * y / 57)
-    photons = 400.0
-    poisson = rng.poisson(light * photons) / photons
-    gaussian = light + rng.normal(0, 1 / np.sqrt(photons), light.shape)
-    assert abs(elasticity(poisson) - 1.0) < 0.15
-    assert abs(elasticity(gaussian)) < 0.15
-    # read noise of the photon noise's variance at the mean: half of the variance scales with the light
-    both = rng.poisson(light * photons) / photons + rng.normal(0, 1 / np.sqrt(photons), light.shape)
-    assert abs(elasticity(both) - 0.5) < 0.15
-    # a flat tile has no slope to measure: 0, never NaN
-    assert elasticity(np.ones((64, 64))) == 0.0
 
 
 def test_a_sources_bandwidth_washes_out_high_order_fringes_and_keeps_the_low_order_ones():

@@ -365,9 +365,11 @@ def test_the_gap_map_has_a_labelled_colour_bar(make_napari_viewer, qtbot):
     viewer = laptop_viewer(make_napari_viewer)
     layer = viewer.add_image(np.ones((256, 256), np.float32), name="holo", scale=(2.2, 2.2), units="µm")
     _, step = viewer.window.add_plugin_dock_widget("napari-lbs", "6 Gap diagnosis")
-    report = {"posterior": {"null": 0.7, "illumination": 0.3}, "marginals": {"illumination": 0.3}, "settings": {"level": 0.9}, "tiles": {"tile_px": 64}}
-    diagnosis = SimpleNamespace(report=report, tile_map=np.linspace(0, 1, 16).reshape(4, 4))
-    step.show((SimpleNamespace(value=diagnosis, summary="verdict: undecided"), SimpleNamespace(out_dir="report"), layer))
+    from scene_reports import scene_report
+
+    diagnosis = SimpleNamespace(report=scene_report("illumination", grid=4, tile_px=64), tile_map=np.linspace(0, 1, 16).reshape(4, 4))
+    request = SimpleNamespace(out_dir="report", settings=SimpleNamespace(level_z=3.0, structure_level=0.07))
+    step.show((SimpleNamespace(value=diagnosis, summary="verdict: illumination"), request, layer))
     gap_map = next(layer for layer in viewer.layers if layer.name.startswith("gap"))
     bar = step._colour_bar.axes
     assert gap_map.colorbar.visible and bar.get_visible()
@@ -510,7 +512,7 @@ def test_a_recording_s_table_reopens_with_its_frames_on_the_time_axis(make_napar
     np.testing.assert_array_equal(again.data[:, 0], layer.data[:, 0])
 
 
-def test_the_gap_step_refuses_a_z_stack_and_shows_its_level_before_a_run(make_napari_viewer, qtbot):
+def test_the_gap_step_refuses_a_z_stack_and_a_tile_that_leaves_one_in_a_line(make_napari_viewer, qtbot):
     viewer = make_napari_viewer()
     _, step = viewer.window.add_plugin_dock_widget("napari-lbs", "6 Gap diagnosis")
     holo = viewer.add_image(np.ones((512, 512), np.float32), name="holo", scale=(2.2, 2.2), units="µm")
@@ -519,9 +521,9 @@ def test_the_gap_step_refuses_a_z_stack_and_shows_its_level_before_a_run(make_na
     assert not step._run.enabled and "z-stack" in step._status.value and "'holo'" in step._status.value
     step.hologram.value = holo
     assert "z-stack" not in step._status.value
-    step.level.value = 0.35
-    assert "0.35" in step._plot.axes.get_xlabel()
-    assert "8 × 8" in step.tile.tooltip and "at the centre of each" not in step.tile.tooltip
+    step.tile.value = 300
+    assert not step._run.enabled and "tile 300: a 512x512 (x by y) frame holds 1 tile(s)" in step._status.value
+    assert "4 × 4 tiles" in step.tile.tooltip and "after a run" in step._plot.axes.texts[0].get_text()
 
 
 def test_predicted_particles_are_all_shown_coloured_by_depth(make_napari_viewer):

@@ -253,29 +253,49 @@ def test_the_reader_knows_a_particle_table_saved_by_excel_and_hands_other_csvs_o
     assert get_reader(str(other)) is _read_with_napari and get_reader(str(tmp_path / "a.tif")) is None
 
 
-def test_diagnosis_widget_pools_a_stack_shows_the_posterior_and_maps_the_gap_over_the_hologram(make_napari_viewer, qtbot, tmp_path, monkeypatch):
-    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))  # the diagnoser this test trains is cached there
+def test_diagnosis_widget_diagnoses_a_stack_s_frames_shows_the_verdict_and_maps_the_gap_and_stops(make_napari_viewer, qtbot, tmp_path, monkeypatch):
+    import time
+
+    from scene_reports import StandIn
+
+    import napari_lbs._core.gap as gap
+
+    engine = StandIn([("illumination", True), ("illumination+sensor_blur", True), ("sensor_blur", False)])
+    monkeypatch.setattr(gap, "diagnose_scene", engine)
     viewer = make_napari_viewer()
     config_path, config = tiny_config_file(tmp_path / "c.toml")
-    frames = np.stack([simulated(config, shape=(256, 256), count=16, seed=seed)[0] for seed in (1, 2)])
+    frames = np.stack([simulated(config, shape=(256, 256), count=16, seed=seed)[0] for seed in (1, 2, 3, 4)])
     viewer.add_image(frames, name="recording", scale=(1.0, 2.2, 2.2))
     widget = dock(viewer, "6 Gap diagnosis")
     widget.hologram.value = viewer.layers["recording"]
-    widget.tile.value = 128
-    assert not widget._run.enabled and "a tile must fit one" in widget._status.value
-    widget.tile.value = 0
-    widget.known_effects.value = "particle_phase:index_contrst=0.26"
-    assert not widget._run.enabled and "index_contrst" in widget._status.value
-    widget.known_effects.value = "particle_phase:index_contrast=0.26,transmission=1"
-    widget.simulations.value = 24
+    widget.config.value = config_path
+    widget.tile.value = 200
+    assert not widget._run.enabled and "tile 200: a 256x256 (x by y) frame holds 1 tile(s)" in widget._status.value
+    widget.tile.value = 64
     widget.output.value = tmp_path / "report"
+    phases = []
+    widget._relay.progress.connect(lambda done, total, at, phase: phases.append(phase))
     run_to_end(qtbot, widget)
+    # three of the four frames, evenly spaced, each diagnosed on 4 x 4 tiles; the verdict: what most of them name
+    assert len(engine.calls) == 3 and all(call["settings"].grid == 4 for call in engine.calls)
     written = json.loads((tmp_path / "report" / "report.json").read_text())
-    assert written["verdict"].keys() >= {"id", "shrink", "residual", "undecided"} and written["stated"] == {"particle_phase": {"index_contrast": 0.26, "transmission": 1.0}}
-    assert written["tiles"]["frames"] == 2 and sum(written["posterior"].values()) == pytest.approx(1.0)
-    assert len(widget._plot.axes.patches) >= 2  # the posterior's bars
-    layer = viewer.layers["gap: P(tile told apart from simulation)"]
-    assert layer.data.shape == (4, 4) and tuple(layer.scale) == pytest.approx((140.8, 140.8)) and layer.colorbar.visible
+    assert [f["name"] for f in written["frames"]] == ["recording[frame 0]", "recording[frame 2]", "recording[frame 3]"]
+    assert written["verdict"]["id"] == "illumination+sensor_blur" and written["provenance"]["source"] == "recording"
+    assert "frame 3 of 3: the catalog's effects" in phases and "verdict: illumination+sensor_blur" in widget._status.value
+    assert widget._verdict.value.startswith("verdict: illumination+sensor_blur; named in a majority of the 3 frames")
+    assert len(widget._plot.axes.patches) == len(written["effects"])  # each effect's z
+    layer = viewer.layers["gap: unexplained share of the structure"]
+    assert layer.data.shape == (4, 4) and tuple(layer.scale) == pytest.approx((140.8, 140.8)) and tuple(layer.translate) == pytest.approx((69.3, 69.3))
+    assert layer.colorbar.visible
+    # Stop ends a run within the diagnosis, nothing written
+    monkeypatch.setattr(gap, "diagnose_scene", StandIn(wait_for_stop=True))
+    widget.output.value = tmp_path / "stopped"
+    widget._run.clicked.emit()
+    qtbot.waitUntil(lambda: widget._stop.enabled, timeout=5000)
+    clicked = time.perf_counter()
+    widget._stop.clicked.emit()
+    qtbot.waitUntil(lambda: widget._worker is None, timeout=10_000)
+    assert time.perf_counter() - clicked < 2.0 and "stopped" in widget._status.value and not (tmp_path / "stopped").exists()
 
 
 def test_batch_widget_turns_a_recording_into_points_over_time_and_tracks_and_stops(make_napari_viewer, qtbot, tmp_path, detector, tiny_config):

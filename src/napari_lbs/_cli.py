@@ -206,13 +206,8 @@ def _cmd_track(args) -> None:
 
 
 def _cmd_diagnose(args) -> None:
-    from napari_lbs._core import DiagnosisSettings, parse_effects
-
-    config = load_config(args.config)
-    stated = parse_effects(args.known_effect, flag="--known-effect")
-    settings = _settings(DiagnosisSettings, simulations=args.simulations, level=args.level, seed=args.seed, cache_dir=args.cache)
-    request = pipeline.DiagnoseRequest(args.holo[0] if len(args.holo) == 1 else tuple(args.holo), Path(args.out), config, settings=settings, background_path=args.background, calibration_path=args.calibration,
-                                       roi=tuple(args.roi) if args.roi else None, tile_px=args.tile, known=not args.no_known, stated=stated, replace=args.force)
+    request = pipeline.DiagnoseRequest(args.holo[0] if len(args.holo) == 1 else tuple(args.holo), Path(args.out), load_config(args.config), background_path=args.background,
+                                       calibration_path=args.calibration, roi=tuple(args.roi) if args.roi else None, tile_px=args.tile, seed=args.seed, replace=args.force)
     _run(pipeline.diagnose, _checked(args, request, folder=True), "diagnose", log=_summary)
 
 
@@ -297,7 +292,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--depths", choices=("uniform", "layers"), default="uniform", help="stack layout: particle depths uniform over the volume (default) or on the seed's layers")
     p.add_argument("--context-planes", type=_integer(0), default=8, help="stack layout: planes stored beyond each end of the volume (default 8)")
     p.add_argument("--workers", type=_integer(1), default=1, help="processes simulating groups at once (default 1)")
-    p.add_argument("--effects-from", metavar="REPORT.json", help="add the effects a diagnosis report names (its verdict: one effect or two, with their posterior parameters)")
+    p.add_argument("--effects-from", metavar="REPORT.json", help="add the effects a diagnosis report names (its verdict's effects, with their fitted parameters)")
     p.add_argument("--effect", action="append", default=[], metavar="ID[:NAME=VALUE,...]",
                    help="add an effect of the catalog, e.g. particle_phase:index_contrast=0.26,transmission=1 or quantization:bits=8,saturation=2 (repeatable)")
     p.add_argument("--impurities", type=_integer(0), default=0, metavar="N",
@@ -373,21 +368,15 @@ def _parser() -> argparse.ArgumentParser:
     p.set_defaults(run=_cmd_track)
 
     p = sub.add_parser("diagnose", help="diagnose the sim-to-real gap of one or more holograms of a setup: which effect, where, how much", parents=[_FORCE])
-    p.add_argument("holo", metavar="HOLO", nargs="+", help="holograms of one setup, pooled: files, folders of images or multi-page TIFFs")
+    p.add_argument("holo", metavar="HOLO", nargs="+", help="holograms of one setup: files, folders of images or multi-page TIFFs; up to 3 evenly spaced frames are diagnosed, each on its own, and pooled")
     p.add_argument("--config", required=True)
     p.add_argument("--out", required=True, metavar="REPORT_DIR")
     p.add_argument("--roi", type=_integer(0), nargs=2, metavar=("X", "Y"), help="a reference place recorded in the report (all tiles are used)")
     p.add_argument("--background", metavar="BG")
     p.add_argument("--calibration", metavar="CALIB.json", help="recorded as provenance")
-    p.add_argument("--tile", type=_integer(1), help="tile edge in pixels (default: 128, or a quarter of the sensor's shorter side where smaller)")
-    p.add_argument("--no-known", action="store_true", help="diagnose the bit depth too, instead of taking it from the file's integer counts")
-    p.add_argument("--known-effect", action="append", default=[], metavar="ID[:NAME=VALUE,...]",
-                   help="an effect you know the experiment has, put into every simulation and not diagnosed, e.g. particle_phase:index_contrast=0.26,transmission=1 for polystyrene beads in water (repeatable)")
-    p.add_argument("--simulations", type=_integer(20), default=2000,
-                   help="simulations the setup's diagnoser is trained on, once; it is cached and reused (default 2000: about 10 minutes on 2 cores)")
-    p.add_argument("--level", type=_number(0.0, 1.0, above=True), default=0.35, help="probability an effect needs to be named present (default 0.35, chosen on the development suite)")
-    p.add_argument("--cache", metavar="DIR", help="where trained diagnosers are kept (default: ~/.cache/napari-lbs/diagnosers)")
-    p.add_argument("--seed", type=_SEED, default=0, help="the two-sample tests' folds (the posterior does not depend on it)")
+    p.add_argument("--tile", type=_integer(1), metavar="PX",
+                   help="tile edge in pixels: the held-out checkerboard gets the frame's shorter side over PX tiles per side, at most 16 (default 4 x 4 tiles)")
+    p.add_argument("--seed", type=_SEED, default=0, help="recorded in the report's provenance (the diagnosis draws nothing at random)")
     p.set_defaults(run=_cmd_diagnose)
 
     p = sub.add_parser("evaluate", help="score a particle table against a reference, one-to-one")

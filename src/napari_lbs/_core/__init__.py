@@ -22,7 +22,7 @@ __getattr__, __dir__, __all__ = lazy_exports(
         "calibration": ("CalibrationSettings", "CalibrationResult", "HoloParams", "calibrate_hologram"),
         "learning": ("DatasetLayout", "InputProcessing", "generate_dataset", "open_dataset", "SyntheticDataset", "TrainingSettings", "TrainingResult", "train_model", "load_model", "LoadedModel", "predict_particles", "PredictionSettings", "PredictionResult", "match_particles", "score_particles"),
         "refine": ("RefineSettings", "refine_particles", "same_material", "particle_hologram", "residual_hologram", "residual_particles"),
-        "gap": ("DiagnosisSettings", "Diagnosis", "diagnose_hologram", "write_report", "find_particles"),
+        "gap": ("SceneDiagnosisSettings", "SceneDiagnosis", "diagnose_scene", "write_report", "find_particles"),
         "recordings": ("simulate_sequence", "SimulatedSequence", "open_frames", "HologramFrames", "sequence_background", "predict_sequence", "SequenceResult", "link_tracks"),
         "pipeline": ("refined_prediction",),
     },

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["ColourBarPlot", "FitnessPlot", "LossPlot", "PosteriorPlot", "SizeIndexPlot"]
+__all__ = ["ColourBarPlot", "EffectsPlot", "FitnessPlot", "LossPlot", "SizeIndexPlot"]
 
 _BACKGROUND = "#262930"  # napari's dark theme
 _FOREGROUND = "#d6d0ce"
@@ -106,24 +106,32 @@ class FitnessPlot:
         self.canvas.draw_idle()
 
 
-class PosteriorPlot:
-    """A diagnosis's answer: each effect's probability of being present and of nothing missing, and the level a verdict needs."""
+class EffectsPlot:
+    """A diagnosis's answer: each effect's held-out z, the selected effects marked, and the level a selection needs."""
 
-    def __init__(self, *, level: float) -> None:
+    def __init__(self) -> None:
         self.canvas, self.axes = _dark_canvas(height_px=190)
-        self.show({}, nothing_missing=0.0, level=level)
+        self.show([], level=0.0)
 
-    def show(self, presence: dict, *, nothing_missing: float, level: float, top: int = 6) -> None:
-        """Bars for the ``top`` most probable effects of ``presence`` (``{effect: probability}``) and for nothing missing."""
+    def show(self, effects: list, *, level: float) -> None:
+        """Bars of each effect's ``z`` (a report's ``effects``, best first; selected ones in the score colour) and the ``level``; a note before a run."""
         self.axes.clear()
         _style(self.axes)
-        ranked = sorted(presence.items(), key=lambda item: -item[1])[:top][::-1]
-        if ranked:
-            names = ["nothing missing"] + [k for k, _ in ranked]
-            self.axes.barh(names, [nothing_missing] + [v for _, v in ranked], color=[_SCORE_COLOUR] + [_LOSS_COLOUR] * len(ranked))
-            self.axes.axvline(level, color=_FOREGROUND, lw=1, ls="--")
-        self.axes.set_xlim(0, 1)
-        self.axes.set_xlabel(f"probability (an effect is named from {level:.2f})", fontsize=8)
+        if not effects:
+            self.axes.text(0.5, 0.5, "each effect's held-out z shows here after a run", ha="center", va="center", fontsize=8, color=_FOREGROUND,
+                           transform=self.axes.transAxes)
+            self.axes.set_xticks([])
+            self.axes.set_yticks([])
+            self.canvas.draw_idle()
+            return
+        rows = effects[::-1]  # best at the top
+        z = [float(e["z"]) if e.get("z") is not None and np.isfinite(e["z"]) else 0.0 for e in rows]
+        self.axes.barh([e["id"] for e in rows], z, color=[_SCORE_COLOUR if e["selected"] else _LOSS_COLOUR for e in rows])
+        for row, effect in enumerate(rows):
+            if effect.get("z") is None:  # no likelihood: the levels of integer counts (quantization), or not fitted
+                self.axes.text(0, row, " named from the levels" if effect["selected"] else " no z", va="center", fontsize=7, color=_FOREGROUND)
+        self.axes.axvline(level, color=_FOREGROUND, lw=1, ls="--")
+        self.axes.set_xlabel(f"held-out z (selected from {level:g}: orange)", fontsize=8)
         self.canvas.draw_idle()
 
 

@@ -1,7 +1,7 @@
 """Worker processes: tasks run in a pool of one-thread processes, with progress and stop, results in task order.
 
-The one scheme for process pools (synthetic data generation, refinement's batches, the
-diagnoser's simulations; recordings use dask). `run_in_workers` runs one list of tasks;
+The one scheme for process pools (synthetic data generation, refinement's batches;
+recordings use dask). `run_in_workers` runs one list of tasks;
 `WorkerPool` keeps its processes for several lists (refinement's rounds), so they start once.
 
 - **Workers**: at most `available_threads` (the cores this process may use) and at most one

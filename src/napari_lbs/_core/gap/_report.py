@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+from dataclasses import asdict
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from napari_lbs._core.gap._diagnose import Diagnosis
-from napari_lbs._core.foundation import atomic_path, atomic_write_bytes, check_target, write_json
+from napari_lbs._core.foundation import atomic_path, atomic_write_bytes, check_target, json_safe, write_json
+
+if TYPE_CHECKING:  # for the annotations only
+    from napari_lbs._core.gap._scene_diagnosis import SceneDiagnosis, SceneDiagnosisSettings
 
 __all__ = ["write_report"]
 
@@ -15,118 +19,197 @@ __all__ = ["write_report"]
 _FILES = ("report.json", "report.md", "gap_where.png", "gap_effects.png")
 
 
-def write_report(diagnosis: Diagnosis, out_dir, *, provenance: dict | None = None, force: bool = False) -> list:
+def write_report(diagnosis: SceneDiagnosis, out_dir, *, settings: SceneDiagnosisSettings | None = None, provenance: dict | None = None, force: bool = False) -> list:
     """Write ``report.json`` (docs/formats.md), ``report.md`` and PNG figures into ``out_dir``; return the paths.
 
-    An existing file of those names is replaced only with ``force`` (and never a link, FIFO,
-    device or folder): every name is checked before anything is written.
+    Parameters
+    ----------
+    diagnosis : SceneDiagnosis
+        Its ``report``, ``tile_map`` and ``seconds``.
+    out_dir : path
+        The folder (made where missing).
+    settings : SceneDiagnosisSettings, optional
+        The settings the diagnosis ran with (default: the defaults): recorded as the report's
+        ``settings`` and drawn as the levels a decision needs.
+    provenance : dict, optional
+        What made the report (recorded as its ``provenance``).
+    force : bool
+        Replace existing files of those names (never a link, FIFO, device or folder): every
+        name is checked before anything is written.
     """
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    from matplotlib.figure import Figure
+    from napari_lbs._core.gap._scene_diagnosis import SceneDiagnosisSettings
 
     out = Path(out_dir)
     for name in _FILES:
         check_target(out / name, force=force)
     out.mkdir(parents=True, exist_ok=True)
-    report = {**diagnosis.report, "provenance": provenance or {}}
-    gap = report["gap"]
+    levels = settings or SceneDiagnosisSettings()
+    report = {**diagnosis.report, "seconds": diagnosis.seconds, "settings": json_safe(asdict(levels)), "provenance": provenance or {}}
     paths = [write_json(out / "report.json", report, force=force)]
-
-    figure = Figure(figsize=(11, 3.4), tight_layout=True)
-    axes = figure.subplots(1, 3)
-    axes[0].plot([np.nan if b["told_apart"] is None else b["told_apart"] for b in gap["by_band"]], "o-", color="tab:blue")
-    axes[0].set_xticks(range(len(gap["by_band"])), [b["band"].split()[2].split("-")[0] for b in gap["by_band"]], rotation=45, fontsize=7)
-    axes[0].set_xlabel("spatial-frequency band from (cycles/px)")
-    axes[0].set_ylabel("told apart: 2 (C2ST accuracy − 0.5)")
-    axes[0].set_ylim(0, 1)
-    axes[0].set_title("where: by frequency band")
-    axes[1].plot([d["depth_um"] for d in gap["by_depth"]], [np.nan if d["told_apart"] is None else d["told_apart"] for d in gap["by_depth"]], "s-", color="tab:orange")
-    axes[1].set_xlabel("back-propagation depth (µm)")
-    axes[1].set_ylim(0, 1)
-    axes[1].set_title("where: by depth")
-    image = axes[2].imshow(diagnosis.tile_map, cmap="magma", vmin=0.0, vmax=1.0)
-    bar = figure.colorbar(image, ax=axes[2])
-    bar.set_label("P(tile is the experiment's), held out")
-    axes[2].set_title(f"where: by tile ({report['tiles']['tile_px']} px tiles)")
-    axes[2].set_xlabel("tile column")
-    axes[2].set_ylabel("tile row")
     with atomic_path(out / "gap_where.png", force=force) as temporary:
-        figure.savefig(temporary, dpi=110, format="png")
+        _where_figure(report, np.asarray(diagnosis.tile_map, float), levels).savefig(temporary, dpi=110, format="png")
     paths.append(out / "gap_where.png")
-
-    figure = Figure(figsize=(11, 3.6), tight_layout=True)
-    axes = figure.subplots(1, 2)
-    posterior = list(report["posterior"].items())[:10]
-    axes[0].barh([k for k, _ in posterior][::-1], [v for _, v in posterior][::-1], color="tab:green")
-    axes[0].axvline(report["settings"]["level"], color="k", lw=0.8, ls="--")
-    axes[0].set_xlim(0, 1)
-    axes[0].set_xlabel("posterior probability of the model")
-    axes[0].set_title(f"which: verdict {report['verdict']['id'] or 'none named'}")
-    effects = report["effects"]
-    axes[1].barh([e["id"] for e in effects][::-1], [e["gap_after"] for e in effects][::-1], color="tab:purple")
-    axes[1].axvline(gap["baseline"], color="k", lw=0.8, ls="--", label="baseline (nothing added)")
-    axes[1].set_xlabel("gap with the effect added (MMD²)")
-    axes[1].legend(fontsize=7)
-    axes[1].set_title("how much: the gap with each effect")
     with atomic_path(out / "gap_effects.png", force=force) as temporary:
-        figure.savefig(temporary, dpi=110, format="png")
+        _effects_figure(report, levels).savefig(temporary, dpi=110, format="png")
     paths.append(out / "gap_effects.png")
+    atomic_write_bytes(out / "report.md", "\n".join(_summary(report, levels)).encode("utf-8"), force=force)
+    paths.append(out / "report.md")
+    return paths
 
-    verdict = report["verdict"]
-    named = verdict["id"] or ("nothing missing" if not verdict["undecided"] else "undecided between " + " and ".join(verdict["undecided"]))
+
+def _figure(size: tuple[float, float], columns: int, widths=None):
+    """A matplotlib figure (no display needed) and its row of axes."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    from matplotlib.figure import Figure
+
+    figure = Figure(figsize=size, layout="constrained")
+    return figure, figure.subplots(1, columns, width_ratios=widths)
+
+
+def _value(value) -> float:
+    """``value`` as a float, NaN where it is missing (None) or not finite."""
+    return float(value) if value is not None and np.isfinite(value) else float("nan")
+
+
+def _text(value, spec: str = ".3g") -> str:
+    """``value`` formatted by ``spec``, or a dash where it is missing."""
+    number = _value(value)
+    return "—" if np.isnan(number) else format(number, spec)
+
+
+def _where_figure(report: dict, tile_map: np.ndarray, levels: SceneDiagnosisSettings):
+    """Where: each tile's unexplained share (with the level the catalog explains a frame at), and the residual's power by band."""
+    gap = report["gap"]
+    figure, (tiles, bands) = _figure((11, 4.0), 2, widths=(1.0, 1.35))
+    shown = tile_map[np.isfinite(tile_map)]
+    top = max(float(shown.max()) if shown.size else 0.0, 1.5 * levels.structure_level)
+    image = tiles.imshow(tile_map, cmap="magma", vmin=0.0, vmax=top)
+    bar = figure.colorbar(image, ax=tiles)
+    bar.set_label("unexplained share of the tile's structure")
+    bar.ax.axhline(levels.structure_level, color="tab:cyan", lw=2)
+    bar.ax.text(1.05, levels.structure_level / top, " level", transform=bar.ax.transAxes, color="tab:cyan", fontsize=7, va="center", clip_on=False)
+    if tile_map.shape[0] <= 8:
+        for (row, col), share in np.ndenumerate(tile_map):
+            if np.isfinite(share):
+                tiles.text(col, row, f"{share:.2g}", ha="center", va="center", fontsize=8, color="white" if share < 0.6 * top else "black")
+    tiles.set_xticks(range(tile_map.shape[1]))
+    tiles.set_yticks(range(tile_map.shape[0]))
+    tiles.set_xlabel("tile column")
+    tiles.set_ylabel("tile row")
+    tiles.set_title(f"where: {tile_map.shape[0]} × {tile_map.shape[1]} tiles of {gap['tile_px']} px", fontsize=10)
+    by_band = gap["by_band"]
+    names = [f"{low:g}–{high:g}" for low, high in (b["cycles_per_px"] for b in by_band)]
+    place = np.arange(len(by_band))
+    bands.bar(place - 0.2, [_value(b["share_of_power"]) for b in by_band], 0.4, color="tab:gray", label="all of its power")
+    bands.bar(place + 0.2, [_value(b["structured"]) for b in by_band], 0.4, color="tab:orange", label="structured (above its white floor)")
+    bands.set_xticks(place, names)
+    bands.set_xlabel("spatial frequency band (cycles per pixel)")
+    bands.set_ylabel("share of the held-out residual's power")
+    bands.set_title("what is left: the residual by frequency band", fontsize=10)
+    bands.legend(fontsize=8)
+    return figure
+
+
+def _effects_figure(report: dict, levels: SceneDiagnosisSettings):
+    """Which and how much: each effect's held-out z with the selection level, and the gap with each effect added."""
+    effects = report["effects"][::-1]  # best at the top
+    names = [e["id"] for e in effects]
+    colours = ["tab:red" if e["selected"] else "tab:gray" for e in effects]
+    figure, (which, how_much) = _figure((11, 4.4), 2)
+    z = [_value(e.get("z")) for e in effects]
+    which.barh(names, np.nan_to_num(z), color=colours)
+    for row, (value, effect) in enumerate(zip(z, effects, strict=True)):
+        if np.isnan(value):  # no likelihood: the levels of integer counts (quantization), or not fitted
+            note = ("read from the counts' levels: " + ("named" if effect["selected"] else "not named")) if "levels" in effect else "not fitted"
+            which.text(0, row, " " + note, va="center", fontsize=7)
+    which.axvline(levels.level_z, color="k", lw=0.8, ls="--", label=f"selection level z = {levels.level_z:g}")
+    which.axvline(0, color="k", lw=0.5)
+    which.set_xlabel("held-out gain z (tile-to-tile errors; particle optics: particle-to-particle)")
+    which.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.2))
+    which.set_title(f"which: {_named(report['verdict'])} (red: selected)", fontsize=10)
+    gap = report["gap"]
+    how_much.barh(names, [_value(e.get("gap_after")) for e in effects], color=colours)
+    how_much.axvline(gap["baseline"], color="k", lw=0.8, ls="--", label="the scene alone")
+    how_much.axvline(levels.structure_level, color="tab:cyan", lw=1.2, ls=":", label="the catalog explains a frame below")
+    how_much.set_xlabel("unexplained share with the effect added")
+    how_much.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.2), ncols=2)
+    how_much.set_title("how much: the gap with each effect", fontsize=10)
+    return figure
+
+
+def _summary(report: dict, levels: SceneDiagnosisSettings) -> list[str]:
+    """``report.md``'s lines: the verdict and why, each effect, the particles' optics, what is left, what was not tested."""
+    verdict, gap, optics = report["verdict"], report["gap"], report["particle_optics"]
     lines = [
         "# Sim-to-real gap diagnosis",
         "",
-        f"- Verdict: **{named}** ({verdict['reason']}).",
-        f"- Gap between the experiment and the seed's simulator: **{gap['baseline']:.2f}** (90 % interval {gap['baseline_interval'][0]:.2f} to {gap['baseline_interval'][1]:.2f}; {gap['metric']}).",
-        f"- With the verdict added: {verdict['residual']:.2f} (shrink {100 * verdict['shrink']:.0f} %)." if verdict["id"] else "- Nothing added.",
-        f"- The catalog {'explains' if verdict['catalog_explains'] else 'does not explain'} the gap.",
-        f"- Known, not diagnosed (what the file states and what you stated): {_known_text(report)}",
-        f"- Data: {report['tiles']['frames']} frame(s), {report['tiles']['per_frame']} tiles of {report['tiles']['tile_px']} px each; "
-        f"diagnoser {report['diagnoser']['key']} ({report['diagnoser']['simulations']} simulations); {report['seconds']:.0f} s.",
+        f"- Verdict: **{_named(verdict)}** ({verdict['reason']}).",
+        f"- The catalog {'explains' if verdict['catalog_explains'] else 'does not explain'} the frame.",
+        f"- Gap ({gap['metric']}): {_text(gap['baseline'])} with the scene alone, {_text(verdict['residual'])} with the verdict "
+        f"(shrink {_text(100 * _value(verdict['shrink']), '.0f')} %).",
+        f"- Data: {gap['particles']} particles' optics tested, {gap['tiles']} tiles of {gap['tile_px']} px; {_text(report.get('seconds'), '.0f')} s.",
         "",
-        "## Posterior (which model: nothing missing, one effect, or two)",
+    ]
+    frames = report.get("frames") or []
+    if len(frames) > 1:
+        lines += [
+            f"## Frames ({len(frames)} diagnosed; the verdict names what a majority of them names, the rest of this report is the first's)",
+            "",
+            "| frame | verdict | catalog explains | unexplained share |",
+            "|---|---|---|---|",
+            *[f"| {f['name']} | {f['verdict'] or '—'} | {'yes' if f['catalog_explains'] else 'no'} | {_text(f['residual'])} |" for f in frames],
+            "",
+        ]
+    lines += [
+        f"## Effects (best first; selected from held-out z {levels.level_z:g})",
         "",
-        "| model | probability |",
-        "|---|---|",
-        *[f"| {k} | {v:.3f} |" for k, v in report["posterior"].items() if v >= 0.005],
-        "",
-        "## Effects",
-        "",
-        "| effect | P(present) | gap after | shrink | parameters (median; 90 % interval) |",
-        "|---|---|---|---|---|",
+        "| effect | selected | z | held-out gain (nats) | gap after | shrink | parameters |",
+        "|---|---|---|---|---|---|---|",
         *[
-            f"| {e['id']} | {e['probability']:.2f} | {e['gap_after']:.2f} | {100 * e['shrink']:.0f} % | "
-            + ", ".join(f"{k} {v:.3g}" + (f" ({e['intervals'][k][0]:.3g} to {e['intervals'][k][1]:.3g})" if k in e["intervals"] else "") for k, v in e["params"].items()) + " |"
-            for e in effects
+            f"| {e['id']} | {'yes' if e['selected'] else 'no'} | {_text(e.get('z'), '.2f')} | {_text(e.get('heldout_gain_nats'), '.4g')} | {_text(e.get('gap_after'))} | "
+            f"{_text(100 * _value(e.get('shrink')), '.0f')} % | " + (", ".join(f"{k} {_text(v)}" for k, v in e["params"].items()) or "—") + " |"
+            for e in report["effects"]
         ],
         "",
         "![effects](gap_effects.png)",
         "",
-        "## Where the gap lies",
+        "## Particle optics (opaque against transparent spheres, particle by particle)",
         "",
-        "Most unlike the simulation: " + "; ".join(f"tile at x {t['x_px']} px, y {t['y_px']} px (P {t['probability']:.2f})" for t in gap["tiles"]["most_unlike"]) + ".",
+        f"- {optics['particles']} particles fitted under each model; named: **{optics['model']}** spheres (z {_text(optics['z'], '.2f')}; "
+        f"transparent from z {levels.level_z:g}).",
+        f"- Index contrast n_p − n_m {_text(optics['index_contrast_median'])} (quartiles {_range(optics['index_contrast_quartiles'])}); "
+        f"diameter {_text(optics['diameter_median_um'])} µm (quartiles {_range(optics['diameter_quartiles_um'])} µm).",
+        "- Mean squared relative residual: " + "; ".join(f"{'opaque' if name == 'opaque' else 'transparent, index contrast ' + name} {_text(value)}"
+                                                         for name, value in optics["mean_squared_residual"].items()) + ".",
+        "",
+        "## What is left",
+        "",
+        f"- Unexplained share of the frame's structure (median over the {gap['tiles']} held-out tiles): {_text(verdict['residual'])}; "
+        f"the catalog explains a frame up to {levels.structure_level:g}.",
+        f"- Fixed line pattern: the variance of the residual's column means is {_text(gap['line_pattern']['columns'], '.2f')} times, "
+        f"of its row means {_text(gap['line_pattern']['rows'], '.2f')} times what white noise gives them (a pattern above {levels.line_level:g}).",
+        "",
+        "| band (cycles per pixel) | share of the residual's power | structured share |",
+        "|---|---|---|",
+        *[f"| {b['cycles_per_px'][0]:g}–{b['cycles_per_px'][1]:g} | {_text(b['share_of_power'])} | {_text(b['structured'])} |" for b in gap["by_band"]],
         "",
         "![where](gap_where.png)",
         "",
+        "## Not tested",
+        "",
+        *[f"- `{name}`: {why}." for name, why in report["not_tested"].items()],
+        "",
     ]
-    paths.append(out / "report.md")
-    atomic_write_bytes(out / "report.md", "\n".join(lines).encode("utf-8"), force=force)
-    return paths
+    return lines
 
 
-def _known_text(report: dict) -> str:
-    known = report.get("known") or {}
-    sensor = report.get("known_sensor", {})
-    if not known:
-        if sensor.get("coarse"):
-            return (f"nothing: the {sensor['source']} uses {100 * sensor['levels_used']:.0f} % of the levels within its range "
-                    f"(about {sensor['effective_bits']:.1f} bits of its {sensor['bits']}), so the bit depth is diagnosed, not taken from the format.")
-        return "nothing."
-    stated = report.get("stated") or {}
-    from_file = "; ".join(f"{effect_id} {params}" for effect_id, params in known.items() if effect_id not in stated)
-    parts = [from_file + (f" (from the {sensor['source']})" if "source" in sensor else "")] if from_file else []
-    parts += ["; ".join(f"{effect_id} {known[effect_id]}" for effect_id in stated) + " (stated by you)"] if stated else []
-    return "; ".join(parts) + "."
+def _named(verdict: dict) -> str:
+    """What a verdict names: its effects, the effects it is undecided between, or nothing."""
+    return verdict["id"] or ("undecided between " + " and ".join(verdict["undecided"]) if verdict["undecided"] else "nothing named")
+
+
+def _range(pair) -> str:
+    """``low to high``, or a dash where there is none."""
+    return f"{_text(pair[0])} to {_text(pair[1])}" if pair else "—"

@@ -424,12 +424,12 @@ def parse_effects(texts, *, flag: str = "--effect") -> dict:
 
 
 def effects_from_report(report: dict, *, name: str = "report") -> dict:
-    """The effects a diagnosis report names, with their parameters (the posterior's medians).
+    """The effects a diagnosis report names, with their fitted parameters.
 
-    The verdict's model: one effect, or two (``"a+b"``). Parameters are each effect's entry in
-    ``effects`` (keys ``baseline.*``, the hologram-domain baseline of an older report, are left
-    out: the calibrated Holo-processing replaces them). A report whose verdict is ``null``
-    (nothing missing, or undecided) names nothing: the result is empty.
+    The verdict's effects: one, or several joined by ``+`` (``"a+b"``). Parameters are each
+    effect's entry in ``effects`` (keys ``baseline.*``, the hologram-domain baseline of an older
+    report, are left out: the calibrated Holo-processing replaces them). A report whose verdict
+    is ``null`` (nothing missing, or undecided) names nothing: the result is empty.
     """
     try:
         verdict = report["verdict"]["id"]

@@ -31,7 +31,7 @@ __getattr__, __dir__, __all__ = lazy_exports(
         "_data_steps": ("GenerateRequest", "TrainRequest", "generate", "requested_effects", "train"),
         "_predict": ("PredictRequest", "REFINE_PROPOSAL_FRACTION", "TrackRequest", "predict", "prediction_outputs", "refined_prediction", "track"),
         "_refine_step": ("RefineRequest", "fringe_binning", "refine", "refine_hologram"),
-        "_diagnose_step": ("DiagnoseRequest", "EvaluateRequest", "diagnose", "evaluate"),
+        "_diagnose_step": ("DIAGNOSED_FRAMES", "DiagnoseRequest", "EvaluateRequest", "diagnose", "evaluate", "tiles_per_side"),
         "_demo": ("DEMO_SAMPLE_DISTRACTORS", "DemoRequest", "demo"),
     },
 )
