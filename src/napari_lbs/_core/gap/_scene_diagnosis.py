@@ -344,10 +344,11 @@ def diagnose_scene(hologram: np.ndarray, config: ExperimentConfig, *, settings: 
     first_round = selection.steps[0]["gains"] if selection.steps else {}
     for effect in MEAN_EFFECTS:
         fit = selection.fits.get(effect)
-        after = _structure(fit.residuals, split, frame_spectra)[0] if fit is not None else None
+        # an effect not tried (coherence without two particles to group by depth) leaves the gap as it is
+        after = _structure(fit.residuals, split, frame_spectra)[0] if fit is not None else baseline_share
         params = {name.split(".", 1)[1]: float(np.mean([fit.params[0][name], fit.params[1][name]])) for name in fit.params[0] if name.startswith(f"{effect}.")} if fit else {}
         gain = first_round.get(effect, {})
-        effects.append({"id": effect, "gap_after": after, "shrink": 1.0 - after / baseline_share if after is not None and baseline_share > 0 else None,
+        effects.append({"id": effect, "gap_after": after, "shrink": 1.0 - after / baseline_share if baseline_share > 0 else 0.0,
                         "params": params, "heldout_gain_nats": gain.get("gain_nats"), "z": gain.get("z"), "selected": effect in selection.chosen})
     phase_selected = bool(optics["model"] == "transparent")
     # the particles' optics and the camera's noise and levels leave the fitted mean, so the gap, as it is
@@ -376,7 +377,8 @@ def diagnose_scene(hologram: np.ndarray, config: ExperimentConfig, *, settings: 
         "effects": effects,
         "verdict": {"id": None if undecided else "+".join(named) or None, "shrink": 1.0 - share / baseline_share if baseline_share > 0 else 0.0,
                     "residual": share, "undecided": undecided, "catalog_explains": bool(catalog_explains),
-                    "reason": (f"selected by held-out gain (z >= {settings.level_z:g}): {', '.join(named) or 'nothing'}"
+                    "reason": (f"selected by held-out gain (z >= {settings.level_z:g}): {', '.join(n for n in named if n != 'quantization') or 'nothing'}"
+                               + ("; quantization or saturation read from the frame's levels" if levels["selected"] else "")
                                + (f"; undecided between {between}" if between else "") + f"; {left}")},
         "posterior": posterior,
         "particle_optics": optics,
