@@ -18,7 +18,8 @@ from napari_lbs._cli import main
 from napari_lbs._core import InputError, SceneDiagnosis, SceneDiagnosisSettings, Stopped, effects_from_report, write_report
 from napari_lbs._core.pipeline import DIAGNOSED_FRAMES, DiagnoseRequest, diagnose, tiles_per_side
 
-CONTRACT_EFFECTS = {"illumination", "shot_noise", "quantization", "sensor_blur", "coherence", "particle_phase", "multiple_scattering", "parasitic_fringes", "spherical_wave"}
+# the effect ids report.json always accounts for, tested or not (docs/formats.md, "Diagnosis report")
+REPORT_EFFECT_IDS = {"illumination", "shot_noise", "quantization", "sensor_blur", "coherence", "particle_phase", "multiple_scattering", "parasitic_fringes", "spherical_wave"}
 SMALL = partial(SceneDiagnosisSettings, particles=4, scene_particles=8, index_grid=(0.26,))
 
 
@@ -56,7 +57,7 @@ def test_diagnose_writes_the_contract_report_its_figures_and_summary(diagnosed):
     for effect in effects:
         assert isinstance(effect["gap_after"], float) and isinstance(effect["shrink"], float) and isinstance(effect["params"], dict), effect
         assert effect["shrink"] == pytest.approx(1.0 - effect["gap_after"] / gap["baseline"])
-    assert {e["id"] for e in effects} | set(report["not_tested"]) >= CONTRACT_EFFECTS
+    assert {e["id"] for e in effects} | set(report["not_tested"]) >= REPORT_EFFECT_IDS
     assert isinstance(verdict["shrink"], float) and isinstance(verdict["residual"], float) and verdict["undecided"] == [] and verdict["catalog_explains"] is True
     # the file's levels: a converter of 6 bits at 1.6 times the mean light
     assert verdict["id"] == "quantization"

@@ -179,6 +179,12 @@ def _particle_optics(data: np.ndarray, guesses, config: ExperimentConfig, settin
     return record
 
 
+def _found(image: np.ndarray, config: ExperimentConfig, most: int, progress, should_stop) -> dict:
+    """`find_particles` with progress counted over its planes (twice the config's depth step)."""
+    planes = len(config.volume.planes_um(2.0 * config.volume.z_step_um))
+    return find_particles(image, config, max_particles=most, steps=Steps(planes, progress=progress, should_stop=should_stop))
+
+
 def _scene(data: np.ndarray, found, config: ExperimentConfig, settings: SceneDiagnosisSettings, progress, should_stop) -> tuple:
     """The frame's particles fitted, with what the fits leave looked at again; their hologram as the camera records it.
 
@@ -212,9 +218,7 @@ def _scene(data: np.ndarray, found, config: ExperimentConfig, settings: SceneDia
         begin_phase(progress, "particles the fits missed, looked for in what they leave")
         # the Nyquist disc is enough to find what is missing
         residual = data - (render(table, 0.5) - 1.0)
-        planes = len(config.volume.planes_um(2.0 * config.volume.z_step_um))  # `find_particles`' planes
-        new = pd.DataFrame(find_particles(residual, config, max_particles=settings.scene_particles - len(table),
-                                          steps=Steps(planes, progress=progress, should_stop=should_stop)))[columns]
+        new = pd.DataFrame(_found(residual, config, settings.scene_particles - len(table), progress, should_stop))[columns]
         if len(table) and len(new):
             # a find on a kept particle is what its fit left of it, not another particle
             apart = np.hypot(new["x_um"].to_numpy()[:, None] - table["x_um"].to_numpy()[None], new["y_um"].to_numpy()[:, None] - table["y_um"].to_numpy()[None])
@@ -325,10 +329,8 @@ def diagnose_scene(hologram: np.ndarray, config: ExperimentConfig, *, settings: 
     data = data / float(np.mean(data))
     import pandas as pd
 
-    planes = len(config.volume.planes_um(2.0 * config.volume.z_step_um))  # `find_particles`' planes
     begin_phase(progress, "particles found in the back-propagated volume")
-    found = pd.DataFrame(find_particles(data, config, max_particles=max(settings.particles, settings.scene_particles),
-                                        steps=Steps(planes, progress=progress, should_stop=should_stop))).drop(columns="focus")
+    found = pd.DataFrame(_found(data, config, max(settings.particles, settings.scene_particles), progress, should_stop)).drop(columns="focus")
     found["guess"] = np.arange(len(found))
     optics = _particle_optics(data, found.iloc[: settings.particles], config, settings, progress, should_stop)
     table, scene = _scene(data, found, config, settings, progress, should_stop)
