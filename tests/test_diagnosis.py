@@ -25,7 +25,7 @@ SMALL = partial(SceneDiagnosisSettings, particles=4, scene_particles=8, index_gr
 
 @pytest.fixture(scope="module")
 def diagnosed(tmp_path_factory):
-    """``napari-lbs diagnose frame.tif --tile 128 --seed 3`` on a small frame of 6-bit levels (the engine's settings made small); its folder."""
+    """``napari-lbs diagnose frame.tif --tile 85 --seed 3`` on a small frame of 6-bit levels (the engine's settings made small); its folder."""
     import pandas as pd
 
     import napari_lbs._core.gap as gap
@@ -39,7 +39,7 @@ def diagnosed(tmp_path_factory):
     tifffile.imwrite(folder / "frame.tif", (np.round(light * 40) * 4).astype(np.uint8))  # a 6-bit converter in an 8-bit file
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(gap, "SceneDiagnosisSettings", SMALL)
-        code = main(["diagnose", str(folder / "frame.tif"), "--config", str(config), "--out", str(folder / "report"), "--tile", "128", "--seed", "3"])
+        code = main(["diagnose", str(folder / "frame.tif"), "--config", str(config), "--out", str(folder / "report"), "--tile", "85", "--seed", "3"])
     assert code == 0
     return folder
 
@@ -50,7 +50,7 @@ def test_diagnose_writes_the_contract_report_its_figures_and_summary(diagnosed):
     text = (diagnosed / "report" / "report.json").read_text()
     report = json.loads(text, parse_constant=lambda name: pytest.fail(f"report.json holds {name}"))
     gap, verdict = report["gap"], report["verdict"]
-    assert isinstance(gap["metric"], str) and isinstance(gap["baseline"], float) and gap["tiles"] == 4 and gap["tile_px"] == 128
+    assert isinstance(gap["metric"], str) and isinstance(gap["baseline"], float) and gap["tiles"] == 9 and gap["tile_px"] == 85
     effects = report["effects"]
     z = [e["z"] for e in effects if e["z"] is not None]
     assert z == sorted(z, reverse=True) and all(e["z"] is None for e in effects[len(z):])  # best first
@@ -65,7 +65,7 @@ def test_diagnose_writes_the_contract_report_its_figures_and_summary(diagnosed):
     assert abs(bits["bits"] - 6.0) < 0.1 and abs(bits["saturation"] - 1.6) < 0.1
     assert sum(report["posterior"].values()) == pytest.approx(1.0)
     assert report["frames"] == [{"name": str(diagnosed / "frame.tif"), "verdict": "quantization", "catalog_explains": True, "residual": verdict["residual"]}]
-    assert report["provenance"]["seed"] == 3 and report["provenance"]["source"] == str(diagnosed / "frame.tif") and report["settings"]["grid"] == 2
+    assert report["provenance"]["seed"] == 3 and report["provenance"]["source"] == str(diagnosed / "frame.tif") and report["settings"]["grid"] == 3
     summary = (diagnosed / "report" / "report.md").read_text()
     assert "Verdict: **quantization**" in summary and "bits 6" in summary and "## Not tested" in summary
     for name in ("gap_where.png", "gap_effects.png"):
@@ -159,6 +159,7 @@ def test_one_frame_s_report_is_its_diagnosis_with_one_frame(tmp_path, monkeypatc
 @pytest.mark.parametrize(("extra", "shape", "culprit"), [
     ([], (64, 64), "h.tif: expected at least 128 pixels a side"),
     (["--tile", "129"], (256, 256), "--tile 129: a 256x256 (x by y) frame holds 1 tile(s)"),
+    (["--tile", "100"], (256, 256), "--tile 100: a 256x256 (x by y) frame holds 2 tile(s) of 100 px in a line; expected at most 85 px (3 tiles)"),
     (["--roi", "300", "10"], (256, 256), "--roi 300 10: outside the 256x256"),
     (["--background", "{tmp}/bg.tif"], (256, 256), "bg.tif: expected the hologram's shape"),
     (["--calibration", "{tmp}/h.tif"], (256, 256), "h.tif"),
@@ -177,7 +178,7 @@ def test_diagnose_refuses_bad_input_in_one_line_before_any_work(tmp_path, capsys
     assert not (tmp_path / "r").exists()
 
 
-def test_tiles_per_side_follows_the_tile_edge_within_2_to_16():
-    assert tiles_per_side((256, 300), 128) == 2 and tiles_per_side((1024, 1024), 32) == 16 and tiles_per_side((1024, 1024), 200) == 5
+def test_tiles_per_side_follows_the_tile_edge_within_3_to_16():
+    assert tiles_per_side((400, 384), 128) == 3 and tiles_per_side((1024, 1024), 32) == 16 and tiles_per_side((1024, 1024), 200) == 5
     with pytest.raises(InputError, match="^tile 600: a 1024x1024"):
         tiles_per_side((1024, 1024), 600, flag="tile")

@@ -92,6 +92,17 @@ def test_a_wrong_effect_gains_nothing_held_out():
     assert gain.sum() <= 2.0 * gain.std(ddof=1) * np.sqrt(gain.size)
 
 
+def test_a_tile_the_scene_misfits_is_one_vote_in_the_held_out_test():
+    """14 of 16 tiles gaining 200 nats and two losing 1 300 each (a misfit particle's tiles) pass the sign test at z 3; their sum over its tile-to-tile error would not."""
+    from napari_lbs._core.gap._nested import _gain
+
+    gains = np.array([200.0] * 14 + [-1300.0] * 2)
+    total, z = _gain(gains, np.zeros_like(gains))
+    assert total == pytest.approx(200.0) and z == pytest.approx(3.0)
+    assert total / (gains.std(ddof=1) * np.sqrt(gains.size)) < 0.2
+    assert _gain(-gains, np.zeros_like(gains))[1] == pytest.approx(-3.0) and _gain(np.zeros(16), np.zeros(16)) == (0.0, 0.0)
+
+
 def test_whittle_likelihood_prefers_the_residual_that_is_noise():
     """A residual of white noise scores higher than the same noise plus a structure the model left."""
     split = TileSplit.of((SIZE, SIZE))
@@ -137,7 +148,7 @@ def test_a_frame_of_spheres_is_diagnosed_end_to_end_with_the_report_fields():
     config = ExperimentConfig.from_dict({"volume": {"z_min_um": 1800.0, "z_max_um": 2600.0, "z_step_um": 50.0}})
     spheres = pd.DataFrame({"x_um": [150.0, 420.0], "y_um": [160.0, 400.0], "z_um": [2000.0, 2400.0], "diameter_um": [24.0, 26.0], "index_contrast": [0.26, 0.26]})
     frame = particle_hologram((256, 256), spheres, config) + np.random.default_rng(2).normal(0.0, 0.01, (256, 256))
-    settings = SceneDiagnosisSettings(particles=4, scene_particles=8, index_grid=(0.26,), grid=2)
+    settings = SceneDiagnosisSettings(particles=4, scene_particles=8, index_grid=(0.26,), grid=2, level_z=2.0)
     first, second = (diagnose_scene(frame, config, settings=settings) for _ in range(2))
     report = json.loads(first.to_json())
     assert {"gap", "effects", "verdict", "posterior"} <= set(report)
@@ -191,7 +202,7 @@ def test_a_scene_diagnosis_names_its_phases_reports_every_second_and_stops_at_on
     config = ExperimentConfig.from_dict({"volume": {"z_min_um": 1800.0, "z_max_um": 2600.0, "z_step_um": 50.0}})
     spheres = pd.DataFrame({"x_um": [150.0, 420.0], "y_um": [160.0, 400.0], "z_um": [2000.0, 2400.0], "diameter_um": [24.0, 26.0], "index_contrast": [0.26, 0.26]})
     frame = particle_hologram((256, 256), spheres, config) + np.random.default_rng(2).normal(0.0, 0.01, (256, 256))
-    settings = SceneDiagnosisSettings(particles=4, scene_particles=8, index_grid=(0.26,), grid=2)
+    settings = SceneDiagnosisSettings(particles=4, scene_particles=8, index_grid=(0.26,), grid=2, level_z=2.0)
 
     class Listener:
         def __init__(self):
@@ -223,3 +234,18 @@ def test_a_scene_diagnosis_names_its_phases_reports_every_second_and_stops_at_on
     with pytest.raises(Stopped):
         diagnose_scene(frame, config, settings=settings, progress=listener, should_stop=stop)
     assert asked and time.monotonic() - asked[0] < 2.0
+
+
+@pytest.mark.parametrize(("changes", "culprit"), [
+    ({"grid": 1}, "grid must be an integer 2-16"),
+    ({"grid": 2}, "level_z must be at most grid=2"),
+    ({"level_z": float("nan")}, "level_z must be a finite number"),
+    ({"index_grid": (0.0,)}, "index_grid must hold index contrasts"),
+])
+def test_scene_diagnosis_settings_refuse_what_cannot_decide(changes, culprit):
+    """A checkerboard of 2 × 2 tiles cannot reach the sign test's z of 3: refused in one line, as are other settings out of range."""
+    from napari_lbs._core import InputError
+    from napari_lbs._core.gap import SceneDiagnosisSettings
+
+    with pytest.raises(InputError, match=culprit):
+        SceneDiagnosisSettings(**changes)

@@ -22,10 +22,10 @@ judged on the high-passed residual, whose variance grows with the light by ``1 /
 Parameters are fitted by least squares on the tiles of one colour (`TileSplit`), every other
 pixel of them, and judged on the other colour's tiles by the held-out likelihood
 (`whittle_loglik`). Forward selection adds the effect of the largest significant held-out
-gain (``z``: the gain over its tile-to-tile error), refits, and stops when no effect gains
-``level_z`` errors; backward elimination then drops, one at a time, a selected effect that
-no longer gains ``level_z`` errors given the others. A selected effect that does not beat,
-by 2 errors, a rival put in its place (one that gained alone) is undecided between the two:
+gain (``z``: a sign test over the held-out tiles, `_gain`; the summed gain must be positive
+too), refits, and stops when no effect reaches ``level_z``; backward elimination then drops,
+one at a time, a selected effect that no longer reaches ``level_z`` given the others. A
+selected effect that does not beat, at a z of 2, a rival put in its place (one that gained alone) is undecided between the two:
 spatial coherence and a sensor's blur both soften fine fringes, and only their growth with
 depth tells them apart.
 """
@@ -91,8 +91,8 @@ class Scene:
         return image
 _BASELINE = (("gain", 1.0, (0.2, 5.0)), ("contrast", 1.0, (0.0, 3.0)), ("gamma", 1.0, (0.3, 3.0)))
 _STEPS = 12  # least-squares steps per fit: the starts are the simpler model's optimum
-_HIGH_PASS_PX = 1.5
-_DECIDED_Z = 2.0  # held-out tile-to-tile errors by which a selected effect must beat a rival in its place  # the shot-noise test's high pass: the residual less its Gaussian blur of this σ
+_HIGH_PASS_PX = 1.5  # the shot-noise test's high pass: the residual less its Gaussian blur of this σ
+_DECIDED_Z = 2.0  # the sign test's z by which a selected effect must beat a rival in its place
 
 
 @dataclass(frozen=True)
@@ -213,11 +213,19 @@ def fit_frame(data: np.ndarray, scene, split: TileSplit, effects: tuple[str, ...
 
 
 def _gain(better: np.ndarray, worse: np.ndarray) -> tuple[float, float]:
-    """Summed held-out gain (nats) and its z: the sum over its tile-to-tile error."""
+    """Summed held-out gain (nats) and its sign test's z over the tiles.
+
+    ``z = (tiles gaining - tiles losing) / sqrt(tiles either way)``: an effect the frame holds
+    acts on every tile and helps nearly all of them, where a particle the scene misfits
+    swings one tile by thousands of nats either way; counting tiles keeps such a tile to one
+    vote (on a development etalon, 14 of 16 tiles gained 90-410 nats and two lost 1 800 each:
+    its summed gain over its tile-to-tile error was 0.1, its sign test 3.0). The sum still
+    has to be positive (`select_effects`).
+    """
     difference = better - worse
-    spread = float(np.std(difference, ddof=1)) * np.sqrt(difference.size) if difference.size > 1 else np.inf
-    total = float(difference.sum())
-    return total, float(total / spread) if spread > 0 else (np.inf if total > 0 else 0.0)
+    gaining, losing = int(np.sum(difference > 0)), int(np.sum(difference < 0))
+    z = (gaining - losing) / np.sqrt(gaining + losing) if gaining + losing else 0.0
+    return float(difference.sum()), float(z)
 
 
 def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:

@@ -126,7 +126,7 @@ def _effects_figure(report: dict, levels: SceneDiagnosisSettings):
             which.text(0, row, " " + note, va="center", fontsize=7)
     which.axvline(levels.level_z, color="k", lw=0.8, ls="--", label=f"selection level z = {levels.level_z:g}")
     which.axvline(0, color="k", lw=0.5)
-    which.set_xlabel("held-out gain z (tile-to-tile errors; particle optics: particle-to-particle)")
+    which.set_xlabel("held-out gain z (sign test over the tiles; particle optics: over the particles)")
     which.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.2))
     which.set_title(f"which: {_named(report['verdict'])} (red: selected)", fontsize=10)
     gap = report["gap"]
@@ -177,8 +177,8 @@ def _summary(report: dict, levels: SceneDiagnosisSettings) -> list[str]:
         "",
         "## Particle optics (opaque against transparent spheres, particle by particle)",
         "",
-        f"- {optics['particles']} particles fitted under each model; named: **{optics['model']}** spheres (z {_text(optics['z'], '.2f')}; "
-        f"transparent from z {levels.level_z:g}).",
+        f"- {optics['particles']} particles fitted under each model; transparent spheres fit {optics.get('transparent_better', '—')} of them better and "
+        f"{optics.get('transparent_worse', '—')} worse; named: **{optics['model']}** spheres (sign test z {_text(optics['z'], '.2f')}; transparent from z {levels.level_z:g}).",
         f"- Index contrast n_p − n_m {_text(optics['index_contrast_median'])} (quartiles {_range(optics['index_contrast_quartiles'])}); "
         f"diameter {_text(optics['diameter_median_um'])} µm (quartiles {_range(optics['diameter_quartiles_um'])} µm).",
         "- Mean squared relative residual: " + "; ".join(f"{'opaque' if name == 'opaque' else 'transparent, index contrast ' + name} {_text(value)}"

@@ -6,16 +6,17 @@
    and absorption ``OPAQUE_KAPPA``) and transparent spheres with the index contrast held at
    each value of ``index_grid`` (absorption 0), every other parameter fitted.
 2. **Particle optics** (``particle_phase``) is judged particle by particle: each particle's
-   relative squared residual under opaque spheres less its best under transparent ones, the
-   mean over the particles against its standard error.
+   relative squared residual under opaque spheres less its best under transparent ones, and
+   a sign test over the particles (those transparent spheres fit better less those they fit
+   worse, over the root of their number).
 3. **The frame's scene** is every particle found (up to ``scene_particles``), fitted with its
    index contrast and absorption free, the residual searched again ``looks`` times for the
    particles the first search missed (`_scene`), and rendered to the Nyquist disc
    (``reach_cycles_per_px``: the aliased rings beyond it are the camera's to pass or not).
 4. **The frame's effects** (`select_effects`): the catalog's camera around the scene's
    hologram, each effect a nested model fitted on one colour of a checkerboard of tiles and
-   judged on the other by a Whittle likelihood; forward selection by held-out gain; then the
-   shot-noise test on the final model. Coherence (a source's size) blurs each depth group
+   judged on the other by a Whittle likelihood, tile by tile; forward selection by a sign
+   test over the held-out tiles' gains; then the shot-noise test on the final model. Coherence (a source's size) blurs each depth group
    of the scene by its own depth. Quantization and saturation are read from the levels the
    frame's counts use (`levels_test`).
 5. **What is left**, tile by tile: the structured power of the held-out residual (its power
@@ -83,8 +84,9 @@ class SceneDiagnosisSettings:
     index_grid : tuple of float
         Index contrasts at which transparent spheres are fitted.
     level_z : float
-        Held-out gain, in tile-to-tile errors, an effect needs to be selected (and particle
-        optics, in particle-to-particle errors).
+        The sign test's z an effect's held-out gain needs over the ``grid²`` tiles to be
+        selected (tiles gaining less tiles losing, over the root of their number: 3 is 14 of
+        16 tiles; at most ``grid``), and the particle optics' over the tested particles.
     structure_level : float
         Largest unexplained share of the frame's structure (median over the tiles) for which
         the catalog explains the frame.
@@ -125,6 +127,8 @@ class SceneDiagnosisSettings:
             value = getattr(self, name)
             if not (isinstance(value, int | float) and np.isfinite(value) and value >= 0):
                 raise InputError(f"scene diagnosis: {name} must be a finite number >= 0, got {value!r}")
+        if self.level_z > self.grid:
+            raise InputError(f"scene diagnosis: level_z must be at most grid={self.grid} (the sign test over grid² tiles reaches no more), got {self.level_z!r}")
 
 
 @dataclass(frozen=True)
@@ -159,7 +163,11 @@ def _particle_optics(data: np.ndarray, guesses, config: ExperimentConfig, settin
     best = np.argmin(transparent, axis=0)
     difference = costs[0, refined] - transparent.min(axis=0)  # > 0: transparent spheres fit better
     n = int(difference.size)
-    z = float(difference.mean() / (difference.std(ddof=1) / np.sqrt(n))) if n > 2 and difference.std() > 0 else 0.0
+    # a sign test over the particles, as the effects' over the tiles: a pair fitted as one
+    # particle or a sphere cut by the frame's edge swings its own difference by far more than
+    # the optics do, and counting particles keeps it to one vote
+    better, worse = int(np.sum(difference > 0)), int(np.sum(difference < 0))
+    z = float((better - worse) / np.sqrt(better + worse)) if better + worse > 2 else 0.0
     names = list(models)
     chosen = "transparent" if z >= settings.level_z else "opaque"
     sizes = np.stack([fits[name]["diameter_um"].to_numpy(np.float64)[refined] for name in names])
@@ -169,6 +177,8 @@ def _particle_optics(data: np.ndarray, guesses, config: ExperimentConfig, settin
         "particles": n,
         "model": chosen,
         "z": z,
+        "transparent_better": better,
+        "transparent_worse": worse,
         "mean_difference": float(difference.mean()) if n else None,
         "mean_squared_residual": {name: float(np.mean(costs[i, refined])) if n else None for i, name in enumerate(names)},
         "index_contrast_median": float(np.median(index_values)) if n else None,

@@ -86,11 +86,13 @@ class DiagnoseRequest:
 def tiles_per_side(shape: tuple[int, int], tile_px: int, *, flag: str = "--tile") -> int:
     """Tiles per side of the held-out checkerboard for tiles of ``tile_px`` pixels on a frame of ``shape``: its shorter side over them, at most 16.
 
-    Raises `InputError` naming ``flag`` where fewer than 2 tiles fit in a line.
+    Raises `InputError` naming ``flag`` where fewer than 3 tiles fit in a line: an effect is
+    selected by a sign test over the tiles (`SceneDiagnosisSettings.level_z`), which 4 tiles
+    cannot pass.
     """
     grid = min(shape) // tile_px if tile_px > 0 else 0
-    if grid < 2:
-        raise InputError(f"{flag} {tile_px}: a {shape[1]}x{shape[0]} (x by y) frame holds {grid} tile(s) of {tile_px} px in a line; expected at most {min(shape) // 2} px (2 tiles)")
+    if grid < 3:
+        raise InputError(f"{flag} {tile_px}: a {shape[1]}x{shape[0]} (x by y) frame holds {grid} tile(s) of {tile_px} px in a line; expected at most {min(shape) // 3} px (3 tiles)")
     return min(grid, _MOST_TILES)
 
 
