@@ -141,6 +141,10 @@ DEVELOPMENT = (
     Case("dust-10mm", 512, {"parasitic_fringes": {"dust_mm": 10.0, "grains_per_mpx": 60.0, "grain_um": (10.0, 60.0)}}),
     Case("point-source-30mm", 512, {"spherical_wave": {"source_mm": 30.0}}),
     Case("photons+crosstalk", 512, {"shot_noise": {"photons": 60.0}, "sensor_blur": {"kernel": "binomial5"}}),
+    # added later, after the cases above (each case's draws are seeded by its index): polystyrene's index contrast
+    Case("polystyrene", 512, {"particle_phase": {"index": 1.59}}),
+    Case("polystyrene-dense", 512, {"particle_phase": {"index": 1.59}}, spheres_per_512=40, level=160, read_noise=2.0),
+    Case("control-5", 512, spheres_per_512=30, level=165, read_noise=1.8),
 )
 
 # effects outside the catalog, alone and beside a catalog effect (512²)
