@@ -40,8 +40,9 @@ def scene_report(verdict: str | None = None, *, explains: bool = True, params: d
         "verdict": {"id": verdict, "shrink": 1.0 - residual / 0.04, "residual": residual, "undecided": [], "catalog_explains": explains,
                     "reason": f"selected by held-out gain (z >= 3): {', '.join(sorted(named)) or 'nothing'}"},
         "posterior": {"null": 0.1, **{effect: 0.9 / len(_MEAN) for effect in _MEAN}},
-        "particle_optics": {"particles": 4, "model": "opaque", "z": 0.5, "mean_difference": 0.0, "mean_squared_residual": {"opaque": 0.001, "0.26": 0.001},
-                            "index_contrast_median": 0.26, "index_contrast_quartiles": [0.25, 0.27], "diameter_median_um": 25.0, "diameter_quartiles_um": [24.0, 26.0]},
+        "particle_optics": {"method": "fine-fringe power", "particles": 4, "model": "undecided", "z": 0.5, "transparent_better": 9, "transparent_worse": 7,
+                            "index_contrast": 0.26, "heldout_error": {"opaque": 1e-7, "0.26": 1e-7}, "slope": {"opaque": 0.9, "0.26": 0.5},
+                            "camera_blur_px": 0.0, "diameter_median_um": 25.0, "diameter_quartiles_um": [24.0, 26.0]},
         "selection": [],
         "not_tested": {"spherical_wave": "not on one frame", "multiple_scattering": "not modelled"},
     }

@@ -20,7 +20,7 @@ from napari_lbs._core.pipeline import DIAGNOSED_FRAMES, DiagnoseRequest, diagnos
 
 # the effect ids report.json always accounts for, tested or not (docs/formats.md, "Diagnosis report")
 REPORT_EFFECT_IDS = {"illumination", "shot_noise", "quantization", "sensor_blur", "coherence", "particle_phase", "multiple_scattering", "parasitic_fringes", "spherical_wave"}
-SMALL = partial(SceneDiagnosisSettings, particles=4, scene_particles=8, index_grid=(0.26,))
+SMALL = partial(SceneDiagnosisSettings, particles=4, scene_particles=8)
 
 
 @pytest.fixture(scope="module")
@@ -59,15 +59,17 @@ def test_diagnose_writes_the_contract_report_its_figures_and_summary(diagnosed):
         assert effect["shrink"] == pytest.approx(1.0 - effect["gap_after"] / gap["baseline"])
     assert {e["id"] for e in effects} | set(report["not_tested"]) >= REPORT_EFFECT_IDS
     assert isinstance(verdict["shrink"], float) and isinstance(verdict["residual"], float) and verdict["undecided"] == [] and verdict["catalog_explains"] is True
-    # the file's levels: a converter of 6 bits at 1.6 times the mean light
-    assert verdict["id"] == "quantization"
+    # the file's levels: a converter of 6 bits at 1.6 times the mean light; the spheres: transparent, of index contrast 0.26
+    assert verdict["id"] == "particle_phase+quantization"
+    optics = report["particle_optics"]
+    assert optics["model"] == "transparent" and optics["index_contrast"] == 0.26 and optics["transparent_better"] == 9
     bits = next(e for e in effects if e["id"] == "quantization")["params"]
     assert abs(bits["bits"] - 6.0) < 0.1 and abs(bits["saturation"] - 1.6) < 0.1
     assert sum(report["posterior"].values()) == pytest.approx(1.0)
-    assert report["frames"] == [{"name": str(diagnosed / "frame.tif"), "verdict": "quantization", "catalog_explains": True, "residual": verdict["residual"]}]
+    assert report["frames"] == [{"name": str(diagnosed / "frame.tif"), "verdict": "particle_phase+quantization", "catalog_explains": True, "residual": verdict["residual"]}]
     assert report["provenance"]["seed"] == 3 and report["provenance"]["source"] == str(diagnosed / "frame.tif") and report["settings"]["grid"] == 3
     summary = (diagnosed / "report" / "report.md").read_text()
-    assert "Verdict: **quantization**" in summary and "bits 6" in summary and "## Not tested" in summary
+    assert "Verdict: **particle_phase+quantization**" in summary and "bits 6" in summary and "## Not tested" in summary
     for name in ("gap_where.png", "gap_effects.png"):
         with Image.open(diagnosed / "report" / name) as image:
             assert image.size[0] > 1000 and image.size[1] > 400
@@ -79,8 +81,9 @@ def test_a_report_of_diagnose_feeds_generate_effects_from(diagnosed, tmp_path):
     report = diagnosed / "report" / "report.json"
     assert main(["generate", "--config", str(config), "--groups", "1", "--out", str(tmp_path / "data"), "--effects-from", str(report)]) == 0
     dataset = json.loads((tmp_path / "data" / "dataset.json").read_text())
-    assert dataset["effects"] == effects_from_report(json.loads(report.read_text())) and set(dataset["effects"]) == {"quantization"}
-    assert dataset["effects_source"]["verdict"] == "quantization"
+    assert dataset["effects"] == effects_from_report(json.loads(report.read_text())) and set(dataset["effects"]) == {"particle_phase", "quantization"}
+    assert dataset["effects"]["particle_phase"]["index_contrast"] == 0.26  # the optics the frame's spheres were found to have, into the training data
+    assert dataset["effects_source"]["verdict"] == "particle_phase+quantization"
 
 
 def test_a_report_is_replaced_only_when_forced_and_never_written_through_a_link(diagnosed, tmp_path, capsys):

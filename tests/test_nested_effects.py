@@ -249,3 +249,24 @@ def test_scene_diagnosis_settings_refuse_what_cannot_decide(changes, culprit):
 
     with pytest.raises(InputError, match=culprit):
         SceneDiagnosisSettings(**changes)
+
+
+@pytest.mark.parametrize(("index_contrast", "absorption", "expected"), [(0.12, 0.0, "transparent"), (0.26, 0.0, "transparent"), (0.2, 0.5, "opaque")])
+def test_transparent_spheres_are_told_from_opaque_ones_by_where_their_fine_fringes_lie(index_contrast, absorption, expected):
+    """Spheres rendered to 1 cycle per pixel with a little noise: the optics test names their optics and the index contrast of the grid's nearest model, from the places and sizes alone."""
+    import pandas as pd
+
+    from napari_lbs._core import ExperimentConfig, particle_hologram
+    from napari_lbs._core.gap._optics_power import optics_power_test
+
+    config = ExperimentConfig()
+    rng = np.random.default_rng(5)
+    places = pd.DataFrame({"x_um": rng.uniform(60, 500, 8), "y_um": rng.uniform(60, 500, 8), "z_um": rng.uniform(1900, 3500, 8), "diameter_um": rng.uniform(20, 30, 8)})
+    frame = particle_hologram((SIZE, SIZE), places.assign(index_contrast=index_contrast, absorption=absorption), config, reach_cycles_per_px=1.0)
+    frame = frame + rng.normal(0.0, 0.01, frame.shape)
+    result = optics_power_test(frame, places, config, TileSplit.of(frame.shape), index_grid=(0.12, 0.26, 0.40))
+    assert result["model"] == expected, result
+    if expected == "transparent":
+        assert result["index_contrast"] == index_contrast and abs(result["slope"][f"{index_contrast:g}"] - 1.0) < 0.2
+    else:
+        assert result["z"] <= -3.0 and abs(result["slope"]["opaque"] - 1.0) < 0.2

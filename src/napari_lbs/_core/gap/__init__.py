@@ -8,6 +8,8 @@ One concern per module:
     `TileSplit`, `whittle_loglik`, `model_probabilities`: the held-out likelihood of a frame's model, tile by tile.
 `_nested`
     `select_effects`: the catalog's camera effects as nested models of the frame, forward selection.
+`_optics_power`
+    `optics_power_test`: opaque against transparent spheres by where their fine fringes' power lies.
 `_levels`
     `levels_test`: quantization and saturation read from the levels a frame of integer counts uses.
 `_scene_diagnosis`

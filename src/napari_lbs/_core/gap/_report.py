@@ -175,14 +175,17 @@ def _summary(report: dict, levels: SceneDiagnosisSettings) -> list[str]:
         "",
         "![effects](gap_effects.png)",
         "",
-        "## Particle optics (opaque against transparent spheres, particle by particle)",
+        "## Particle optics (opaque against transparent spheres, by where their fine fringes lie)",
         "",
-        f"- {optics['particles']} particles fitted under each model; transparent spheres fit {optics.get('transparent_better', '—')} of them better and "
-        f"{optics.get('transparent_worse', '—')} worse; named: **{optics['model']}** spheres (sign test z {_text(optics['z'], '.2f')}; transparent from z {levels.level_z:g}).",
-        f"- Index contrast n_p − n_m {_text(optics['index_contrast_median'])} (quartiles {_range(optics['index_contrast_quartiles'])}); "
-        f"diameter {_text(optics['diameter_median_um'])} µm (quartiles {_range(optics['diameter_quartiles_um'])} µm).",
-        "- Mean squared relative residual: " + "; ".join(f"{'opaque' if name == 'opaque' else 'transparent, index contrast ' + name} {_text(value)}"
-                                                         for name, value in optics["mean_squared_residual"].items()) + ".",
+        f"- {optics['particles']} of the scene's particles rendered as opaque spheres and as transparent ones, through a camera blur of "
+        f"{_text(optics.get('camera_blur_px'))} px; the transparent model predicts the fine-fringe power of {optics.get('transparent_better', '—')} "
+        f"held-out tiles better and of {optics.get('transparent_worse', '—')} worse: **{optics['model']}** (sign test z {_text(optics['z'], '.2f')}; "
+        f"named from ±{levels.level_z:g}).",
+        f"- Best transparent index contrast n_p − n_m {_text(optics.get('index_contrast'))}; diameter {_text(optics['diameter_median_um'])} µm "
+        f"(quartiles {_range(optics['diameter_quartiles_um'])} µm).",
+        "- Held-out error of the fine-fringe power (slope: near 1 for the model the frame holds): "
+        + "; ".join(f"{'opaque' if name == 'opaque' else 'transparent ' + name} {_text(value)} (slope {_text(optics.get('slope', {}).get(name))})"
+                    for name, value in optics.get("heldout_error", {}).items()) + ".",
         "",
         "## What is left",
         "",

@@ -1,25 +1,22 @@
 """The gap diagnosed on the experiment's own particles: nested physical models, held-out likelihood, what is left.
 
-1. **The scene.** The frame's particles are found without a trained model (`find_particles`)
-   and the strongest ``particles`` of them fitted (`refine_particles`) under two particle
-   models: opaque spheres (the seed's opaque discs, as a Lorenz–Mie sphere of index contrast 0
-   and absorption ``OPAQUE_KAPPA``) and transparent spheres with the index contrast held at
-   each value of ``index_grid`` (absorption 0), every other parameter fitted.
-2. **Particle optics** (``particle_phase``) is judged particle by particle: each particle's
-   relative squared residual under opaque spheres less its best under transparent ones, and
-   a sign test over the particles (those transparent spheres fit better less those they fit
-   worse, over the root of their number).
-3. **The frame's scene** is every particle found (up to ``scene_particles``), fitted with its
+1. **The scene** is every particle found (up to ``scene_particles``), fitted with its
    index contrast and absorption free, the residual searched again ``looks`` times for the
    particles the first search missed (`_scene`), and rendered to the Nyquist disc
    (``reach_cycles_per_px``: the aliased rings beyond it are the camera's to pass or not).
-4. **The frame's effects** (`select_effects`): the catalog's camera around the scene's
+2. **The frame's effects** (`select_effects`): the catalog's camera around the scene's
    hologram, each effect a nested model fitted on one colour of a checkerboard of tiles and
    judged on the other by a Whittle likelihood, tile by tile; forward selection by a sign
-   test over the held-out tiles' gains; then the shot-noise test on the final model. Coherence (a source's size) blurs each depth group
-   of the scene by its own depth. Quantization and saturation are read from the levels the
+   test over the held-out tiles' gains; then the shot-noise test on the final model.
+   Coherence (a source's size) blurs each depth group of the scene by its own depth. Quantization and saturation are read from the levels the
    frame's counts use (`levels_test`).
-5. **What is left**, tile by tile: the structured power of the held-out residual (its power
+3. **Particle optics** (``particle_phase``, `optics_power_test`): the strongest
+   ``particles`` of the scene rendered as opaque spheres and as transparent ones at each
+   index contrast of ``index_grid``, to 1 cycle per pixel and through the camera's blur the
+   effects found; the local power of their fine fringes against the frame's, judged held
+   out tile by tile (a transparent sphere throws its refracted light into fine rings far
+   from its centre, an opaque one does not).
+4. **What is left**, tile by tile: the structured power of the held-out residual (its power
    less its white floor, the median power above ``0.35`` cycles per pixel, where neither
    particles nor structure reach after the camera's blur) over the structured power of the
    frame itself, the *unexplained share* of the frame's structure. Its median over the tiles
@@ -44,11 +41,11 @@ from napari_lbs._core.gap._detect import find_particles
 from napari_lbs._core.gap._heldout import TileSplit, tile_spectra
 from napari_lbs._core.gap._levels import levels_test
 from napari_lbs._core.gap._nested import MEAN_EFFECTS, Scene, select_effects
+from napari_lbs._core.gap._optics_power import optics_power_test
 from napari_lbs._core.refine import RefineSettings, particle_hologram, refine_particles
 
-__all__ = ["SceneDiagnosisSettings", "SceneDiagnosis", "diagnose_scene", "OPAQUE_KAPPA"]
+__all__ = ["SceneDiagnosisSettings", "SceneDiagnosis", "diagnose_scene"]
 
-OPAQUE_KAPPA = 1.0  # an absorption length λ/(4πκ) of 0.05 µm at 660 nm: opaque for a sphere of microns
 _DEPTH_GROUPS = 6  # depth groups of the scene's particles for a depth-dependent effect
 _FLOOR_CYCLES = 0.35  # cycles per pixel above which the residual's power is its white floor
 _BANDS = (0.0, 0.02, 0.05, 0.1, 0.2, 0.35, 0.5)  # cycles per pixel, the report's frequency bands
@@ -66,8 +63,8 @@ class SceneDiagnosisSettings:
     Attributes
     ----------
     particles : int
-        The strongest found particles whose optics are tested (each fitted under every
-        particle model).
+        The most of the scene's particles (the strongest found first) rendered under each
+        particle model for the optics test.
     scene_particles : int
         The most particles found and fitted (index contrast and absorption free) for the frame's scene:
         every particle left out stays in the residual as structure.
@@ -82,7 +79,7 @@ class SceneDiagnosisSettings:
         withheld, rendering them named blur and coherence where ``0.5`` (the Nyquist disc,
         what the fits model) named nothing.
     index_grid : tuple of float
-        Index contrasts at which transparent spheres are fitted.
+        Index contrasts at which transparent spheres are rendered for the optics test.
     level_z : float
         The sign test's z an effect's held-out gain needs over the ``grid²`` tiles to be
         selected (tiles gaining less tiles losing, over the root of their number: 3 is 14 of
@@ -99,7 +96,7 @@ class SceneDiagnosisSettings:
         How the particles are fitted.
     """
 
-    particles: int = 24
+    particles: int = 64
     scene_particles: int = 256
     looks: int = 2
     reach_cycles_per_px: float = 0.5
@@ -145,47 +142,28 @@ class SceneDiagnosis:
         return json.dumps(json_safe(self.report), indent=1, allow_nan=False)
 
 
-def _particle_optics(data: np.ndarray, guesses, config: ExperimentConfig, settings: SceneDiagnosisSettings, progress, should_stop) -> dict:
-    """Opaque against transparent spheres, particle by particle: the test and the fitted numbers."""
-    fits = {}
-    models = {"opaque": {"index_contrast": 0.0, "absorption": OPAQUE_KAPPA}}
-    models.update({f"{v:g}": {"index_contrast": float(v), "absorption": 0.0} for v in settings.index_grid})
-    for name, fixed in models.items():
-        if should_stop is not None and should_stop():
-            raise Stopped()
-        begin_phase(progress, f"particle optics: {len(guesses)} particles as {'opaque' if name == 'opaque' else 'transparent, index contrast ' + name} spheres")
-        fitted = refine_particles(data, guesses, config, fixed=fixed, settings=settings.refine, progress=progress, should_stop=should_stop)
-        # a fit may drop a guess (a twin of another): rows stay aligned by the guess they started from
-        fits[name] = fitted.set_index("guess").reindex(np.arange(len(guesses)))
-    costs = np.stack([fits[name]["fit_residual"].to_numpy(np.float64) ** 2 for name in models])
-    refined = np.stack([fits[name]["refined"].fillna(False).to_numpy(bool) for name in models]).all(axis=0) & np.isfinite(costs).all(axis=0)
-    transparent = costs[1:, refined]
-    best = np.argmin(transparent, axis=0)
-    difference = costs[0, refined] - transparent.min(axis=0)  # > 0: transparent spheres fit better
-    n = int(difference.size)
-    # a sign test over the particles, as the effects' over the tiles: a pair fitted as one
-    # particle or a sphere cut by the frame's edge swings its own difference by far more than
-    # the optics do, and counting particles keeps it to one vote
-    better, worse = int(np.sum(difference > 0)), int(np.sum(difference < 0))
-    z = float((better - worse) / np.sqrt(better + worse)) if better + worse > 2 else 0.0
-    names = list(models)
-    chosen = "transparent" if z >= settings.level_z else "opaque"
-    sizes = np.stack([fits[name]["diameter_um"].to_numpy(np.float64)[refined] for name in names])
-    diameters = sizes[0] if chosen == "opaque" else sizes[1:][best, np.arange(n)]
-    index_values = np.array([float(names[1 + b]) for b in best]) if n else np.empty(0)
-    record = {
-        "particles": n,
-        "model": chosen,
-        "z": z,
-        "transparent_better": better,
-        "transparent_worse": worse,
-        "mean_difference": float(difference.mean()) if n else None,
-        "mean_squared_residual": {name: float(np.mean(costs[i, refined])) if n else None for i, name in enumerate(names)},
-        "index_contrast_median": float(np.median(index_values)) if n else None,
-        "index_contrast_quartiles": np.percentile(index_values, [25, 75]).tolist() if n else None,
-        "diameter_median_um": float(np.median(diameters)) if n else None,
-        "diameter_quartiles_um": np.percentile(diameters, [25, 75]).tolist() if n else None,
-    }
+def _optics(data: np.ndarray, table, selection, config: ExperimentConfig, split: TileSplit, settings: SceneDiagnosisSettings, progress, should_stop) -> dict:
+    """The particle optics test (`optics_power_test`) on the scene's strongest particles, through the camera's blur the effects found; their sizes."""
+    final = selection.fits["+".join(selection.chosen) or "baseline"].params
+    blur_px = 0.0
+    if "sensor_blur" in selection.chosen:
+        blur_px = float(np.mean([fit["sensor_blur.sigma_px"] for fit in final]))
+    if "coherence" in selection.chosen and len(table):
+        # a source's blur at the particles' median depth, added in quadrature to the sensor's
+        theta = float(np.mean([fit["coherence.theta_mrad"] for fit in final]))
+        blur_px = float(np.hypot(blur_px, theta * 1e-3 * float(np.median(table["z_um"])) / config.optics.pixel_um))
+    tested = table.iloc[: settings.particles]
+    record = {"method": "fine-fringe power", "particles": 0, "model": "undecided", "z": 0.0, "transparent_better": 0, "transparent_worse": 0,
+              "index_contrast": None, "heldout_error": {}, "slope": {}}
+    if len(tested):
+        begin_phase(progress, f"particle optics: {len(tested)} particles rendered as opaque and as transparent spheres")
+        steps = Steps(1 + len(settings.index_grid), progress=progress, should_stop=should_stop, heartbeat_s=0.5)
+        record = optics_power_test(data, tested, config, split, index_grid=settings.index_grid, blur_px=blur_px, settings=settings.refine,
+                                   level_z=settings.level_z, steps=steps)
+    diameters = tested["diameter_um"].to_numpy(np.float64)
+    record.update({"camera_blur_px": blur_px,
+                   "diameter_median_um": float(np.median(diameters)) if diameters.size else None,
+                   "diameter_quartiles_um": np.percentile(diameters, [25, 75]).tolist() if diameters.size else None})
     return record
 
 
@@ -341,12 +319,11 @@ def diagnose_scene(hologram: np.ndarray, config: ExperimentConfig, *, settings: 
 
     begin_phase(progress, "particles found in the back-propagated volume")
     found = pd.DataFrame(_found(data, config, max(settings.particles, settings.scene_particles), progress, should_stop)).drop(columns="focus")
-    found["guess"] = np.arange(len(found))
-    optics = _particle_optics(data, found.iloc[: settings.particles], config, settings, progress, should_stop)
     table, scene = _scene(data, found, config, settings, progress, should_stop)
     split = TileSplit.of(data.shape, grid=settings.grid)
     begin_phase(progress, f"the catalog's effects around {len(table)} fitted particles")
     selection = select_effects(data, scene, split, level_z=settings.level_z, progress=progress, should_stop=should_stop)
+    optics = _optics(data, table, selection, config, split, settings, progress, should_stop)
     frame_spectra = tile_spectra(data - 1.0, split)
     baseline_share = _structure(selection.fits["baseline"].residuals, split, frame_spectra)[0]
     final = selection.fits["+".join(selection.chosen) or "baseline"]
@@ -365,7 +342,7 @@ def diagnose_scene(hologram: np.ndarray, config: ExperimentConfig, *, settings: 
     phase_selected = bool(optics["model"] == "transparent")
     # the particles' optics and the camera's noise and levels leave the fitted mean, so the gap, as it is
     effects.append({"id": "particle_phase", "gap_after": baseline_share, "shrink": 0.0, "z": optics["z"], "selected": phase_selected,
-                    "params": {"index_contrast": optics["index_contrast_median"], "transmission": 1.0} if phase_selected else {}})
+                    "params": {"index_contrast": optics["index_contrast"], "transmission": 1.0} if phase_selected else {}})
     shot = selection.shot_noise
     shot_selected = bool(shot["z"] >= settings.level_z and shot["gain"] > 0)
     effects.append({"id": "shot_noise", "gap_after": baseline_share, "shrink": 0.0, "z": shot["z"], "heldout_gain_nats": shot["gain"], "selected": shot_selected,
