@@ -264,8 +264,7 @@ def test_transparent_spheres_are_told_from_opaque_ones_by_where_their_fine_fring
     places = pd.DataFrame({"x_um": rng.uniform(60, 500, 8), "y_um": rng.uniform(60, 500, 8), "z_um": rng.uniform(1900, 3500, 8), "diameter_um": rng.uniform(20, 30, 8)})
     frame = particle_hologram((SIZE, SIZE), places.assign(index_contrast=index_contrast, absorption=absorption), config, reach_cycles_per_px=1.0)
     frame = frame + rng.normal(0.0, 0.01, frame.shape)
-    result, power = optics_power_test(frame, places, config, TileSplit.of(frame.shape), index_grid=(0.12, 0.26, 0.40))
-    assert power.shape == frame.shape and power.min() >= 0.0
+    result = optics_power_test(frame, places, config, TileSplit.of(frame.shape), index_grid=(0.12, 0.26, 0.40))
     assert result["model"] == expected, result
     if expected == "transparent":
         assert result["index_contrast"] == index_contrast and abs(result["slope"][f"{index_contrast:g}"] - 1.0) < 0.2

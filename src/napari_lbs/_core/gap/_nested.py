@@ -41,7 +41,7 @@ from napari_lbs._core.foundation import ProgressCallback, Steps, StopCallback
 from napari_lbs._core.gap._heldout import TileSplit, model_probabilities, tile_spectra, whittle_loglik
 from napari_lbs._core.physics import EFFECTS, sensor_image
 
-__all__ = ["MEAN_EFFECTS", "FrameFit", "Scene", "Selection", "fit_frame", "select_effects", "shot_noise_test"]
+__all__ = ["MEAN_EFFECTS", "FrameFit", "Scene", "Selection", "fit_frame", "select_effects"]
 
 # the parameters each effect of the mean fits (the others of its catalog entry stay neutral)
 MEAN_EFFECTS = {
@@ -228,7 +228,7 @@ def _gain(better: np.ndarray, worse: np.ndarray) -> tuple[float, float]:
     return float(difference.sum()), float(z)
 
 
-def shot_noise_test(fit: FrameFit, split: TileSplit, *, particle_power: np.ndarray | None = None) -> dict:
+def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
     """Does the residual's variance grow with the light? A held-out test of a signed slope in the mean.
 
     The residual is high-passed (less its Gaussian blur of σ = 1.5 px) to keep the noise and
@@ -236,9 +236,7 @@ def shot_noise_test(fit: FrameFit, split: TileSplit, *, particle_power: np.ndarr
     imperfect particle model leaves — the local fringe amplitude ``|mean - blur(mean, 8 px)|``
     and the model's own local fine-fringe power ``blur((mean - blur(mean, 1.5 px))², 3 px)``,
     where the rings beyond the scene's rendered reach lie, which a pixel records and the
-    model does not, and ``particle_power`` where given (the fine-fringe power the particles
-    put on the frame rendered to 1 cycle per pixel, `optics_power_test`: a transparent
-    sphere's refracted rings reach far beyond its fitted patch) — with and without the mean itself (photon noise is larger on the bright
+    model does not — with and without the mean itself (photon noise is larger on the bright
     fringes than on the dark ones), and the Gaussian log-likelihoods of the two are compared
     on the other colour's tiles, every other pixel of every other row. ``log10_photons`` is
     the catalog's parameter: photons per unit of normalised light, from the slope corrected
@@ -254,8 +252,6 @@ def shot_noise_test(fit: FrameFit, split: TileSplit, *, particle_power: np.ndarr
         residual, mean = fit.residuals[fitted_on], fit.means[fitted_on]
         high = residual - ndimage.gaussian_filter(residual, _HIGH_PASS_PX)
         misfit = (np.abs(mean - ndimage.gaussian_filter(mean, 8.0)), ndimage.gaussian_filter((mean - ndimage.gaussian_filter(mean, _HIGH_PASS_PX)) ** 2, 3.0))
-        if particle_power is not None:
-            misfit = (*misfit, particle_power)
         # per tile: the high-passed residual, the null's regressors (1 and the misfit's), the mean
         samples = [(high[w][::2, ::2].ravel(), np.stack([np.ones(high[w][::2, ::2].size)] + [m[w][::2, ::2].ravel() for m in misfit], axis=1), mean[w][::2, ::2].ravel(), c)
                    for w, c in zip(split.windows(), colours, strict=True)]

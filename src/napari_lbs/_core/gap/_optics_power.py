@@ -50,7 +50,7 @@ def _models(index_grid) -> dict[str, dict]:
 
 
 def optics_power_test(data: np.ndarray, table, config: ExperimentConfig, split: TileSplit, *, index_grid, blur_px: float = 0.0,
-                      settings: RefineSettings | None = None, level_z: float = 3.0, steps: Steps | None = None) -> tuple[dict, np.ndarray]:
+                      settings: RefineSettings | None = None, level_z: float = 3.0, steps: Steps | None = None) -> dict:
     """Opaque against transparent spheres by the fine-fringe power each puts where (module docstring).
 
     Parameters
@@ -76,23 +76,19 @@ def optics_power_test(data: np.ndarray, table, config: ExperimentConfig, split: 
 
     Returns
     -------
-    record : dict
+    dict
         ``model`` (``"transparent"`` from ``z >= level_z``, ``"opaque"`` to
         ``z <= -level_z``, else ``"undecided"``: the frame's fine fringes cannot tell), ``z``, ``transparent_better`` and
         ``transparent_worse`` (tiles), ``index_contrast`` (the best transparent model's),
         ``heldout_error`` and ``slope`` per model (the fitted scale of its power: near 1
         for the model the frame holds, through its camera), ``particles``.
-    power : (rows, cols) array
-        The fine-fringe power the best-predicting particle model puts on the frame, its
-        fitted slope applied: where the particles' misfit leaves the most fine structure
-        (the shot-noise test's nuisance, `shot_noise_test`).
     """
     settings = settings or RefineSettings()
     measured = fine_fringe_power(data)
     light = ndimage.gaussian_filter(data, _SMOOTH_PX)
     windows, colours = split.windows(), split.colours()
     check = (lambda: bool(steps.check())) if steps is not None else None
-    errors, slopes, powers = {}, {}, {}
+    errors, slopes = {}, {}
     for name, optics in _models(index_grid).items():
         rendered = particle_hologram(data.shape, table.assign(**optics), config, settings=settings, reach_cycles_per_px=1.0, should_stop=check)
         if blur_px > 0:
@@ -109,7 +105,7 @@ def optics_power_test(data: np.ndarray, table, config: ExperimentConfig, split: 
             for k, (w, c) in enumerate(zip(windows, colours, strict=True)):
                 if c != fitted_on:
                     error[k] = float(np.mean((measured[w] - coefficients[0] - coefficients[1] * predicted[w] - coefficients[2] * light[w]) ** 2))
-        errors[name], slopes[name], powers[name] = error, float(np.mean(fitted_slopes)), predicted
+        errors[name], slopes[name] = error, float(np.mean(fitted_slopes))
         if steps is not None:
             steps.advance()
     transparent = [name for name in errors if name != "opaque"]
@@ -117,8 +113,7 @@ def optics_power_test(data: np.ndarray, table, config: ExperimentConfig, split: 
     difference = errors["opaque"] - errors[best]  # > 0: the transparent model predicts the tile's fine-fringe power better
     better, worse = int(np.sum(difference > 0)), int(np.sum(difference < 0))
     z = float((better - worse) / np.sqrt(better + worse)) if better + worse else 0.0
-    closest = min(errors, key=lambda name: float(errors[name].mean()))
-    record = {
+    return {
         "method": "fine-fringe power",
         "particles": int(len(table)),
         "model": "transparent" if z >= level_z else "opaque" if z <= -level_z else "undecided",
@@ -129,4 +124,3 @@ def optics_power_test(data: np.ndarray, table, config: ExperimentConfig, split: 
         "heldout_error": {name: float(e.mean()) for name, e in errors.items()},
         "slope": slopes,
     }
-    return record, max(slopes[closest], 0.0) * powers[closest]

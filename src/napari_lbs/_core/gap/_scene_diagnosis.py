@@ -40,7 +40,7 @@ from napari_lbs._core.foundation import ExperimentConfig, InputError, ProgressCa
 from napari_lbs._core.gap._detect import find_particles
 from napari_lbs._core.gap._heldout import TileSplit, tile_spectra
 from napari_lbs._core.gap._levels import levels_test
-from napari_lbs._core.gap._nested import MEAN_EFFECTS, Scene, select_effects, shot_noise_test
+from napari_lbs._core.gap._nested import MEAN_EFFECTS, Scene, select_effects
 from napari_lbs._core.gap._optics_power import optics_power_test
 from napari_lbs._core.refine import RefineSettings, particle_hologram, refine_particles
 
@@ -142,8 +142,8 @@ class SceneDiagnosis:
         return json.dumps(json_safe(self.report), indent=1, allow_nan=False)
 
 
-def _optics(data: np.ndarray, table, selection, config: ExperimentConfig, split: TileSplit, settings: SceneDiagnosisSettings, progress, should_stop) -> tuple:
-    """The particle optics test (`optics_power_test`) on the scene's strongest particles, through the camera's blur the effects found; their sizes; the fine-fringe power they put on the frame."""
+def _optics(data: np.ndarray, table, selection, config: ExperimentConfig, split: TileSplit, settings: SceneDiagnosisSettings, progress, should_stop) -> dict:
+    """The particle optics test (`optics_power_test`) on the scene's strongest particles, through the camera's blur the effects found; their sizes."""
     final = selection.fits["+".join(selection.chosen) or "baseline"].params
     blur_px = 0.0
     if "sensor_blur" in selection.chosen:
@@ -153,19 +153,18 @@ def _optics(data: np.ndarray, table, selection, config: ExperimentConfig, split:
         theta = float(np.mean([fit["coherence.theta_mrad"] for fit in final]))
         blur_px = float(np.hypot(blur_px, theta * 1e-3 * float(np.median(table["z_um"])) / config.optics.pixel_um))
     tested = table.iloc[: settings.particles]
-    power = None
     record = {"method": "fine-fringe power", "particles": 0, "model": "undecided", "z": 0.0, "transparent_better": 0, "transparent_worse": 0,
               "index_contrast": None, "heldout_error": {}, "slope": {}}
     if len(tested):
         begin_phase(progress, f"particle optics: {len(tested)} particles rendered as opaque and as transparent spheres")
         steps = Steps(1 + len(settings.index_grid), progress=progress, should_stop=should_stop, heartbeat_s=0.5)
-        record, power = optics_power_test(data, tested, config, split, index_grid=settings.index_grid, blur_px=blur_px, settings=settings.refine,
-                                          level_z=settings.level_z, steps=steps)
+        record = optics_power_test(data, tested, config, split, index_grid=settings.index_grid, blur_px=blur_px, settings=settings.refine,
+                                   level_z=settings.level_z, steps=steps)
     diameters = tested["diameter_um"].to_numpy(np.float64)
     record.update({"camera_blur_px": blur_px,
                    "diameter_median_um": float(np.median(diameters)) if diameters.size else None,
                    "diameter_quartiles_um": np.percentile(diameters, [25, 75]).tolist() if diameters.size else None})
-    return record, power
+    return record
 
 
 def _found(image: np.ndarray, config: ExperimentConfig, most: int, progress, should_stop) -> dict:
@@ -324,7 +323,7 @@ def diagnose_scene(hologram: np.ndarray, config: ExperimentConfig, *, settings: 
     split = TileSplit.of(data.shape, grid=settings.grid)
     begin_phase(progress, f"the catalog's effects around {len(table)} fitted particles")
     selection = select_effects(data, scene, split, level_z=settings.level_z, progress=progress, should_stop=should_stop)
-    optics, particle_power = _optics(data, table, selection, config, split, settings, progress, should_stop)
+    optics = _optics(data, table, selection, config, split, settings, progress, should_stop)
     frame_spectra = tile_spectra(data - 1.0, split)
     baseline_share = _structure(selection.fits["baseline"].residuals, split, frame_spectra)[0]
     final = selection.fits["+".join(selection.chosen) or "baseline"]
@@ -344,9 +343,7 @@ def diagnose_scene(hologram: np.ndarray, config: ExperimentConfig, *, settings: 
     # the particles' optics and the camera's noise and levels leave the fitted mean, so the gap, as it is
     effects.append({"id": "particle_phase", "gap_after": baseline_share, "shrink": 0.0, "z": optics["z"], "selected": phase_selected,
                     "params": {"index_contrast": optics["index_contrast"], "transmission": 1.0} if phase_selected else {}})
-    # photon noise judged again with the particles' far rings as a nuisance: a transparent
-    # sphere's refracted rings, beyond the scene's rendered reach, are structure, not noise
-    shot = shot_noise_test(final, split, particle_power=particle_power) if particle_power is not None else selection.shot_noise
+    shot = selection.shot_noise
     shot_selected = bool(shot["z"] >= settings.level_z and shot["gain"] > 0)
     effects.append({"id": "shot_noise", "gap_after": baseline_share, "shrink": 0.0, "z": shot["z"], "heldout_gain_nats": shot["gain"], "selected": shot_selected,
                     "params": {"log10_photons": shot["log10_photons"]} if shot["log10_photons"] is not None else {}})
