@@ -126,7 +126,7 @@ def _effects_figure(report: dict, levels: SceneDiagnosisSettings):
             which.text(0, row, " " + note, va="center", fontsize=7)
     which.axvline(levels.level_z, color="k", lw=0.8, ls="--", label=f"selection level z = {levels.level_z:g}")
     which.axvline(0, color="k", lw=0.5)
-    which.set_xlabel("held-out gain z (sign test over the tiles; particle optics: over the particles)")
+    which.set_xlabel("held-out gain z (a sign test over the held-out tiles)")
     which.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.2))
     which.set_title(f"which: {_named(report['verdict'])} (red: selected)", fontsize=10)
     gap = report["gap"]
