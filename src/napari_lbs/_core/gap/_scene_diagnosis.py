@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
-from napari_lbs._core.foundation import ExperimentConfig, InputError, ProgressCallback, Steps, StopCallback, Stopped, as_hologram, begin_phase, json_safe
+from napari_lbs._core.foundation import ExperimentConfig, InputError, ProgressCallback, Steps, StopCallback, as_hologram, begin_phase, json_safe
 from napari_lbs._core.gap._detect import find_particles
 from napari_lbs._core.gap._heldout import TileSplit, tile_spectra
 from napari_lbs._core.gap._levels import levels_test
