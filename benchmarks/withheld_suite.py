@@ -39,7 +39,7 @@ vignetting) is what any choice about them is made on. `OUTSIDE_FROZEN` (seed 915
 controls, astigmatism, motion and pixel gain at two strengths, the column pattern once) is
 judged on only: its design and seed were written and committed before its first run.
 
-Run ``python benchmarks/withheld_suite.py make frozen DIR`` (or ``development``,
+Run ``python benchmarks/withheld_suite.py make frozen DIR`` (or ``frozen-2``, ``frozen-3``, ``development``,
 ``outside-development``, ``outside-frozen``) to write the holograms and ``design.json`` (a few
 minutes on 2 cores); ``bench_diagnosis.py suite DIR`` scores the catalog sets and
 ``bench_scene_diagnosis.py suite DIR`` every set, the outside ones included.
@@ -146,6 +146,26 @@ FROZEN_2 = (
     Case("source-disc+polystyrene", 512, {"coherence": {"source_mrad": 2.0}, "particle_phase": {"index": 1.59}}),
 )
 
+# a third frozen set, written when the second had been scored once and a design had been
+# chosen on the development set: committed before its first run, scored once per design
+FROZEN_3_SEED = 83017
+FROZEN_3 = (
+    Case("control-t", 512, spheres_per_512=30, level=150, read_noise=1.8), Case("control-u", 512, spheres_per_512=26, level=160, read_noise=2.4),
+    Case("control-v", 512, spheres_per_512=34, level=140, read_noise=1.4), Case("control-w", 512, spheres_per_512=22, level=170, read_noise=2.0),
+    Case("vignetting", 512, {"illumination": {"falloff": 0.45, "centre": (0.4, 0.35)}}),
+    Case("photons", 512, {"shot_noise": {"photons": 90.0}}),
+    Case("bits", 512, {"quantization": {"step_counts": 7}}),
+    Case("crosstalk", 512, {"sensor_blur": {"kernel": "binomial3"}}),
+    Case("source-disc", 512, {"coherence": {"source_mrad": 2.2}}),
+    Case("polystyrene", 512, {"particle_phase": {"index": 1.59}}),
+    Case("low-index", 512, {"particle_phase": {"index": 1.47}}),
+    Case("etalon", 512, {"parasitic_fringes": {"etalon": 0.05, "period_px": 14.0, "angle_rad": 1.1}}),
+    Case("crosstalk+vignetting", 512, {"sensor_blur": {"kernel": "binomial5"}, "illumination": {"falloff": 0.4, "centre": (0.6, 0.55)}}),
+    Case("source-disc+photons", 512, {"coherence": {"source_mrad": 2.8}, "shot_noise": {"photons": 80.0}}),
+    Case("etalon+bits", 512, {"parasitic_fringes": {"etalon": 0.05, "period_px": 10.0, "angle_rad": 2.2}, "quantization": {"step_counts": 8}}),
+    Case("polystyrene+crosstalk", 512, {"particle_phase": {"index": 1.59}, "sensor_blur": {"kernel": "binomial3"}}),
+)
+
 DEVELOPMENT_SEED = 1234
 DEVELOPMENT = (
     Case("control-1", 512), Case("control-2", 512, spheres_per_512=35, level=160, read_noise=2.0), Case("control-3", 512, spheres_per_512=22, level=140, read_noise=1.2),
@@ -189,7 +209,7 @@ OUTSIDE_FROZEN = (
     Case("pixel-gain-strong", 512, {"pixel_gain": {"rms": 0.03}}),
 )
 SUITES = {
-    "frozen": (FROZEN, FROZEN_SEED), "frozen-2": (FROZEN_2, FROZEN_2_SEED), "development": (DEVELOPMENT, DEVELOPMENT_SEED),
+    "frozen": (FROZEN, FROZEN_SEED), "frozen-2": (FROZEN_2, FROZEN_2_SEED), "frozen-3": (FROZEN_3, FROZEN_3_SEED), "development": (DEVELOPMENT, DEVELOPMENT_SEED),
     "outside-frozen": (OUTSIDE_FROZEN, OUTSIDE_FROZEN_SEED), "outside-development": (OUTSIDE_DEVELOPMENT, OUTSIDE_DEVELOPMENT_SEED),
 }
 
