@@ -81,6 +81,47 @@ def test_refine_fits_the_built_in_example_with_no_training(tmp_path):
     assert main(argv) == 2  # no clobbering without --force
 
 
+def test_refine_finds_the_spheres_the_strong_ones_hid_in_the_built_in_example(tmp_path, monkeypatch):
+    """The detector sees the 3 and 2.2 µm spheres; the look in their residual finds the 1.5 and 0.8 µm ones, and every refit lands on the truth."""
+    monkeypatch.setenv("NAPARI_LBS_THREADS", "1")  # one fitting process on one thread: seconds, where spawned workers on a busy machine take tens
+    out = tmp_path / "fit.csv"
+    assert main(["refine", str(EXAMPLE["_hologram.tif"]), "--config", str(EXAMPLE[".toml"]), "--background", str(EXAMPLE["_background.tif"]),
+                 "--dark", str(EXAMPLE["_dark.tif"]), "--patch-um", "12.8", "--out", str(out)]) == 0
+    fit, truth = read_particles(out), read_particles(EXAMPLE["_truth.csv"])
+    assert fit["x_um"].size == 4 and fit["refined"].all()
+    for i in range(4):
+        nearest = int(np.argmin(np.hypot(fit["x_um"] - truth["x_um"][i], fit["y_um"] - truth["y_um"][i])))
+        assert np.hypot(fit["x_um"][nearest] - truth["x_um"][i], fit["y_um"][nearest] - truth["y_um"][i]) < 0.1
+        assert abs(fit["z_um"][nearest] - truth["z_um"][i]) < 0.2
+        assert abs(fit["diameter_um"][nearest] - truth["diameter_um"][i]) < 0.05
+        assert abs(fit["index_contrast"][nearest] - truth["index_contrast"][i]) < 0.02
+    find = json.loads(out.with_suffix(".json").read_text())["find"]
+    assert find["detections"] == 2 and find["detection_rounds"] == 3 and find["rounds"][0]["found"] == 2 and find["rounds"][-1]["found"] == 0
+
+
+def test_a_stop_asked_in_a_look_at_the_residual_ends_the_refinement_at_once():
+    import time
+
+    from napari_lbs._core import Stopped, read_hologram
+    from napari_lbs._core.pipeline import refine_hologram
+
+    dark = read_hologram(EXAMPLE["_dark.tif"])
+    hologram = (read_hologram(EXAMPLE["_hologram.tif"]) - dark) / (read_hologram(EXAMPLE["_background.tif"]) - dark)
+    asked = []
+
+    class Listener:
+        def __call__(self, done, total):
+            pass
+
+        def phase(self, name):
+            if name.startswith("look 2"):
+                asked.append(time.monotonic())
+
+    with pytest.raises(Stopped):
+        refine_hologram(hologram, load_config(EXAMPLE[".toml"]), patch_um=12.8, progress=Listener(), should_stop=lambda: bool(asked))
+    assert asked and time.monotonic() - asked[0] < 2.0
+
+
 def test_the_example_is_what_its_script_makes(tmp_path):
     spec = importlib.util.spec_from_file_location("make_microscope_example", SCRIPT)
     script = importlib.util.module_from_spec(spec)

@@ -196,7 +196,7 @@ def _cmd_refine(args) -> None:
 
     request = pipeline.RefineRequest(args.holo, Path(args.out), load_config(args.config), background_path=args.background, dark_path=args.dark,
                                      index_contrast=args.index_contrast, medium_index=args.medium_index, max_particles=args.max_particles,
-                                     depth_window_um=args.depth_window_um, patch_um=args.patch_um, workers=available_threads(), replace=args.force)
+                                     detection_rounds=args.detection_rounds, depth_window_um=args.depth_window_um, patch_um=args.patch_um, workers=available_threads(), replace=args.force)
     _run(pipeline.refine, _checked(args, request), "refine", log=_summary)
 
 
@@ -353,7 +353,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--dark", metavar="DARK", help="a frame taken without light (the camera's dark counts), taken off the hologram and the background")
     p.add_argument("--index-contrast", type=_number(-0.9, 2.5), default=0.26, metavar="N", help="n_p - n_m where every fit starts (default 0.26: polystyrene in water)")
     p.add_argument("--medium-index", type=_number(1.0, 5.0), default=1.33, metavar="N", help="refractive index of the liquid the particles are in (default 1.33: water)")
-    p.add_argument("--max-particles", type=_integer(1), default=64, metavar="N", help="the strongest detections fitted (default 64)")
+    p.add_argument("--max-particles", type=_integer(1), default=64, metavar="N", help="the most particles the table holds: the strongest detections, then the residual's (default 64)")
+    p.add_argument("--detection-rounds", type=_integer(1), default=pipeline.DETECTION_ROUNDS, metavar="N",
+                   help=f"looks for particles: the hologram, then the residual the fitted particles leave, until one finds nothing new (default {pipeline.DETECTION_ROUNDS}; 1: the first look's detections alone)")
     p.add_argument("--depth-window-um", type=_number(0.0, above=True), metavar="UM", help="depths each fit scans on both sides of its guess (default: a quarter of the config's depth range, at most 400)")
     p.add_argument("--patch-um", type=_number(0.0, above=True), metavar="UM", help="largest patch edge each fit sees (default: 128 pixels of the pitch the fit sees, binned where finer than half the medium wavelength); narrower patches suit crowded fields")
     p.set_defaults(run=_cmd_refine)

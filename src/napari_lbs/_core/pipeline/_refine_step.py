@@ -2,7 +2,9 @@
 
 The classical detector (`find_particles`: the back-propagated field's energy, peak by peak)
 gives each particle's position and depth; `refine_particles` then fits its patch of the
-hologram, binned first where its pitch is finer than the fringes need (`fringe_binning`). Nothing is trained, so a setup of any scale — a microscope's sub-wavelength pixels
+hologram, binned first where its pitch is finer than the fringes need (`fringe_binning`).
+The detector then looks again in what the fitted particles leave (`_residual_rounds`): in a
+crowded field the strong scatterers hide the weak ones. Nothing is trained, so a setup of any scale — a microscope's sub-wavelength pixels
 as well as a lensless sensor's — is refined from its config alone (docs/microscopy.md).
 """
 
@@ -17,11 +19,18 @@ import numpy as np
 from napari_lbs._core.foundation import ExperimentConfig, InputError, ProgressCallback, StopCallback, write_json
 from napari_lbs._core.pipeline._common import Log, StepResult, _background, _hologram, _quiet, _source, provenance
 
-__all__ = ["RefineRequest", "fringe_binning", "refine", "refine_hologram"]
+__all__ = ["DETECTION_ROUNDS", "RefineRequest", "fringe_binning", "refine", "refine_hologram"]
 
 # A camera's clipped focal spot shows as a plateau at the frame's maximum; a measured frame's
 # maximum is otherwise reached by a pixel or two. Clipping biases the fit (docs/microscopy.md).
 _SATURATED_PIXELS = 5
+# Looks for particles by default: the hologram, then the residual twice. The built-in
+# example with the default patches needs all three: the second look finds the 1.5 µm sphere
+# and the 3 µm one whose first fit failed, the third the 0.8 µm one (docs/microscopy.md).
+DETECTION_ROUNDS = 3
+# The column in which a table being refined carries each particle's starting index contrast
+# through the looks in its residual (`_residual_rounds`).
+_START_INDEX = "start_index_contrast"
 
 
 @dataclass(frozen=True)
@@ -45,7 +54,11 @@ class RefineRequest:
     medium_index : float
         Refractive index of the liquid the particles are in (water 1.33).
     max_particles : int
-        The strongest detections kept.
+        The most particles the table holds: the strongest detections, then the residual's.
+    detection_rounds : int
+        Looks for particles: the first in the hologram, each later one in the residual the
+        fitted particles leave, until one finds nothing new (`refine_hologram`); 1 fits the
+        first look's detections alone.
     depth_window_um : float, optional
         Depths each fit scans on both sides of its guess (µm, the config's convention);
         default a quarter of the config's depth range, at most `RefineSettings`'s.
@@ -70,6 +83,7 @@ class RefineRequest:
     index_contrast: float = 0.26
     medium_index: float = 1.33
     max_particles: int = 64
+    detection_rounds: int = DETECTION_ROUNDS
     depth_window_um: float | None = None
     patch_um: float | None = None
     workers: int = 1
@@ -120,16 +134,118 @@ def _binned(hologram: np.ndarray, config: ExperimentConfig, factor: int) -> tupl
     return blocks, replace(config, optics=replace(config.optics, pixel_um=config.optics.pixel_um * factor))
 
 
+def _residual_detector(config: ExperimentConfig, *, max_particles: int, progress: ProgressCallback | None, should_stop: StopCallback | None):
+    """``propose(image)`` for `residual_particles`: `find_particles`' peaks in a residual, each started at several diameters, and the peaks counted.
+
+    The detector measures no size. A particle the strong ones hid is often weaker than
+    they are, and a sub-micrometre sphere started at the config's mean diameter falls
+    between the fit's size steps (0.4 µm) onto the wrong side of its size–index ridge (the
+    built-in example's 0.8 µm sphere, residual fit from 1.75 µm: 0.95 µm, index contrast
+    1.44, 2 µm off in depth). So every peak starts at the config's smallest, mean and
+    largest diameter; the column ``peak`` says which peak each start is of.
+    """
+    from napari_lbs._core.foundation import Steps
+    from napari_lbs._core.gap import find_particles
+
+    particles = config.particles
+    diameters = np.unique([particles.diameter_min_um, 0.5 * (particles.diameter_min_um + particles.diameter_max_um), particles.diameter_max_um])
+    planes = len(config.volume.planes_um(2.0 * config.volume.z_step_um))
+    peaks: list[int] = []
+
+    def propose(image: np.ndarray) -> dict[str, np.ndarray]:
+        found = find_particles(image, config, max_particles=max_particles, steps=Steps(planes, progress=progress, should_stop=should_stop))
+        count = len(found["x_um"])
+        peaks.append(count)
+        starts = {name: np.tile(found[name], diameters.size) for name in ("x_um", "y_um", "z_um")}
+        return {**starts, "diameter_um": np.repeat(diameters, count), "peak": np.tile(np.arange(count), diameters.size)}
+
+    return propose, peaks
+
+
+def _explained(pending, table) -> np.ndarray:
+    """For each unrefined row of ``pending``, whether a refined particle of ``table`` lies within a quarter of its fitted diameter laterally.
+
+    An unrefined row keeps its detection's guess, whose depth is the back-propagated focal
+    spot's (a few micrometres off) and whose diameter is the config's mean: only its
+    position says which particle it was, as `refine_particles`' twins are told apart.
+    """
+    refined = table[table["refined"].astype(bool)]
+    if pending.empty or refined.empty:
+        return np.zeros(len(pending), dtype=bool)
+    lateral = np.hypot(pending["x_um"].to_numpy()[:, None] - refined["x_um"].to_numpy()[None],
+                       pending["y_um"].to_numpy()[:, None] - refined["y_um"].to_numpy()[None])
+    return (lateral < 0.25 * refined["diameter_um"].to_numpy()[None]).any(axis=1)
+
+
+def _residual_rounds(image: np.ndarray, table, config: ExperimentConfig, settings, *, rounds: int, max_particles: int,
+                     progress: ProgressCallback | None, should_stop: StopCallback | None) -> tuple[object, list[dict]]:
+    """The refined ``table`` after up to ``rounds`` looks in its residual; each look's record.
+
+    Each look renders the refined particles (`particle_hologram`), looks for peaks in what
+    they leave (`residual_particles` with `_residual_detector`: the detector's peaks fitted
+    on the residual, the best-fitting start of each kept where the fit measures the
+    sample's material and no particle of the table), and refits every particle with the
+    new ones on the hologram (`refine_particles`, two rounds: the second holds each
+    patch's neighbours at their refits). Each particle restarts at its fitted position,
+    depth and diameter and at its first start's index contrast (the table's
+    `_START_INDEX`): a fit its missed neighbours pulled into another index valley (the
+    built-in example's 2.2 µm sphere: 0.54 for 0.26) would otherwise anchor the refit's
+    valley search there. The looks stop when one finds nothing new or the table holds
+    ``max_particles``. Rows the fit did not refine stay out of the residual's model and of
+    the refits, and out of the table once a refined particle lies on them (`_explained`).
+    """
+    from dataclasses import replace
+
+    import pandas as pd
+
+    from napari_lbs._core.foundation import begin_phase
+    from napari_lbs._core.refine import refine_particles, residual_particles
+
+    records = []
+    for look in range(2, rounds + 1):
+        room = max_particles - len(table)
+        if room < 1:
+            break
+        started = time.perf_counter()
+        begin_phase(progress, f"look {look} in the residual")
+        propose, peaks = _residual_detector(config, max_particles=room, progress=progress, should_stop=should_stop)
+        refined = table["refined"].astype(bool).to_numpy()
+        fitted, pending = table[refined], table[~refined]
+        found = residual_particles(image, fitted, config, propose=propose, settings=settings, background=np.ones(image.shape), progress=progress,
+                                   should_stop=should_stop)
+        if found.empty:
+            records.append({"peaks": peaks[0], "found": 0, "kept": len(table), "seconds": time.perf_counter() - started})
+            break
+        # one particle per peak: the start that fitted it best
+        found = found.sort_values("fit_residual", kind="stable").drop_duplicates("peak").sort_values("peak").drop(columns="peak").head(room)
+        restart = pd.concat([fitted, found], ignore_index=True)
+        restart["index_contrast"] = restart[_START_INDEX].fillna(settings.index_contrast)
+        begin_phase(progress, f"fit {len(restart)} particles")
+        refit = refine_particles(image, restart, config, settings=replace(settings, rounds=max(settings.rounds, 2)), progress=progress,
+                                 should_stop=should_stop)
+        table = pd.concat([refit, pending[~_explained(pending, refit)]], ignore_index=True)
+        records.append({"peaks": peaks[0], "found": len(found), "kept": len(table), "seconds": time.perf_counter() - started})
+    return table, records
+
+
 def refine_hologram(hologram: np.ndarray, config: ExperimentConfig, *, guesses=None, index_contrast: float = 0.26, medium_index: float = 1.33,
-                    max_particles: int = 64, depth_window_um: float | None = None, patch_um: float | None = None, workers: int = 1,
-                    progress: ProgressCallback | None = None, should_stop: StopCallback | None = None) -> tuple[dict, dict]:
-    """The particles of a normalised hologram: `find_particles`' guesses (or ``guesses``) fitted by `refine_particles`.
+                    max_particles: int = 64, detection_rounds: int = DETECTION_ROUNDS, depth_window_um: float | None = None, patch_um: float | None = None,
+                    workers: int = 1, progress: ProgressCallback | None = None, should_stop: StopCallback | None = None) -> tuple[dict, dict]:
+    """The particles of a normalised hologram: `find_particles`' guesses (or ``guesses``) fitted by `refine_particles`, then those their residual holds.
 
     Where the pitch is finer than half the medium wavelength, the hologram is first binned
     (`fringe_binning`): the fit sees every propagating fringe on a fraction of the pixels,
     each binned pixel integrating its area as the model's pixels do, and its patches of
     `RefineSettings.patch_px` pixels reach as many times farther. Positions are reported in the
     hologram's own coordinates (pixel ``(r, c)`` at ``(c, r) × pixel_um``).
+
+    A sphere's fringes reach tens of micrometres: in a crowded field the strong scatterers
+    hide the weak ones from the detector, and each fit's patch holds the fringes of the
+    particles missed. So, after the first fits, the detector looks again in the residual
+    the fitted particles leave (the hologram less their modelled scattering, unobstructed
+    light 1), the new particles are fitted there, and every particle is refitted with its
+    neighbours' fitted fringes in its model; up to ``detection_rounds`` looks in all, until
+    one finds nothing new (`_residual_rounds`).
 
     Parameters
     ----------
@@ -138,25 +254,29 @@ def refine_hologram(hologram: np.ndarray, config: ExperimentConfig, *, guesses=N
     config : ExperimentConfig
     guesses : pandas.DataFrame or dict of arrays, optional
         Starting guesses (``x_um, y_um, z_um, diameter_um`` at least; ``index_contrast``
-        where known); default `find_particles`' in the (binned) hologram.
-    index_contrast, medium_index, max_particles, depth_window_um, patch_um, workers
+        where known); default `find_particles`' in the (binned) hologram. Later looks
+        search the residual with `find_particles` either way.
+    index_contrast, medium_index, max_particles, detection_rounds, depth_window_um, patch_um, workers
         As `RefineRequest`'s.
     progress, should_stop
-        One step per depth searched (without ``guesses``), then one per fitted batch;
-        `Stopped` when asked.
+        One step per depth searched (without ``guesses``), then one per fitted batch; in
+        each later look, one per particle rendered, per depth searched and per fitted batch,
+        each phase named as it begins (`begin_phase`). `Stopped` when asked.
 
     Returns
     -------
     (table, record): the refined table as a dict of arrays (docs/formats.md, the columns of
     ``predict --refine``) and what the provenance records of the search and the fit
-    (detector, binning, settings, detections, kept, seconds).
+    (detector, binning, settings, detections, kept, the later looks' ``rounds``, seconds).
     """
     import pandas as pd
 
-    from napari_lbs._core.foundation import Steps
+    from napari_lbs._core.foundation import Steps, begin_phase
     from napari_lbs._core.gap import find_particles
     from napari_lbs._core.refine import RefineSettings, refine_particles
 
+    if not (isinstance(detection_rounds, int) and detection_rounds >= 1):
+        raise InputError(f"detection_rounds: expected a positive integer, got {detection_rounds!r}")
     volume = config.volume
     window = depth_window_um if depth_window_um is not None else min(RefineSettings().depth_window_um, 0.25 * (volume.z_max_um - volume.z_min_um))
     factor = fringe_binning(config, medium_index=medium_index)
@@ -169,6 +289,7 @@ def refine_hologram(hologram: np.ndarray, config: ExperimentConfig, *, guesses=N
     shift_um = 0.5 * (factor - 1) * config.optics.pixel_um
     started = time.perf_counter()
     if guesses is None:
+        begin_phase(progress, "find particles")
         planes = len(volume.planes_um(2.0 * volume.z_step_um))
         found = find_particles(image, fit_config, max_particles=max_particles, steps=Steps(planes, progress=progress, should_stop=should_stop))
         starts = pd.DataFrame({name: found[name] for name in ("x_um", "y_um", "z_um", "diameter_um")})
@@ -178,10 +299,17 @@ def refine_hologram(hologram: np.ndarray, config: ExperimentConfig, *, guesses=N
         starts[["x_um", "y_um"]] = starts[["x_um", "y_um"]].astype(np.float64) - shift_um
         detector = "given"
     searched = time.perf_counter() - started
-    table = refine_particles(image, starts, fit_config, settings=settings, progress=progress, should_stop=should_stop)
+    begin_phase(progress, f"fit {len(starts)} particles")
+    start_index = pd.to_numeric(starts["index_contrast"], errors="coerce").fillna(index_contrast) if "index_contrast" in starts else index_contrast
+    table = refine_particles(image, starts.assign(**{_START_INDEX: start_index}), fit_config, settings=settings, progress=progress, should_stop=should_stop)
+    fit_s = time.perf_counter() - started - searched
+    table, rounds = _residual_rounds(image, table, fit_config, settings, rounds=detection_rounds, max_particles=max_particles, progress=progress,
+                                     should_stop=should_stop)
+    table = table.drop(columns=_START_INDEX)
     table[["x_um", "y_um"]] += shift_um
     record = {"detector": detector, "binning": factor, "settings": asdict(settings), "detections": len(starts), "kept": len(table),
-              "seconds": {"search": searched, "fit": time.perf_counter() - started - searched}}
+              "detection_rounds": detection_rounds, "rounds": rounds,
+              "seconds": {"search": searched, "fit": fit_s, "rounds": time.perf_counter() - started - searched - fit_s}}
     return {name: table[name].to_numpy() for name in table.columns}, record
 
 
@@ -208,12 +336,15 @@ def refine(request: RefineRequest, *, progress: ProgressCallback | None = None, 
     normalised = _normalised(hologram, background, dark)
     started = time.perf_counter()
     table, find = refine_hologram(normalised, request.config, index_contrast=request.index_contrast, medium_index=request.medium_index,
-                                  max_particles=request.max_particles, depth_window_um=request.depth_window_um, patch_um=request.patch_um, workers=request.workers,
-                                  progress=progress, should_stop=should_stop)
+                                  max_particles=request.max_particles, detection_rounds=request.detection_rounds, depth_window_um=request.depth_window_um,
+                                  patch_um=request.patch_um, workers=request.workers, progress=progress, should_stop=should_stop)
     seconds = time.perf_counter() - started
     record = {**provenance(request.config, source=source, background_file=request.background_path and str(request.background_path),
                            dark_file=request.dark_path and str(request.dark_path)), "find": find, "pixels_at_maximum": at_top, "seconds": seconds, "particles": str(out)}
     write_particles(out, table, metadata=record, force=request.replace)
     write_json(record_path, record, force=request.replace)
-    return StepResult(f"refined {find['kept']} of {find['detections']} detections in {source} in {seconds:.1f} s -> {out} (provenance: {record_path})",
+    more = sum(look["found"] for look in find["rounds"])
+    what = (f"{find['kept']} particles ({find['detections']} detections, {more} more found in the residual)" if more
+            else f"{find['kept']} of {find['detections']} detections")
+    return StepResult(f"refined {what} in {source} in {seconds:.1f} s -> {out} (provenance: {record_path})",
                       table, (out, record_path))

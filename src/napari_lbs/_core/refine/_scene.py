@@ -29,7 +29,7 @@ from napari_lbs._core.foundation import ExperimentConfig
 from napari_lbs._core.foundation import PARTICLE_COLUMNS, InputError
 from napari_lbs._core.refine._material import MATERIAL_TOLERANCE, same_material
 from napari_lbs._core.physics import holograms_from_fields, sphere_fields, term_count
-from napari_lbs._core.foundation import ProgressCallback, StopCallback, Stopped
+from napari_lbs._core.foundation import ProgressCallback, Steps, StopCallback
 from napari_lbs._core.refine._patches import check_table as _check_table
 from napari_lbs._core.refine._refine import RefineSettings, refine_particles
 
@@ -44,7 +44,7 @@ def _render_edge(z_um: float, *, reach_cycles_per_px: float, limit_px: int, wave
 
 
 def particle_hologram(shape: tuple[int, int], table, config: ExperimentConfig, *, settings: RefineSettings | None = None,
-                      reach_cycles_per_px: float = 0.5, should_stop: StopCallback | None = None) -> np.ndarray:
+                      reach_cycles_per_px: float = 0.5, progress: ProgressCallback | None = None, should_stop: StopCallback | None = None) -> np.ndarray:
     """The normalised Lorenz–Mie hologram of the spheres of ``table`` on a frame of ``shape``.
 
     Parameters
@@ -64,8 +64,9 @@ def particle_hologram(shape: tuple[int, int], table, config: ExperimentConfig, *
         (Nyquist, within ``2 * settings.patch_px`` pixels) as the fit modelled it; ``1``
         (the pixel's box transfer falls to zero there; no patch limit) for everything a
         camera records, aliased fringes included (module docstring).
-    should_stop : callable, optional
-        Polled before each sphere; `Stopped` is raised when it returns True.
+    progress, should_stop : callable, optional
+        ``progress`` hears of each sphere rendered; ``should_stop`` is polled before each
+        one, and `Stopped` is raised when it returns True.
 
     Returns
     -------
@@ -96,15 +97,16 @@ def particle_hologram(shape: tuple[int, int], table, config: ExperimentConfig, *
     if not (isinstance(reach_cycles_per_px, int | float) and 0.0 < reach_cycles_per_px <= 1.0):
         raise InputError(f"particle hologram: reach_cycles_per_px must be in (0, 1], got {reach_cycles_per_px!r}")
     limit = 2 * settings.patch_px if reach_cycles_per_px <= 0.5 else 2 * max(rows, cols) + 2
+    steps = Steps(len(frame), progress=progress, should_stop=should_stop)
     for i in range(len(frame)):
-        if should_stop is not None and should_stop():
-            raise Stopped()
+        steps.check()
         edge = _render_edge(z[i], reach_cycles_per_px=reach_cycles_per_px, limit_px=limit, wavelength_um=optics.wavelength_um,
                             medium_index=settings.medium_index, pixel_um=pixel)
         half = edge // 2
         c0, r0 = round(x[i] / pixel) - half, round(y[i] / pixel) - half
         r_lo, r_hi, c_lo, c_hi = max(r0, 0), min(r0 + edge, rows), max(c0, 0), min(c0 + edge, cols)
         if r_lo >= r_hi or c_lo >= c_hi:
+            steps.advance()
             continue  # a sphere whose fringes miss the frame
         rr, cc = np.mgrid[r_lo:r_hi, c_lo:c_hi]
         dx = torch.as_tensor(cc.reshape(1, -1) * pixel - x[i], dtype=torch.float64)
@@ -119,17 +121,20 @@ def particle_hologram(shape: tuple[int, int], table, config: ExperimentConfig, *
         cross[block] += (single - 1.0 - own).reshape(rr.shape).numpy()
         for axis in range(3):
             summed[(axis, *block)] += fields[axis].reshape(rr.shape).numpy()
+        steps.advance()
     return 1.0 + cross + np.sum(summed.real**2 + summed.imag**2, axis=0)
 
 
 def residual_hologram(hologram: np.ndarray, table, config: ExperimentConfig, *, settings: RefineSettings | None = None,
-                      background: np.ndarray | None = None, should_stop: StopCallback | None = None) -> np.ndarray:
+                      background: np.ndarray | None = None, progress: ProgressCallback | None = None,
+                      should_stop: StopCallback | None = None) -> np.ndarray:
     """``hologram`` less the hologram of ``table``'s spheres, in its own units.
 
     The data is divided by ``background`` (else by its mean, as `refine_particles` sees it
     from ``napari-lbs predict --refine``); the spheres' terms, ``particle_hologram - 1``,
     are taken away there and the result multiplied back, so a network or a fit sees the
-    hologram the table's spheres would leave without them.
+    hologram the table's spheres would leave without them. ``progress`` and
+    ``should_stop`` are `particle_hologram`'s (one step per sphere).
     """
     image = np.asarray(hologram, dtype=np.float64)
     if image.ndim != 2:
@@ -137,7 +142,7 @@ def residual_hologram(hologram: np.ndarray, table, config: ExperimentConfig, *, 
     scale = np.asarray(background, dtype=np.float64) if background is not None else float(np.mean(image))
     if np.shape(scale) not in ((), image.shape) or not np.all(np.asarray(scale) > 0):
         raise InputError(f"background: expected positive values of the hologram's shape {image.shape}, got shape {np.shape(scale)}")
-    model = particle_hologram(image.shape, table, config, settings=settings, should_stop=should_stop)
+    model = particle_hologram(image.shape, table, config, settings=settings, progress=progress, should_stop=should_stop)
     return (image / scale - (model - 1.0)) * scale
 
 
@@ -160,7 +165,8 @@ def residual_particles(hologram: np.ndarray, table, config: ExperimentConfig, *,
     background : (rows, cols) array, optional
         As `residual_hologram`.
     progress, should_stop
-        Passed to the refinement (one step per batch).
+        Passed to the rendering of the table's spheres (one step per sphere), then to the
+        refinement (one step per batch); ``propose`` reports its own.
 
     Returns
     -------
@@ -182,7 +188,7 @@ def residual_particles(hologram: np.ndarray, table, config: ExperimentConfig, *,
     kept = pd.DataFrame(table).reset_index(drop=True)
     # the rows the fit measured: an unrefined row is a guess, whose hologram may be far off
     fitted = kept[kept["refined"].astype(bool)] if "refined" in kept else kept
-    residual = residual_hologram(image, fitted, config, settings=settings, background=background, should_stop=should_stop)
+    residual = residual_hologram(image, fitted, config, settings=settings, background=background, progress=progress, should_stop=should_stop)
     # the network sees an intensity: where a fit overshoots the data, none is left
     try:
         guesses = pd.DataFrame({name: np.asarray(values) for name, values in dict(propose(np.maximum(residual, 0.0))).items()})
