@@ -16,6 +16,7 @@ from scene_reports import StandIn, scene_report
 
 from napari_lbs._cli import main
 from napari_lbs._core import InputError, SceneDiagnosis, SceneDiagnosisSettings, Stopped, effects_from_report, write_report
+from napari_lbs._core.physics import EFFECTS
 from napari_lbs._core.pipeline import DIAGNOSED_FRAMES, DiagnoseRequest, diagnose, tiles_per_side
 
 # the effect ids report.json always accounts for, tested or not (docs/formats.md, "Diagnosis report")
@@ -137,7 +138,8 @@ def test_several_frames_are_diagnosed_each_on_one_bar_and_pooled_by_majority(tmp
     assert report["verdict"]["id"] == "illumination+quantization" and report["verdict"]["catalog_explains"] is True
     assert "majority of the 3 frames" in report["verdict"]["reason"] and result.value.report["verdict"] == report["verdict"]
     # each named effect's parameters are the first naming frame's: what generate --effects-from adds
-    assert effects_from_report(report) == {"illumination": illumination, "quantization": {"bits": 6.0, "saturation": 1.6}}
+    # (an optional parameter the report leaves out, the envelope's waist, at its neutral value)
+    assert effects_from_report(report) == {"illumination": {**illumination, "waist": EFFECTS["illumination"].neutral["waist"]}, "quantization": {"bits": 6.0, "saturation": 1.6}}
     # one bar: each frame's phases named, its steps within its third of the bar
     assert listener.phases[:2] == ["frame 1 of 3: particles found", "frame 1 of 3: the catalog's effects"] and listener.phases[-1] == "frame 3 of 3: the catalog's effects"
     assert [done / total for done, total in listener.steps[::2]] == pytest.approx([1 / 6, 1 / 6, 3 / 6, 3 / 6, 5 / 6, 5 / 6])

@@ -270,3 +270,75 @@ def test_transparent_spheres_are_told_from_opaque_ones_by_where_their_fine_fring
         assert result["index_contrast"] == index_contrast and abs(result["slope"][f"{index_contrast:g}"] - 1.0) < 0.2
     else:
         assert result["z"] <= -3.0 and abs(result["slope"]["opaque"] - 1.0) < 0.2
+
+
+def _three_depths() -> Scene:
+    """Three depth groups of ring patterns at 1, 3 and 5 mm, on 2 µm pixels."""
+    groups = np.stack([_scene(seed) - 1.0 for seed in (0, 5, 7)]).astype(np.float32)
+    return Scene(1.0 + groups.sum(axis=0), (1000.0, 3000.0, 5000.0), groups, 2.0)
+
+
+def _disc_blur(group: np.ndarray, radius_px: float) -> np.ndarray:
+    """``group`` convolved with a uniform disc of ``radius_px``: a source of uniform brightness, not the catalog's Gaussian."""
+    extent = int(np.ceil(radius_px))
+    yy, xx = np.mgrid[-extent : extent + 1, -extent : extent + 1]
+    kernel = (np.hypot(yy, xx) <= radius_px).astype(np.float64)
+    from scipy import ndimage
+
+    return ndimage.convolve(group.astype(np.float64), kernel / kernel.sum(), mode="wrap")
+
+
+@pytest.mark.parametrize("source", ["gaussian", "disc", "sensor"])
+def test_the_blur_is_named_by_how_it_grows_with_depth(source):
+    """A source's blur grows with depth, a sensor's does not; a disc-shaped source, whose kernel the
+    catalog's Gaussian does not have, is still a source alone, with no sensor blur beside it."""
+    from napari_lbs._core.gap._blur_depth import attribute_blur, blur_by_depth
+
+    scene = _three_depths()
+    if source == "sensor":
+        blurred = scene.image
+        effects = {"sensor_blur": {"sigma_px": 1.2}}
+    elif source == "gaussian":
+        blurred, effects = scene.coherent_blur(1.2), {}
+    else:
+        # a disc of radius 2σ has the rms width of a Gaussian of σ along each axis
+        blurred = 1.0 + sum(_disc_blur(g, 2 * 1.2e-3 * z / 2.0) for g, z in zip(scene.groups, scene.depths_um, strict=True))
+        effects = {}
+    noise = np.random.default_rng(3).standard_normal((SIZE, SIZE)).astype(np.float32)
+    image = sensor_image(np.asarray(blurred, np.float32), {"contrast": 1.0, "sigma": 0.01, "gamma": 1.0}, effects, noise=noise).astype(np.float64)
+    data = image / image.mean()
+    split = TileSplit.of(data.shape)
+    selection = select_effects(data, scene, split)
+    attributed, profile = attribute_blur(data, scene, split, selection)
+    expected = ("sensor_blur",) if source == "sensor" else ("coherence",)
+    assert attributed.chosen == expected and profile["origin"] == list(expected)
+    assert "+".join(expected) in attributed.fits and not [u for u in attributed.undecided if {u["selected"], u["rival"]} == {"coherence", "sensor_blur"}]
+    if source == "sensor":
+        assert abs(profile["sensor_sigma_px"] - 1.2) < 0.15 and profile["t_source"] < 3
+    else:
+        # the disc's pixelated kernel has the Gaussian's rms width but not its transfer function: its size is not the test
+        assert profile["t_sensor"] < 3 and (source == "disc" or abs(profile["theta_mrad"] - 1.2) < 0.1)
+    with pytest.raises(ValueError, match="at least 3 depth groups"):
+        blur_by_depth(data, _depth_scene(), split, selection.fits["baseline"].params, ())
+
+
+def test_a_selection_without_a_blur_is_left_as_it_is():
+    from napari_lbs._core.gap._blur_depth import attribute_blur
+
+    data, _ = _frame({"illumination": {"depth": 0.35, "x0": 0.2, "y0": -0.1}})
+    scene = _three_depths()
+    selection = select_effects(data, _scene(), TileSplit.of(data.shape))
+    assert attribute_blur(data, scene, TileSplit.of(data.shape), selection) == (selection, None)
+
+
+def test_a_vignetting_wider_than_the_default_beam_is_fitted_with_its_waist():
+    """cos⁴ vignetting about an off-centre axis (40 % lost at the farthest corner): the envelope's waist is fitted, and it is selected."""
+    scene = _scene()
+    yy, xx = (np.mgrid[0:SIZE, 0:SIZE] / (SIZE - 1.0))
+    distance = np.hypot(xx - 0.45, yy - 0.55)
+    focal = distance.max() / np.sqrt((1 - 0.4) ** -0.5 - 1)
+    noise = np.random.default_rng(2).standard_normal((SIZE, SIZE)).astype(np.float32)
+    image = sensor_image((scene / (1 + (distance / focal) ** 2) ** 2).astype(np.float32), {"contrast": 0.9, "sigma": 0.02, "gamma": 1.0}, {}, noise=noise).astype(np.float64)
+    selection = select_effects(image / image.mean(), scene, TileSplit.of(image.shape))
+    assert selection.chosen == ("illumination",)
+    assert all(fit["illumination.waist"] > 0.5 for fit in selection.fits["illumination"].params)

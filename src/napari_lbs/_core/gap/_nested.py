@@ -10,7 +10,7 @@ noise offset acts as a fringe contrast once a frame is normalised; its gamma map
 response). Each effect adds its catalog parameters and is nothing at their neutral values, so
 the baseline is nested in every model and a model with an effect in every model with one more.
 
-Effects of the mean: ``illumination`` (the beam's envelope: depth and centre),
+Effects of the mean: ``illumination`` (the beam's envelope: depth, waist and centre),
 ``sensor_blur`` (σ in pixels, blurring the light before the noise is added),
 ``parasitic_fringes`` (an etalon's straight fringe: amplitude, period, angle, started at the
 residual's strongest spectral peak) and ``coherence`` (a source of angular size θ: each
@@ -22,8 +22,10 @@ judged on the high-passed residual, whose variance grows with the light by ``1 /
 Parameters are fitted by least squares on the tiles of one colour (`TileSplit`), every other
 pixel of them, and judged on the other colour's tiles by the held-out likelihood
 (`whittle_loglik`). Forward selection adds the effect of the largest significant held-out
-gain (``z``: a sign test over the held-out tiles, `_gain`; the summed gain must be positive
-too), refits, and stops when no effect reaches ``level_z``; backward elimination then drops,
+gain (``z``: a sign test over the held-out tiles, `_gain`, ties broken by the summed gain,
+which must be positive too), fits the model again from its optimum (so that the next round's
+models, which start there, gain by their effect and not by further steps on the parameters
+they share), and stops when no effect reaches ``level_z``; backward elimination then drops,
 one at a time, a selected effect that no longer reaches ``level_z`` given the others. A
 selected effect that does not beat, at a z of 2, a rival put in its place (one that gained alone) is undecided between the two:
 spatial coherence and a sensor's blur both soften fine fringes, and only their growth with
@@ -45,7 +47,7 @@ __all__ = ["MEAN_EFFECTS", "FrameFit", "Scene", "Selection", "fit_frame", "selec
 
 # the parameters each effect of the mean fits (the others of its catalog entry stay neutral)
 MEAN_EFFECTS = {
-    "illumination": ("depth", "x0", "y0"),
+    "illumination": ("depth", "waist", "x0", "y0"),
     "sensor_blur": ("sigma_px",),
     "parasitic_fringes": ("amplitude", "period_px", "angle_rad"),
     "coherence": ("theta_mrad",),
@@ -153,7 +155,7 @@ def _fringe_start(residual: np.ndarray) -> dict:
 def _starts(effect: str, residual: np.ndarray) -> dict:
     if effect == "parasitic_fringes":
         return _fringe_start(residual)
-    return {"illumination": {"depth": 0.1, "x0": 0.0, "y0": 0.0}, "sensor_blur": {"sigma_px": 0.6}, "coherence": {"theta_mrad": 0.5}}[effect]
+    return {"illumination": {"depth": 0.1, "waist": EFFECTS["illumination"].neutral["waist"], "x0": 0.0, "y0": 0.0}, "sensor_blur": {"sigma_px": 0.6}, "coherence": {"theta_mrad": 0.5}}[effect]
 
 
 def _mean(scene: Scene, values: dict, effects: tuple[str, ...], zeros: np.ndarray) -> np.ndarray:
@@ -288,9 +290,18 @@ def select_effects(data: np.ndarray, scene, split: TileSplit, *, candidates=tupl
     if scene.groups is None:
         candidates = tuple(c for c in candidates if c not in _BY_DEPTH)
     rounds = min(max_effects, len(candidates))
-    steps = Steps(1 + sum(len(candidates) - k for k in range(rounds)), progress=progress, should_stop=should_stop, heartbeat_s=0.5)
+    steps = Steps(2 + sum(len(candidates) - k + 1 for k in range(rounds)), progress=progress, should_stop=should_stop, heartbeat_s=0.5)
     chosen: tuple[str, ...] = ()
-    fits = {"baseline": fit_frame(data, scene, split, (), check=steps.check)}
+
+    def polished(model: tuple[str, ...], fit: FrameFit) -> FrameFit:
+        # a model the next round builds on is fitted again from its optimum: every model of that
+        # round starts there and takes as many steps, so a gain is the effect's, not further
+        # steps on the parameters they share (an unconverged envelope let any effect "gain")
+        again = fit_frame(data, scene, split, model, starts=fit.params, check=steps.check)
+        steps.advance()
+        return again
+
+    fits = {"baseline": polished((), fit_frame(data, scene, split, (), check=steps.check))}
     steps.advance()
     record = []
     while len(chosen) < max_effects:
@@ -306,11 +317,13 @@ def select_effects(data: np.ndarray, scene, split: TileSplit, *, candidates=tupl
             round_gains[effect] = _gain(fit.loglik, base.loglik)
         if not round_gains:
             break
-        best = max(round_gains, key=lambda e: round_gains[e][1])
+        # the sign test saturates once every tile gains: among equal votes the larger gain leads
+        best = max(round_gains, key=lambda e: (round_gains[e][1], round_gains[e][0]))
         record.append({"given": list(chosen), "gains": {e: {"gain_nats": g, "z": z} for e, (g, z) in round_gains.items()}, "added": None})
         if round_gains[best][1] < level_z or round_gains[best][0] <= 0:
             break
         chosen = tuple(sorted((*chosen, best)))
+        fits["+".join(chosen)] = polished(chosen, fits["+".join(chosen)])
         record[-1]["added"] = best
     while len(chosen) >= 2:
         # backward: an effect added early may be one that a later one explains better (a source's

@@ -37,6 +37,7 @@ import numpy as np
 from scipy import ndimage
 
 from napari_lbs._core.foundation import ExperimentConfig, InputError, ProgressCallback, Steps, StopCallback, as_hologram, begin_phase, json_safe
+from napari_lbs._core.gap._blur_depth import attribute_blur
 from napari_lbs._core.gap._detect import find_particles
 from napari_lbs._core.gap._heldout import TileSplit, tile_spectra
 from napari_lbs._core.gap._levels import levels_test
@@ -323,6 +324,10 @@ def diagnose_scene(hologram: np.ndarray, config: ExperimentConfig, *, settings: 
     split = TileSplit.of(data.shape, grid=settings.grid)
     begin_phase(progress, f"the catalog's effects around {len(table)} fitted particles")
     selection = select_effects(data, scene, split, level_z=settings.level_z, progress=progress, should_stop=should_stop)
+    begin_phase(progress, "the blur's origin read from each depth group's blur")
+    steps = Steps(1, progress=progress, should_stop=should_stop, heartbeat_s=0.5)
+    selection, blur_profile = attribute_blur(data, scene, split, selection, level_z=settings.level_z, check=steps.check)
+    steps.advance()
     optics = _optics(data, table, selection, config, split, settings, progress, should_stop)
     frame_spectra = tile_spectra(data - 1.0, split)
     baseline_share = _structure(selection.fits["baseline"].residuals, split, frame_spectra)[0]
@@ -371,6 +376,7 @@ def diagnose_scene(hologram: np.ndarray, config: ExperimentConfig, *, settings: 
                                + (f"; undecided between {between}" if between else "") + f"; {left}")},
         "posterior": posterior,
         "particle_optics": optics,
+        "blur_by_depth": blur_profile,
         "selection": selection.steps,
         "undecided": list(selection.undecided),
         "not_tested": _NOT_TESTED,

@@ -92,10 +92,15 @@ class Effect:
     optional: tuple = ()
 
 
+_WAIST = float(np.sqrt(0.18))  # the envelope's waist where a setting leaves it out
+
 BASELINE = Effect("baseline", "seed's simulator: opaque discs, Gaussian noise, gamma", {"contrast": (0.2, 1.6), "sigma": (0.001, 0.3), "gamma": (0.5, 2.0)}, {"contrast": 1.0, "sigma": 0.0, "gamma": 1.0}, ())
 
 EFFECTS: dict[str, Effect] = {e.id: e for e in (
-    Effect("illumination", "Gaussian beam envelope / vignetting", {"depth": (0.0, 0.8), "x0": (-0.5, 0.5), "y0": (-0.5, 0.5)}, {"depth": 0.0, "x0": 0.0, "y0": 0.0}, ({"depth": 0.25, "x0": 0.2, "y0": -0.1}, {"depth": 0.5, "x0": 0.2, "y0": -0.1})),
+    # waist: the envelope's 1/e radius in units of the frame's side; a wide one with a large depth
+    # is the gentle fall-off of an objective's or a window's vignetting, a narrow one a laser's beam
+    Effect("illumination", "Gaussian beam envelope / vignetting", {"depth": (0.0, 0.8), "x0": (-0.5, 0.5), "y0": (-0.5, 0.5), "waist": (0.2, 1.5)},
+           {"depth": 0.0, "x0": 0.0, "y0": 0.0, "waist": _WAIST}, ({"depth": 0.25, "x0": 0.2, "y0": -0.1}, {"depth": 0.5, "x0": 0.2, "y0": -0.1}), optional=("waist",)),
     Effect("shot_noise", "Poisson photon noise", {"log10_photons": (0.5, 4.0)}, {"log10_photons": 9.0}, ({"log10_photons": 1.9}, {"log10_photons": 1.4})),
     Effect("quantization", "bit depth and saturation", {"bits": (3.0, 10.0), "saturation": (1.05, 3.0)}, {"bits": 16.0, "saturation": 1e3}, ({"bits": 5.0, "saturation": 1.6}, {"bits": 4.0, "saturation": 1.25})),
     Effect("sensor_blur", "pixel integration / sensor MTF", {"sigma_px": (0.0, 2.0)}, {"sigma_px": 0.0}, ({"sigma_px": 0.8}, {"sigma_px": 1.4})),
@@ -130,7 +135,7 @@ OPTICAL_EFFECTS = ("coherence", "particle_phase", "multiple_scattering", "spheri
 # (0 bits, a period under the sampling limit, no photons) or a kernel no filter finishes in
 # reasonable time (a blur of 1e7 pixels); `check_effects` refuses it.
 LIMITS: dict[str, dict[str, tuple[float, float]]] = {
-    "illumination": {"depth": (0.0, 1.0), "x0": (-2.0, 2.0), "y0": (-2.0, 2.0)},
+    "illumination": {"depth": (0.0, 1.0), "x0": (-2.0, 2.0), "y0": (-2.0, 2.0), "waist": (0.05, 10.0)},
     "shot_noise": {"log10_photons": (0.0, 12.0)},
     "quantization": {"bits": (1.0, 16.0), "saturation": (0.1, 1e3)},
     "sensor_blur": {"sigma_px": (0.0, 50.0)},
@@ -329,7 +334,7 @@ def sensor_image(intensity: np.ndarray, baseline: dict, effects: dict, *, noise:
         y = (np.asarray(row_px, np.float64) / max(frame_rows - 1, 1) - 0.5)[:, None]
         x = (np.asarray(col_px, np.float64) / max(frame_cols - 1, 1) - 0.5)[None, :]
         r2 = (x - _param(effects, "illumination", "x0")) ** 2 + (y - _param(effects, "illumination", "y0")) ** 2
-        image = image * (1.0 - depth * (1.0 - np.exp(-r2 / 0.18))).astype(np.float32)
+        image = image * (1.0 - depth * (1.0 - np.exp(-r2 / _param(effects, "illumination", "waist") ** 2))).astype(np.float32)
     dust = _param(effects, "parasitic_fringes", "dust_per_mpx")
     if dust > 0:  # the grains' rings, formed by the light on its way to the sensor
         image = image * _dust_pattern((rows, cols), dust, _param(effects, "parasitic_fringes", "dust_zone_px"), _param(effects, "parasitic_fringes", "dust_grain_px"))

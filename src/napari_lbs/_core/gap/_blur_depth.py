@@ -1,0 +1,152 @@
+"""Where a frame's blur comes from, read from how it grows with the particles' depth.
+
+A sensor's blur (pixel crosstalk, a defocused relay) softens every particle's fringes alike;
+a source of angular size θ softens a particle's fringes by σ = θ·z, so deep particles lose
+more than shallow ones (`Scene.coherent_blur`). Both models are nested in one with a free
+blur per depth group of the scene's particles: ``σ_g² = σ_sensor² + (θ·z_g / pixel)²``.
+The held-out comparison of the two single-parameter models (`select_effects`) cannot tell
+them apart once both gain on every tile (its sign test saturates), and when the real kernel
+has another shape than the catalog's Gaussian (a uniform disc source, a binomial crosstalk)
+the pair of them fits better than either, so both are named. The depth profile asks the
+physical question directly: each group's blur is fitted on each colour of the checkerboard
+(two replicates per group), and ``σ_g²`` is regressed on ``z_g²``; the intercept is the
+sensor's share, the slope the source's. A share whose t statistic reaches ``level_z`` is
+named; the other is not. Neither reaching it leaves the origin undecided.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+from scipy import ndimage, optimize
+
+from napari_lbs._core.gap._heldout import TileSplit, model_probabilities
+from napari_lbs._core.gap._nested import MEAN_EFFECTS, Scene, Selection, fit_frame
+from napari_lbs._core.physics import EFFECTS, sensor_image
+
+__all__ = ["BLUR_EFFECTS", "blur_by_depth", "attribute_blur"]
+
+BLUR_EFFECTS = ("coherence", "sensor_blur")
+_MIN_GROUPS = 3  # two replicates of three groups leave four degrees of freedom to the line
+_STEPS = 20  # least-squares steps of the per-group fit (each also costs one evaluation per parameter)
+_MAX_SIGMA_PX = 6.0
+
+
+def _group_image(scene: Scene, sigmas_px: np.ndarray) -> np.ndarray:
+    image = scene.image.astype(np.float32).copy()
+    for sigma, group in zip(sigmas_px, scene.groups, strict=True):
+        image += ndimage.gaussian_filter(group, float(sigma)) - group
+    return image
+
+
+def _fit_groups(data: np.ndarray, scene: Scene, mask: np.ndarray, camera: dict, start: dict, check) -> np.ndarray:
+    """Each depth group's blur σ (px) and the baseline's gain, contrast and gamma, fitted on ``mask``'s pixels."""
+    sample = mask.copy()
+    sample[1::2, :] = False
+    sample[:, 1::2] = False
+    target = data[sample]
+    zeros = np.zeros(data.shape, np.float32)
+    groups = len(scene.depths_um)
+
+    def residual(x: np.ndarray) -> np.ndarray:
+        if check is not None:
+            check()
+        baseline = {"contrast": x[1], "sigma": 0.0, "gamma": x[2]}
+        return x[0] * sensor_image(_group_image(scene, x[3:]), baseline, camera, noise=zeros).astype(np.float64)[sample] - target
+
+    x0 = np.array([start["gain"], start["contrast"], start["gamma"]] + [0.5] * groups)
+    low = np.array([0.2, 0.0, 0.3] + [0.0] * groups)
+    high = np.array([5.0, 3.0, 3.0] + [_MAX_SIGMA_PX] * groups)
+    result = optimize.least_squares(residual, np.clip(x0, low, high), bounds=(low, high), x_scale="jac", max_nfev=_STEPS, diff_step=1e-3, ftol=1e-5, xtol=1e-5)
+    return result.x[3:]
+
+
+def blur_by_depth(data: np.ndarray, scene: Scene, split: TileSplit, params: tuple[dict, dict], effects: tuple[str, ...], *,
+                  level_z: float = 3.0, check=None) -> dict:
+    """Each depth group's blur, and the sensor's and the source's shares of it (module docstring).
+
+    Parameters
+    ----------
+    data : (rows, cols) array
+        The frame, unobstructed light 1.
+    scene : Scene
+        The frame's particles, with at least three depth groups.
+    split : TileSplit
+        The checkerboard: each group's blur is fitted on each colour's tiles.
+    params, effects
+        The selected model's parameters fitted on each colour and its effects: the camera's
+        effects other than a blur are held at those values.
+    level_z : float
+        The t statistic a share must reach to be named.
+    check : callable, optional
+        Called before each evaluation of the model (`Steps.check`: raises `Stopped`).
+
+    Returns
+    -------
+    dict
+        ``depths_um`` (each group's mean depth), ``sigma_px`` (the two colours' fits per
+        group), ``sensor_sigma_px`` and ``theta_mrad`` (the line's intercept and slope as a
+        sensor's σ and a source's angular size), ``t_sensor`` and ``t_source`` (their t
+        statistics) and ``origin`` (the blur effects named, sorted; empty when neither share
+        reaches ``level_z``).
+    """
+    if scene.groups is None or len(scene.depths_um) < _MIN_GROUPS:
+        raise ValueError(f"scene: expected at least {_MIN_GROUPS} depth groups, got {0 if scene.groups is None else len(scene.depths_um)}")
+    camera_effects = [e for e in effects if e not in BLUR_EFFECTS]
+    sigmas = []
+    for colour in (0, 1):
+        fitted = params[colour]
+        camera = {e: {**EFFECTS[e].neutral, **{p: fitted[f"{e}.{p}"] for p in MEAN_EFFECTS[e]}} for e in camera_effects}
+        sigmas.append(_fit_groups(data, scene, split.mask(colour), camera, fitted, check))
+    sigmas = np.array(sigmas)
+    depths = np.asarray(scene.depths_um, np.float64)
+    # the line through both colours' points: sigma² = a + b z², z in mm to keep the columns alike in scale
+    z2 = np.tile((depths / 1000.0) ** 2, 2)
+    y = (sigmas**2).ravel()
+    design = np.stack([np.ones_like(z2), z2], axis=1)
+    coefficients, *_ = np.linalg.lstsq(design, y, rcond=None)
+    dof = y.size - 2
+    scatter = float(np.sum((y - design @ coefficients) ** 2)) / dof
+    errors = np.sqrt(np.maximum(np.diag(np.linalg.pinv(design.T @ design)) * scatter, 1e-30))
+    t_sensor, t_source = (float(c / e) for c, e in zip(coefficients, errors, strict=True))
+    origin = tuple(sorted(name for name, t in (("sensor_blur", t_sensor), ("coherence", t_source)) if t >= level_z))
+    intercept, slope = (float(c) for c in coefficients)
+    return {
+        "depths_um": [float(d) for d in depths],
+        "sigma_px": [[float(s) for s in row] for row in sigmas],
+        "sensor_sigma_px": float(np.sqrt(max(intercept, 0.0))),
+        # slope in px² per mm²: sigma = theta z / pixel, theta in mrad with z in mm is sqrt(slope) * pixel (µm)
+        "theta_mrad": float(np.sqrt(max(slope, 0.0)) * scene.pixel_um),
+        "t_sensor": t_sensor,
+        "t_source": t_source,
+        "origin": list(origin),
+    }
+
+
+def attribute_blur(data: np.ndarray, scene: Scene, split: TileSplit, selection: Selection, *, level_z: float = 3.0, check=None) -> tuple[Selection, dict | None]:
+    """The selection with its blur named by the depth profile (`blur_by_depth`), and the profile.
+
+    Applies where the selection named a blur (``coherence`` or ``sensor_blur``) or was
+    undecided between them, and the scene has at least three depth groups; otherwise the
+    selection is returned as it is, with no profile. The selected blur effects are replaced by
+    the profile's ``origin`` (the model refitted where it was not fitted yet); the pair's
+    undecided records are dropped once the profile names an origin, and kept when it names
+    none.
+    """
+    blur_chosen = [e for e in selection.chosen if e in BLUR_EFFECTS]
+    pair_undecided = [u for u in selection.undecided if {u["selected"], u["rival"]} <= set(BLUR_EFFECTS)]
+    if not (blur_chosen or pair_undecided) or scene.groups is None or len(scene.depths_um) < _MIN_GROUPS:
+        return selection, None
+    final = selection.fits["+".join(selection.chosen) or "baseline"]
+    profile = blur_by_depth(data, scene, split, final.params, selection.chosen, level_z=level_z, check=check)
+    if not profile["origin"]:
+        return selection, profile
+    chosen = tuple(sorted((*(e for e in selection.chosen if e not in BLUR_EFFECTS), *profile["origin"])))
+    fits = dict(selection.fits)
+    key = "+".join(chosen)
+    if key not in fits:
+        fits[key] = fit_frame(data, scene, split, chosen, starts=final.params, check=check)
+    undecided = tuple(u for u in selection.undecided if u not in pair_undecided)
+    probabilities = model_probabilities({name: fit.loglik for name, fit in fits.items()})
+    return replace(selection, chosen=chosen, fits=fits, undecided=undecided, probabilities=probabilities), profile
