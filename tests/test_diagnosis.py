@@ -187,3 +187,15 @@ def test_tiles_per_side_follows_the_tile_edge_within_3_to_16():
     assert tiles_per_side((400, 384), 128) == 3 and tiles_per_side((1024, 1024), 32) == 16 and tiles_per_side((1024, 1024), 200) == 5
     with pytest.raises(InputError, match="^tile 600: a 1024x1024"):
         tiles_per_side((1024, 1024), 600, flag="tile")
+
+
+def test_the_report_shows_the_blur_by_depth_where_a_blur_was_selected(tmp_path):
+    report = scene_report("coherence")
+    report["blur_by_depth"] = {"depths_um": [2000.0, 3000.0, 4000.0], "sigma_px": [[0.6, 0.9, 1.2], [0.62, 0.88, 1.21]], "sensor_sigma_px": 0.0,
+                               "theta_mrad": 0.66, "t_sensor": 0.1, "t_source": 21.0, "origin": ["coherence"]}
+    write_report(SceneDiagnosis(report, np.full((2, 2), 0.01), None, 1.0), tmp_path / "r")
+    summary = (tmp_path / "r" / "report.md").read_text()
+    assert "## The blur by depth" in summary and "θ 0.66 mrad (t 21.0)" in summary and "**coherence**" in summary
+    assert "| 3.00 | 0.9 | 0.88 |" in summary
+    write_report(SceneDiagnosis(scene_report("illumination"), np.full((2, 2), 0.01), None, 1.0), tmp_path / "s")
+    assert "blur by depth" not in (tmp_path / "s" / "report.md").read_text()

@@ -175,6 +175,7 @@ def _summary(report: dict, levels: SceneDiagnosisSettings) -> list[str]:
         "",
         "![effects](gap_effects.png)",
         "",
+        *_blur_lines(report.get("blur_by_depth"), levels),
         "## Particle optics (opaque against transparent spheres, by where their fine fringes lie)",
         "",
         f"- {optics['particles']} of the scene's particles rendered as opaque spheres and as transparent ones, through a camera blur of "
@@ -206,6 +207,24 @@ def _summary(report: dict, levels: SceneDiagnosisSettings) -> list[str]:
         "",
     ]
     return lines
+
+
+def _blur_lines(profile: dict | None, levels: SceneDiagnosisSettings) -> list[str]:
+    """The blur's depth profile (`blur_by_depth`), where a blur was selected: each depth group's σ and the line through them."""
+    if not profile:
+        return []
+    origin = " and ".join(profile["origin"]) or "undecided between the sensor and the source"
+    return [
+        "## The blur by depth (a sensor blurs every depth alike, a source's size more at depth)",
+        "",
+        f"- σ² = σ_sensor² + (θ·z / pixel)²: σ_sensor {_text(profile['sensor_sigma_px'])} px (t {_text(profile['t_sensor'], '.1f')}), "
+        f"θ {_text(profile['theta_mrad'])} mrad (t {_text(profile['t_source'], '.1f')}); named from t {levels.level_z:g}: **{origin}**.",
+        "",
+        "| depth (mm) | σ (px), tiles of one colour | σ (px), the other |",
+        "|---|---|---|",
+        *[f"| {depth / 1000:.2f} | {_text(first)} | {_text(second)} |" for depth, first, second in zip(profile["depths_um"], *profile["sigma_px"], strict=True)],
+        "",
+    ]
 
 
 def _named(verdict: dict) -> str:
