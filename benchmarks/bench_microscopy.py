@@ -87,35 +87,51 @@ def cases_of(which: str) -> list[dict]:
     return json.loads(FROZEN_CASES.read_text())["cases"]
 
 
-def pylorenzmie_intensity(case: dict) -> np.ndarray:
-    """pylorenzmie's hologram of one sphere on a CELL² grid, each pixel the mean of SUPERSAMPLE² points."""
+def pylorenzmie_intensity(spheres: list[dict], shape: tuple[int, int], *, pixel_um: float = PIXEL_UM) -> np.ndarray:
+    """pylorenzmie's hologram of spheres in water on a ``shape`` grid, each pixel the mean of SUPERSAMPLE² points.
+
+    Parameters
+    ----------
+    spheres : list of dict
+        Each with ``x_um, y_um`` (pixel ``(r, c)`` at ``(c, r) × pixel_um``), ``z_um`` (from
+        the focal plane, in water), ``diameter_um`` and ``index_contrast``; their scattered
+        fields add coherently.
+    shape : (rows, cols)
+    pixel_um : float
+        The pitch at the sample (µm).
+
+    Returns
+    -------
+    (rows, cols) array
+        Intensity, unobstructed light 1.
+    """
     from pylorenzmie.theory import LorenzMie, Sphere
     from pylorenzmie.theory.Instrument import Instrument
 
     s = SUPERSAMPLE
-    sub = (np.arange(CELL * s) + 0.5) / s - 0.5  # sub-pixel centres (pixels)
-    yy, xx = np.meshgrid(sub, sub, indexing="ij")
+    rows, cols = shape
+    yy, xx = np.meshgrid((np.arange(rows * s) + 0.5) / s - 0.5, (np.arange(cols * s) + 0.5) / s - 0.5, indexing="ij")  # sub-pixel centres (pixels)
     points = np.stack([xx.ravel(), yy.ravel()])
-    instrument = Instrument(wavelength=WAVELENGTH_UM, magnification=PIXEL_UM, n_m=N_MEDIUM)
-    sphere = Sphere(a_p=case["diameter_um"] / 2 + 1e-6, n_p=N_MEDIUM + case["index_contrast"], k_p=0.0,
-                    x_p=case["x_um"] / PIXEL_UM, y_p=case["y_um"] / PIXEL_UM, z_p=case["z_um"] / PIXEL_UM)
+    instrument = Instrument(wavelength=WAVELENGTH_UM, magnification=pixel_um, n_m=N_MEDIUM)
+    particles = [Sphere(a_p=sphere["diameter_um"] / 2 + 1e-6, n_p=N_MEDIUM + sphere["index_contrast"], k_p=0.0,
+                        x_p=sphere["x_um"] / pixel_um, y_p=sphere["y_um"] / pixel_um, z_p=sphere["z_um"] / pixel_um) for sphere in spheres]
     stock = Sphere.wiscombe_yang
     Sphere.wiscombe_yang = staticmethod(lambda x, m: stock(x, m) + 40)
     try:
-        hologram = LorenzMie(coordinates=points, particle=[sphere], instrument=instrument).hologram()
+        hologram = LorenzMie(coordinates=points, particle=particles, instrument=instrument).hologram()
     finally:
         Sphere.wiscombe_yang = staticmethod(stock)
-    return np.asarray(hologram, dtype=np.float64).reshape(CELL, s, CELL, s).mean(axis=(1, 3))
+    return np.asarray(hologram, dtype=np.float64).reshape(rows, s, cols, s).mean(axis=(1, 3))
 
 
-def mosaic(cases: list[dict], rng: np.random.Generator, *, bits: int = 16) -> tuple[np.ndarray, int]:
-    """The normalised frame of every case's cell, as `refine --background --dark` sees it, and the cells per row."""
-    per_row = int(np.ceil(np.sqrt(len(cases))))
-    rows = -(-len(cases) // per_row)
-    intensity = np.ones((rows * CELL, per_row * CELL))
-    for i, case in enumerate(cases):
-        r, c = divmod(i, per_row)
-        intensity[r * CELL:(r + 1) * CELL, c * CELL:(c + 1) * CELL] = pylorenzmie_intensity(case)
+def camera_frame(intensity: np.ndarray, rng: np.random.Generator, *, bits: int = 16) -> np.ndarray:
+    """``intensity`` under an off-centre Gaussian illumination, recorded with a background frame and normalised.
+
+    The camera: 3000 photo-electrons at the unobstructed light, Poisson noise, a dark offset
+    of 100 counts with 3 counts of read noise, ``bits``-bit counts; the background frame is
+    the illumination alone, with its own noise. Returns ``(hologram - dark) / (background -
+    dark)``, as ``napari-lbs refine --background --dark`` sees it.
+    """
     yy, xx = np.mgrid[: intensity.shape[0], : intensity.shape[1]]
     beam = np.exp(-((yy - 0.45 * intensity.shape[0]) ** 2 + (xx - 0.55 * intensity.shape[1]) ** 2) / (2 * (0.8 * intensity.shape[0]) ** 2))
 
@@ -124,7 +140,18 @@ def mosaic(cases: list[dict], rng: np.random.Generator, *, bits: int = 16) -> tu
         return np.clip(np.round(counts), 0, 2**bits - 1)
 
     hologram, background = camera(intensity * beam), camera(beam)
-    return (hologram - 100.0) / (background - 100.0), per_row
+    return (hologram - 100.0) / (background - 100.0)
+
+
+def mosaic(cases: list[dict], rng: np.random.Generator, *, bits: int = 16) -> tuple[np.ndarray, int]:
+    """The normalised frame of every case's cell, as `refine --background --dark` sees it (`camera_frame`), and the cells per row."""
+    per_row = int(np.ceil(np.sqrt(len(cases))))
+    rows = -(-len(cases) // per_row)
+    intensity = np.ones((rows * CELL, per_row * CELL))
+    for i, case in enumerate(cases):
+        r, c = divmod(i, per_row)
+        intensity[r * CELL:(r + 1) * CELL, c * CELL:(c + 1) * CELL] = pylorenzmie_intensity([case], (CELL, CELL))
+    return camera_frame(intensity, rng, bits=bits), per_row
 
 
 def run(which: str, *, patch_um: float | None = None, bits: int = 16, detection_rounds: int | None = None) -> dict:

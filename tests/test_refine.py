@@ -482,7 +482,8 @@ def test_predict_refine_writes_the_refined_columns(tmp_path, monkeypatch, flags)
     from napari_lbs._core.foundation._threads import available_threads
 
     material = {"index_contrast": 0.26} if "--material" in flags else {}
-    assert made[0] == {"device": "cpu", "workers": available_threads(), **material}  # the fit runs where the prediction did, a process per core (later: copies the fit makes)
+    # the fit runs where the prediction did, a process per core, over the refine command's depth window (later: copies the fit makes)
+    assert made[0] == {"device": "cpu", "workers": available_threads(), "depth_window_um": 400.0, **material}
     # the network proposes down to 0.8 of its threshold (the fit checks them), then again in
     # the refined table's residual, where the stub's same guess finds nothing more
     assert thresholds == [0.4, 0.4]

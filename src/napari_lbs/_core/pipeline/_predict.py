@@ -120,14 +120,15 @@ def _network_proposals(model, config: ExperimentConfig | None, settings: Predict
     return lambda image: predict_particles(image, model, config, settings=settings, progress=progress, should_stop=should_stop).particles
 
 
-def _fit_settings(settings: RefineSettings | None, *, device: str, material: float | None) -> RefineSettings:
-    """The `RefineSettings` of a refined prediction: ``settings``, else the prediction's device with one fitting process per available core; a declared ``material`` is where every fit starts."""
+def _fit_settings(settings: RefineSettings | None, config: ExperimentConfig, *, device: str, material: float | None) -> RefineSettings:
+    """The `RefineSettings` of a refined prediction: ``settings``, else the prediction's device with one fitting process per available core and the ``refine`` command's depth window for ``config`` (`default_depth_window_um`); a declared ``material`` is where every fit starts."""
     from napari_lbs._core.foundation import available_threads
+    from napari_lbs._core.pipeline._refine_step import default_depth_window_um
     from napari_lbs._core.refine import RefineSettings
 
     start = {} if material is None else {"index_contrast": float(material)}
     if settings is None:  # the prediction's device (CUDA where it ran there); on the CPU one fitting process per core
-        return RefineSettings(device=device, workers=available_threads(), **start)
+        return RefineSettings(device=device, workers=available_threads(), depth_window_um=default_depth_window_um(config), **start)
     return replace(settings, **start)
 
 
@@ -192,7 +193,7 @@ def refined_prediction(hologram: np.ndarray, model, config: ExperimentConfig | N
     result = predict_particles(hologram, model, config, background=background, settings=settings, progress=progress, should_stop=should_stop)
     normalised = np.asarray(hologram, dtype=np.float64) / (background if background is not None else float(np.mean(hologram)))
     propose = _network_proposals(model, config, settings, progress=progress, should_stop=should_stop)
-    fit = _fit_settings(refine_settings, device=settings.device, material=material_index_contrast)
+    fit = _fit_settings(refine_settings, config or model.config, device=settings.device, material=material_index_contrast)
     particles, record = _refined(normalised, result.particles, config or model.config, fit, material=material_index_contrast, propose=propose,
                                  progress=progress, should_stop=should_stop)
     return PredictionResult(particles, {**result.provenance, "refine": record}, time.perf_counter() - started)
@@ -304,32 +305,48 @@ def _refined_frames(frames, particles: dict, config: ExperimentConfig, settings:
 
 def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, settings: RefineSettings, *, material: float | None, propose, progress,
              should_stop) -> tuple[dict, dict]:
-    """The particle table refined by `refine_particles` with ``settings``, with the finds in its residual (`residual_particles`, ``propose``), of the ``material`` where given (as a dict of arrays), and its provenance."""
+    """The particle table refined by `refine_particles` with ``settings``, with the finds in its residual (`residual_particles`, ``propose``), of the ``material`` where given (as a dict of arrays), and its provenance.
+
+    As the ``refine`` command does, a pitch finer than half the medium wavelength is binned
+    for the fit (`binned_hologram`: 2 × 2 at a microscope's 0.1 µm in water), so its patches
+    reach twice as far and see the fringes of a sphere 50 µm from focus at angles that tell
+    its depth; the network's second look sees the binned residual at its trained pitch,
+    each binned pixel's value over its block. Positions are reported in the hologram's own
+    coordinates.
+    """
     from dataclasses import asdict
 
     import numpy as np
     import pandas as pd
 
+    from napari_lbs._core.pipeline._refine_step import binned_hologram
     from napari_lbs._core.refine import MATERIAL_SIGMAS, MATERIAL_TOLERANCE, same_material
     from napari_lbs._core.refine import refine_particles
     from napari_lbs._core.refine import residual_particles
 
     started = time.perf_counter()
+    image, fit_config, shift_um = binned_hologram(hologram, config, medium_index=settings.medium_index)
+    factor = int(round(fit_config.optics.pixel_um / config.optics.pixel_um))
+    guesses = pd.DataFrame(particles)
+    guesses[["x_um", "y_um"]] = guesses[["x_um", "y_um"]].astype(np.float64) - shift_um
     begin_phase(progress, f"fit {len(particles['x_um'])} particles")
-    table = refine_particles(hologram, pd.DataFrame(particles), config, settings=settings, progress=progress, should_stop=should_stop)
-    record = {"settings": asdict(settings), "detections": len(particles["x_um"]), "kept": len(table), "seconds": time.perf_counter() - started}
+    table = refine_particles(image, guesses, fit_config, settings=settings, progress=progress, should_stop=should_stop)
+    record = {"settings": asdict(settings), "binning": factor, "detections": len(particles["x_um"]), "kept": len(table), "seconds": time.perf_counter() - started}
     started = time.perf_counter()
     proposals = []
 
-    def counted(image):
-        proposals.append(propose(image))
-        return proposals[-1]
+    def counted(binned):
+        # the network's proposals at its own pitch, in the binned frame's coordinates
+        found = dict(propose(np.repeat(np.repeat(binned, factor, axis=0), factor, axis=1)))
+        proposals.append(found)
+        return {**found, "x_um": np.asarray(found["x_um"]) - shift_um, "y_um": np.asarray(found["y_um"]) - shift_um}
 
     if len(table) and table["refined"].any():  # with nothing refined, the residual is the hologram the network has seen
         begin_phase(progress, "second look")
-        found = residual_particles(hologram, table, config, propose=counted, settings=settings, background=np.ones(hologram.shape), progress=progress,
+        found = residual_particles(image, table, fit_config, propose=counted, settings=settings, background=np.ones(image.shape), progress=progress,
                                    should_stop=should_stop)
         table = pd.concat([table, found], ignore_index=True) if len(found) else table
+    table[["x_um", "y_um"]] += shift_um
     record["residual"] = {"proposals": len(pd.DataFrame(dict(proposals[0]))) if proposals else 0, "found": len(table) - record["kept"], "seconds": time.perf_counter() - started}
     if material is not None:
         member = same_material(table, index_contrast=material, tolerance=MATERIAL_TOLERANCE, sigmas=MATERIAL_SIGMAS)
@@ -359,7 +376,7 @@ def _predict_recording(request: PredictRequest, frames, out: Path, record_path: 
         # the second look runs in this process, on the prediction's device (the workers moved their own copies there)
         looker = load_model(request.model, device=request.device) if isinstance(request.model, (str, Path)) else model
         propose = _network_proposals(looker, request.config, settings, progress=progress, should_stop=should_stop)
-        fit = _fit_settings(None, device=request.device, material=request.material_index_contrast)
+        fit = _fit_settings(None, request.config or model.config, device=request.device, material=request.material_index_contrast)
         particles, provenance["refine"] = _refined_frames(frames, particles, request.config or model.config, fit, background=background,
                                                           material=request.material_index_contrast, propose=propose, log=log, progress=progress,
                                                           should_stop=should_stop)

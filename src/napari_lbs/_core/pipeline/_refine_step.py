@@ -121,6 +121,29 @@ def fringe_binning(config: ExperimentConfig, *, medium_index: float) -> int:
     return max(1, int(config.optics.wavelength_um / (2.0 * medium_index * config.optics.pixel_um) + 1e-9))
 
 
+def default_depth_window_um(config: ExperimentConfig) -> float:
+    """The depths a fit scans on each side of its guess by default (µm): a quarter of the config's depth range, at most `RefineSettings`' 400 µm.
+
+    A lensless setup's range of millimetres keeps the 400 µm; a microscope's 5–65 µm scans
+    ±15 µm, not a window 13 times the volume.
+    """
+    from napari_lbs._core.refine import RefineSettings
+
+    return min(RefineSettings.depth_window_um, 0.25 * (config.volume.z_max_um - config.volume.z_min_um))
+
+
+def binned_hologram(hologram: np.ndarray, config: ExperimentConfig, *, medium_index: float) -> tuple[np.ndarray, ExperimentConfig, float]:
+    """The hologram as the fit sees it: binned by `fringe_binning`, the config of its pitch, and the shift (µm) of a binned pixel's centre beyond its block's first pixel.
+
+    A position in the binned frame plus the shift is a position in the hologram's own
+    coordinates (pixel ``(r, c)`` at ``(c, r) × pixel_um``); unbinned (a lensless pitch) the
+    shift is 0 and the hologram is returned as it is.
+    """
+    factor = fringe_binning(config, medium_index=medium_index)
+    image, fit_config = _binned(np.asarray(hologram, dtype=np.float64), config, factor)
+    return image, fit_config, 0.5 * (factor - 1) * config.optics.pixel_um
+
+
 def _binned(hologram: np.ndarray, config: ExperimentConfig, factor: int) -> tuple[np.ndarray, ExperimentConfig]:
     """The hologram's ``factor``² blocks averaged (the last rows and columns that fill no block dropped) and the config of their pitch."""
     from dataclasses import replace
@@ -278,15 +301,13 @@ def refine_hologram(hologram: np.ndarray, config: ExperimentConfig, *, guesses=N
     if not (isinstance(detection_rounds, int) and detection_rounds >= 1):
         raise InputError(f"detection_rounds: expected a positive integer, got {detection_rounds!r}")
     volume = config.volume
-    window = depth_window_um if depth_window_um is not None else min(RefineSettings().depth_window_um, 0.25 * (volume.z_max_um - volume.z_min_um))
+    window = depth_window_um if depth_window_um is not None else default_depth_window_um(config)
     factor = fringe_binning(config, medium_index=medium_index)
     patch_px = RefineSettings().patch_px if patch_um is None else int(round(patch_um / (factor * config.optics.pixel_um)))
     if patch_px < 16:
         raise InputError(f"patch_um: expected a patch of at least 16 pixels of {factor * config.optics.pixel_um:g} µm, got {patch_um!r} µm")
     settings = RefineSettings(medium_index=medium_index, index_contrast=index_contrast, depth_window_um=window, patch_px=patch_px, workers=workers)
-    image, fit_config = _binned(np.asarray(hologram, dtype=np.float64), config, factor)
-    # a binned pixel's centre lies half a block beyond its first original pixel's
-    shift_um = 0.5 * (factor - 1) * config.optics.pixel_um
+    image, fit_config, shift_um = binned_hologram(hologram, config, medium_index=medium_index)
     started = time.perf_counter()
     if guesses is None:
         begin_phase(progress, "find particles")

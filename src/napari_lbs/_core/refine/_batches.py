@@ -6,7 +6,8 @@ robust fit on every other pixel and then on all (`levenberg_marquardt`), the val
 (Gauss–Newton), ``σ`` the residuals' scale, inflated by their correlation.
 
 **Neighbours**: each patch's model holds the summed fields of the other detections in
-reach, fixed at their guesses (in later rounds, at the previous round's fits); two
+reach (1.5 patches; every other detection where the pitch samples every propagating angle,
+`samples_every_angle`), fixed at their guesses (in later rounds, at the previous round's fits); two
 detections a quarter diameter apart laterally may be one particle twice and stay out of
 each other's model. **False detections**: the fit's ``gain`` is how much it lowers the
 robust cost of the model without the particle (its neighbours and the illumination).
@@ -24,7 +25,7 @@ from napari_lbs._core.foundation import CHECK_S, ExperimentConfig, Steps, Worker
 from napari_lbs._core.physics import holograms_from_fields, sphere_fields
 from napari_lbs._core.refine._levenberg_marquardt import clamp, flat_model, huber, levenberg_marquardt, residual_inflation, robust_scale
 from napari_lbs._core.refine._model import Model, scattered_terms
-from napari_lbs._core.refine._patches import Patches, cut_patches, every_other_pixel, patch_edge
+from napari_lbs._core.refine._patches import Patches, cut_patches, every_other_pixel, patch_edge, samples_every_angle
 from napari_lbs._core.refine._rings import cut_rings, ring_search, symmetric_centres
 from napari_lbs._core.refine._settings import BOUNDS, NUISANCE, PHYSICAL, RefineSettings
 from napari_lbs._core.refine._valley import interval_threshold, profile_spread, valley_profile
@@ -164,7 +165,10 @@ def _neighbour_fields(all_params: np.ndarray, index: np.ndarray, *, present: np.
     """A function giving, for the patches of particles ``index``, the ``present`` other particles' terms near them (`Model`'s ``others``; None when none has any)."""
     optics = config.optics
     pixel = optics.pixel_um if settings.pixel_integration else None
-    reach = 1.5 * settings.patch_px * optics.pixel_um
+    # a neighbour's fringes are sampled out to its Nyquist disc, about 1.5 patches at a
+    # lensless pitch; at a pitch that samples every angle they reach the whole frame
+    fine = samples_every_angle(wavelength_um=optics.wavelength_um, medium_index=settings.medium_index, pixel_um=optics.pixel_um)
+    reach = math.inf if fine else 1.5 * settings.patch_px * optics.pixel_um
 
     def others(patches: Patches) -> torch.Tensor | None:
         rows, near = [], []

@@ -77,6 +77,16 @@ def check_fixed(fixed: Mapping[str, float] | None) -> dict[str, float]:
     return fixed
 
 
+def samples_every_angle(*, wavelength_um: float, medium_index: float, pixel_um: float) -> bool:
+    """Whether a pitch of ``pixel_um`` samples every propagating fringe: at most half the medium wavelength ``λ/(2n)`` (µm).
+
+    Then a sphere's fringes are cut by no Nyquist disc: they reach grazing angles, over the
+    whole frame, fading only as the scattered wave spreads (a microscope's pitch at the
+    sample, binned or not). A lensless sensor's pitch (2.2 µm at 660 nm) is coarser.
+    """
+    return pixel_um <= wavelength_um / (2.0 * medium_index)
+
+
 def patch_edge(z_um: float, *, settings: RefineSettings, wavelength_um: float, pixel_um: float) -> int:
     """Patch edge (px): the disc of fringes below the Nyquist frequency, at most ``patch_px``.
 

@@ -10,7 +10,9 @@ remains of the fits.
 Each sphere is rendered on the square around the disc where its fringes lie below
 ``reach_cycles_per_px``. At the default, the pixel's Nyquist frequency (``0.5``; at most
 ``2 * patch_px`` pixels wide), the hologram is what the fit modelled: beyond it the camera
-aliases the fringes and the fit does not model them either. A camera records more than
+aliases the fringes and the fit does not model them either. A pitch that samples every
+propagating angle (a microscope's, `samples_every_angle`) aliases nothing: each sphere is
+rendered over the whole frame, as the fit models its neighbours. A camera records more than
 that: a pixel integrating its square passes fringes up to 1 cycle per pixel (its transfer
 ``sinc`` falls to zero there), aliased. A sphere 3 mm away at 2.2 µm pixels leaves rings to
 twice the Nyquist radius, over most of a 512² frame: rendered with ``reach_cycles_per_px=1``
@@ -31,6 +33,7 @@ from napari_lbs._core.refine._material import MATERIAL_TOLERANCE, same_material
 from napari_lbs._core.physics import holograms_from_fields, sphere_fields, term_count
 from napari_lbs._core.foundation import ProgressCallback, Steps, StopCallback
 from napari_lbs._core.refine._patches import check_table as _check_table
+from napari_lbs._core.refine._patches import samples_every_angle
 from napari_lbs._core.refine._refine import RefineSettings, refine_particles
 
 __all__ = ["particle_hologram", "residual_hologram", "residual_particles"]
@@ -61,7 +64,8 @@ def particle_hologram(shape: tuple[int, int], table, config: ExperimentConfig, *
         them.
     reach_cycles_per_px : float
         Fringe frequency (cycles per pixel) up to which each sphere is rendered: ``0.5``
-        (Nyquist, within ``2 * settings.patch_px`` pixels) as the fit modelled it; ``1``
+        (Nyquist, within ``2 * settings.patch_px`` pixels, or the whole frame at a pitch that
+        samples every angle) as the fit modelled it; ``1``
         (the pixel's box transfer falls to zero there; no patch limit) for everything a
         camera records, aliased fringes included (module docstring).
     progress, should_stop : callable, optional
@@ -96,7 +100,9 @@ def particle_hologram(shape: tuple[int, int], table, config: ExperimentConfig, *
     optics_kw = {"wavelength_um": optics.wavelength_um, "medium_index": settings.medium_index}
     if not (isinstance(reach_cycles_per_px, int | float) and 0.0 < reach_cycles_per_px <= 1.0):
         raise InputError(f"particle hologram: reach_cycles_per_px must be in (0, 1], got {reach_cycles_per_px!r}")
-    limit = 2 * settings.patch_px if reach_cycles_per_px <= 0.5 else 2 * max(rows, cols) + 2
+    # as the fit's neighbours: within 2 patches, or over the whole frame where the pitch samples every angle
+    fine = samples_every_angle(wavelength_um=optics.wavelength_um, medium_index=settings.medium_index, pixel_um=pixel)
+    limit = 2 * settings.patch_px if reach_cycles_per_px <= 0.5 and not fine else 2 * max(rows, cols) + 2
     steps = Steps(len(frame), progress=progress, should_stop=should_stop)
     for i in range(len(frame)):
         steps.check()
