@@ -13,6 +13,8 @@ line what they did.
     The steps that make and use a training set: generate and train.
 `_predict`
     The steps that find particles: predict (a hologram or a recording, refined by a fit on request) and track.
+`_binning`
+    The pitch a particle's fit sees (a microscope's pixels binned) and the depths it scans, for refine and predict --refine.
 `_refine_step`
     The step that fits without training: refine (the classical detector's guesses, fitted by Lorenz–Mie theory, then those their residual holds).
 `_diagnose_step`
@@ -30,7 +32,8 @@ __getattr__, __dir__, __all__ = lazy_exports(
         "_setup_steps": ("BackpropRequest", "CalibrateRequest", "SimulateRequest", "backprop", "calibrate", "simulate"),
         "_data_steps": ("GenerateRequest", "TrainRequest", "generate", "requested_effects", "train"),
         "_predict": ("PredictRequest", "REFINE_PROPOSAL_FRACTION", "TrackRequest", "predict", "prediction_outputs", "refined_prediction", "track"),
-        "_refine_step": ("DETECTION_ROUNDS", "RefineRequest", "fringe_binning", "refine", "refine_hologram"),
+        "_binning": ("fringe_binning",),
+        "_refine_step": ("DETECTION_ROUNDS", "RefineRequest", "refine", "refine_hologram"),
         "_diagnose_step": ("DIAGNOSED_FRAMES", "DiagnoseRequest", "EvaluateRequest", "diagnose", "evaluate", "tiles_per_side"),
         "_demo": ("DEMO_SAMPLE_DISTRACTORS", "DemoRequest", "demo"),
     },

@@ -123,7 +123,7 @@ def _network_proposals(model, config: ExperimentConfig | None, settings: Predict
 def _fit_settings(settings: RefineSettings | None, config: ExperimentConfig, *, device: str, material: float | None) -> RefineSettings:
     """The `RefineSettings` of a refined prediction: ``settings``, else the prediction's device with one fitting process per available core and the ``refine`` command's depth window for ``config`` (`default_depth_window_um`); a declared ``material`` is where every fit starts."""
     from napari_lbs._core.foundation import available_threads
-    from napari_lbs._core.pipeline._refine_step import default_depth_window_um
+    from napari_lbs._core.pipeline._binning import default_depth_window_um
     from napari_lbs._core.refine import RefineSettings
 
     start = {} if material is None else {"index_contrast": float(material)}
@@ -319,7 +319,7 @@ def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, se
     import numpy as np
     import pandas as pd
 
-    from napari_lbs._core.pipeline._refine_step import binned_hologram
+    from napari_lbs._core.pipeline._binning import binned_hologram
     from napari_lbs._core.refine import MATERIAL_SIGMAS, MATERIAL_TOLERANCE, same_material
     from napari_lbs._core.refine import refine_particles
     from napari_lbs._core.refine import residual_particles
