@@ -189,6 +189,18 @@ def test_tiles_per_side_follows_the_tile_edge_within_3_to_16():
         tiles_per_side((1024, 1024), 600, flag="tile")
 
 
+def test_the_report_shows_the_scene_s_numbers(tmp_path):
+    report = scene_report("illumination")
+    report["scene"] = {"particles": 12, "per_mm2": 2.4, "in_size_range": 10, "below_size_range": 2, "above_size_range": 0, "percentiles": [5, 25, 50, 75, 95],
+                       "diameter_um": [21.0, 24.0, 25.1, 25.7, 29.0], "index_contrast": [0.2, 0.25, 0.26, 0.27, 0.3], "z_um": [1900.0, 2800.0, 3600.0, 3900.0, 4200.0],
+                       "small_scatterers": {"count": 2, "per_256px_tile": 0.125, "diameter_um": [11.0, 17.5]}}
+    write_report(SceneDiagnosis(report, np.full((2, 2), 0.01), None, 1.0), tmp_path / "r")
+    summary = (tmp_path / "r" / "report.md").read_text()
+    assert "## The scene" in summary and "12 particles fitted (2.4 per mm²" in summary and "10 within the config's sizes, 2 below" in summary
+    assert "diameter median 25.1 (quartiles 24–25.7) µm" in summary and "Depth median 3.6 (quartiles 2.8–3.9) mm" in summary
+    assert "Small scatterers (below the config's sizes): 2, 0.12 per 256-pixel tile, 11–17.5 µm." in summary
+
+
 def test_the_report_shows_the_blur_by_depth_where_a_blur_was_selected(tmp_path):
     report = scene_report("coherence")
     report["blur_by_depth"] = {"depths_um": [2000.0, 3000.0, 4000.0], "sigma_px": [[0.6, 0.9, 1.2], [0.62, 0.88, 1.21]], "sensor_sigma_px": 0.0,

@@ -157,7 +157,28 @@ def test_a_frame_of_spheres_is_diagnosed_end_to_end_with_the_report_fields():
     levels = next(e for e in report["effects"] if e["id"] == "quantization")["levels"]
     assert levels["integer"] is False  # a float frame holds no converter levels to read
     assert report["particle_optics"]["particles"] == 2 and abs(report["particle_optics"]["diameter_median_um"] - 25.0) < 2.0
+    assert report["scene"]["particles"] == 2 and report["scene"]["in_size_range"] == 2 and report["scene"]["small_scatterers"]["count"] == 0
+    assert abs(report["scene"]["diameter_um"][2] - 25.0) < 2.0 and abs(report["scene"]["z_um"][2] - 2200.0) < 100.0
     assert first.to_json() == second.to_json()
+
+
+def test_the_scene_population_counts_the_sample_and_the_small_scatterers_beside_it():
+    """Counts against the config's sizes, the density over the frame, the percentiles of the sample's sizes, the small ones per 256-pixel tile."""
+    import pandas as pd
+
+    from napari_lbs._core import ExperimentConfig
+    from napari_lbs._core.gap._population import scene_population
+
+    config = ExperimentConfig()  # 20-30 um particles, 2.2 um pixels
+    table = pd.DataFrame({"x_um": np.zeros(7), "y_um": np.zeros(7), "z_um": [2000.0, 2500.0, 3000.0, 3500.0, 4000.0, 2200.0, 2600.0],
+                          "diameter_um": [22.0, 24.0, 25.0, 26.0, 28.0, 8.0, 40.0], "index_contrast": [0.25, 0.26, 0.26, 0.27, 0.28, 0.4, 0.1]})
+    population = scene_population(table, config, (512, 512))
+    assert (population["particles"], population["in_size_range"], population["below_size_range"], population["above_size_range"]) == (7, 5, 1, 1)
+    assert population["per_mm2"] == pytest.approx(7 / (512 * 512 * 0.0022**2))
+    assert population["diameter_um"][2] == 25.0 and population["diameter_um"][1] == 24.0 and population["index_contrast"][2] == 0.26
+    assert population["small_scatterers"] == {"count": 1, "per_256px_tile": 0.25, "diameter_um": [8.0, 8.0]}
+    empty = scene_population(table.iloc[:0], config, (512, 512))
+    assert empty["particles"] == 0 and empty["diameter_um"] is None and empty["small_scatterers"]["diameter_um"] is None
 
 
 def test_the_unexplained_share_is_nothing_for_white_noise_and_a_quarter_for_half_the_frame_s_fringe():

@@ -176,6 +176,7 @@ def _summary(report: dict, levels: SceneDiagnosisSettings) -> list[str]:
         "![effects](gap_effects.png)",
         "",
         *_blur_lines(report.get("blur_by_depth"), levels),
+        *_scene_lines(report.get("scene"), levels),
         "## Particle optics (opaque against transparent spheres, by where their fine fringes lie)",
         "",
         f"- {optics['particles']} of the scene's particles rendered as opaque spheres and as transparent ones, through a camera blur of "
@@ -223,6 +224,29 @@ def _blur_lines(profile: dict | None, levels: SceneDiagnosisSettings) -> list[st
         "| depth (mm) | σ (px), tiles of one colour | σ (px), the other |",
         "|---|---|---|",
         *[f"| {depth / 1000:.2f} | {_text(first)} | {_text(second)} |" for depth, first, second in zip(profile["depths_um"], *profile["sigma_px"], strict=True)],
+        "",
+    ]
+
+
+def _scene_lines(scene: dict | None, levels: SceneDiagnosisSettings) -> list[str]:
+    """The scene's numbers (`scene_population`): count, density, sizes, depths, index contrasts and the small scatterers."""
+    if not scene:
+        return []
+    small = scene["small_scatterers"]
+
+    def spread(values, scale: float = 1.0, fmt: str = ".4g") -> str:
+        return f"median {_text(values[2] * scale, fmt)} (quartiles {_text(values[1] * scale, fmt)}–{_text(values[3] * scale, fmt)})" if values else "—"
+
+    return [
+        "## The scene (the frame's particles as their fits measured them)",
+        "",
+        f"- {scene['particles']} particles fitted ({_text(scene['per_mm2'], '.3g')} per mm² of the frame): {scene['in_size_range']} within the "
+        f"config's sizes, {scene['below_size_range']} below, {scene['above_size_range']} above.",
+        f"- Within the sizes: diameter {spread(scene['diameter_um'])} µm; index contrast {spread(scene['index_contrast'])} "
+        f"(each fit starts at {_text(levels.refine.index_contrast)} and keeps to the phase-delay valley it starts in).",
+        f"- Depth {spread(scene['z_um'], 1e-3, '.3g')} mm.",
+        f"- Small scatterers (below the config's sizes): {small['count']}, {_text(small['per_256px_tile'], '.2g')} per 256-pixel tile"
+        + (f", {_text(small['diameter_um'][0], '.3g')}–{_text(small['diameter_um'][1], '.3g')} µm" if small["diameter_um"] else "") + ".",
         "",
     ]
 

@@ -25,6 +25,8 @@
    that median is at most ``structure_level`` and the residual's column and row means hold no
    fixed pattern (`_line_pattern`: what a camera's column amplifiers and row read-out leave,
    the EMVA 1288 standard's check of non-uniformity).
+5. **The scene's numbers** (`scene_population`): the fitted particles' count, density, sizes,
+   depths and index contrasts, and the small scatterers fitted below the config's sizes.
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ from napari_lbs._core.gap._heldout import TileSplit, tile_spectra
 from napari_lbs._core.gap._levels import levels_test
 from napari_lbs._core.gap._nested import MEAN_EFFECTS, Scene, select_effects
 from napari_lbs._core.gap._optics_power import optics_power_test
+from napari_lbs._core.gap._population import scene_population
 from napari_lbs._core.refine import RefineSettings, particle_hologram, refine_particles
 
 __all__ = ["SceneDiagnosisSettings", "SceneDiagnosis", "diagnose_scene"]
@@ -376,6 +379,7 @@ def diagnose_scene(hologram: np.ndarray, config: ExperimentConfig, *, settings: 
                                + (f"; undecided between {between}" if between else "") + f"; {left}")},
         "posterior": posterior,
         "particle_optics": optics,
+        "scene": scene_population(table, config, data.shape),
         "blur_by_depth": blur_profile,
         "selection": selection.steps,
         "undecided": list(selection.undecided),
