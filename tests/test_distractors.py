@@ -110,3 +110,38 @@ def test_cli_generate_with_distractors_and_a_refusal(tmp_path, capsys):
     assert "--impurity-diameter-um" in capsys.readouterr().err
     # without impurities their diameters shape nothing, so they are no part of the set's identity
     assert Distractors(neighbours_margin_px=8).to_dict() == Distractors(neighbours_margin_px=8, impurity_diameter_min_um=1.0).to_dict() == {"impurities_per_tile": 0, "neighbours_margin_px": 8}
+
+
+def _scene_report(per_256px_tile: float, sizes) -> dict:
+    """A diagnosis report naming nothing, whose scene measured small scatterers."""
+    return {"verdict": {"id": None}, "effects": [], "scene": {"small_scatterers": {"count": 3, "per_256px_tile": per_256px_tile, "diameter_um": sizes}}}
+
+
+def test_the_small_scatterers_a_report_measured_become_impurities_scaled_to_the_tile():
+    from napari_lbs._core.physics import distractors_from_report
+
+    measured = distractors_from_report(_scene_report(1.6, [11.2, 19.5]), tile_px=256, diameter_min_um=20.0)
+    assert measured == Distractors(impurities_per_tile=2, impurity_diameter_min_um=11.2, impurity_diameter_max_um=19.5)
+    assert distractors_from_report(_scene_report(1.6, [11.2, 19.5]), tile_px=512, diameter_min_um=20.0).impurities_per_tile == 6
+    # a size at the particles' own lower bound is kept just below it, as the generator needs
+    assert distractors_from_report(_scene_report(2.0, [12.0, 20.0]), tile_px=256, diameter_min_um=20.0).impurity_diameter_max_um == pytest.approx(19.6)
+    assert distractors_from_report(_scene_report(0.4, [11.2, 19.5]), tile_px=256, diameter_min_um=20.0) == Distractors()  # under half a scatterer a tile
+    assert distractors_from_report(_scene_report(0.0, None), tile_px=256, diameter_min_um=20.0) == Distractors()
+    assert distractors_from_report({"verdict": {"id": None}, "effects": []}, tile_px=256, diameter_min_um=20.0) == Distractors()  # no scene: an older report
+    for broken, culprit in (({"small_scatterers": {}}, "missing"), ({"small_scatterers": {"per_256px_tile": -1.0, "diameter_um": [1.0, 2.0]}}, "per_256px_tile"),
+                            ({"small_scatterers": {"per_256px_tile": 2.0, "diameter_um": [5.0, "x"]}}, "diameter_um"),
+                            ({"small_scatterers": {"per_256px_tile": 2.0, "diameter_um": [9.0, 5.0]}}, "diameter_um")):
+        with pytest.raises(InputError, match=f"^r.json: scene: small_scatterers: .*{culprit}"):
+            distractors_from_report({"scene": broken}, tile_px=256, diameter_min_um=20.0, name="r.json")
+
+
+def test_cli_generate_takes_the_report_s_small_scatterers_unless_told_otherwise(tmp_path):
+    config = tmp_path / "c.toml"
+    config.write_text('[tile]\nsize = 64\n[particles]\nper_tile = 2\nlayer_step_um = 50.0\n[volume]\nz_min_um = 1800.0\nz_max_um = 1900.0\n')
+    report = tmp_path / "report.json"
+    report.write_text(json.dumps(_scene_report(32.0, [6.0, 12.0])))  # 2 per 64-pixel tile
+    assert main(["generate", "--config", str(config), "--groups", "1", "--out", str(tmp_path / "a"), "--context-planes", "1", "--effects-from", str(report)]) == 0
+    spec = json.loads((tmp_path / "a" / "dataset.json").read_text())
+    assert spec["distractors"] == {"impurities_per_tile": 2, "impurity_diameter_min_um": 6.0, "impurity_diameter_max_um": 12.0, "neighbours_margin_px": 0}
+    assert main(["generate", "--config", str(config), "--groups", "1", "--out", str(tmp_path / "b"), "--context-planes", "1", "--effects-from", str(report), "--impurities", "0"]) == 0
+    assert "distractors" not in json.loads((tmp_path / "b" / "dataset.json").read_text())

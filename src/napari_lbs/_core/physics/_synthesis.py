@@ -23,6 +23,7 @@ __all__ = [
     "Distractors",
     "random_particle_field",
     "distractor_scene",
+    "distractors_from_report",
     "count_for_ppp",
     "disc_coverage",
     "layer_images",
@@ -115,6 +116,46 @@ class Distractors:
     @classmethod
     def from_dict(cls, payload: dict | None) -> Distractors:
         return cls(**payload) if payload else cls()
+
+
+
+def distractors_from_report(report: dict, *, tile_px: int, diameter_min_um: float, name: str = "report") -> Distractors:
+    """The small scatterers a diagnosis report's scene measured, as training data's unlabelled impurities.
+
+    The report's ``scene.small_scatterers`` (`scene_population`): their count per 256-pixel
+    tile, scaled to ``tile_px``, rounded (none below half a scatterer per tile), and their
+    diameters' least and largest, kept below the particles' ``diameter_min_um``. A report
+    without a scene (an older engine's) or without small scatterers gives none. Neighbours
+    outside the window are not measured by the diagnosis: ``neighbours_margin_px`` stays 0.
+
+    Raises
+    ------
+    InputError
+        One line naming the report and the field that is malformed.
+    """
+    scene = report.get("scene") if isinstance(report, dict) else None
+    if scene is None:
+        return Distractors()
+    try:
+        small = scene["small_scatterers"]
+        per_tile = float(small["per_256px_tile"]) * (tile_px / 256.0) ** 2
+        sizes = small["diameter_um"]
+    except (KeyError, TypeError) as error:
+        raise InputError(f"{name}: scene: small_scatterers: missing {error}") from None
+    if not np.isfinite(per_tile) or per_tile < 0:
+        raise InputError(f"{name}: scene: small_scatterers: per_256px_tile must be a number >= 0, got {small['per_256px_tile']!r}")
+    count = int(round(per_tile))
+    if count == 0 or sizes is None:
+        return Distractors()
+    try:
+        low, high = (float(value) for value in sizes)
+    except (TypeError, ValueError):
+        raise InputError(f"{name}: scene: small_scatterers: diameter_um must be [least, largest] in um, got {sizes!r}") from None
+    if not (np.isfinite(low) and np.isfinite(high) and 0.0 < low <= high):
+        raise InputError(f"{name}: scene: small_scatterers: diameter_um must be 0 < least <= largest, got {sizes!r}")
+    # what the fits sized at the particles' lower bound is kept just below it
+    high = min(high, 0.98 * float(diameter_min_um))
+    return Distractors(impurities_per_tile=count, impurity_diameter_min_um=min(low, high), impurity_diameter_max_um=high)
 
 
 def distractor_scene(

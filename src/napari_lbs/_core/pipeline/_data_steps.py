@@ -94,6 +94,14 @@ def requested_effects(*, report_path=None, explicit: Sequence[str] = (), flag: s
     return effects, source
 
 
+def report_distractors(report_path, config: ExperimentConfig):
+    """The unlabelled impurities a diagnosis report's scene measured (`distractors_from_report`), for ``config``'s tiles."""
+    from napari_lbs._core.physics import distractors_from_report
+
+    report = read_json_object(report_path, what="diagnosis report")
+    return distractors_from_report(report, tile_px=config.tile.size, diameter_min_um=config.particles.diameter_min_um, name=str(report_path))
+
+
 def generate(request: GenerateRequest, *, progress: ProgressCallback | None = None, should_stop: StopCallback | None = None) -> StepResult:
     """Write the synthetic training set (`generate_dataset`)."""
     from napari_lbs._core.learning import DatasetLayout, InputProcessing, generate_dataset
