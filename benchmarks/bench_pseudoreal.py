@@ -18,12 +18,18 @@ synthetic groups only) on three kinds of synthetic data:
              closed loop for the demo's uncalibrated recipe, against ``plain``.
 ``distractors`` as ``plain_transparent``, plus the demo's unlabelled distractors (`Distractors`:
              6 impurities of 4–14 µm per tile, neighbours in a 96-pixel margin).
+``plain_report`` the closed loop on a hologram that holds debris: the seed's simulation (no
+             calibration) plus what the diagnosis of the hologram *with distractors* reports,
+             its effects (`effects_from_report`) and the small scatterers its scene measured
+             as unlabelled impurities (`distractors_from_report`), as
+             ``generate --effects-from`` takes them; against ``plain``.
 
 Each model predicts the pseudo-real hologram at the real hologram's density (~100 spheres in
 1024²), the same 100 spheres with distractors (50 small debris spheres of n 1.45, 3–12 µm, per
 window, and spheres and debris outside the window: a 128-pixel margin; none of them in the
 truth), and 4× the density; one-to-one ER/JI (22 µm, 150 µm) and |Δz| of the matches are printed.
-Calibration and diagnosis see only the real-density hologram, never its truth. Every stage
+Calibration and diagnosis see only the real-density hologram (``plain_report``'s diagnosis the
+one with distractors), never their truth. Every stage
 is cached in ``--out`` and training resumes from its last epoch, so an interrupted run
 continues where it stopped. Seeds are fixed: same result each run.
 
@@ -65,6 +71,7 @@ from napari_lbs._core import (
     write_report,
 )
 from napari_lbs._core.foundation._files import write_json
+from napari_lbs._core.physics import distractors_from_report
 from napari_lbs._core.learning._metrics import depth_errors_um
 
 DENSITIES = {"real density": 100, "4x density": 400}
@@ -110,6 +117,17 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None, real
         print(f"diagnosis: {time.perf_counter() - start:.0f} s, verdict {diagnosis.report['verdict']}", flush=True)
     report = json.loads(report_path.read_text()) if needs_report else {"verdict": None, "posterior": None}
     effects = effects_from_report(report, name=str(report_path)) if needs_report else {}
+    busy_report_path = out / "diagnosis_distractors" / "report.json"
+    busy_effects, busy_distractors, busy_report = {}, Distractors(), {}
+    if (not only or "plain_report" in only) and not real_density_only:
+        if not busy_report_path.is_file():
+            start = time.perf_counter()
+            diagnosis = diagnose_scene(holograms["with distractors"][0], config)
+            write_report(diagnosis, out / "diagnosis_distractors", provenance={"source": "pseudo-real hologram with distractors"}, force=True)
+            print(f"diagnosis with distractors: {time.perf_counter() - start:.0f} s, verdict {diagnosis.report['verdict']['id']}", flush=True)
+        busy_report = json.loads(busy_report_path.read_text())
+        busy_effects = effects_from_report(busy_report, name=str(busy_report_path))
+        busy_distractors = distractors_from_report(busy_report, tile_px=config.tile.size, diameter_min_um=config.particles.diameter_min_um, name=str(busy_report_path))
 
     lbs = InputProcessing.from_calibration(calibration) if calibrated else None
     stages = {
@@ -120,8 +138,11 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None, real
         "effects": (lbs, effects, Distractors()),
         "plain_effects": (InputProcessing(), effects, Distractors()),
         "distractors": (InputProcessing(), TRANSPARENT, DEMO_DISTRACTORS),
+        "plain_report": (InputProcessing(), busy_effects, busy_distractors),
     }
-    results = {"calibration": calibration["params"], "ssim": calibration["ssim"], "verdict": report["verdict"], "posterior": report.get("posterior"), "effects": effects, "stages": {}}
+    results = {"calibration": calibration["params"], "ssim": calibration["ssim"], "verdict": report["verdict"], "posterior": report.get("posterior"), "effects": effects,
+               "with_distractors_report": {"verdict": (busy_report.get("verdict") or {}).get("id"), "effects": busy_effects, "distractors": busy_distractors.to_dict(),
+                                           "scene": busy_report.get("scene")} if busy_report else None, "stages": {}}
     for stage, (processing, stage_effects, distractors) in stages.items():
         if only and stage not in only:
             continue

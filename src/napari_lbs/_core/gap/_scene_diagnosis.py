@@ -26,7 +26,8 @@
    fixed pattern (`_line_pattern`: what a camera's column amplifiers and row read-out leave,
    the EMVA 1288 standard's check of non-uniformity).
 5. **The scene's numbers** (`scene_population`): the fitted particles' count, density, sizes,
-   depths and index contrasts, and the small scatterers fitted below the config's sizes.
+   depths and index contrasts, and the small scatterers: the scene's fits below the config's
+   sizes and what a search at smaller sizes finds in the residual (`_small_scatterers`).
 """
 
 from __future__ import annotations
@@ -53,6 +54,7 @@ __all__ = ["SceneDiagnosisSettings", "SceneDiagnosis", "diagnose_scene"]
 _DEPTH_GROUPS = 6  # depth groups of the scene's particles for a depth-dependent effect
 _FLOOR_CYCLES = 0.35  # cycles per pixel above which the residual's power is its white floor
 _BANDS = (0.0, 0.02, 0.05, 0.1, 0.2, 0.35, 0.5)  # cycles per pixel, the report's frequency bands
+_SMALL_FRACTION = 0.2  # small scatterers are looked for from this fraction of the sample's least diameter up to it
 _NOT_TESTED = {
     "coherence.bandwidth_nm": "a spectrum's width washes fringes out with their order; not modelled by this engine yet",
     "spherical_wave": "on one frame a point source's magnification is a change of each particle's depth and size",
@@ -236,6 +238,38 @@ def _scene(data: np.ndarray, found, config: ExperimentConfig, settings: SceneDia
     return table, Scene(scene, depths, groups, config.optics.pixel_um)
 
 
+def _small_scatterers(data: np.ndarray, table, config: ExperimentConfig, settings: SceneDiagnosisSettings, progress, should_stop):
+    """What the fitted scene leaves, searched at the sizes below the config's: the frame's small scatterers, fitted.
+
+    Debris, dust and bubbles are smaller than the sample and focus more weakly: the search
+    for the sample's sizes (smoothing over their area, peaks a diameter apart) passes them by.
+    The residual the scene leaves is searched again as if the particles were
+    `_SMALL_FRACTION` of the config's least diameter up to it; each find away from the
+    scene's particles is fitted (size free) and kept where its fit lowers the cost by the
+    refinement's own significance (`RefineSettings.min_gain`'s default) and it is smaller than
+    the sample. The scene itself is not changed: the effects are judged on the same particles.
+    """
+    import dataclasses
+
+    import pandas as pd
+
+    low = config.particles.diameter_min_um
+    small = dataclasses.replace(config, particles=dataclasses.replace(config.particles, diameter_min_um=_SMALL_FRACTION * low, diameter_max_um=low))
+    columns = ["x_um", "y_um", "z_um", "diameter_um"]
+    residual = data - (particle_hologram(data.shape, table, config, settings=settings.refine, reach_cycles_per_px=0.5, should_stop=should_stop) - 1.0) if len(table) else data
+    begin_phase(progress, "small scatterers looked for in what the scene leaves")
+    found = pd.DataFrame(_found(residual, small, settings.scene_particles, progress, should_stop))[columns]
+    if len(table) and len(found):
+        apart = np.hypot(found["x_um"].to_numpy()[:, None] - table["x_um"].to_numpy()[None], found["y_um"].to_numpy()[:, None] - table["y_um"].to_numpy()[None])
+        found = found[apart.min(axis=1) > 0.5 * config.particles.diameter_max_um]
+    if found.empty:
+        return found
+    begin_phase(progress, f"the small scatterers: {len(found)} fitted")
+    significant = dataclasses.replace(settings.refine, min_gain=RefineSettings().min_gain)
+    fitted = refine_particles(residual, found.reset_index(drop=True), config, settings=significant, progress=progress, should_stop=should_stop)
+    return fitted[fitted["refined"] & (fitted["diameter_um"] < low)].reset_index(drop=True)
+
+
 def _structure(residuals: tuple[np.ndarray, np.ndarray], split: TileSplit, frame_spectra: np.ndarray) -> tuple[float, list, np.ndarray, float]:
     """The unexplained share of the frame's structure: its median over the tiles, per band, per tile; and the white floor's variance.
 
@@ -332,6 +366,7 @@ def diagnose_scene(hologram: np.ndarray, config: ExperimentConfig, *, settings: 
     selection, blur_profile = attribute_blur(data, scene, split, selection, level_z=settings.level_z, check=steps.check)
     steps.advance()
     optics = _optics(data, table, selection, config, split, settings, progress, should_stop)
+    small = _small_scatterers(data, table, config, settings, progress, should_stop)
     frame_spectra = tile_spectra(data - 1.0, split)
     baseline_share = _structure(selection.fits["baseline"].residuals, split, frame_spectra)[0]
     final = selection.fits["+".join(selection.chosen) or "baseline"]
@@ -379,7 +414,7 @@ def diagnose_scene(hologram: np.ndarray, config: ExperimentConfig, *, settings: 
                                + (f"; undecided between {between}" if between else "") + f"; {left}")},
         "posterior": posterior,
         "particle_optics": optics,
-        "scene": scene_population(table, config, data.shape),
+        "scene": scene_population(table, config, data.shape, small=small),
         "blur_by_depth": blur_profile,
         "selection": selection.steps,
         "undecided": list(selection.undecided),
