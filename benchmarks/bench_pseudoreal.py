@@ -23,6 +23,8 @@ synthetic groups only) on three kinds of synthetic data:
              its effects (`effects_from_report`) and the small scatterers its scene measured
              as unlabelled impurities (`distractors_from_report`), as
              ``generate --effects-from`` takes them; against ``plain``.
+``plain_report_effects`` as ``plain_report`` without the impurities (``--impurities 0``): what
+             the report's effects alone bring.
 
 Each model predicts the pseudo-real hologram at the real hologram's density (~100 spheres in
 1024²), the same 100 spheres with distractors (50 small debris spheres of n 1.45, 3–12 µm, per
@@ -119,7 +121,7 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None, real
     effects = effects_from_report(report, name=str(report_path)) if needs_report else {}
     busy_report_path = out / "diagnosis_distractors" / "report.json"
     busy_effects, busy_distractors, busy_report = {}, Distractors(), {}
-    if (not only or "plain_report" in only) and not real_density_only:
+    if (not only or {"plain_report", "plain_report_effects"} & set(only)) and not real_density_only:
         if not busy_report_path.is_file():
             start = time.perf_counter()
             diagnosis = diagnose_scene(holograms["with distractors"][0], config)
@@ -139,6 +141,7 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None, real
         "plain_effects": (InputProcessing(), effects, Distractors()),
         "distractors": (InputProcessing(), TRANSPARENT, DEMO_DISTRACTORS),
         "plain_report": (InputProcessing(), busy_effects, busy_distractors),
+        "plain_report_effects": (InputProcessing(), busy_effects, Distractors()),
     }
     results = {"calibration": calibration["params"], "ssim": calibration["ssim"], "verdict": report["verdict"], "posterior": report.get("posterior"), "effects": effects,
                "with_distractors_report": {"verdict": (busy_report.get("verdict") or {}).get("id"), "effects": busy_effects, "distractors": busy_distractors.to_dict(),
