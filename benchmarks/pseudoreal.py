@@ -158,7 +158,8 @@ IMPURITY_INDEX = 1.45  # debris: not the particles' material (silica-like), so n
 
 
 def pseudo_real(count: int, *, size: int = 1024, seed: int = 0, z_air_um: tuple[float, float] = (1900.0, 4700.0),
-                impurities: int = 0, impurity_diameter_um: tuple[float, float] = (3.0, 12.0), margin_px: int = 0) -> tuple[np.ndarray, dict]:
+                impurities: int = 0, impurity_diameter_um: tuple[float, float] = (3.0, 12.0), margin_px: int = 0,
+                impurities_truth: bool = False) -> tuple[np.ndarray, dict] | tuple[np.ndarray, dict, dict]:
     """An 8-bit pseudo-real hologram of ``count`` polystyrene spheres and its truth table (air-equivalent depths).
 
     With ``impurities``, that many small spheres of index `IMPURITY_INDEX` (diameters uniform
@@ -166,7 +167,8 @@ def pseudo_real(count: int, *, size: int = 1024, seed: int = 0, z_air_um: tuple[
     ``margin_px`` the field is simulated over the window widened by that margin, spheres and
     impurities at the same density there, and the window is kept, as a crop of a real sensor.
     Neither is in the truth table. The ``count`` spheres of the window are the same as without
-    them (drawn first, from the same seed).
+    them (drawn first, from the same seed). ``impurities_truth`` returns a third table, the
+    impurities whose centres lie in the window (window coordinates).
     """
     rng = np.random.default_rng(seed)
     extent = (size - 1) * PIXEL_UM
@@ -178,7 +180,8 @@ def pseudo_real(count: int, *, size: int = 1024, seed: int = 0, z_air_um: tuple[
     }
     if not (impurities or margin_px):
         intensity = mie_intensity((size, size), table["x_um"], table["y_um"], table["z_um"], table["diameter_um"])
-        return camera(intensity, rng=rng), table
+        empty = {name: np.empty(0) for name in table}
+        return (camera(intensity, rng=rng), table, empty) if impurities_truth else (camera(intensity, rng=rng), table)
     extra = np.random.default_rng([seed, 1])
     big = size + 2 * margin_px
     ratio = (big / size) ** 2
@@ -197,7 +200,12 @@ def pseudo_real(count: int, *, size: int = 1024, seed: int = 0, z_air_um: tuple[
     d = np.concatenate([table["diameter_um"], extra.uniform(20.0, 30.0, neighbours), extra.uniform(*impurity_diameter_um, n_imp)])
     n = np.concatenate([np.full(count + neighbours, N_PARTICLE), np.full(n_imp, IMPURITY_INDEX)])
     intensity = mie_intensity((big, big), x, y, z, d, n)[margin_px : margin_px + size, margin_px : margin_px + size]
-    return camera(np.ascontiguousarray(intensity), rng=rng), table
+    image = camera(np.ascontiguousarray(intensity), rng=rng)
+    if not impurities_truth:
+        return image, table
+    small = slice(count + neighbours, None)
+    inside = (x[small] >= shift) & (x[small] <= shift + extent) & (y[small] >= shift) & (y[small] <= shift + extent)
+    return image, table, {"x_um": x[small][inside] - shift, "y_um": y[small][inside] - shift, "z_um": z[small][inside], "diameter_um": d[small][inside]}
 
 
 def check_azimuthal(size: int = 96, z_air_um: float = 2000.0, diameter_um: float = 25.0) -> float:
