@@ -128,6 +128,36 @@ def test_calibration_widget_fits_on_the_roi_writes_json_and_stops(make_napari_vi
     assert (tmp_path / "cal2.json").read_bytes() == before
 
 
+def test_generate_takes_a_diagnosis_report_s_effects_and_small_scatterers(make_napari_viewer, qtbot, tmp_path):
+    viewer = make_napari_viewer()
+    config_path, _ = tiny_config_file(tmp_path / "c.toml")
+    generate = dock(viewer, "3 Synthetic data")
+    generate.config.value = config_path
+    generate.output.value = tmp_path / "data"
+    broken = tmp_path / "calibration.json"
+    broken.write_text(json.dumps({"params": {}}))
+    generate.report.value = broken
+    assert not generate._run.enabled and "not a diagnosis report" in generate._status.value
+    report = tmp_path / "report.json"
+    effects = [{"id": "quantization", "params": {"bits": 8.0, "saturation": 2.0}}]
+    small = {"count": 40, "per_256px_tile": 2.5, "diameter_um": [6.0, 17.0]}
+    report.write_text(json.dumps({"verdict": {"id": "quantization"}, "effects": effects, "scene": {"small_scatterers": small}}))
+    generate.report.value = report
+    # 2.5 a 256-pixel tile is 0.09 a 48-pixel one: none; the sizes follow the report where the field holds its count
+    assert generate._run.enabled, generate._status.value
+    assert generate.impurities.value == 0
+    small["per_256px_tile"] = 64.0  # 2.25 a 48-pixel tile
+    report.write_text(json.dumps({"verdict": {"id": "quantization"}, "effects": effects, "scene": {"small_scatterers": small}}))
+    generate.report.value = tmp_path / "none.json"
+    generate.report.value = report
+    assert generate.impurities.value == 2
+    request = generate.prepare()
+    assert request.effects == {"quantization": {"bits": 8.0, "saturation": 2.0}} and request.effects_source["verdict"] == "quantization"
+    assert (request.distractors.impurities_per_tile, request.distractors.impurity_diameter_min_um, request.distractors.impurity_diameter_max_um) == (2, 6.0, 17.0)
+    generate.impurities.value = 3  # the user's own count: the default sizes
+    assert generate.prepare().distractors.impurity_diameter_max_um == 14.0
+
+
 def test_generate_train_predict_widgets_from_data_to_points(make_napari_viewer, qtbot, tmp_path, monkeypatch):
     viewer = make_napari_viewer()
     config_path, config = tiny_config_file(tmp_path / "c.toml")

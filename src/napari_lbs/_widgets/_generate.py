@@ -8,11 +8,12 @@ import numpy as np
 from magicgui.widgets import ComboBox, LineEdit, SpinBox
 
 from napari_lbs._core import DatasetLayout, Distractors, generate_dataset
-from napari_lbs._core.pipeline import GenerateRequest, generate, requested_effects
+from napari_lbs._core import InputError
+from napari_lbs._core.pipeline import GenerateRequest, generate, report_distractors, requested_effects
 from napari_lbs._layers import UNITS, PlaneGrid
 from napari_lbs._widgets._backprop import CONFIG_TOOLTIP
 from napari_lbs._widgets._base import StepWidget
-from napari_lbs._widgets._fields import config_from, config_problem, doc_of, effects_problem, missing, output_problem, path_edit
+from napari_lbs._widgets._fields import chosen, config_from, config_problem, doc_of, effects_problem, missing, output_problem, path_edit
 
 __all__ = ["GenerateWidget"]
 
@@ -31,6 +32,9 @@ class GenerateWidget(StepWidget):
         self.groups = SpinBox(label="groups", name="groups", value=256, min=2, max=100000, tooltip=doc_of(generate_dataset, "groups"))
         self.layout_kind = ComboBox(label="planes", name="layout_kind", choices=["stack", "layers"], value="stack",
                                     tooltip="stack: the reconstruction planes plus context (focus formulation); layers: one plane per simulated layer (the seed's)")
+        self.report = path_edit(label="diagnosis report", name="report", placeholder="empty: none", filter="*.json",
+                                tooltip="A Gap diagnosis report.json: its verdict's effects with their fitted parameters are added, "
+                                        "and the small scatterers its scene measured fill the impurities (as generate --effects-from)")
         self.effects = LineEdit(label="effects", name="effects", value="",
                                 tooltip="Effects of the catalog added to every hologram, as on the command line, separated by ';' "
                                         "(the demo's: particle_phase:index_contrast=0.26,transmission=1). Empty: the seed's opaque discs")
@@ -38,21 +42,57 @@ class GenerateWidget(StepWidget):
         self.neighbours_margin = SpinBox(label="neighbours margin (px)", name="neighbours_margin", value=0, min=0, max=4096, tooltip=doc_of(Distractors, "neighbours_margin_px") + " (the demo: 96)")
         self.seed = SpinBox(label="seed", name="seed", value=0, min=0, max=2**31 - 1, tooltip="Seeds the particle fields and the noise")
         self.output = path_edit(label="data set folder", name="output", mode="d", value="lbs-data", tooltip=f"{doc_of(generate_dataset, 'out_dir')} Resumable: run again after a Stop")
-        super().__init__(napari_viewer, [self.config, self.calibration, self.groups, self.layout_kind, self.effects, self.impurities, self.neighbours_margin, self.seed, self.output])
+        # the report's small scatterers: their sizes, kept while the impurities field holds their count
+        self._measured = Distractors()
+        super().__init__(napari_viewer, [self.config, self.calibration, self.groups, self.layout_kind, self.report, self.effects, self.impurities, self.neighbours_margin,
+                                         self.seed, self.output])
+        self.report.changed.connect(self._take_report_distractors)
 
+    def _take_report_distractors(self, *_) -> None:
+        """Fill the impurities field with what the chosen report's scene measured (the user may change it)."""
+        path = chosen(self.report)
+        if path is None or not path.is_file():
+            self._measured = Distractors()
+            return
+        try:
+            self._measured = report_distractors(path, config_from(self.config))
+        except (InputError, ValueError):  # the status line says what is wrong (problem)
+            self._measured = Distractors()
+            return
+        self.impurities.value = self._measured.impurities_per_tile
     def problem(self):
-        return (missing(self.calibration, "calibration") or config_problem(self.config) or effects_problem(self.effects) or self._impurities_problem()
-                or output_problem(self.output, "data set folder", folder=True))
+        return (missing(self.calibration, "calibration") or missing(self.report, "diagnosis report") or config_problem(self.config) or self._report_problem()
+                or effects_problem(self.effects) or self._impurities_problem() or output_problem(self.output, "data set folder", folder=True))
+
+    def _report_problem(self) -> str | None:
+        path = chosen(self.report)
+        if path is None:
+            return None
+        try:
+            requested_effects(report_path=path)
+            report_distractors(path, config_from(self.config))
+        except InputError as error:
+            return str(error)
+        return None
+
+    def _distractors(self) -> Distractors:
+        """The impurities field's count, with the report's measured sizes where it holds the report's count, else the defaults."""
+        sizes = ({"impurity_diameter_min_um": self._measured.impurity_diameter_min_um, "impurity_diameter_max_um": self._measured.impurity_diameter_max_um}
+                 if self._measured.active and self.impurities.value == self._measured.impurities_per_tile else {})
+        return Distractors(impurities_per_tile=self.impurities.value, neighbours_margin_px=self.neighbours_margin.value, **sizes)
 
     def _impurities_problem(self) -> str | None:
-        smallest, largest_impurity = config_from(self.config).particles.diameter_min_um, Distractors().impurity_diameter_max_um
+        distractors = self._distractors()
+        smallest, largest_impurity = config_from(self.config).particles.diameter_min_um, distractors.impurity_diameter_max_um
         if self.impurities.value and largest_impurity >= smallest:
-            return f"impurities: they are {Distractors().impurity_diameter_min_um:g}-{largest_impurity:g} µm, not smaller than the config's particles ({smallest:g} µm); use 0"
+            return f"impurities: they are {distractors.impurity_diameter_min_um:g}-{largest_impurity:g} µm, not smaller than the config's particles ({smallest:g} µm); use 0"
         return None
 
     def prepare(self):
-        effects, source = requested_effects(explicit=[part.strip() for part in self.effects.value.split(";")], flag=f"{self.effects.label}:")
-        distractors = Distractors(impurities_per_tile=self.impurities.value, neighbours_margin_px=self.neighbours_margin.value)
+        report = chosen(self.report)
+        effects, source = requested_effects(report_path=str(report) if report else None, explicit=[part.strip() for part in self.effects.value.split(";")],
+                                            flag=f"{self.effects.label}:")
+        distractors = self._distractors()
         return GenerateRequest(Path(self.output.value), config_from(self.config), groups=self.groups.value, calibration_path=self.calibration.value, effects=effects,
                                effects_source=source, layout=DatasetLayout(kind=self.layout_kind.value), distractors=distractors, seed=self.seed.value)
 
