@@ -1,17 +1,11 @@
 """The experiment's particles as the scene's fits measured them: how many, how large, how deep, and what is smaller.
 
-The numbers a physicist reads off a characterised sample (Yevick et al. 2014; Altman & Grier
-2020 gate their size-and-index scatter the same way): the count and density of the fitted
-particles; the sizes, depths and index contrasts of those within the config's size range;
-and the fits below that range, the small scatterers (debris, dust, bubbles) the frame holds
-beside its sample, as counts per 256-pixel tile, the unit `generate --impurities` takes.
-
-References
-----------
-Yevick, A., Hannel, M. & Grier, D. G. (2014). Machine-learning approach to holographic
-particle characterization. Optics Express 22, 26884.
-Altman, L. E. & Grier, D. G. (2020). CATCH: characterizing and tracking colloids
-holographically using deep neural networks. J. Phys. Chem. B 124, 1602.
+The numbers a physicist reads off a characterised sample (the size-and-index scatter of
+holographic characterisation: Yevick et al. 2014, Altman & Grier 2020, cited in
+`refine/_material.py`): the count and density of the fitted particles; the sizes, depths and
+index contrasts of those within the config's size range; and the small scatterers (debris,
+dust, bubbles) the frame holds beside its sample, as counts per 256-pixel tile, the unit
+`generate --impurities` takes.
 """
 
 from __future__ import annotations
