@@ -154,6 +154,8 @@ def test_generate_takes_a_diagnosis_report_s_effects_and_small_scatterers(make_n
     request = generate.prepare()
     assert request.effects == {"quantization": {"bits": 8.0, "saturation": 2.0}} and request.effects_source["verdict"] == "quantization"
     assert (request.distractors.impurities_per_tile, request.distractors.impurity_diameter_min_um, request.distractors.impurity_diameter_max_um) == (2, 6.0, 17.0)
+    again = dock(viewer, "3 Synthetic data")  # napari started again: the remembered report's sizes go with the remembered count
+    assert again.impurities.value == 2 and again.prepare().distractors.impurity_diameter_max_um == 17.0
     generate.impurities.value = 3  # the user's own count: the default sizes
     assert generate.prepare().distractors.impurity_diameter_max_um == 14.0
 

@@ -46,9 +46,10 @@ class GenerateWidget(StepWidget):
         self._measured = Distractors()
         super().__init__(napari_viewer, [self.config, self.calibration, self.groups, self.layout_kind, self.report, self.effects, self.impurities, self.neighbours_margin,
                                          self.seed, self.output])
+        self._take_report_distractors(fill=False)  # a report remembered from the last session: its sizes, the field as it was left
         self.report.changed.connect(self._take_report_distractors)
 
-    def _take_report_distractors(self, *_) -> None:
+    def _take_report_distractors(self, *_, fill: bool = True) -> None:
         """Fill the impurities field with what the chosen report's scene measured (the user may change it)."""
         path = chosen(self.report)
         if path is None or not path.is_file():
@@ -59,7 +60,8 @@ class GenerateWidget(StepWidget):
         except (InputError, ValueError):  # the status line says what is wrong (problem)
             self._measured = Distractors()
             return
-        self.impurities.value = self._measured.impurities_per_tile
+        if fill:
+            self.impurities.value = self._measured.impurities_per_tile
     def problem(self):
         return (missing(self.calibration, "calibration") or missing(self.report, "diagnosis report") or config_problem(self.config) or self._report_problem()
                 or effects_problem(self.effects) or self._impurities_problem() or output_problem(self.output, "data set folder", folder=True))
