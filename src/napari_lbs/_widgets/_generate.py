@@ -46,7 +46,7 @@ class GenerateWidget(StepWidget):
         self._measured = Distractors()
         super().__init__(napari_viewer, [self.config, self.calibration, self.groups, self.layout_kind, self.report, self.effects, self.impurities, self.neighbours_margin,
                                          self.seed, self.output])
-        self._take_report_distractors(fill=False)  # a report remembered from the last session: its sizes, the field as it was left
+        self._take_report_distractors(fill=False)  # a report remembered from napari's last run: its sizes, the field as it was left
         self.report.changed.connect(self._take_report_distractors)
 
     def _take_report_distractors(self, *_, fill: bool = True) -> None:
