@@ -7,8 +7,7 @@ from pathlib import Path
 import numpy as np
 from magicgui.widgets import ComboBox, LineEdit, SpinBox
 
-from napari_lbs._core import DatasetLayout, Distractors, generate_dataset
-from napari_lbs._core import InputError
+from napari_lbs._core import DatasetLayout, Distractors, InputError, generate_dataset
 from napari_lbs._core.pipeline import GenerateRequest, generate, report_distractors, requested_effects
 from napari_lbs._layers import UNITS, PlaneGrid
 from napari_lbs._widgets._backprop import CONFIG_TOOLTIP
@@ -42,26 +41,25 @@ class GenerateWidget(StepWidget):
         self.neighbours_margin = SpinBox(label="neighbours margin (px)", name="neighbours_margin", value=0, min=0, max=4096, tooltip=doc_of(Distractors, "neighbours_margin_px") + " (the demo: 96)")
         self.seed = SpinBox(label="seed", name="seed", value=0, min=0, max=2**31 - 1, tooltip="Seeds the particle fields and the noise")
         self.output = path_edit(label="data set folder", name="output", mode="d", value="lbs-data", tooltip=f"{doc_of(generate_dataset, 'out_dir')} Resumable: run again after a Stop")
-        # the report's small scatterers: their sizes, kept while the impurities field holds their count
-        self._measured = Distractors()
         super().__init__(napari_viewer, [self.config, self.calibration, self.groups, self.layout_kind, self.report, self.effects, self.impurities, self.neighbours_margin,
                                          self.seed, self.output])
-        self._take_report_distractors(fill=False)  # a report remembered from napari's last run: its sizes, the field as it was left
         self.report.changed.connect(self._take_report_distractors)
 
-    def _take_report_distractors(self, *_, fill: bool = True) -> None:
-        """Fill the impurities field with what the chosen report's scene measured (the user may change it)."""
+    def _report_measured(self) -> Distractors:
+        """The small scatterers the chosen report's scene measured, for the config's tiles (none without a readable report)."""
         path = chosen(self.report)
         if path is None or not path.is_file():
-            self._measured = Distractors()
-            return
+            return Distractors()
         try:
-            self._measured = report_distractors(path, config_from(self.config))
+            return report_distractors(path, config_from(self.config))
         except (InputError, ValueError):  # the status line says what is wrong (problem)
-            self._measured = Distractors()
-            return
-        if fill:
-            self.impurities.value = self._measured.impurities_per_tile
+            return Distractors()
+
+    def _take_report_distractors(self, *_) -> None:
+        """Fill the impurities field with what the chosen report's scene measured (the user may change it)."""
+        if chosen(self.report) is not None and self._report_problem() is None:
+            self.impurities.value = self._report_measured().impurities_per_tile
+
     def problem(self):
         return (missing(self.calibration, "calibration") or missing(self.report, "diagnosis report") or config_problem(self.config) or self._report_problem()
                 or effects_problem(self.effects) or self._impurities_problem() or output_problem(self.output, "data set folder", folder=True))
@@ -73,14 +71,15 @@ class GenerateWidget(StepWidget):
         try:
             requested_effects(report_path=path)
             report_distractors(path, config_from(self.config))
-        except InputError as error:
+        except (InputError, ValueError) as error:  # a malformed report, or a config that config_problem names
             return str(error)
         return None
 
     def _distractors(self) -> Distractors:
         """The impurities field's count, with the report's measured sizes where it holds the report's count, else the defaults."""
-        sizes = ({"impurity_diameter_min_um": self._measured.impurity_diameter_min_um, "impurity_diameter_max_um": self._measured.impurity_diameter_max_um}
-                 if self._measured.active and self.impurities.value == self._measured.impurities_per_tile else {})
+        measured = self._report_measured()
+        sizes = ({"impurity_diameter_min_um": measured.impurity_diameter_min_um, "impurity_diameter_max_um": measured.impurity_diameter_max_um}
+                 if measured.active and self.impurities.value == measured.impurities_per_tile else {})
         return Distractors(impurities_per_tile=self.impurities.value, neighbours_margin_px=self.neighbours_margin.value, **sizes)
 
     def _impurities_problem(self) -> str | None:

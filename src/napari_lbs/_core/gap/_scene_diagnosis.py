@@ -238,12 +238,12 @@ def _scene(data: np.ndarray, found, config: ExperimentConfig, settings: SceneDia
     return table, Scene(scene, depths, groups, config.optics.pixel_um)
 
 
-def _small_scatterers(data: np.ndarray, table, config: ExperimentConfig, settings: SceneDiagnosisSettings, progress, should_stop):
+def _small_scatterers(data: np.ndarray, table, scene: Scene, config: ExperimentConfig, settings: SceneDiagnosisSettings, progress, should_stop):
     """What the fitted scene leaves, searched at the sizes below the config's: the frame's small scatterers, fitted.
 
     Debris, dust and bubbles are smaller than the sample and focus more weakly: the search
     for the sample's sizes (smoothing over their area, peaks a diameter apart) passes them by.
-    The residual the scene leaves is searched again as if the particles were
+    The residual the scene's hologram (``scene.image``) leaves is searched again as if the particles were
     `_SMALL_FRACTION` of the config's least diameter up to it; each find away from the
     scene's particles is fitted (size free) and kept where its fit lowers the cost by the
     refinement's own significance (`RefineSettings.min_gain`'s default) and it is smaller than
@@ -256,7 +256,7 @@ def _small_scatterers(data: np.ndarray, table, config: ExperimentConfig, setting
     low = config.particles.diameter_min_um
     small = dataclasses.replace(config, particles=dataclasses.replace(config.particles, diameter_min_um=_SMALL_FRACTION * low, diameter_max_um=low))
     columns = ["x_um", "y_um", "z_um", "diameter_um"]
-    residual = data - (particle_hologram(data.shape, table, config, settings=settings.refine, reach_cycles_per_px=0.5, should_stop=should_stop) - 1.0) if len(table) else data
+    residual = data - (scene.image - 1.0)
     begin_phase(progress, "small scatterers looked for in what the scene leaves")
     found = pd.DataFrame(_found(residual, small, settings.scene_particles, progress, should_stop))[columns]
     if len(table) and len(found):
@@ -366,7 +366,7 @@ def diagnose_scene(hologram: np.ndarray, config: ExperimentConfig, *, settings: 
     selection, blur_profile = attribute_blur(data, scene, split, selection, level_z=settings.level_z, check=steps.check)
     steps.advance()
     optics = _optics(data, table, selection, config, split, settings, progress, should_stop)
-    small = _small_scatterers(data, table, config, settings, progress, should_stop)
+    small = _small_scatterers(data, table, scene, config, settings, progress, should_stop)
     frame_spectra = tile_spectra(data - 1.0, split)
     baseline_share = _structure(selection.fits["baseline"].residuals, split, frame_spectra)[0]
     final = selection.fits["+".join(selection.chosen) or "baseline"]

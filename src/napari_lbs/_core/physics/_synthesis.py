@@ -118,7 +118,6 @@ class Distractors:
         return cls(**payload) if payload else cls()
 
 
-
 def distractors_from_report(report: dict, *, tile_px: int, diameter_min_um: float, name: str = "report") -> Distractors:
     """The small scatterers a diagnosis report's scene measured, as training data's unlabelled impurities.
 
