@@ -183,6 +183,27 @@ def test_a_tile_sees_the_envelope_and_fringe_of_its_place_on_the_sensor():
     np.testing.assert_allclose(tile, whole[40:72, 64:112], rtol=1e-5)
 
 
+DUST = {**EFFECTS["parasitic_fringes"].neutral, "dust_per_mpx": 200.0, "dust_zone_px": 12.0}
+
+
+@pytest.mark.parametrize("effects", [
+    {"illumination": {"depth": 0.5, "waist": 0.5, "x0": 0.2, "y0": -0.1}, "parasitic_fringes": {"amplitude": 0.05, "period_px": 9.0, "angle_rad": 0.7}},
+    {"illumination": {"depth": 0.3, "waist": 0.4, "x0": 0.0, "y0": 0.1}, "sensor_blur": {"sigma_px": 1.3}, "shot_noise": {"log10_photons": 3.0},
+     "quantization": {"bits": 6.0, "saturation": 1.5}},
+    {"parasitic_fringes": DUST},
+    {"parasitic_fringes": DUST, "sensor_blur": {"sigma_px": 0.8}},
+])
+def test_the_kept_rows_and_columns_are_those_of_the_whole_image(effects):
+    """``keep`` computes a part of the image, not an approximation of it: the same numbers, blur or none."""
+    rng = np.random.default_rng(9)
+    frame = 1.0 + 0.1 * rng.standard_normal((96, 130)).astype(np.float32)
+    noise = rng.standard_normal(frame.shape).astype(np.float32)
+    baseline = {**NEUTRAL, "contrast": 0.8, "gamma": 1.2, "sigma": 0.01}
+    every_other = (slice(0, None, 2), slice(1, None, 2))
+    whole = sensor_image(frame, baseline, effects, noise=noise)
+    np.testing.assert_array_equal(sensor_image(frame, baseline, effects, noise=noise, keep=every_other), whole[every_other])
+
+
 def test_the_spectral_average_of_the_interference_term_matches_an_average_over_wavelengths():
     from napari_lbs._core import ParticleField
     from napari_lbs._core.physics._optics import superpose

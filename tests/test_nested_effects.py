@@ -257,6 +257,42 @@ def test_a_scene_diagnosis_names_its_phases_reports_every_second_and_stops_at_on
     assert asked and time.monotonic() - asked[0] < 2.0
 
 
+def test_the_two_colours_fitted_side_by_side_are_those_fitted_one_after_the_other(monkeypatch):
+    """With two threads each colour's fit runs on its own; the numbers are those of one thread, and a stop in either ends both."""
+    import time
+
+    from napari_lbs._core import Stopped
+    from napari_lbs._core.gap import _nested
+
+    data, scene = _frame({"illumination": {"depth": 0.3, "waist": 0.5, "x0": 0.1, "y0": 0.0}, "sensor_blur": {"sigma_px": 0.9}})
+    split = TileSplit.of(data.shape)
+    monkeypatch.setattr(_nested, "process_threads", lambda: 2)
+    side_by_side = fit_frame(data, scene, split, ("illumination", "sensor_blur"))
+    monkeypatch.setattr(_nested, "process_threads", lambda: 1)
+    serial = fit_frame(data, scene, split, ("illumination", "sensor_blur"))
+    assert side_by_side.params == serial.params
+    np.testing.assert_array_equal(side_by_side.loglik, serial.loglik)
+
+    monkeypatch.setattr(_nested, "process_threads", lambda: 2)
+    ended = []
+
+    def on_colour(colour, heard):
+        if colour == 0:
+            raise Stopped("asked")
+        for _ in range(400):  # the other colour hears the stop within one evaluation
+            try:
+                heard()
+            except Stopped:
+                ended.append(colour)
+                raise
+            time.sleep(0.005)
+        return colour
+
+    with pytest.raises(Stopped):
+        _nested.both_colours(on_colour, None)
+    assert ended == [1]
+
+
 @pytest.mark.parametrize(("changes", "culprit"), [
     ({"grid": 1}, "grid must be an integer 2-16"),
     ({"grid": 2}, "level_z must be at most grid=2"),

@@ -22,7 +22,7 @@ import numpy as np
 from scipy import ndimage, optimize
 
 from napari_lbs._core.gap._heldout import TileSplit, model_probabilities
-from napari_lbs._core.gap._nested import MEAN_EFFECTS, Scene, Selection, fit_frame
+from napari_lbs._core.gap._nested import MEAN_EFFECTS, Scene, Selection, both_colours, fit_frame
 from napari_lbs._core.physics import EFFECTS, sensor_image
 
 __all__ = ["BLUR_EFFECTS", "blur_by_depth", "attribute_blur"]
@@ -33,27 +33,32 @@ _STEPS = 20  # least-squares steps of the per-group fit (each also costs one eva
 _MAX_SIGMA_PX = 6.0
 
 
-def _group_image(scene: Scene, sigmas_px: np.ndarray) -> np.ndarray:
-    image = scene.image.astype(np.float32).copy()
-    for sigma, group in zip(sigmas_px, scene.groups, strict=True):
-        image += ndimage.gaussian_filter(group, float(sigma)) - group
-    return image
-
-
 def _fit_groups(data: np.ndarray, scene: Scene, mask: np.ndarray, camera: dict, start: dict, check) -> np.ndarray:
     """Each depth group's blur σ (px) and the baseline's gain, contrast and gamma, fitted on ``mask``'s pixels."""
-    sample = mask.copy()
-    sample[1::2, :] = False
-    sample[:, 1::2] = False
-    target = data[sample]
+    every_other = (slice(0, None, 2), slice(0, None, 2))  # every other row and column of the fitted tiles, as `fit_frame`
+    sample = mask[every_other]
+    target = data[every_other][sample]
     zeros = np.zeros(data.shape, np.float32)
     groups = len(scene.depths_um)
+    image32 = scene.image.astype(np.float32)
+    recent: list[dict[float, np.ndarray]] = [{} for _ in range(groups)]
+
+    def change(k: int, sigma: float) -> np.ndarray:
+        # a step's Jacobian moves one group's σ at a time: the others' blurs are kept from the step before
+        if sigma not in recent[k]:
+            if len(recent[k]) >= 2:
+                recent[k].pop(next(iter(recent[k])))
+            recent[k][sigma] = ndimage.gaussian_filter(scene.groups[k], sigma) - scene.groups[k]
+        return recent[k][sigma]
 
     def residual(x: np.ndarray) -> np.ndarray:
         if check is not None:
             check()
+        image = image32.copy()
+        for k, sigma in enumerate(x[3:]):
+            image += change(k, float(sigma))
         baseline = {"contrast": x[1], "sigma": 0.0, "gamma": x[2]}
-        return x[0] * sensor_image(_group_image(scene, x[3:]), baseline, camera, noise=zeros).astype(np.float64)[sample] - target
+        return x[0] * sensor_image(image, baseline, camera, noise=zeros, keep=every_other).astype(np.float64)[sample] - target
 
     x0 = np.array([start["gain"], start["contrast"], start["gamma"]] + [0.5] * groups)
     low = np.array([0.2, 0.0, 0.3] + [0.0] * groups)
@@ -94,12 +99,13 @@ def blur_by_depth(data: np.ndarray, scene: Scene, split: TileSplit, params: tupl
     if scene.groups is None or len(scene.depths_um) < _MIN_GROUPS:
         raise ValueError(f"scene: expected at least {_MIN_GROUPS} depth groups, got {0 if scene.groups is None else len(scene.depths_um)}")
     camera_effects = [e for e in effects if e not in BLUR_EFFECTS]
-    sigmas = []
-    for colour in (0, 1):
+
+    def on_colour(colour: int, heard) -> np.ndarray:
         fitted = params[colour]
         camera = {e: {**EFFECTS[e].neutral, **{p: fitted[f"{e}.{p}"] for p in MEAN_EFFECTS[e]}} for e in camera_effects}
-        sigmas.append(_fit_groups(data, scene, split.mask(colour), camera, fitted, check))
-    sigmas = np.array(sigmas)
+        return _fit_groups(data, scene, split.mask(colour), camera, fitted, heard)
+
+    sigmas = np.array(both_colours(on_colour, check))
     depths = np.asarray(scene.depths_um, np.float64)
     # the line through both colours' points: sigma² = a + b z², z in mm to keep the columns alike in scale
     z2 = np.tile((depths / 1000.0) ** 2, 2)

@@ -34,16 +34,18 @@ depth tells them apart.
 
 from __future__ import annotations
 
+import concurrent.futures
+import threading
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import ndimage, optimize
 
-from napari_lbs._core.foundation import ProgressCallback, Steps, StopCallback
+from napari_lbs._core.foundation import ProgressCallback, Steps, StopCallback, Stopped, process_threads, thread_pool
 from napari_lbs._core.gap._heldout import TileSplit, model_probabilities, tile_spectra, whittle_loglik
 from napari_lbs._core.physics import EFFECTS, sensor_image
 
-__all__ = ["MEAN_EFFECTS", "FrameFit", "Scene", "Selection", "fit_frame", "select_effects"]
+__all__ = ["MEAN_EFFECTS", "FrameFit", "Scene", "Selection", "both_colours", "fit_frame", "select_effects"]
 
 # the parameters each effect of the mean fits (the others of its catalog entry stay neutral)
 MEAN_EFFECTS = {
@@ -158,12 +160,14 @@ def _starts(effect: str, residual: np.ndarray) -> dict:
     return {"illumination": {"depth": 0.1, "waist": EFFECTS["illumination"].neutral["waist"], "x0": 0.0, "y0": 0.0}, "sensor_blur": {"sigma_px": 0.6}, "coherence": {"theta_mrad": 0.5}}[effect]
 
 
-def _mean(scene: Scene, values: dict, effects: tuple[str, ...], zeros: np.ndarray) -> np.ndarray:
-    image = scene.coherent_blur(values["coherence.theta_mrad"]) if "coherence" in effects else scene.image
+def _mean(scene: Scene, values: dict, effects: tuple[str, ...], zeros: np.ndarray, *, keep: tuple[slice, slice] | None = None,
+          blurred=None) -> np.ndarray:
+    """The model's frame (``keep``: its kept rows and columns, `sensor_image`); ``blurred(θ)`` stands for `Scene.coherent_blur`."""
+    image = (blurred or scene.coherent_blur)(values["coherence.theta_mrad"]) if "coherence" in effects else scene.image
     camera = [e for e in effects if e not in _BY_DEPTH]
     chosen = {e: {**EFFECTS[e].neutral, **{p: values[f"{e}.{p}"] for p in MEAN_EFFECTS[e]}} for e in camera}
     baseline = {"contrast": values["contrast"], "sigma": 0.0, "gamma": values["gamma"]}
-    return values["gain"] * sensor_image(image, baseline, chosen, noise=zeros).astype(np.float64)
+    return values["gain"] * sensor_image(image, baseline, chosen, noise=zeros, keep=keep).astype(np.float64)
 
 
 def _fit(data: np.ndarray, scene: Scene, mask: np.ndarray, effects: tuple[str, ...], start: dict, zeros: np.ndarray, check) -> dict:
@@ -171,15 +175,23 @@ def _fit(data: np.ndarray, scene: Scene, mask: np.ndarray, effects: tuple[str, .
     bounds = {name: limits for name, _, limits in _BASELINE}
     bounds.update({f"{e}.{p}": EFFECTS[e].bounds[p] for e in effects for p in MEAN_EFFECTS[e]})
     x0 = np.array([float(np.clip(start[name], *bounds[name])) for name in names])
-    sample = mask.copy()
-    sample[1::2, :] = False  # every other row and column of the fitted tiles: neighbours add little but cost
-    sample[:, 1::2] = False
-    target = data[sample]
+    every_other = (slice(0, None, 2), slice(0, None, 2))  # every other row and column of the fitted tiles: neighbours add little but cost
+    sample = mask[every_other]
+    target = data[every_other][sample]
+    recent: dict[float, np.ndarray] = {}
+
+    def blurred(theta_mrad: float) -> np.ndarray:
+        # a step's Jacobian moves one parameter at a time: the source's blur is redone for θ's own moves only
+        if theta_mrad not in recent:
+            if len(recent) >= 2:
+                recent.pop(next(iter(recent)))
+            recent[theta_mrad] = scene.coherent_blur(theta_mrad)
+        return recent[theta_mrad]
 
     def residual(x: np.ndarray) -> np.ndarray:
         if check is not None:
             check()  # a stop is heard, and progress reported, within an evaluation
-        return _mean(scene, dict(zip(names, x, strict=True)), effects, zeros)[sample] - target
+        return _mean(scene, dict(zip(names, x, strict=True)), effects, zeros, keep=every_other, blurred=blurred)[sample] - target
 
     low, high = np.array([bounds[n][0] for n in names]), np.array([bounds[n][1] for n in names])
     # ``max_nfev`` counts steps here: each also costs one evaluation per parameter for the Jacobian
@@ -196,8 +208,8 @@ def fit_frame(data: np.ndarray, scene, split: TileSplit, effects: tuple[str, ...
     zeros = np.zeros(data.shape, np.float32)
     scene = Scene.of(scene)
     scene32 = replace(scene, image=scene.image.astype(np.float32))
-    params, residuals, means, spectra = [], [], [], []
-    for colour in (0, 1):
+
+    def on_colour(colour: int, heard) -> tuple:
         start = {name: value for name, value, _ in _BASELINE}
         if starts is not None:
             start.update(starts[colour])
@@ -205,13 +217,41 @@ def fit_frame(data: np.ndarray, scene, split: TileSplit, effects: tuple[str, ...
             if not all(f"{effect}.{p}" in start for p in MEAN_EFFECTS[effect]):
                 guess = _starts(effect, np.where(split.mask(colour), data - start["gain"] * scene.image, 0.0))
                 start.update({f"{effect}.{p}": v for p, v in guess.items()})
-        fitted = _fit(data, scene32, split.mask(colour), effects, start, zeros, check)
+        fitted = _fit(data, scene32, split.mask(colour), effects, start, zeros, heard)
         mean = _mean(scene32, fitted, effects, zeros)
-        params.append(fitted)
-        means.append(mean)
-        residuals.append(data - mean)
-        spectra.append(tile_spectra(data - mean, split))
-    return FrameFit(tuple(effects), (params[0], params[1]), whittle_loglik((spectra[0], spectra[1]), split), (residuals[0], residuals[1]), (means[0], means[1]))
+        return fitted, mean, data - mean, tile_spectra(data - mean, split)
+
+    (params0, mean0, residual0, spectra0), (params1, mean1, residual1, spectra1) = both_colours(on_colour, check)
+    return FrameFit(tuple(effects), (params0, params1), whittle_loglik((spectra0, spectra1), split), (residual0, residual1), (mean0, mean1))
+
+
+def both_colours(on_colour, check) -> tuple:
+    """``(on_colour(0, check), on_colour(1, ...))``, the two side by side where the process has two threads.
+
+    The fits of the two colours are independent and spend their time in numpy and scipy.ndimage,
+    which release the GIL. Colour 1 runs on a pool thread, which hears a stop through an event
+    set when this thread's ``check`` raises (progress is reported from this thread alone).
+    """
+    if process_threads() < 2:
+        return on_colour(0, check), on_colour(1, check)
+    stopping = threading.Event()
+
+    def heard() -> None:
+        if stopping.is_set():
+            raise Stopped("stopped with the other colour's fit")
+
+    other = thread_pool("frame-fit").submit(on_colour, 1, heard)
+    try:
+        first = on_colour(0, check)
+        while not other.done():
+            if check is not None:
+                check()
+            concurrent.futures.wait([other], timeout=0.25)
+    except BaseException:
+        stopping.set()
+        concurrent.futures.wait([other])
+        raise
+    return first, other.result()
 
 
 def _gain(better: np.ndarray, worse: np.ndarray) -> tuple[float, float]:

@@ -310,7 +310,8 @@ def _blur(image: np.ndarray, sigma_px: float) -> np.ndarray:
     return ndimage.gaussian_filter(image, sigma_px)
 
 
-def sensor_image(intensity: np.ndarray, baseline: dict, effects: dict, *, noise: np.ndarray, frame_px: tuple | None = None) -> np.ndarray:
+def sensor_image(intensity: np.ndarray, baseline: dict, effects: dict, *, noise: np.ndarray, frame_px: tuple | None = None,
+                 keep: tuple[slice, slice] | None = None) -> np.ndarray:
     """What the camera records of ``intensity``, in the physical order: baseline contrast, envelope, fringes, blur, gamma, noise, quantisation.
 
     The optical terms (contrast, envelope, fringes) and the blur (pixel crosstalk / MTF) act
@@ -325,9 +326,23 @@ def sensor_image(intensity: np.ndarray, baseline: dict, effects: dict, *, noise:
     and column of ``intensity`` lies (pixels) and the sensor's shape: the envelope and the
     etalon's fringe are then those of that place of the frame (a tile of a large sensor).
     Default: ``intensity`` is the whole frame.
+
+    ``keep``: the rows and columns of the image wanted (``intensity[keep]``'s place), the
+    others not computed: every stage acts pixel by pixel but the blur, so without a blur each
+    acts on the kept pixels alone, and with one the stages after it do (a fit that samples
+    every other pixel evaluates a quarter of the frame).
     """
     rows, cols = intensity.shape
     row_px, col_px, (frame_rows, frame_cols) = frame_px if frame_px is not None else (np.arange(rows), np.arange(cols), (rows, cols))
+    row_px, col_px = np.asarray(row_px), np.asarray(col_px)
+    blur = _param(effects, "sensor_blur", "sigma_px")
+    dust = _param(effects, "parasitic_fringes", "dust_per_mpx")
+    # the dust's grains are drawn over the whole intensity, then cut like it
+    dust_image = _dust_pattern((rows, cols), dust, _param(effects, "parasitic_fringes", "dust_zone_px"), _param(effects, "parasitic_fringes", "dust_grain_px")) if dust > 0 else None
+    if keep is not None and blur <= 0:
+        intensity, noise, row_px, col_px = intensity[keep], noise[keep], row_px[keep[0]], col_px[keep[1]]
+        dust_image = dust_image[keep] if dust_image is not None else None
+        keep = None
     image = 1.0 + float(baseline["contrast"]) * (intensity.astype(np.float32) - 1.0)
     depth = _param(effects, "illumination", "depth")
     if depth > 0:
@@ -335,17 +350,19 @@ def sensor_image(intensity: np.ndarray, baseline: dict, effects: dict, *, noise:
         x = (np.asarray(col_px, np.float64) / max(frame_cols - 1, 1) - 0.5)[None, :]
         r2 = (x - _param(effects, "illumination", "x0")) ** 2 + (y - _param(effects, "illumination", "y0")) ** 2
         image = image * (1.0 - depth * (1.0 - np.exp(-r2 / _param(effects, "illumination", "waist") ** 2))).astype(np.float32)
-    dust = _param(effects, "parasitic_fringes", "dust_per_mpx")
-    if dust > 0:  # the grains' rings, formed by the light on its way to the sensor
-        image = image * _dust_pattern((rows, cols), dust, _param(effects, "parasitic_fringes", "dust_zone_px"), _param(effects, "parasitic_fringes", "dust_grain_px"))
+    if dust_image is not None:  # the grains' rings, formed by the light on its way to the sensor
+        image = image * dust_image
     amplitude = _param(effects, "parasitic_fringes", "amplitude")
     if amplitude > 0:
         angle, period = _param(effects, "parasitic_fringes", "angle_rad"), _param(effects, "parasitic_fringes", "period_px")
         y, x = np.asarray(row_px, np.float64)[:, None], np.asarray(col_px, np.float64)[None, :]
         image = image * (1.0 + amplitude * np.cos(2 * np.pi * (x * np.cos(angle) + y * np.sin(angle)) / period)).astype(np.float32)
-    blur = _param(effects, "sensor_blur", "sigma_px")
     if blur > 0:  # crosstalk / MTF spreads the light over neighbouring pixels; the electronics' read noise comes later, unblurred
-        image = ndimage.gaussian_filter(image, blur)
+        if keep is None:
+            image = ndimage.gaussian_filter(image, blur)
+        else:  # `gaussian_filter`'s passes, down the columns and then along the kept rows alone
+            image = ndimage.gaussian_filter1d(ndimage.gaussian_filter1d(image, blur, axis=0)[keep[0]], blur, axis=1)[:, keep[1]]
+            noise = noise[keep]
     image = np.clip(image, 0.0, None) ** float(baseline["gamma"])
     photons = 10.0 ** _param(effects, "shot_noise", "log10_photons")
     # Poisson(N I)/N by its normal approximation, and Gaussian read noise, from one fixed draw
