@@ -8,7 +8,8 @@ the outside sets) is right when the verdict says the catalog does not explain it
 it, whatever is named. Printed per case: the verdict, the selected effects' z, the structured
 share, the particle optics' z, the seconds, the outside effects; then the score, the outside
 cases' score, the controls' false alarms and the load average before and after. ``real``:
-the built-in hologram's report.
+the built-in hologram's report. ``--grid N``: the held-out checkerboard's tiles per side
+(`SceneDiagnosisSettings.grid`), written to the result.
 
     python benchmarks/withheld_suite.py make development /tmp/dev
     python benchmarks/bench_scene_diagnosis.py suite /tmp/dev --out benchmarks/results/diagnosis/scene_development.json
@@ -26,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from napari_lbs._core import ExperimentConfig, load_sample_hologram, read_hologram
-from napari_lbs._core.gap import diagnose_scene
+from napari_lbs._core.gap import SceneDiagnosisSettings, diagnose_scene
 
 
 def _case_line(name: str, report: dict, seconds: float) -> dict:
@@ -42,7 +43,7 @@ def _case_line(name: str, report: dict, seconds: float) -> dict:
     }
 
 
-def suite(folder: Path) -> dict:
+def suite(folder: Path, settings: SceneDiagnosisSettings) -> dict:
     design = json.loads((folder / "design.json").read_text())
     config = ExperimentConfig()
     lines, right, alarms, controls, outside_right, outside_cases = [], 0, 0, 0, 0, 0
@@ -51,7 +52,7 @@ def suite(folder: Path) -> dict:
         if not path.is_file():
             continue
         started = time.perf_counter()
-        report = diagnose_scene(read_hologram(path), config).report
+        report = diagnose_scene(read_hologram(path), config, settings=settings).report
         line = _case_line(case["name"], report, time.perf_counter() - started)
         named = sorted((line["verdict"] or "").split("+")) if line["verdict"] else []
         line["expected"] = case["expected"]
@@ -81,17 +82,20 @@ def main() -> None:
     parser.add_argument("what", choices=["suite", "real"])
     parser.add_argument("folder", nargs="?")
     parser.add_argument("--out", required=True)
+    parser.add_argument("--grid", type=int, default=SceneDiagnosisSettings().grid, help="tiles per side of the held-out checkerboard")
     args = parser.parse_args()
+    settings = SceneDiagnosisSettings(grid=args.grid)
     load = [os.getloadavg()[0]]
     if args.what == "suite":
-        result = suite(Path(args.folder))
+        result = suite(Path(args.folder), settings)
     else:
         started = time.perf_counter()
-        diagnosis = diagnose_scene(load_sample_hologram(), ExperimentConfig())
+        diagnosis = diagnose_scene(load_sample_hologram(), ExperimentConfig(), settings=settings)
         result = {"report": json.loads(diagnosis.to_json()), "tile_map": np.round(diagnosis.tile_map, 3).tolist(), "seconds": round(time.perf_counter() - started, 1)}
         print(json.dumps(_case_line("built-in", result["report"], result["seconds"])))
     load.append(os.getloadavg()[0])
     result["load_average"] = load
+    result["grid"] = args.grid
     Path(args.out).write_text(json.dumps(result, indent=1, default=float))
     if args.what == "suite":
         outside = f"; outside the catalog {result['outside_right']}/{result['outside_cases']} right" if result["outside_cases"] else ""

@@ -116,6 +116,42 @@ def test_whittle_likelihood_prefers_the_residual_that_is_noise():
     assert probabilities["clean"] > 0.99 and sum(probabilities.values()) == pytest.approx(1.0)
 
 
+def test_a_tile_of_misfit_is_judged_at_its_own_level():
+    """A model that takes a fringe out of every tile gains in every tile, the one holding a particle's misfit too.
+
+    Judged at the level of a spectrum shared by every tile, the misfit's tile loses: the
+    fringe had raised the spectrum its structure was judged against.
+    """
+    split = TileSplit.of((SIZE, SIZE))
+    rng = np.random.default_rng(5)
+    yy, xx = np.mgrid[0:SIZE, 0:SIZE].astype(float)
+    noise = 0.01 * rng.standard_normal((SIZE, SIZE))
+    window = split.windows()[1]
+    cy, cx = (window[0].start + window[0].stop) / 2, (window[1].start + window[1].stop) / 2
+    misfit = np.zeros((SIZE, SIZE))
+    r2 = (yy - cy) ** 2 + (xx - cx) ** 2
+    misfit[window] = (0.3 * np.cos(r2 / 60.0) * np.exp(-r2 / (2 * 30.0**2)))[window]  # a sphere's chirped rings: power at every radius
+    fringe = 0.05 * np.cos(2 * np.pi * (xx * np.cos(0.5) + yy * np.sin(0.5)) / 8.0 + 0.4)
+    left, taken = noise + misfit + fringe, noise + misfit
+    gains = whittle_loglik((tile_spectra(taken, split),) * 2, split) - whittle_loglik((tile_spectra(left, split),) * 2, split)
+    assert np.all(gains > 0)
+
+
+def test_a_straight_fringe_between_the_frequency_bins_is_fitted_with_its_phase():
+    """An etalon's fringe of 11.3 px at 0.6 rad, 1.2 rad at the first pixel (written here, not by the catalog): recovered and selected."""
+    data, scene = _frame({})
+    yy, xx = np.mgrid[0:SIZE, 0:SIZE].astype(float)
+    data = data * (1.0 + 0.04 * np.cos(2 * np.pi * (xx * np.cos(0.6) + yy * np.sin(0.6)) / 11.3 + 1.2))
+    split = TileSplit.of(data.shape)
+    fit = fit_frame(data, scene, split, ("parasitic_fringes",))
+    for params in fit.params:
+        assert params["parasitic_fringes.period_px"] == pytest.approx(11.3, abs=0.01)
+        assert params["parasitic_fringes.angle_rad"] == pytest.approx(0.6, abs=0.01)
+        assert np.cos(params["parasitic_fringes.phase_rad"] - 1.2) > np.cos(0.2)
+        assert params["parasitic_fringes.amplitude"] == pytest.approx(0.04 / 0.9, rel=0.25)  # the fringe multiplies the light, the scene's contrast 0.9
+    assert select_effects(data, scene, split).chosen == ("parasitic_fringes",)
+
+
 def test_the_same_frame_gives_the_same_selection():
     data, scene = _frame({"illumination": {"depth": 0.3, "x0": 0.0, "y0": 0.0}})
     first, second = (select_effects(data, scene, TileSplit.of(data.shape)) for _ in range(2))

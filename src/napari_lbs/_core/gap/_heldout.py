@@ -14,6 +14,15 @@ is judged against; one that does not, only costs. The structure the experiment h
 every model (debris, dust, a speckled background) is thereby part of the noise, weighted
 down where it is strong, instead of swamping every comparison.
 
+Each judged tile has its own level: its spectrum is ``s · P(f)``, ``s`` at its most likely
+value ``mean(|R(f)|² / P(f))``. Tiles differ in how much of the particles' misfit they hold
+(a pair fitted as one leaves ten times the residual of a tile of lone spheres): judged
+against a spectrum shared by every tile, a tile of misfit lost thousands of nats to a model
+that rightly took a straight fringe out of every tile, since the fringe had raised the
+spectrum its misfit was judged against. With its own level a tile is judged on the shape of
+its residual's spectrum, and a model that fits the fitted tiles' noise (lowers their
+spectrum where the judged tiles keep theirs) still loses: ``x - 1 - ln x >= 0``.
+
 A model's gain over another is the sum of its tiles' gains; its error is the tiles' spread
 (``√n`` times their standard deviation), since neighbouring pixels are not independent but
 tiles nearly are.
@@ -121,7 +130,9 @@ def whittle_loglik(spectra_by_fit: tuple[np.ndarray, np.ndarray], split: TileSpl
     for fitted_on, spectra in enumerate(spectra_by_fit):
         power = _radial_power(spectra[colours == fitted_on], index)
         judged = colours != fitted_on
-        out[judged] = -0.5 * np.sum(spectra[judged] / power + np.log(power), axis=(1, 2))
+        # each tile's own level, at its most likely value: ``s = mean(|R|² / P)``
+        level = np.maximum(np.mean(spectra[judged] / power, axis=(1, 2)), 1e-300)
+        out[judged] = -0.5 * (power.size * (1.0 + np.log(level)) + np.sum(np.log(power)))
     return out
 
 

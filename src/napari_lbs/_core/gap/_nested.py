@@ -12,8 +12,8 @@ the baseline is nested in every model and a model with an effect in every model 
 
 Effects of the mean: ``illumination`` (the beam's envelope: depth, waist and centre),
 ``sensor_blur`` (σ in pixels, blurring the light before the noise is added),
-``parasitic_fringes`` (an etalon's straight fringe: amplitude, period, angle, started at the
-residual's strongest spectral peak) and ``coherence`` (a source of angular size θ: each
+``parasitic_fringes`` (an etalon's straight fringe: amplitude, period, angle and phase, started at the
+residual's strongest spectral peak, refined by its Fourier sum) and ``coherence`` (a source of angular size θ: each
 particle's pattern blurred by σ = θ·z, so that deep particles lose their fine fringes and
 shallow ones keep them, where a sensor's blur takes the same from every depth; the scene's
 particles are rendered in depth groups for it, `Scene`). ``shot_noise`` changes the noise, not the mean: it is
@@ -51,7 +51,7 @@ __all__ = ["MEAN_EFFECTS", "FrameFit", "Scene", "Selection", "both_colours", "fi
 MEAN_EFFECTS = {
     "illumination": ("depth", "waist", "x0", "y0"),
     "sensor_blur": ("sigma_px",),
-    "parasitic_fringes": ("amplitude", "period_px", "angle_rad"),
+    "parasitic_fringes": ("amplitude", "period_px", "angle_rad", "phase_rad"),
     "coherence": ("theta_mrad",),
 }
 _BY_DEPTH = ("coherence",)  # effects that need the scene's depth groups
@@ -128,14 +128,19 @@ class Selection:
 
 
 def _fringe_start(residual: np.ndarray) -> dict:
-    """Period (px) and angle (rad) of the residual's most prominent spectral peak within the catalog's periods.
+    """Amplitude, period (px), angle and phase (rad) of the residual's most prominent straight fringe within the catalog's periods.
 
     Prominent over its ring: the spectrum divided by its median at the same radius. A
     particle's misfit spreads its power round a ring of frequencies (its fringes point every
     way); a straight fringe puts all of its power at one frequency, however weak it is beside
-    the rings.
+    the rings. The peak's bin is then refined by the residual's Fourier sum on a grid a tenth
+    of a bin fine within a bin of it: a fringe's phase drifts by 2π over the frame for every
+    bin its frequency is off, and a fit started a half bin away turns its period to follow
+    the phase instead of finding it. The sum's argument at the refined frequency is the
+    fringe's phase at the first pixel, twice its modulus over the pixels summed its amplitude.
     """
-    spectrum = np.abs(np.fft.rfft2(residual - residual.mean())) ** 2
+    centred = residual - residual.mean()
+    spectrum = np.abs(np.fft.rfft2(centred)) ** 2
     fy = np.fft.fftfreq(residual.shape[0])[:, None]
     fx = np.fft.rfftfreq(residual.shape[1])[None, :]
     radius = np.hypot(fx, fy)
@@ -151,7 +156,17 @@ def _fringe_start(residual: np.ndarray) -> dict:
     prominence[(radius < 1.0 / 24.0) | (radius > 0.25)] = 0.0  # within the catalog's periods, 4-24 px
     row, col = np.unravel_index(int(np.argmax(prominence)), prominence.shape)
     f_x, f_y = float(fx[0, col]), float(fy[row, 0])
-    return {"amplitude": 0.01, "period_px": 1.0 / max(np.hypot(f_x, f_y), 1e-6), "angle_rad": float(np.arctan2(f_y, f_x) % np.pi)}
+    if f_y < 0:  # the model's angle lies in [0, π): the same fringe, its wave vector turned round
+        f_x, f_y = -f_x, -f_y
+    rows, cols = residual.shape
+    offsets = np.linspace(-1.0, 1.0, 21)
+    grid_x, grid_y = f_x + offsets / cols, f_y + offsets / rows
+    sums = np.exp(-2j * np.pi * np.outer(grid_y, np.arange(rows))) @ centred @ np.exp(-2j * np.pi * np.outer(np.arange(cols), grid_x))
+    k_y, k_x = np.unravel_index(int(np.argmax(np.abs(sums))), sums.shape)
+    f_x, f_y = float(grid_x[k_x]), float(grid_y[k_y])
+    counted = max(int(np.count_nonzero(residual)), 1)  # the pixels of the fitted tiles (the others are zeros)
+    return {"amplitude": float(np.clip(2.0 * np.abs(sums[k_y, k_x]) / counted, 0.005, 0.1)), "period_px": 1.0 / max(np.hypot(f_x, f_y), 1e-6),
+            "angle_rad": float(np.arctan2(f_y, f_x) % np.pi), "phase_rad": float(np.angle(sums[k_y, k_x]))}
 
 
 def _starts(effect: str, residual: np.ndarray) -> dict:

@@ -121,10 +121,11 @@ EFFECTS: dict[str, Effect] = {e.id: e for e in (
     # sets the rings' spacing: 6 … 60 px is z ≈ 0.26 … 26 mm at 660 nm and 2.2 µm pixels)
     Effect(
         "parasitic_fringes", "static fringes: etalon, dust on a window",
-        {"amplitude": (0.0, 0.2), "period_px": (4.0, 24.0), "angle_rad": (0.0, 3.1416), "dust_per_mpx": (0.0, 300.0), "dust_zone_px": (6.0, 60.0), "dust_grain_px": (1.0, 25.0)},
-        {"amplitude": 0.0, "period_px": 20.0, "angle_rad": 0.0, "dust_per_mpx": 0.0, "dust_zone_px": 30.0, "dust_grain_px": 5.0},
+        {"amplitude": (0.0, 0.2), "period_px": (4.0, 24.0), "angle_rad": (0.0, 3.1416), "phase_rad": (-6.2832, 6.2832),
+         "dust_per_mpx": (0.0, 300.0), "dust_zone_px": (6.0, 60.0), "dust_grain_px": (1.0, 25.0)},
+        {"amplitude": 0.0, "period_px": 20.0, "angle_rad": 0.0, "phase_rad": 0.0, "dust_per_mpx": 0.0, "dust_zone_px": 30.0, "dust_grain_px": 5.0},
         ({"amplitude": 0.04, "period_px": 14.0, "angle_rad": 0.7}, {"amplitude": 0.1, "period_px": 14.0, "angle_rad": 0.7}),
-        optional=("dust_per_mpx", "dust_zone_px", "dust_grain_px", "amplitude", "period_px", "angle_rad"),
+        optional=("dust_per_mpx", "dust_zone_px", "dust_grain_px", "amplitude", "period_px", "angle_rad", "phase_rad"),
     ),
     Effect("spherical_wave", "diverging illumination (point source at L)", {"source_mm": (8.0, 200.0)}, {"source_mm": 1e9}, ({"source_mm": 40.0}, {"source_mm": 15.0})),
 )}
@@ -143,7 +144,7 @@ LIMITS: dict[str, dict[str, tuple[float, float]]] = {
     "particle_phase": {"index_contrast": (0.0, 2.0), "transmission": (0.0, 1.0)},
     "multiple_scattering": {"on": (0.0, 1.0)},
     "parasitic_fringes": {
-        "amplitude": (0.0, 1.0), "period_px": (2.0, 1e6), "angle_rad": (-2 * math.pi, 2 * math.pi),
+        "amplitude": (0.0, 1.0), "period_px": (2.0, 1e6), "angle_rad": (-2 * math.pi, 2 * math.pi), "phase_rad": (-2 * math.pi, 2 * math.pi),
         "dust_per_mpx": (0.0, 2000.0), "dust_zone_px": (0.0, 500.0), "dust_grain_px": (0.5, 100.0),
     },
     "spherical_wave": {"source_mm": (1.0, 1e9)},
@@ -355,8 +356,9 @@ def sensor_image(intensity: np.ndarray, baseline: dict, effects: dict, *, noise:
     amplitude = _param(effects, "parasitic_fringes", "amplitude")
     if amplitude > 0:
         angle, period = _param(effects, "parasitic_fringes", "angle_rad"), _param(effects, "parasitic_fringes", "period_px")
+        phase = _param(effects, "parasitic_fringes", "phase_rad")  # at the sensor's first pixel
         y, x = np.asarray(row_px, np.float64)[:, None], np.asarray(col_px, np.float64)[None, :]
-        image = image * (1.0 + amplitude * np.cos(2 * np.pi * (x * np.cos(angle) + y * np.sin(angle)) / period)).astype(np.float32)
+        image = image * (1.0 + amplitude * np.cos(2 * np.pi * (x * np.cos(angle) + y * np.sin(angle)) / period + phase)).astype(np.float32)
     if blur > 0:  # crosstalk / MTF spreads the light over neighbouring pixels; the electronics' read noise comes later, unblurred
         if keep is None:
             image = ndimage.gaussian_filter(image, blur)
