@@ -121,7 +121,7 @@ EFFECTS: dict[str, Effect] = {e.id: e for e in (
     # sets the rings' spacing: 6 … 60 px is z ≈ 0.26 … 26 mm at 660 nm and 2.2 µm pixels)
     Effect(
         "parasitic_fringes", "static fringes: etalon, dust on a window",
-        {"amplitude": (0.0, 0.2), "period_px": (4.0, 24.0), "angle_rad": (0.0, 3.1416), "phase_rad": (-6.2832, 6.2832),
+        {"amplitude": (0.0, 0.2), "period_px": (4.0, 24.0), "angle_rad": (0.0, 3.1416), "phase_rad": (-2 * math.pi, 2 * math.pi),
          "dust_per_mpx": (0.0, 300.0), "dust_zone_px": (6.0, 60.0), "dust_grain_px": (1.0, 25.0)},
         {"amplitude": 0.0, "period_px": 20.0, "angle_rad": 0.0, "phase_rad": 0.0, "dust_per_mpx": 0.0, "dust_zone_px": 30.0, "dust_grain_px": 5.0},
         ({"amplitude": 0.04, "period_px": 14.0, "angle_rad": 0.7}, {"amplitude": 0.1, "period_px": 14.0, "angle_rad": 0.7}),
