@@ -22,7 +22,7 @@ import numpy as np
 from scipy import ndimage, optimize
 
 from napari_lbs._core.gap._heldout import TileSplit, model_probabilities
-from napari_lbs._core.gap._nested import MEAN_EFFECTS, Scene, Selection, both_colours, fit_frame
+from napari_lbs._core.gap._nested import EVERY_OTHER, MEAN_EFFECTS, Scene, Selection, both_colours, fit_frame, last_two
 from napari_lbs._core.physics import EFFECTS, sensor_image
 
 __all__ = ["BLUR_EFFECTS", "blur_by_depth", "attribute_blur"]
@@ -35,30 +35,22 @@ _MAX_SIGMA_PX = 6.0
 
 def _fit_groups(data: np.ndarray, scene: Scene, mask: np.ndarray, camera: dict, start: dict, check) -> np.ndarray:
     """Each depth group's blur σ (px) and the baseline's gain, contrast and gamma, fitted on ``mask``'s pixels."""
-    every_other = (slice(0, None, 2), slice(0, None, 2))  # every other row and column of the fitted tiles, as `fit_frame`
-    sample = mask[every_other]
-    target = data[every_other][sample]
+    sample = mask[EVERY_OTHER]
+    target = data[EVERY_OTHER][sample]
     zeros = np.zeros(data.shape, np.float32)
     groups = len(scene.depths_um)
     image32 = scene.image.astype(np.float32)
-    recent: list[dict[float, np.ndarray]] = [{} for _ in range(groups)]
-
-    def change(k: int, sigma: float) -> np.ndarray:
-        # a step's Jacobian moves one group's σ at a time: the others' blurs are kept from the step before
-        if sigma not in recent[k]:
-            if len(recent[k]) >= 2:
-                recent[k].pop(next(iter(recent[k])))
-            recent[k][sigma] = ndimage.gaussian_filter(scene.groups[k], sigma) - scene.groups[k]
-        return recent[k][sigma]
+    # each group's blur is redone for its own σ's moves only
+    changes = [last_two(lambda sigma, group=group: ndimage.gaussian_filter(group, sigma) - group) for group in scene.groups]
 
     def residual(x: np.ndarray) -> np.ndarray:
         if check is not None:
             check()
         image = image32.copy()
-        for k, sigma in enumerate(x[3:]):
-            image += change(k, float(sigma))
+        for change, sigma in zip(changes, x[3:], strict=True):
+            image += change(float(sigma))
         baseline = {"contrast": x[1], "sigma": 0.0, "gamma": x[2]}
-        return x[0] * sensor_image(image, baseline, camera, noise=zeros, keep=every_other).astype(np.float64)[sample] - target
+        return x[0] * sensor_image(image, baseline, camera, noise=zeros, keep=EVERY_OTHER).astype(np.float64)[sample] - target
 
     x0 = np.array([start["gain"], start["contrast"], start["gamma"]] + [0.5] * groups)
     low = np.array([0.2, 0.0, 0.3] + [0.0] * groups)

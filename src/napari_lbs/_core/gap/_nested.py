@@ -45,7 +45,7 @@ from napari_lbs._core.foundation import ProgressCallback, Steps, StopCallback, S
 from napari_lbs._core.gap._heldout import TileSplit, model_probabilities, tile_spectra, whittle_loglik
 from napari_lbs._core.physics import EFFECTS, sensor_image
 
-__all__ = ["MEAN_EFFECTS", "FrameFit", "Scene", "Selection", "both_colours", "fit_frame", "select_effects"]
+__all__ = ["EVERY_OTHER", "MEAN_EFFECTS", "FrameFit", "Scene", "Selection", "both_colours", "fit_frame", "last_two", "select_effects"]
 
 # the parameters each effect of the mean fits (the others of its catalog entry stay neutral)
 MEAN_EFFECTS = {
@@ -97,6 +97,22 @@ _BASELINE = (("gain", 1.0, (0.2, 5.0)), ("contrast", 1.0, (0.0, 3.0)), ("gamma",
 _STEPS = 12  # least-squares steps per fit: the starts are the simpler model's optimum
 _HIGH_PASS_PX = 1.5  # the shot-noise test's high pass: the residual less its Gaussian blur of this σ
 _DECIDED_Z = 2.0  # the sign test's z by which a selected effect must beat a rival in its place
+# the pixels a fit compares: every other row and column of the fitted tiles (neighbours add little but cost)
+EVERY_OTHER = (slice(0, None, 2), slice(0, None, 2))
+
+
+def last_two(compute):
+    """``compute(value)`` remembered for the two latest values: a least-squares step's Jacobian moves one parameter at a time, so a costly part that depends on one parameter is redone for that parameter's own moves only."""
+    recent: dict = {}
+
+    def remembered(value):
+        if value not in recent:
+            if len(recent) >= 2:
+                recent.pop(next(iter(recent)))
+            recent[value] = compute(value)
+        return recent[value]
+
+    return remembered
 
 
 @dataclass(frozen=True)
@@ -190,23 +206,14 @@ def _fit(data: np.ndarray, scene: Scene, mask: np.ndarray, effects: tuple[str, .
     bounds = {name: limits for name, _, limits in _BASELINE}
     bounds.update({f"{e}.{p}": EFFECTS[e].bounds[p] for e in effects for p in MEAN_EFFECTS[e]})
     x0 = np.array([float(np.clip(start[name], *bounds[name])) for name in names])
-    every_other = (slice(0, None, 2), slice(0, None, 2))  # every other row and column of the fitted tiles: neighbours add little but cost
-    sample = mask[every_other]
-    target = data[every_other][sample]
-    recent: dict[float, np.ndarray] = {}
-
-    def blurred(theta_mrad: float) -> np.ndarray:
-        # a step's Jacobian moves one parameter at a time: the source's blur is redone for θ's own moves only
-        if theta_mrad not in recent:
-            if len(recent) >= 2:
-                recent.pop(next(iter(recent)))
-            recent[theta_mrad] = scene.coherent_blur(theta_mrad)
-        return recent[theta_mrad]
+    sample = mask[EVERY_OTHER]
+    target = data[EVERY_OTHER][sample]
+    blurred = last_two(scene.coherent_blur)  # the source's blur is redone for θ's own moves only
 
     def residual(x: np.ndarray) -> np.ndarray:
         if check is not None:
             check()  # a stop is heard, and progress reported, within an evaluation
-        return _mean(scene, dict(zip(names, x, strict=True)), effects, zeros, keep=every_other, blurred=blurred)[sample] - target
+        return _mean(scene, dict(zip(names, x, strict=True)), effects, zeros, keep=EVERY_OTHER, blurred=blurred)[sample] - target
 
     low, high = np.array([bounds[n][0] for n in names]), np.array([bounds[n][1] for n in names])
     # ``max_nfev`` counts steps here: each also costs one evaluation per parameter for the Jacobian
@@ -275,9 +282,9 @@ def _gain(better: np.ndarray, worse: np.ndarray) -> tuple[float, float]:
     ``z = (tiles gaining - tiles losing) / sqrt(tiles either way)``: an effect the frame holds
     acts on every tile and helps nearly all of them, where a particle the scene misfits
     swings one tile by thousands of nats either way; counting tiles keeps such a tile to one
-    vote (on a development etalon, 14 of 16 tiles gained 90-410 nats and two lost 1 800 each:
-    its summed gain over its tile-to-tile error was 0.1, its sign test 3.0). The sum still
-    has to be positive (`select_effects`).
+    vote (on a development etalon, 14 of 16 tiles gained 80-480 nats and two lost 570 and
+    1 270: its summed gain over its tile-to-tile error was 1.2, its sign test 3.0). The sum
+    still has to be positive (`select_effects`).
     """
     difference = better - worse
     gaining, losing = int(np.sum(difference > 0)), int(np.sum(difference < 0))
