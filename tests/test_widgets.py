@@ -158,6 +158,13 @@ def test_generate_takes_a_diagnosis_report_s_effects_and_small_scatterers(make_n
     assert again.impurities.value == 2 and again.prepare().distractors.impurity_diameter_max_um == 17.0
     generate.impurities.value = 3  # the user's own count: the default sizes
     assert generate.prepare().distractors.impurity_diameter_max_um == 14.0
+    assert generate.prepare().sizes is None  # the report's scene sized no particles
+    # the particles' sizes its scene fitted (within the config's 20-30 µm) are drawn, unless the box says otherwise
+    scene = {"small_scatterers": small, "in_size_range": 40, "percentiles": [5, 25, 50, 75, 95], "diameter_um": [23.0, 24.0, 25.0, 26.0, 27.0]}
+    report.write_text(json.dumps({"verdict": {"id": "quantization"}, "effects": effects, "scene": scene}))
+    assert generate.prepare().sizes.diameters_um == (23.0, 24.0, 25.0, 26.0, 27.0)
+    generate.measured_sizes.value = False
+    assert generate.prepare().sizes is None
 
 
 def test_generate_train_predict_widgets_from_data_to_points(make_napari_viewer, qtbot, tmp_path, monkeypatch):

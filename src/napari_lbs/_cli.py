@@ -176,8 +176,9 @@ def _cmd_generate(args) -> None:
             raise InputError(f"--impurity-diameter-um: expected MIN <= MAX below the particles' diameter_min_um={config.particles.diameter_min_um:g} of {args.config}, got {low:g} {high:g}")
         distractors = _settings(Distractors, impurities_per_tile=impurities, impurity_diameter_min_um=low, impurity_diameter_max_um=high,
                                 neighbours_margin_px=args.neighbours_margin_px)
+    sizes = pipeline.report_sizes(args.effects_from, config) if args.effects_from and not args.uniform_sizes else None
     request = pipeline.GenerateRequest(Path(args.out), config, groups=args.groups, calibration_path=args.calibration, effects=effects, effects_source=source, layout=layout,
-                                       distractors=distractors, seed=args.seed, workers=args.workers)
+                                       distractors=distractors, sizes=sizes, seed=args.seed, workers=args.workers)
     _run(pipeline.generate, request, "generate")
 
 
@@ -308,6 +309,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--impurity-diameter-um", type=_number(0.0, above=True), nargs=2, default=(4.0, 14.0), metavar=("MIN", "MAX"), help="their diameter range in um (default 4 14)")
     p.add_argument("--neighbours-margin-px", type=_integer(0, 4096), default=0, metavar="PX",
                    help="simulate each group with unlabelled particles in a margin of PX pixels around it and keep the window, as a crop of a real hologram is (default 0; the demo uses %d)" % pipeline.DEMO_SAMPLE_DISTRACTORS["neighbours_margin_px"])
+    p.add_argument("--uniform-sizes", action="store_true",
+                   help="particle diameters uniform over the config's range even with --effects-from (default: the sizes the report's scene measured, where it measured ten or more)")
     p.set_defaults(run=_cmd_generate)
 
     p = sub.add_parser("train", help="train the U-Net on a synthetic training set", parents=[_FORCE])

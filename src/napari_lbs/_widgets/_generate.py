@@ -5,10 +5,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from magicgui.widgets import ComboBox, LineEdit, SpinBox
+from magicgui.widgets import CheckBox, ComboBox, LineEdit, SpinBox
 
 from napari_lbs._core import DatasetLayout, Distractors, InputError, generate_dataset
-from napari_lbs._core.pipeline import GenerateRequest, generate, report_distractors, requested_effects
+from napari_lbs._core.pipeline import GenerateRequest, generate, report_distractors, report_sizes, requested_effects
 from napari_lbs._layers import UNITS, PlaneGrid
 from napari_lbs._widgets._backprop import CONFIG_TOOLTIP
 from napari_lbs._widgets._base import StepWidget
@@ -33,16 +33,19 @@ class GenerateWidget(StepWidget):
                                     tooltip="stack: the reconstruction planes plus context (focus formulation); layers: one plane per simulated layer (the seed's)")
         self.report = path_edit(label="diagnosis report", name="report", placeholder="empty: none", filter="*.json",
                                 tooltip="A Gap diagnosis report.json: its verdict's effects with their fitted parameters are added, "
-                                        "and the small scatterers its scene measured fill the impurities (as generate --effects-from)")
+                                        "the small scatterers its scene measured fill the impurities, and its particles' sizes are drawn (as generate --effects-from)")
         self.effects = LineEdit(label="effects", name="effects", value="",
                                 tooltip="Effects of the catalog added to every hologram, as on the command line, separated by ';' "
                                         "(the demo's: particle_phase:index_contrast=0.26,transmission=1). Empty: the seed's opaque discs")
         self.impurities = SpinBox(label="impurities per tile", name="impurities", value=0, min=0, max=1000, tooltip=doc_of(Distractors, "impurities_per_tile") + " (the demo: 6)")
         self.neighbours_margin = SpinBox(label="neighbours margin (px)", name="neighbours_margin", value=0, min=0, max=4096, tooltip=doc_of(Distractors, "neighbours_margin_px") + " (the demo: 96)")
+        self.measured_sizes = CheckBox(label="report's sizes", name="measured_sizes", value=True,
+                                       tooltip="With a diagnosis report: particle diameters as its scene measured them, within the config's range "
+                                               "(where it fitted ten or more). Off, or without a report: uniform over the config's range")
         self.seed = SpinBox(label="seed", name="seed", value=0, min=0, max=2**31 - 1, tooltip="Seeds the particle fields and the noise")
         self.output = path_edit(label="data set folder", name="output", mode="d", value="lbs-data", tooltip=f"{doc_of(generate_dataset, 'out_dir')} Resumable: run again after a Stop")
         super().__init__(napari_viewer, [self.config, self.calibration, self.groups, self.layout_kind, self.report, self.effects, self.impurities, self.neighbours_margin,
-                                         self.seed, self.output])
+                                         self.measured_sizes, self.seed, self.output])
         self.report.changed.connect(self._take_report_distractors)
 
     def _report_measured(self) -> Distractors:
@@ -71,6 +74,7 @@ class GenerateWidget(StepWidget):
         try:
             requested_effects(report_path=path)
             report_distractors(path, config_from(self.config))
+            report_sizes(path, config_from(self.config))
         except (InputError, ValueError) as error:  # a malformed report, or a config that config_problem names
             return str(error)
         return None
@@ -94,8 +98,10 @@ class GenerateWidget(StepWidget):
         effects, source = requested_effects(report_path=str(report) if report else None, explicit=[part.strip() for part in self.effects.value.split(";")],
                                             flag=f"{self.effects.label}:")
         distractors = self._distractors()
-        return GenerateRequest(Path(self.output.value), config_from(self.config), groups=self.groups.value, calibration_path=self.calibration.value, effects=effects,
-                               effects_source=source, layout=DatasetLayout(kind=self.layout_kind.value), distractors=distractors, seed=self.seed.value)
+        config = config_from(self.config)
+        sizes = report_sizes(report, config) if report and self.measured_sizes.value else None
+        return GenerateRequest(Path(self.output.value), config, groups=self.groups.value, calibration_path=self.calibration.value, effects=effects,
+                               effects_source=source, layout=DatasetLayout(kind=self.layout_kind.value), distractors=distractors, sizes=sizes, seed=self.seed.value)
 
     def work(self, request, *, progress, should_stop, report):
         return generate(request, progress=progress, should_stop=should_stop).value

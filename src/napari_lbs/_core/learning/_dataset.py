@@ -41,7 +41,7 @@ from napari_lbs._core.physics import check_effects, effect_hologram
 from napari_lbs._core.foundation import atomic_path, read_json_object, write_json
 from napari_lbs._core.foundation import InputError
 from napari_lbs._core.foundation import ProgressCallback, Steps, StopCallback, Stopped, run_in_workers
-from napari_lbs._core.physics import Distractors, ParticleField, distractor_scene, label_planes, random_particle_field, simulate_hologram
+from napari_lbs._core.physics import Distractors, ParticleField, SizeDistribution, distractor_scene, label_planes, random_particle_field, simulate_hologram
 from napari_lbs._core.foundation import check_dataset_manifest
 
 __all__ = ["DatasetLayout", "InputProcessing", "SyntheticDataset", "synthetic_group", "generate_dataset", "open_dataset", "dataset_summary", "DATASET_FORMAT"]
@@ -147,6 +147,7 @@ def synthetic_group(
     layout: DatasetLayout = DatasetLayout(kind="layers"),
     effects: dict | None = None,
     distractors: Distractors = Distractors(),
+    sizes: SizeDistribution | None = None,
 ) -> tuple[np.ndarray, np.ndarray, ParticleField]:
     """One training group: ``(inputs, labels, field)``.
 
@@ -168,6 +169,9 @@ def synthetic_group(
     distractors : Distractors
         Unlabelled impurities and neighbours outside the window, simulated with the particles
         (`distractor_scene`); default none, the seed's scene.
+    sizes : SizeDistribution, optional
+        The particles' (and neighbours') diameters, drawn within the config's range (from a
+        diagnosis: `sizes_from_report`); default uniform over it, the seed's.
 
     Returns
     -------
@@ -188,10 +192,11 @@ def synthetic_group(
         continuous=not on_layers,
         pixel_um=config.optics.pixel_um,
         seed=rng,
+        sizes=sizes,
     )
     # the optics sees the particles and the distractors; the labels only the particles
     scene = distractor_scene(particles, distractors, tile_px=size, depth_range_um=(config.volume.z_min_um, config.volume.z_max_um), diameter_range_um=diameter_range_um,
-                             layers_um=config.layer_depths_um() if on_layers else None, rng=rng)
+                             layers_um=config.layer_depths_um() if on_layers else None, sizes=sizes, rng=rng)
     margin = distractors.neighbours_margin_px
     optics = {"wavelength_um": config.optics.wavelength_um, "medium_index": config.optics.medium_index}
     if effects:
@@ -260,7 +265,8 @@ class SyntheticDataset:
         return inputs, labels, tables
 
 
-def _spec(config: ExperimentConfig, processing: InputProcessing, layout: DatasetLayout, seed: int, effects: dict, distractors: Distractors) -> dict:
+def _spec(config: ExperimentConfig, processing: InputProcessing, layout: DatasetLayout, seed: int, effects: dict, distractors: Distractors,
+          sizes: SizeDistribution | None) -> dict:
     spec = {
         "format": DATASET_FORMAT,
         "version": _FORMAT_VERSION,
@@ -276,10 +282,12 @@ def _spec(config: ExperimentConfig, processing: InputProcessing, layout: Dataset
         spec["effects"] = effects
     if distractors.active:  # likewise
         spec["distractors"] = distractors.to_dict()
+    if sizes is not None:  # likewise
+        spec["sizes"] = sizes.to_dict()
     return spec
 
 
-_IDENTITY_KEYS = ("format", "version", "config", "processing", "layout", "effects", "distractors", "seed", "planes_um", "tile_size", "particles_per_group")
+_IDENTITY_KEYS = ("format", "version", "config", "processing", "layout", "effects", "distractors", "sizes", "seed", "planes_um", "tile_size", "particles_per_group")
 
 
 def _group_is_valid(path: Path, planes: int, size: int) -> bool:
@@ -303,6 +311,7 @@ def generate_dataset(
     effects: dict | None = None,
     effects_source: dict | None = None,
     distractors: Distractors = Distractors(),
+    sizes: SizeDistribution | None = None,
     seed: int = 0,
     workers: int = 1,
     progress: ProgressCallback | None = None,
@@ -338,6 +347,9 @@ def generate_dataset(
         Recorded in ``dataset.json`` and part of the set's identity. The impurities must be
         smaller than the particles (``impurity_diameter_max_um`` < ``diameter_min_um``), or
         the labels would contradict each other.
+    sizes : SizeDistribution, optional
+        The particles' diameter distribution within the config's range (`synthetic_group`).
+        Recorded in ``dataset.json`` and part of the set's identity.
     seed : int
     workers : int
         Processes simulating groups at once (1: in this process; at most `available_threads`;
@@ -355,7 +367,7 @@ def generate_dataset(
     effects = check_effects(effects or {})
     if distractors.impurities_per_tile and distractors.impurity_diameter_max_um >= config.particles.diameter_min_um:
         raise InputError(f"impurity_diameter_max_um: expected a diameter below the particles' diameter_min_um={config.particles.diameter_min_um:g} µm, got {distractors.impurity_diameter_max_um:g} µm")
-    spec = _spec(config, processing, layout, seed, effects, distractors)
+    spec = _spec(config, processing, layout, seed, effects, distractors, sizes)
     manifest = out / "dataset.json"
     if manifest.is_file():
         existing = read_json_object(manifest, what="data set manifest")
@@ -378,7 +390,7 @@ def generate_dataset(
     written, stopped = list(present), False
     if present:
         steps.advance(len(present))
-    jobs = [(dataset.group_path(g), config, processing, layout, effects, distractors, int(seed), g) for g in missing]
+    jobs = [(dataset.group_path(g), config, processing, layout, effects, distractors, sizes, int(seed), g) for g in missing]
     try:
         written.extend(run_in_workers(_write_job, jobs, workers=workers, steps=steps))
     except Stopped:
@@ -395,11 +407,12 @@ def _write_job(job: tuple) -> int:
     return _write_group(*job)
 
 
-def _write_group(path: Path, config: ExperimentConfig, processing: InputProcessing, layout: DatasetLayout, effects: dict, distractors: Distractors, seed: int, group: int) -> int:
+def _write_group(path: Path, config: ExperimentConfig, processing: InputProcessing, layout: DatasetLayout, effects: dict, distractors: Distractors,
+                 sizes: SizeDistribution | None, seed: int, group: int) -> int:
     """Simulate group ``group`` and write its file atomically (runs in a worker process too)."""
     import tifffile
 
-    inputs, labels, particles = synthetic_group(config, processing, seed=[seed, group], layout=layout, effects=effects, distractors=distractors)
+    inputs, labels, particles = synthetic_group(config, processing, seed=[seed, group], layout=layout, effects=effects, distractors=distractors, sizes=sizes)
     if layout.kind == "stack":  # values in [0, 1]: float16 keeps 11 bits and halves the cache
         inputs = inputs.astype(np.float16)
     _check_group(path, inputs, labels, effects)
@@ -449,5 +462,7 @@ def dataset_summary(dataset: SyntheticDataset) -> dict:
         summary["effects"] = dataset.spec["effects"]
     if dataset.spec.get("distractors"):  # likewise
         summary["distractors"] = dataset.spec["distractors"]
+    if dataset.spec.get("sizes"):  # likewise
+        summary["sizes"] = dataset.spec["sizes"]
     return summary
 

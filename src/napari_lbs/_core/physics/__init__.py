@@ -25,6 +25,6 @@ __getattr__, __dir__, __all__ = lazy_exports(
         "_effects": ("EFFECTS", "OPTICAL_EFFECTS", "check_effects", "effect_hologram", "effects_from_report", "optical_hologram", "parse_effects", "sensor_image"),
         "_lorenz_mie": ("fields_from_profiles", "holograms_from_fields", "lateral_derivatives", "mean_intensity", "mie_coefficients", "radial_profiles", "radial_step", "sphere_fields", "term_count", "weighted_coefficients"),
         "_optics": ("backpropagate", "backpropagated_blocks", "padded_shape", "propagate", "transfer_function"),
-        "_synthesis": ("Distractors", "LABEL_SCALE", "ParticleField", "distractor_scene", "distractors_from_report", "label_planes", "random_particle_field", "simulate_hologram"),
+        "_synthesis": ("Distractors", "LABEL_SCALE", "ParticleField", "SizeDistribution", "distractor_scene", "distractors_from_report", "label_planes", "random_particle_field", "simulate_hologram", "sizes_from_report"),
     },
 )

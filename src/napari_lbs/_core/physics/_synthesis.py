@@ -21,9 +21,11 @@ from napari_lbs._core.foundation import process_threads
 __all__ = [
     "ParticleField",
     "Distractors",
+    "SizeDistribution",
     "random_particle_field",
     "distractor_scene",
     "distractors_from_report",
+    "sizes_from_report",
     "count_for_ppp",
     "disc_coverage",
     "layer_images",
@@ -118,6 +120,92 @@ class Distractors:
         return cls(**payload) if payload else cls()
 
 
+# A scene's size quantiles are taken for training data from this many particles within the
+# config's sizes: five quantiles of fewer are hardly a distribution.
+_LEAST_SIZED = 10
+
+
+@dataclass(frozen=True)
+class SizeDistribution:
+    """Particle diameters drawn from a measured distribution: its quantile function, piecewise linear.
+
+    Attributes
+    ----------
+    levels : tuple of float
+        Cumulative probabilities, increasing, within (0, 1) (a diagnosis report's percentiles
+        over 100).
+    diameters_um : tuple of float
+        The diameter (µm) at each level, non-decreasing.
+
+    A draw is the quantile function at a uniform number (inverse transform sampling), linear
+    between the given quantiles and, below the first and above the last level, out to the
+    least and largest diameter allowed (the config's range): the measured sizes set where
+    most particles lie, the config's range still bounds them all.
+    """
+
+    levels: tuple[float, ...]
+    diameters_um: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        try:
+            levels, diameters = np.asarray(self.levels, np.float64), np.asarray(self.diameters_um, np.float64)
+        except (TypeError, ValueError):
+            raise InputError(f"levels, diameters_um: expected numbers, got {self.levels!r} and {self.diameters_um!r}") from None
+        if levels.ndim != 1 or levels.size == 0 or levels.shape != diameters.shape:
+            raise InputError(f"levels, diameters_um: expected two equally long lists of numbers, got {levels.size} and {diameters.size}")
+        if not (np.all(np.isfinite(levels)) and np.all((levels > 0) & (levels < 1)) and np.all(np.diff(levels) > 0)):
+            raise InputError(f"levels: expected increasing cumulative probabilities within (0, 1), got {self.levels!r}")
+        if not (np.all(np.isfinite(diameters)) and np.all(diameters > 0) and np.all(np.diff(diameters) >= 0)):
+            raise InputError(f"diameters_um: expected positive, non-decreasing diameters (um), got {self.diameters_um!r}")
+
+    def draw(self, rng: np.random.Generator, count: int, *, diameter_min_um: float, diameter_max_um: float) -> np.ndarray:
+        """``count`` diameters (µm, float64) within ``[diameter_min_um, diameter_max_um]``; one uniform draw each from ``rng``."""
+        knots = np.clip(np.asarray(self.diameters_um, np.float64), diameter_min_um, diameter_max_um)
+        return np.interp(rng.uniform(0.0, 1.0, count), [0.0, *self.levels, 1.0], [diameter_min_um, *knots, diameter_max_um])
+
+    def to_dict(self) -> dict:
+        return {"levels": [float(v) for v in self.levels], "diameters_um": [float(v) for v in self.diameters_um]}
+
+    @classmethod
+    def from_dict(cls, payload: dict | None) -> SizeDistribution | None:
+        return cls(tuple(payload["levels"]), tuple(payload["diameters_um"])) if payload else None
+
+
+def sizes_from_report(report: dict, *, diameter_range_um: tuple[float, float], name: str = "report") -> SizeDistribution | None:
+    """The particle sizes a diagnosis report's scene measured, as training data's size distribution.
+
+    The report's ``scene`` (`scene_population`): the fitted diameters' quantiles at its
+    ``percentiles``, over the particles within the sizes its config allowed. None (the
+    config's uniform sizes) where the report has no scene or no sizes in it, fewer than
+    ten particles within its sizes, or quantiles outside ``diameter_range_um`` (µm; a report
+    made with other sizes than the data's config).
+
+    Raises
+    ------
+    InputError
+        One line naming the report and the field that is malformed.
+    """
+    scene = report.get("scene") if isinstance(report, dict) else None
+    if not isinstance(scene, dict) or scene.get("diameter_um") is None:
+        return None
+    try:
+        counted, percentiles, diameters = scene["in_size_range"], scene["percentiles"], scene["diameter_um"]
+    except KeyError as error:
+        raise InputError(f"{name}: scene: missing {error}") from None
+    if not isinstance(counted, int) or isinstance(counted, bool) or counted < 0:
+        raise InputError(f"{name}: scene: in_size_range must be a count >= 0, got {counted!r}")
+    if counted < _LEAST_SIZED:
+        return None
+    try:
+        sizes = SizeDistribution(tuple(float(p) / 100.0 for p in percentiles), tuple(float(d) for d in diameters))
+    except (InputError, TypeError, ValueError) as error:
+        raise InputError(f"{name}: scene: percentiles, diameter_um: {error}") from None
+    low, high = diameter_range_um
+    if sizes.diameters_um[0] < low or sizes.diameters_um[-1] > high:
+        return None
+    return sizes
+
+
 def distractors_from_report(report: dict, *, tile_px: int, diameter_min_um: float, name: str = "report") -> Distractors:
     """The small scatterers a diagnosis report's scene measured, as training data's unlabelled impurities.
 
@@ -165,13 +253,15 @@ def distractor_scene(
     depth_range_um: tuple[float, float],
     diameter_range_um: tuple[float, float],
     layers_um: Sequence[float] | None = None,
+    sizes: SizeDistribution | None = None,
     rng: np.random.Generator,
 ) -> ParticleField:
     """The scene the optics sees: ``field`` plus its distractors, on the window widened by the margin.
 
     Coordinates are shifted by the margin, so ``field``'s particles keep their place in the
     window ``[m:m + rows, m:m + cols]`` of the returned shape. Neighbours fill the margin at
-    ``field``'s particle density (per area), with its diameter range and depths (on
+    ``field``'s particle density (per area), with its diameter range (and ``sizes``, its
+    distribution, where given) and depths (on
     ``layers_um`` when given, else uniform over ``depth_range_um``); impurities fill the whole
     widened window at ``impurities_per_tile`` per ``tile_px``² with depths uniform over
     ``depth_range_um``. Nothing is drawn from ``rng`` when ``distractors`` is inactive.
@@ -192,7 +282,10 @@ def distractor_scene(
             x.append(xi)
             y.append(yi)
     neighbour_z = rng.choice(np.asarray(layers_um, np.float64), neighbours) if layers_um is not None else rng.uniform(*depth_range_um, neighbours)
-    neighbour_d = rng.uniform(*diameter_range_um, neighbours)
+    if sizes is None:
+        neighbour_d = rng.uniform(*diameter_range_um, neighbours)
+    else:
+        neighbour_d = sizes.draw(rng, neighbours, diameter_min_um=diameter_range_um[0], diameter_max_um=diameter_range_um[1])
     impurities = int(round(distractors.impurities_per_tile * shape[0] * shape[1] / tile_px**2))
     impurity_x, impurity_y = rng.uniform(0.0, extent_x, impurities), rng.uniform(0.0, extent_y, impurities)
     impurity_z = rng.uniform(*depth_range_um, impurities)
@@ -231,10 +324,12 @@ def random_particle_field(
     seed: int | np.random.Generator | None = None,
     overlap: bool = True,
     continuous: bool = False,
+    sizes: SizeDistribution | None = None,
 ) -> ParticleField:
     """Draw a random particle field.
 
-    Diameters are uniform in ``[diameter_min_um, diameter_max_um]``, depths drawn uniformly
+    Diameters are uniform in ``[diameter_min_um, diameter_max_um]`` or, with ``sizes``, drawn
+    from that distribution within it (`SizeDistribution.draw`), depths drawn uniformly
     from ``layers_um`` (the seed's HCS layers) or, with ``continuous=True``, uniformly over
     ``[min(layers_um), max(layers_um)]`` (every particle its own depth, as in a real volume),
     centres uniform over the window. With ``overlap=False`` no two particles overlap in
@@ -256,7 +351,10 @@ def random_particle_field(
     if not 1 <= rows <= 10**5 or not 1 <= cols <= 10**5:
         raise InputError(f"shape: expected 1 to 100000 pixels per side, got {shape!r}")
     rng = np.random.default_rng(seed)
-    diameters = rng.uniform(diameter_min_um, diameter_max_um, count)
+    if sizes is None:
+        diameters = rng.uniform(diameter_min_um, diameter_max_um, count)
+    else:
+        diameters = sizes.draw(rng, count, diameter_min_um=diameter_min_um, diameter_max_um=diameter_max_um)
     depths = rng.uniform(layers.min(), layers.max(), count) if continuous else rng.choice(layers, size=count)
     x = np.empty(count)
     y = np.empty(count)

@@ -8,6 +8,8 @@ from dataclasses import KW_ONLY, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from napari_lbs._core.foundation import ExperimentConfig
 from napari_lbs._core.foundation import ProgressCallback, ReportCallback, StopCallback
 from napari_lbs._core.foundation import read_json_object
@@ -15,9 +17,9 @@ from napari_lbs._core.pipeline._common import Log, StepResult, _quiet, check_out
 
 if TYPE_CHECKING:  # for the annotations only: the steps import these modules when they run
     from napari_lbs._core.learning import DatasetLayout, InputProcessing, TrainingSettings
-    from napari_lbs._core.physics import Distractors
+    from napari_lbs._core.physics import Distractors, SizeDistribution
 
-__all__ = ["GenerateRequest", "requested_effects", "generate", "TrainRequest", "train"]
+__all__ = ["GenerateRequest", "requested_effects", "report_distractors", "report_sizes", "generate", "TrainRequest", "train"]
 
 
 # --- generate ------------------------------------------------------------------------------
@@ -43,6 +45,8 @@ class GenerateRequest:
         Where the effects came from, recorded in the data set.
     layout : DatasetLayout, optional
     distractors : Distractors, optional
+    sizes : SizeDistribution, optional
+        The particles' diameter distribution (`report_sizes`); default uniform over the config's range.
     seed : int
     workers : int
         Processes simulating groups at once.
@@ -58,6 +62,7 @@ class GenerateRequest:
     effects_source: dict | None = None
     layout: DatasetLayout | None = None
     distractors: Distractors | None = None
+    sizes: SizeDistribution | None = None
     seed: int = 0
     workers: int = 1
 
@@ -102,6 +107,14 @@ def report_distractors(report_path, config: ExperimentConfig):
     return distractors_from_report(report, tile_px=config.tile.size, diameter_min_um=config.particles.diameter_min_um, name=str(report_path))
 
 
+def report_sizes(report_path, config: ExperimentConfig):
+    """The particle sizes a diagnosis report's scene measured (`sizes_from_report`), within ``config``'s range; None where it measured none."""
+    from napari_lbs._core.physics import sizes_from_report
+
+    report = read_json_object(report_path, what="diagnosis report")
+    return sizes_from_report(report, diameter_range_um=(config.particles.diameter_min_um, config.particles.diameter_max_um), name=str(report_path))
+
+
 def generate(request: GenerateRequest, *, progress: ProgressCallback | None = None, should_stop: StopCallback | None = None) -> StepResult:
     """Write the synthetic training set (`generate_dataset`)."""
     from napari_lbs._core.learning import DatasetLayout, InputProcessing, generate_dataset
@@ -113,7 +126,7 @@ def generate(request: GenerateRequest, *, progress: ProgressCallback | None = No
     effects = dict(request.effects)
     start = time.perf_counter()
     dataset = generate_dataset(request.out_dir, request.config, groups=request.groups, processing=processing, layout=request.layout or DatasetLayout(),
-                               calibration=calibration, effects=effects, effects_source=request.effects_source, distractors=distractors, seed=request.seed,
+                               calibration=calibration, effects=effects, effects_source=request.effects_source, distractors=distractors, sizes=request.sizes, seed=request.seed,
                                workers=request.workers, progress=progress, should_stop=should_stop)
     seconds = time.perf_counter() - start
     planes = len(dataset.groups) * len(dataset.planes_um)
@@ -123,6 +136,9 @@ def generate(request: GenerateRequest, *, progress: ProgressCallback | None = No
         added = f", no effects: {request.effects_source['report']} names none"
     if distractors.active:
         added += f", unlabelled distractors: {distractors.impurities_per_tile} impurities per tile, neighbours in a {distractors.neighbours_margin_px}-pixel margin"
+    if request.sizes is not None:
+        quartile = lambda level: float(np.interp(level, request.sizes.levels, request.sizes.diameters_um))
+        added += f", measured sizes: median {quartile(0.5):.3g} um, quartiles {quartile(0.25):.3g}-{quartile(0.75):.3g} um"
     return StepResult(f"wrote {len(dataset.groups)} groups ({planes} input planes, {kind}{added}) in {seconds:.1f} s -> {request.out_dir}", dataset, (Path(request.out_dir),))
 
 
