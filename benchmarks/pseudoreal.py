@@ -157,9 +157,14 @@ def camera(intensity: np.ndarray, *, rng: np.random.Generator, photons: float = 
 IMPURITY_INDEX = 1.45  # debris: not the particles' material (silica-like), so not what training assumed
 
 
+def _diameters(rng: np.random.Generator, count: int, sd_um: float | None) -> np.ndarray:
+    """Sphere diameters (µm): uniform over 20–30, or normal around 25 with ``sd_um`` clipped to 20–30."""
+    return rng.uniform(20.0, 30.0, count) if sd_um is None else np.clip(rng.normal(25.0, sd_um, count), 20.0, 30.0)
+
+
 def pseudo_real(count: int, *, size: int = 1024, seed: int = 0, z_air_um: tuple[float, float] = (1900.0, 4700.0),
                 impurities: int = 0, impurity_diameter_um: tuple[float, float] = (3.0, 12.0), margin_px: int = 0,
-                impurities_truth: bool = False) -> tuple[np.ndarray, dict] | tuple[np.ndarray, dict, dict]:
+                impurities_truth: bool = False, diameter_sd_um: float | None = None) -> tuple[np.ndarray, dict] | tuple[np.ndarray, dict, dict]:
     """An 8-bit pseudo-real hologram of ``count`` polystyrene spheres and its truth table (air-equivalent depths).
 
     With ``impurities``, that many small spheres of index `IMPURITY_INDEX` (diameters uniform
@@ -168,7 +173,9 @@ def pseudo_real(count: int, *, size: int = 1024, seed: int = 0, z_air_um: tuple[
     impurities at the same density there, and the window is kept, as a crop of a real sensor.
     Neither is in the truth table. The ``count`` spheres of the window are the same as without
     them (drawn first, from the same seed). ``impurities_truth`` returns a third table, the
-    impurities whose centres lie in the window (window coordinates).
+    impurities whose centres lie in the window (window coordinates). The spheres' diameters
+    are uniform over 20–30 µm or, with ``diameter_sd_um``, normal around 25 µm with that
+    spread (clipped to 20–30 µm): a monodisperse sample's.
     """
     rng = np.random.default_rng(seed)
     extent = (size - 1) * PIXEL_UM
@@ -176,7 +183,7 @@ def pseudo_real(count: int, *, size: int = 1024, seed: int = 0, z_air_um: tuple[
         "x_um": rng.uniform(0, extent, count),
         "y_um": rng.uniform(0, extent, count),
         "z_um": rng.uniform(*z_air_um, count),
-        "diameter_um": rng.uniform(20.0, 30.0, count),
+        "diameter_um": _diameters(rng, count, diameter_sd_um),
     }
     if not (impurities or margin_px):
         intensity = mie_intensity((size, size), table["x_um"], table["y_um"], table["z_um"], table["diameter_um"])
@@ -197,7 +204,7 @@ def pseudo_real(count: int, *, size: int = 1024, seed: int = 0, z_air_um: tuple[
     x = np.concatenate([table["x_um"] + shift, nx, extra.uniform(0, (big - 1) * PIXEL_UM, n_imp)])
     y = np.concatenate([table["y_um"] + shift, ny, extra.uniform(0, (big - 1) * PIXEL_UM, n_imp)])
     z = np.concatenate([table["z_um"], extra.uniform(*z_air_um, neighbours), extra.uniform(*z_air_um, n_imp)])
-    d = np.concatenate([table["diameter_um"], extra.uniform(20.0, 30.0, neighbours), extra.uniform(*impurity_diameter_um, n_imp)])
+    d = np.concatenate([table["diameter_um"], _diameters(extra, neighbours, diameter_sd_um), extra.uniform(*impurity_diameter_um, n_imp)])
     n = np.concatenate([np.full(count + neighbours, N_PARTICLE), np.full(n_imp, IMPURITY_INDEX)])
     intensity = mie_intensity((big, big), x, y, z, d, n)[margin_px : margin_px + size, margin_px : margin_px + size]
     image = camera(np.ascontiguousarray(intensity), rng=rng)
