@@ -86,6 +86,21 @@ def test_effect_hologram_obeys_the_physics_of_each_effect():
     np.testing.assert_array_equal(effect_hologram(field, {}, wavelength_um=0.66, rng=rng), opaque)
 
 
+def test_the_camera_s_envelope_and_etalon_fringe_are_their_formulas_on_a_tile_of_the_sensor():
+    from napari_lbs._core.physics._effects import sensor_image
+
+    baseline = {"contrast": 1.0, "sigma": 0.0, "gamma": 1.0}
+    flat, zeros = np.ones((40, 60), np.float32), np.zeros((40, 60), np.float32)
+    rows, cols = np.arange(10, 50), np.arange(100, 160)  # a tile of a 200 x 300 sensor
+    envelope = {"illumination": {"depth": 0.3, "waist": 0.4, "x0": 0.1, "y0": -0.05}}
+    y, x = (rows / 199.0 - 0.5)[:, None], (cols / 299.0 - 0.5)[None, :]
+    expected = 1.0 - 0.3 * (1.0 - np.exp(-((x - 0.1) ** 2 + (y + 0.05) ** 2) / 0.4**2))
+    np.testing.assert_allclose(sensor_image(flat, baseline, envelope, noise=zeros, frame_px=(rows, cols, (200, 300))), expected, rtol=1e-6)
+    fringe = {"parasitic_fringes": {"amplitude": 0.04, "period_px": 11.3, "angle_rad": 0.7, "phase_rad": 1.2}}
+    expected = 1.0 + 0.04 * np.cos(2 * np.pi * (cols[None, :] * np.cos(0.7) + rows[:, None] * np.sin(0.7)) / 11.3 + 1.2)
+    np.testing.assert_allclose(sensor_image(flat, baseline, fringe, noise=zeros, frame_px=(rows, cols, (200, 300))), expected, rtol=1e-6)
+
+
 def test_a_spheres_phase_delay_is_proportional_to_its_diameter():
     from napari_lbs._core.physics._effects import _sphere_fields
 

@@ -346,19 +346,22 @@ def sensor_image(intensity: np.ndarray, baseline: dict, effects: dict, *, noise:
         keep = None
     image = 1.0 + float(baseline["contrast"]) * (intensity.astype(np.float32) - 1.0)
     depth = _param(effects, "illumination", "depth")
-    if depth > 0:
-        y = (np.asarray(row_px, np.float64) / max(frame_rows - 1, 1) - 0.5)[:, None]
-        x = (np.asarray(col_px, np.float64) / max(frame_cols - 1, 1) - 0.5)[None, :]
-        r2 = (x - _param(effects, "illumination", "x0")) ** 2 + (y - _param(effects, "illumination", "y0")) ** 2
-        image = image * (1.0 - depth * (1.0 - np.exp(-r2 / _param(effects, "illumination", "waist") ** 2))).astype(np.float32)
+    if depth > 0:  # 1 - depth (1 - e^{-r²/w²}), the Gaussian an outer product of its row and column factors
+        waist = _param(effects, "illumination", "waist")
+        y = np.asarray(row_px, np.float64) / max(frame_rows - 1, 1) - 0.5 - _param(effects, "illumination", "y0")
+        x = np.asarray(col_px, np.float64) / max(frame_cols - 1, 1) - 0.5 - _param(effects, "illumination", "x0")
+        gaussian = np.outer(np.exp(-y * y / waist**2), np.exp(-x * x / waist**2))
+        image = image * (1.0 - depth + depth * gaussian).astype(np.float32)
     if dust_image is not None:  # the grains' rings, formed by the light on its way to the sensor
         image = image * dust_image
     amplitude = _param(effects, "parasitic_fringes", "amplitude")
-    if amplitude > 0:
+    if amplitude > 0:  # 1 + a cos(u_x + u_y + φ), the cosine of a sum as two outer products
         angle, period = _param(effects, "parasitic_fringes", "angle_rad"), _param(effects, "parasitic_fringes", "period_px")
         phase = _param(effects, "parasitic_fringes", "phase_rad")  # at the sensor's first pixel
-        y, x = np.asarray(row_px, np.float64)[:, None], np.asarray(col_px, np.float64)[None, :]
-        image = image * (1.0 + amplitude * np.cos(2 * np.pi * (x * np.cos(angle) + y * np.sin(angle)) / period + phase)).astype(np.float32)
+        u_y = 2 * np.pi * np.asarray(row_px, np.float64) * np.sin(angle) / period + phase
+        u_x = 2 * np.pi * np.asarray(col_px, np.float64) * np.cos(angle) / period
+        fringe = np.outer(np.cos(u_y), np.cos(u_x)) - np.outer(np.sin(u_y), np.sin(u_x))
+        image = image * (1.0 + amplitude * fringe).astype(np.float32)
     if blur > 0:  # crosstalk / MTF spreads the light over neighbouring pixels; the electronics' read noise comes later, unblurred
         if keep is None:
             image = ndimage.gaussian_filter(image, blur)
