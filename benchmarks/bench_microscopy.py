@@ -22,7 +22,9 @@ the ``refine`` command's (`refine_hologram` from these guesses: the frame binned
 0.0851 µm pitch is finer than λ/(2n) needs, then `refine_particles` with
 ``medium_index=1.33, depth_window_um=5`` and otherwise the defaults: patches of 128 binned
 pixels, 21.8 µm), then its looks in the residual (``--detection-rounds``; 1 fits the starts
-alone). A particle a look adds, which no start was of, is counted as ``extra`` (each cell
+alone). As ``refine`` does, the frame's clipped pixels (five or more at its largest count: a
+saturated camera's, at 12 bits) are left out of the fits (`unsaturated_pixels` of the
+counts); ``--keep-clipped`` fits through them, the comparison. A particle a look adds, which no start was of, is counted as ``extra`` (each cell
 holds one sphere: a false find) and listed, and stays out of the accuracy.
 
 Two sets: ``dev`` (seed 1, where the method is looked at) and ``frozen`` (seed 2), whose
@@ -124,8 +126,8 @@ def pylorenzmie_intensity(spheres: list[dict], shape: tuple[int, int], *, pixel_
     return np.asarray(hologram, dtype=np.float64).reshape(rows, s, cols, s).mean(axis=(1, 3))
 
 
-def camera_frame(intensity: np.ndarray, rng: np.random.Generator, *, bits: int = 16) -> np.ndarray:
-    """``intensity`` under an off-centre Gaussian illumination, recorded with a background frame and normalised.
+def camera_frame(intensity: np.ndarray, rng: np.random.Generator, *, bits: int = 16, raw: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """``intensity`` under an off-centre Gaussian illumination, recorded with a background frame and normalised (with ``raw``, and the frame's counts).
 
     The camera: 3000 photo-electrons at the unobstructed light, Poisson noise, a dark offset
     of 100 counts with 3 counts of read noise, ``bits``-bit counts; the background frame is
@@ -140,33 +142,35 @@ def camera_frame(intensity: np.ndarray, rng: np.random.Generator, *, bits: int =
         return np.clip(np.round(counts), 0, 2**bits - 1)
 
     hologram, background = camera(intensity * beam), camera(beam)
-    return (hologram - 100.0) / (background - 100.0)
+    normalised = (hologram - 100.0) / (background - 100.0)
+    return (normalised, hologram) if raw else normalised
 
 
-def mosaic(cases: list[dict], rng: np.random.Generator, *, bits: int = 16) -> tuple[np.ndarray, int]:
-    """The normalised frame of every case's cell, as `refine --background --dark` sees it (`camera_frame`), and the cells per row."""
+def mosaic(cases: list[dict], rng: np.random.Generator, *, bits: int = 16) -> tuple[np.ndarray, np.ndarray, int]:
+    """The normalised frame of every case's cell, as `refine --background --dark` sees it, its counts (`camera_frame`), and the cells per row."""
     per_row = int(np.ceil(np.sqrt(len(cases))))
     rows = -(-len(cases) // per_row)
     intensity = np.ones((rows * CELL, per_row * CELL))
     for i, case in enumerate(cases):
         r, c = divmod(i, per_row)
         intensity[r * CELL:(r + 1) * CELL, c * CELL:(c + 1) * CELL] = pylorenzmie_intensity([case], (CELL, CELL))
-    return camera_frame(intensity, rng, bits=bits), per_row
+    return *camera_frame(intensity, rng, bits=bits, raw=True), per_row
 
 
-def run(which: str, *, patch_um: float | None = None, bits: int = 16, detection_rounds: int | None = None) -> dict:
+def run(which: str, *, patch_um: float | None = None, bits: int = 16, detection_rounds: int | None = None, keep_clipped: bool = False) -> dict:
     import pandas as pd
     import torch
 
     from napari_lbs._core import ExperimentConfig
     from napari_lbs._core.pipeline import DETECTION_ROUNDS, refine_hologram
+    from napari_lbs._core.refine import unsaturated_pixels
 
     detection_rounds = DETECTION_ROUNDS if detection_rounds is None else detection_rounds
 
     cases = cases_of(which)
     load_before = os.getloadavg()
     started = time.perf_counter()
-    frame, per_row = mosaic(cases, np.random.default_rng(SEEDS[which] + 100), bits=bits)
+    frame, counts, per_row = mosaic(cases, np.random.default_rng(SEEDS[which] + 100), bits=bits)
     render_s = time.perf_counter() - started
     offsets = [(divmod(i, per_row)[1] * CELL * PIXEL_UM, divmod(i, per_row)[0] * CELL * PIXEL_UM) for i in range(len(cases))]
     guesses = pd.DataFrame([{name: case["start"][name] + (dx if name == "x_um" else dy if name == "y_um" else 0.0)
@@ -176,8 +180,10 @@ def run(which: str, *, patch_um: float | None = None, bits: int = 16, detection_
                                          "volume": {"z_min_um": 5.0, "z_max_um": 60.0, "z_step_um": 0.5},
                                          "particles": {"diameter_min_um": 0.9, "diameter_max_um": 11.0, "layer_step_um": 5.0}})
     started, cpu = time.perf_counter(), time.process_time()
+    # as `refine` does: a saturated camera's clipped pixels (at 12 bits) are left out of the fits
+    valid = None if keep_clipped else unsaturated_pixels(counts)
     fitted, record = refine_hologram(frame, config, guesses=guesses, medium_index=N_MEDIUM, depth_window_um=5.0, patch_um=patch_um,
-                                     detection_rounds=detection_rounds)
+                                     detection_rounds=detection_rounds, valid=valid)
     fit_s, fit_core_s = time.perf_counter() - started, time.process_time() - cpu
     table = pd.DataFrame(fitted)
     extra = table[table["case"].isna()]
@@ -203,7 +209,8 @@ def run(which: str, *, patch_um: float | None = None, bits: int = 16, detection_
     return {"set": which, "summary": summary, "per_radius": per_class, "targets": TARGETS, "particles": rows, "extra": extra_rows, "render_s": render_s, "fit_s": fit_s,
             "threads": torch.get_num_threads(), "load_before": load_before, "load_after": os.getloadavg(),
             "setup": {"wavelength_um": WAVELENGTH_UM, "pixel_um": PIXEL_UM, "n_medium": N_MEDIUM, "cell_px": CELL, "supersample": SUPERSAMPLE, "bits": bits,
-                      "radii_um": RADII_UM, "per_radius": PER_RADIUS, "detection_rounds": detection_rounds, "fit": record}}
+                      "radii_um": RADII_UM, "per_radius": PER_RADIUS, "detection_rounds": detection_rounds, "fit": record,
+                      "pixels_left_out": 0 if valid is None else int(np.count_nonzero(~valid)), "keep_clipped": keep_clipped}}
 
 
 def main() -> None:
@@ -213,8 +220,9 @@ def main() -> None:
     parser.add_argument("--patch-um", type=float, help="largest patch edge (µm; default the refine command's)")
     parser.add_argument("--bits", type=int, choices=(12, 16), default=16, help="the camera's counts (12: the brightest focal spots saturate)")
     parser.add_argument("--detection-rounds", type=int, help="looks for particles, the starts' fit first (default the refine command's; 1: the starts alone)")
+    parser.add_argument("--keep-clipped", action="store_true", help="fit through the saturated camera's clipped pixels too (the comparison for leaving them out)")
     args = parser.parse_args()
-    result = run(args.set, patch_um=args.patch_um, bits=args.bits, detection_rounds=args.detection_rounds)
+    result = run(args.set, patch_um=args.patch_um, bits=args.bits, detection_rounds=args.detection_rounds, keep_clipped=args.keep_clipped)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1, default=float) + "\n")
     print(json.dumps({"summary": result["summary"], "per_radius": result["per_radius"], "load": [result["load_before"], result["load_after"]]}, indent=1))

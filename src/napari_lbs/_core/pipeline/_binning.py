@@ -48,6 +48,15 @@ def binned_hologram(hologram: np.ndarray, config: ExperimentConfig, *, medium_in
     return image, fit_config, 0.5 * (factor - 1) * config.optics.pixel_um
 
 
+def binned_valid(valid: np.ndarray | None, config: ExperimentConfig, *, medium_index: float) -> np.ndarray | None:
+    """The fit's valid pixels (`refine_particles`) in `binned_hologram`'s frame: a binned pixel is valid where every pixel of its block is."""
+    if valid is None:
+        return None
+    factor = fringe_binning(config, medium_index=medium_index)
+    blocks, _ = _binned(np.asarray(valid, dtype=np.float64), config, factor)
+    return blocks >= 1.0
+
+
 def _binned(hologram: np.ndarray, config: ExperimentConfig, factor: int) -> tuple[np.ndarray, ExperimentConfig]:
     """The hologram's ``factor``² blocks averaged (the last rows and columns that fill no block dropped) and the config of their pitch."""
     from dataclasses import replace

@@ -184,6 +184,7 @@ def refined_prediction(hologram: np.ndarray, model, config: ExperimentConfig | N
 
     from napari_lbs._core.learning import LoadedModel, load_model
     from napari_lbs._core.learning import PredictionResult, predict_particles, prediction_settings
+    from napari_lbs._core.refine import unsaturated_pixels
 
     started = time.perf_counter()
     settings = prediction_settings(settings, device=device, precision=precision, force=force, threshold=threshold)
@@ -195,7 +196,7 @@ def refined_prediction(hologram: np.ndarray, model, config: ExperimentConfig | N
     propose = _network_proposals(model, config, settings, progress=progress, should_stop=should_stop)
     fit = _fit_settings(refine_settings, config or model.config, device=settings.device, material=material_index_contrast)
     particles, record = _refined(normalised, result.particles, config or model.config, fit, material=material_index_contrast, propose=propose,
-                                 progress=progress, should_stop=should_stop)
+                                 valid=unsaturated_pixels(hologram), progress=progress, should_stop=should_stop)
     return PredictionResult(particles, {**result.provenance, "refine": record}, time.perf_counter() - started)
 
 
@@ -277,6 +278,8 @@ def _refined_frames(frames, particles: dict, config: ExperimentConfig, settings:
     """Each frame's rows of a recording's table refined with ``settings`` on that frame (divided by the background file, else by its mean)."""
     import numpy as np
 
+    from napari_lbs._core.refine import unsaturated_pixels
+
     frame_of = np.asarray(particles["frame"]).astype(np.int64)
     parts, records = [], []
     for index in np.unique(frame_of):
@@ -284,14 +287,14 @@ def _refined_frames(frames, particles: dict, config: ExperimentConfig, settings:
         hologram = np.asarray(frames.read(int(index), log=log), dtype=np.float64)
         divisor = background if isinstance(background, np.ndarray) else float(hologram.mean())
         table, record = _refined(hologram / divisor, {name: np.asarray(values)[rows] for name, values in particles.items()}, config, settings, material=material,
-                                 propose=propose, progress=progress, should_stop=should_stop)
+                                 propose=propose, valid=unsaturated_pixels(hologram), progress=progress, should_stop=should_stop)
         if len(table["x_um"]) and "frame" in table:
             table["frame"] = np.full(len(table["x_um"]), index, dtype=np.asarray(particles["frame"]).dtype)
         parts.append(table)
         records.append(record)
     merged = {name: np.concatenate([part[name] for part in parts]) for name in parts[0]} if parts else particles
     summary = {"settings": records[0]["settings"] if records else None, "detections": sum(r["detections"] for r in records),
-               "kept": sum(r["kept"] for r in records), "seconds": sum(r["seconds"] for r in records),
+               "kept": sum(r["kept"] for r in records), "seconds": sum(r["seconds"] for r in records), "pixels_left_out": sum(r["pixels_left_out"] for r in records),
                "residual": {key: sum(r["residual"][key] for r in records) for key in ("proposals", "found", "seconds")}}
     if material is not None:
         from napari_lbs._core.refine import MATERIAL_SIGMAS, MATERIAL_TOLERANCE
@@ -303,8 +306,8 @@ def _refined_frames(frames, particles: dict, config: ExperimentConfig, settings:
     return merged, summary
 
 
-def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, settings: RefineSettings, *, material: float | None, propose, progress,
-             should_stop) -> tuple[dict, dict]:
+def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, settings: RefineSettings, *, material: float | None, propose,
+             valid: np.ndarray | None, progress, should_stop) -> tuple[dict, dict]:
     """The particle table refined by `refine_particles` with ``settings``, with the finds in its residual (`residual_particles`, ``propose``), of the ``material`` where given (as a dict of arrays), and its provenance.
 
     As the ``refine`` command does, a pitch finer than half the medium wavelength is binned
@@ -312,26 +315,30 @@ def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, se
     reach twice as far and see the fringes of a sphere 50 µm from focus at angles that tell
     its depth; the network's second look sees the binned residual at its trained pitch,
     each binned pixel's value over its block. Positions are reported in the hologram's own
-    coordinates.
+    coordinates. ``valid``: the pixels the fits compare (`unsaturated_pixels` of the raw
+    frame: a saturated camera's clipped pixels left out), the provenance's
+    ``pixels_left_out``.
     """
     from dataclasses import asdict
 
     import numpy as np
     import pandas as pd
 
-    from napari_lbs._core.pipeline._binning import binned_hologram
+    from napari_lbs._core.pipeline._binning import binned_hologram, binned_valid
     from napari_lbs._core.refine import MATERIAL_SIGMAS, MATERIAL_TOLERANCE, same_material
     from napari_lbs._core.refine import refine_particles
     from napari_lbs._core.refine import residual_particles
 
     started = time.perf_counter()
     image, fit_config, shift_um = binned_hologram(hologram, config, medium_index=settings.medium_index)
+    fit_valid = binned_valid(valid, config, medium_index=settings.medium_index)
     factor = int(round(fit_config.optics.pixel_um / config.optics.pixel_um))
     guesses = pd.DataFrame(particles)
     guesses[["x_um", "y_um"]] = guesses[["x_um", "y_um"]].astype(np.float64) - shift_um
     begin_phase(progress, f"fit {len(particles['x_um'])} particles")
-    table = refine_particles(image, guesses, fit_config, settings=settings, progress=progress, should_stop=should_stop)
-    record = {"settings": asdict(settings), "binning": factor, "detections": len(particles["x_um"]), "kept": len(table), "seconds": time.perf_counter() - started}
+    table = refine_particles(image, guesses, fit_config, settings=settings, valid=fit_valid, progress=progress, should_stop=should_stop)
+    record = {"settings": asdict(settings), "binning": factor, "detections": len(particles["x_um"]), "kept": len(table), "seconds": time.perf_counter() - started,
+              "pixels_left_out": 0 if valid is None else int(np.count_nonzero(~valid))}
     started = time.perf_counter()
     proposals = []
 
@@ -343,7 +350,7 @@ def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, se
 
     if len(table) and table["refined"].any():  # with nothing refined, the residual is the hologram the network has seen
         begin_phase(progress, "second look")
-        found = residual_particles(image, table, fit_config, propose=counted, settings=settings, background=np.ones(image.shape), progress=progress,
+        found = residual_particles(image, table, fit_config, propose=counted, settings=settings, background=np.ones(image.shape), valid=fit_valid, progress=progress,
                                    should_stop=should_stop)
         table = pd.concat([table, found], ignore_index=True) if len(found) else table
     table[["x_um", "y_um"]] += shift_um

@@ -17,14 +17,11 @@ from pathlib import Path
 import numpy as np
 
 from napari_lbs._core.foundation import ExperimentConfig, InputError, ProgressCallback, StopCallback, write_json
-from napari_lbs._core.pipeline._binning import binned_hologram, default_depth_window_um, fringe_binning
+from napari_lbs._core.pipeline._binning import binned_hologram, binned_valid, default_depth_window_um, fringe_binning
 from napari_lbs._core.pipeline._common import Log, StepResult, _background, _hologram, _quiet, _source, provenance
 
 __all__ = ["DETECTION_ROUNDS", "RefineRequest", "refine", "refine_hologram"]
 
-# A camera's clipped focal spot shows as a plateau at the frame's maximum; a measured frame's
-# maximum is otherwise reached by a pixel or two. Clipping biases the fit (docs/microscopy.md).
-_SATURATED_PIXELS = 5
 # Looks for particles by default: the hologram, then the residual twice. The built-in
 # example with the default patches needs all three: the second look finds the 1.5 µm sphere
 # and the 3 µm one whose first fit failed, the third the 0.8 µm one (docs/microscopy.md).
@@ -153,7 +150,7 @@ def _explained(pending, table) -> np.ndarray:
     return (lateral < 0.25 * refined["diameter_um"].to_numpy()[None]).any(axis=1)
 
 
-def _residual_rounds(image: np.ndarray, table, config: ExperimentConfig, settings, *, rounds: int, max_particles: int,
+def _residual_rounds(image: np.ndarray, table, config: ExperimentConfig, settings, *, rounds: int, max_particles: int, valid: np.ndarray | None,
                      progress: ProgressCallback | None, should_stop: StopCallback | None) -> tuple[object, list[dict]]:
     """The refined ``table`` after up to ``rounds`` looks in its residual; each look's record.
 
@@ -187,7 +184,7 @@ def _residual_rounds(image: np.ndarray, table, config: ExperimentConfig, setting
         propose, peaks = _residual_detector(config, max_particles=room, progress=progress, should_stop=should_stop)
         refined = table["refined"].astype(bool).to_numpy()
         fitted, pending = table[refined], table[~refined]
-        found = residual_particles(image, fitted, config, propose=propose, settings=settings, background=np.ones(image.shape), progress=progress,
+        found = residual_particles(image, fitted, config, propose=propose, settings=settings, background=np.ones(image.shape), valid=valid, progress=progress,
                                    should_stop=should_stop)
         if found.empty:
             records.append({"peaks": peaks[0], "found": 0, "kept": len(table), "seconds": time.perf_counter() - started})
@@ -197,7 +194,7 @@ def _residual_rounds(image: np.ndarray, table, config: ExperimentConfig, setting
         restart = pd.concat([fitted, found], ignore_index=True)
         restart["index_contrast"] = restart[_START_INDEX].fillna(settings.index_contrast)
         begin_phase(progress, f"fit {len(restart)} particles")
-        refit = refine_particles(image, restart, config, settings=replace(settings, rounds=max(settings.rounds, 2)), progress=progress,
+        refit = refine_particles(image, restart, config, settings=replace(settings, rounds=max(settings.rounds, 2)), valid=valid, progress=progress,
                                  should_stop=should_stop)
         table = pd.concat([refit, pending[~_explained(pending, refit)]], ignore_index=True)
         records.append({"peaks": peaks[0], "found": len(found), "kept": len(table), "seconds": time.perf_counter() - started})
@@ -206,7 +203,8 @@ def _residual_rounds(image: np.ndarray, table, config: ExperimentConfig, setting
 
 def refine_hologram(hologram: np.ndarray, config: ExperimentConfig, *, guesses=None, index_contrast: float = 0.26, medium_index: float = 1.33,
                     max_particles: int = 64, detection_rounds: int = DETECTION_ROUNDS, depth_window_um: float | None = None, patch_um: float | None = None,
-                    workers: int = 1, progress: ProgressCallback | None = None, should_stop: StopCallback | None = None) -> tuple[dict, dict]:
+                    workers: int = 1, valid: np.ndarray | None = None, progress: ProgressCallback | None = None,
+                    should_stop: StopCallback | None = None) -> tuple[dict, dict]:
     """The particles of a normalised hologram: `find_particles`' guesses (or ``guesses``) fitted by `refine_particles`, then those their residual holds.
 
     Where the pitch is finer than half the medium wavelength, the hologram is first binned
@@ -234,6 +232,9 @@ def refine_hologram(hologram: np.ndarray, config: ExperimentConfig, *, guesses=N
         search the residual with `find_particles` either way.
     index_contrast, medium_index, max_particles, detection_rounds, depth_window_um, patch_um, workers
         As `RefineRequest`'s.
+    valid : (rows, cols) bool array, optional
+        The pixels the fits compare (`refine_particles`; `unsaturated_pixels` of the raw
+        frame); the detector sees every pixel.
     progress, should_stop
         One step per depth searched (without ``guesses``), then one per fitted batch; in
         each later look, one per particle rendered, per depth searched and per fitted batch,
@@ -261,6 +262,7 @@ def refine_hologram(hologram: np.ndarray, config: ExperimentConfig, *, guesses=N
         raise InputError(f"patch_um: expected a patch of at least 16 pixels of {factor * config.optics.pixel_um:g} µm, got {patch_um!r} µm")
     settings = RefineSettings(medium_index=medium_index, index_contrast=index_contrast, depth_window_um=window, patch_px=patch_px, workers=workers)
     image, fit_config, shift_um = binned_hologram(hologram, config, medium_index=medium_index)
+    valid = binned_valid(valid, config, medium_index=medium_index)
     started = time.perf_counter()
     if guesses is None:
         begin_phase(progress, "find particles")
@@ -275,9 +277,10 @@ def refine_hologram(hologram: np.ndarray, config: ExperimentConfig, *, guesses=N
     searched = time.perf_counter() - started
     begin_phase(progress, f"fit {len(starts)} particles")
     start_index = pd.to_numeric(starts["index_contrast"], errors="coerce").fillna(index_contrast) if "index_contrast" in starts else index_contrast
-    table = refine_particles(image, starts.assign(**{_START_INDEX: start_index}), fit_config, settings=settings, progress=progress, should_stop=should_stop)
+    table = refine_particles(image, starts.assign(**{_START_INDEX: start_index}), fit_config, settings=settings, valid=valid, progress=progress,
+                             should_stop=should_stop)
     fit_s = time.perf_counter() - started - searched
-    table, rounds = _residual_rounds(image, table, fit_config, settings, rounds=detection_rounds, max_particles=max_particles, progress=progress,
+    table, rounds = _residual_rounds(image, table, fit_config, settings, rounds=detection_rounds, max_particles=max_particles, valid=valid, progress=progress,
                                      should_stop=should_stop)
     table = table.drop(columns=_START_INDEX)
     table[["x_um", "y_um"]] += shift_um
@@ -300,21 +303,24 @@ def refine(request: RefineRequest, *, progress: ProgressCallback | None = None, 
 
     out, record_path = _refine_outputs(request)
     source = str(request.inputs) if isinstance(request.inputs, (str, Path)) else _source("array", request.source)
+    from napari_lbs._core.refine import unsaturated_pixels
+
     hologram = _hologram(request.inputs, log=log)
-    top = float(np.max(hologram))
-    at_top = int(np.count_nonzero(hologram >= top))
-    if at_top >= _SATURATED_PIXELS:
-        log(f"{source}: {at_top} pixels at the frame's maximum ({top:g}): if the camera saturated there, the fits through those pixels are biased")
+    at_top = int(np.count_nonzero(hologram >= np.max(hologram)))
+    valid = unsaturated_pixels(hologram)
+    if valid is not None:
+        log(f"{source}: {at_top} pixels at the frame's maximum ({float(np.max(hologram)):g}), a saturated camera's: left out of the fits")
     background = _background(request.background_path, hologram.shape, log=log)
     dark = _background(request.dark_path, hologram.shape, log=log)
     normalised = _normalised(hologram, background, dark)
     started = time.perf_counter()
     table, find = refine_hologram(normalised, request.config, index_contrast=request.index_contrast, medium_index=request.medium_index,
                                   max_particles=request.max_particles, detection_rounds=request.detection_rounds, depth_window_um=request.depth_window_um,
-                                  patch_um=request.patch_um, workers=request.workers, progress=progress, should_stop=should_stop)
+                                  patch_um=request.patch_um, workers=request.workers, valid=valid, progress=progress, should_stop=should_stop)
     seconds = time.perf_counter() - started
     record = {**provenance(request.config, source=source, background_file=request.background_path and str(request.background_path),
-                           dark_file=request.dark_path and str(request.dark_path)), "find": find, "pixels_at_maximum": at_top, "seconds": seconds, "particles": str(out)}
+                           dark_file=request.dark_path and str(request.dark_path)), "find": find, "pixels_at_maximum": at_top,
+                           "pixels_left_out": 0 if valid is None else at_top, "seconds": seconds, "particles": str(out)}
     write_particles(out, table, metadata=record, force=request.replace)
     write_json(record_path, record, force=request.replace)
     more = sum(look["found"] for look in find["rounds"])

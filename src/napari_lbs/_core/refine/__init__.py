@@ -31,6 +31,7 @@ __getattr__, __dir__, __all__ = lazy_exports(
     __name__,
     {
         "_material": ("MATERIAL_SIGMAS", "MATERIAL_TOLERANCE", "same_material"),
+        "_patches": ("SATURATED_PIXELS", "unsaturated_pixels"),
         "_refine": ("RefineSettings", "refine_particles"),
         "_scene": ("particle_hologram", "residual_hologram", "residual_particles"),
     },

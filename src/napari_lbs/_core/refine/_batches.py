@@ -37,7 +37,7 @@ _FINE_ITERATIONS = 1
 
 
 def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of, *, anchor: np.ndarray, search: bool, settings: RefineSettings,
-               config: ExperimentConfig, terms: int, device, steps: Steps) -> dict[str, np.ndarray]:
+               config: ExperimentConfig, terms: int, device, steps: Steps, valid: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Fit one batch of particles from (B, 6) physical starting parameters; arrays per particle.
 
     Positions and depths are bounded about ``anchor`` (B, 6), the table's guesses, in every
@@ -50,14 +50,14 @@ def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of
     way the valley profile about the fit (`valley_profile`) may restart it in a deeper valley
     and widens the diameter's and index's uncertainties (``spread``). ``gain``: how much the
     particle lowers the robust cost of the model without it (its neighbours and the
-    illumination).
+    illumination). ``valid``: the pixels compared (`cut_patches`).
     """
     optics = config.optics
     count = start.shape[0]
     edges = np.array([patch_edge(z, settings=settings, wavelength_um=optics.wavelength_um, pixel_um=optics.pixel_um) for z in start[:, 2]])
     model_optics = {"wavelength_um": optics.wavelength_um, "medium_index": settings.medium_index,
                     "pixel_um": optics.pixel_um if settings.pixel_integration else None, "terms": terms}
-    fine = cut_patches(image, start[:, 0], start[:, 1], edges, pixel_um=optics.pixel_um, device=device)
+    fine = cut_patches(image, start[:, 0], start[:, 1], edges, pixel_um=optics.pixel_um, device=device, valid=valid)
     model = Model(fine, others_of(fine) if others_of is not None else None, **model_optics)
     steps.check()
     params = torch.zeros((count, PHYSICAL + NUISANCE), dtype=torch.float64, device=device)
@@ -230,6 +230,8 @@ class FitTask:
         Torch device type (``cpu``, ``cuda``).
     search : bool
         The centre and ring-profile searches before the fit (the first round).
+    valid : (rows, cols) bool array, optional
+        The pixels the fits compare (`refine_particles`); default all.
     """
 
     image: np.ndarray
@@ -244,6 +246,7 @@ class FitTask:
     terms: int
     device: str
     search: bool
+    valid: np.ndarray | None = None
 
 
 def _fit_task(task: FitTask, steps: Steps | None = None) -> dict[str, np.ndarray]:
@@ -251,7 +254,7 @@ def _fit_task(task: FitTask, steps: Steps | None = None) -> dict[str, np.ndarray
     others = _neighbour_fields(task.neighbours, task.index, present=task.present, settings=task.settings, config=task.config, terms=task.terms,
                                device=task.device)
     return _fit_batch(task.image, task.start, task.free, others, anchor=task.anchor, search=task.search, settings=task.settings, config=task.config,
-                      terms=task.terms, device=torch.device(task.device), steps=steps or Steps(1, progress=None, should_stop=None))
+                      terms=task.terms, device=torch.device(task.device), steps=steps or Steps(1, progress=None, should_stop=None), valid=task.valid)
 
 
 # Steps' heartbeat while a batch fits in this process: as often as the pool checks its workers.

@@ -46,6 +46,35 @@ def check_hologram(hologram) -> np.ndarray:
     return image
 
 
+def check_valid(valid, shape: tuple[int, int]) -> np.ndarray | None:
+    """``valid`` as a (rows, cols) bool array of the hologram's ``shape``, or None (every pixel); refused in one line when it is not one, or leaves no pixel."""
+    if valid is None:
+        return None
+    mask = np.asarray(valid)
+    if mask.shape != tuple(shape) or mask.dtype != bool:
+        raise InputError(f"valid: expected a bool array of the hologram's shape {tuple(shape)}, got {mask.dtype} of shape {mask.shape}")
+    if not mask.any():
+        raise InputError("valid: no pixel left to fit")
+    return mask
+
+
+# A camera's clipped focal spot shows as a plateau at the frame's maximum; a measured frame's
+# maximum is otherwise reached by a pixel or two.
+SATURATED_PIXELS = 5
+
+
+def unsaturated_pixels(hologram) -> np.ndarray | None:
+    """The pixels below the frame's maximum where `SATURATED_PIXELS` or more reach it (a saturated camera's plateau), else None (every pixel valid).
+
+    For `refine_particles`' ``valid``, given the raw frame (a background division spreads
+    the clipped values).
+    """
+    image = np.asarray(hologram)
+    top = image.max()
+    at_top = image >= top
+    return ~at_top if int(np.count_nonzero(at_top)) >= SATURATED_PIXELS else None
+
+
 def check_table(table):
     import pandas as pd
 
@@ -98,7 +127,12 @@ def patch_edge(z_um: float, *, settings: RefineSettings, wavelength_um: float, p
     return int(max(16, min(settings.patch_px, 2 * round(radius_px))))
 
 
-def cut_patches(image: np.ndarray, x_um: np.ndarray, y_um: np.ndarray, edges: np.ndarray, *, pixel_um: float, device) -> Patches:
+def cut_patches(image: np.ndarray, x_um: np.ndarray, y_um: np.ndarray, edges: np.ndarray, *, pixel_um: float, device, valid: np.ndarray | None = None) -> Patches:
+    """Each particle's square patch of ``image`` about its centre, cut at the frame's edges, as flat rows padded to the longest.
+
+    ``valid``: (rows, cols) bool, the pixels the fits compare; the others (a saturated
+    camera's clipped pixels) are in the patches with mask 0, as the padding is.
+    """
     rows, cols = image.shape
     length = int(max(edges)) ** 2
     count = len(x_um)
@@ -121,7 +155,7 @@ def cut_patches(image: np.ndarray, x_um: np.ndarray, y_um: np.ndarray, edges: np
         rr, cc = np.mgrid[r_lo:r_hi, c_lo:c_hi]
         n = block.size
         data[i, :n] = block.ravel()
-        mask[i, :n] = 1.0
+        mask[i, :n] = 1.0 if valid is None else valid[r_lo:r_hi, c_lo:c_hi].ravel()
         # padding sits on the patch's first pixel: the models' radial range stays the patch's
         xs[i] = cc.ravel()[0] * pixel_um
         ys[i] = rr.ravel()[0] * pixel_um

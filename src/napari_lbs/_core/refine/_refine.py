@@ -59,7 +59,7 @@ import torch
 from napari_lbs._core.foundation import PARTICLE_COLUMNS, ExperimentConfig, InputError, ProgressCallback, Steps, StopCallback, WorkerPool
 from napari_lbs._core.refine._batches import HEARTBEAT_S, FitTask, run_tasks
 from napari_lbs._core.refine._model import scattered_terms
-from napari_lbs._core.refine._patches import check_fixed, check_hologram, check_table
+from napari_lbs._core.refine._patches import check_fixed, check_hologram, check_table, check_valid
 from napari_lbs._core.refine._settings import FIT_PARAMETERS, PHYSICAL, RefineSettings
 
 __all__ = ["FIT_PARAMETERS", "REFINE_COLUMNS", "RefineSettings", "refine_particles"]
@@ -115,6 +115,7 @@ def refine_particles(
     *,
     fixed: Mapping[str, float] | None = None,
     settings: RefineSettings | None = None,
+    valid: np.ndarray | None = None,
     progress: ProgressCallback | None = None,
     should_stop: StopCallback | None = None,
 ):
@@ -136,6 +137,10 @@ def refine_particles(
         Parameters held at a value for every particle, e.g. ``{"index_contrast": 0.26}``
         (names: `FIT_PARAMETERS`; ``z_um`` in the table's convention).
     settings : RefineSettings, optional
+    valid : (rows, cols) bool array, optional
+        The pixels the fits compare; the others are left out of every fit. A saturated
+        camera's clipped pixels are the use: the model knows no clipping, and a clipped focal
+        spot pulls the depth and size (`unsaturated_pixels`). Default: every pixel.
     progress, should_stop
         See `napari_lbs._core.foundation._progress`; one step per batch and fitting round. Raises
         `Stopped` when asked.
@@ -164,6 +169,7 @@ def refine_particles(
         raise InputError(f"settings: expected RefineSettings, got {type(settings).__name__}")
     settings = settings or RefineSettings()
     image = check_hologram(hologram)
+    valid = check_valid(valid, image.shape)
     frame = check_table(table)
     fixed = check_fixed(fixed)
     device = torch.device("cuda" if settings.device in ("cuda", "auto") and torch.cuda.is_available() else "cpu")
@@ -207,7 +213,7 @@ def refine_particles(
             terms = scattered_terms(float(np.max(snapshot[:, 3])), wavelength_um=optics.wavelength_um, medium_index=settings.medium_index)
             parts = -(-todo.size // batch)
             tasks = [FitTask(image=image, start=snapshot[index], free=free[index], anchor=start[index], neighbours=snapshot, present=present, index=index,
-                             settings=settings, config=config, terms=terms, device=device.type, search=round_index == 0)
+                             settings=settings, config=config, terms=terms, device=device.type, search=round_index == 0, valid=valid)
                      for index in (np.array_split(todo, parts) if parts else [])]
             outputs = run_tasks(tasks, pool, steps)
             if outputs:

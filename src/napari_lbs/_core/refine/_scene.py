@@ -153,7 +153,8 @@ def residual_hologram(hologram: np.ndarray, table, config: ExperimentConfig, *, 
 
 
 def residual_particles(hologram: np.ndarray, table, config: ExperimentConfig, *, propose, settings: RefineSettings | None = None,
-                       background: np.ndarray | None = None, progress: ProgressCallback | None = None, should_stop: StopCallback | None = None):
+                       background: np.ndarray | None = None, valid: np.ndarray | None = None, progress: ProgressCallback | None = None,
+                       should_stop: StopCallback | None = None):
     """Particles the residual of a refined ``table`` holds: proposed there, refined there.
 
     Parameters
@@ -170,6 +171,9 @@ def residual_particles(hologram: np.ndarray, table, config: ExperimentConfig, *,
         How the table was refined; the new particles are refined the same way.
     background : (rows, cols) array, optional
         As `residual_hologram`.
+    valid : (rows, cols) bool array, optional
+        The pixels the fits compare (`refine_particles`); ``propose`` sees the unobstructed
+        light at the others.
     progress, should_stop
         Passed to the rendering of the table's spheres (one step per sphere), then to the
         refinement (one step per batch); ``propose`` reports its own.
@@ -197,12 +201,13 @@ def residual_particles(hologram: np.ndarray, table, config: ExperimentConfig, *,
     residual = residual_hologram(image, fitted, config, settings=settings, background=background, progress=progress, should_stop=should_stop)
     # the network sees an intensity: where a fit overshoots the data, none is left
     try:
-        guesses = pd.DataFrame({name: np.asarray(values) for name, values in dict(propose(np.maximum(residual, 0.0))).items()})
+        seen = np.maximum(residual, 0.0) if valid is None else np.where(valid, np.maximum(residual, 0.0), scale)
+        guesses = pd.DataFrame({name: np.asarray(values) for name, values in dict(propose(seen)).items()})
     except (TypeError, ValueError) as error:
         raise InputError(f"propose: expected a particle table (columns of equal length), got {error}") from None
     if guesses.empty:
         guesses = pd.DataFrame({name: np.empty(0) for name in PARTICLE_COLUMNS})
-    found = refine_particles(residual / scale, guesses, config, settings=settings, progress=progress, should_stop=should_stop)
+    found = refine_particles(residual / scale, guesses, config, settings=settings, valid=valid, progress=progress, should_stop=should_stop)
     # a find is a particle of the sample, measured as one: the residual also holds debris and
     # what the fits left, which the network, seeing them without their context, proposes too
     # (whatever their uncertainty, sigmas=0: a loose index does not make a find)
