@@ -39,7 +39,7 @@ class GenerateWidget(StepWidget):
                                         "(the demo's: particle_phase:index_contrast=0.26,transmission=1). Empty: the seed's opaque discs")
         self.impurities = SpinBox(label="impurities per tile", name="impurities", value=0, min=0, max=1000, tooltip=doc_of(Distractors, "impurities_per_tile") + " (the demo: 6)")
         self.neighbours_margin = SpinBox(label="neighbours margin (px)", name="neighbours_margin", value=0, min=0, max=4096, tooltip=doc_of(Distractors, "neighbours_margin_px") + " (the demo: 96)")
-        self.measured_sizes = CheckBox(label="report's sizes", name="measured_sizes", value=True,
+        self.measured_sizes = CheckBox(label="particle sizes", text="as the report measured", name="measured_sizes", value=True,
                                        tooltip="With a diagnosis report: particle diameters as its scene measured them, within the config's range "
                                                "(where it fitted ten or more). Off, or without a report: uniform over the config's range")
         self.seed = SpinBox(label="seed", name="seed", value=0, min=0, max=2**31 - 1, tooltip="Seeds the particle fields and the noise")
