@@ -589,3 +589,36 @@ def test_a_diameter_beyond_the_inner_size_grid_is_recovered_by_its_outer_part():
     refined = refine_particles(hologram, guess_table([(truth[0] + 0.5, truth[1], 910.0, 23.0)]), default_config(), fixed={"absorption": 0.0},
                                settings=RefineSettings(**FAST))
     assert len(refined) == 1 and abs(refined.diameter_um[0] - truth[3]) < 0.5 and abs(refined.index_contrast[0] - 0.26) < 0.02
+
+
+def test_predict_refine_refits_every_particle_once_its_second_look_finds_more(monkeypatch):
+    """A find in the residual joins every particle's model: the table is refitted with it (two rounds, from the fits, at the start's index contrast)."""
+    import pandas as pd
+
+    import napari_lbs._core.refine as refine_wing
+    from napari_lbs._core import RefineSettings, load_config
+    from napari_lbs._core.pipeline import _predict
+
+    calls = []
+
+    def fitted(table):
+        return pd.DataFrame(table).reset_index(drop=True).assign(index_contrast=0.5, refined=True)
+
+    def refine_particles(image, table, config, *, settings, valid=None, progress=None, should_stop=None):
+        calls.append((pd.DataFrame(table).reset_index(drop=True), settings.rounds))
+        return fitted(table)
+
+    finds = [pd.DataFrame({"x_um": [30.0], "y_um": [40.0], "z_um": [2100.0], "diameter_um": [22.0]})]
+    monkeypatch.setattr(refine_wing, "refine_particles", refine_particles)
+    monkeypatch.setattr(refine_wing, "residual_particles", lambda *args, **kwargs: fitted(finds[0]) if len(finds[0]) else finds[0])
+    particles = {"x_um": np.array([10.0, 90.0]), "y_um": np.array([10.0, 90.0]), "z_um": np.array([2000.0, 2500.0]), "diameter_um": np.array([20.0, 25.0])}
+    options = {"material": None, "propose": None, "valid": None, "progress": None, "should_stop": None}
+    table, record = _predict._refined(np.ones((64, 64)), particles, load_config(None), RefineSettings(index_contrast=0.26), **options)
+    assert len(calls) == 2 and len(table["x_um"]) == 3
+    refit, rounds = calls[1]
+    assert len(refit) == 3 and rounds >= 2 and np.all(refit["index_contrast"] == 0.26)  # the finds in the model; each restarted in its start's valley
+    assert record["residual"]["found"] == 1 and record["refit"] == {"particles": 3, "kept": 3}
+    calls.clear()
+    finds[0] = finds[0].iloc[:0]
+    table, record = _predict._refined(np.ones((64, 64)), particles, load_config(None), RefineSettings(index_contrast=0.26), **options)
+    assert len(calls) == 1 and "refit" not in record and record["residual"]["found"] == 0

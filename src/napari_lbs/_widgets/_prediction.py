@@ -99,7 +99,7 @@ class PredictionWidget(StepWidget):
 
     def phase_weights(self, job):
         # a refined prediction's phases and their usual shares of the time (the seed's hologram on 2 cores)
-        return {"network": 1.0, "fit": 3.0, "second": 1.5} if job[5] else None
+        return {"network": 1.0, "fit": 3.0, "second": 1.5, "refit": 3.0} if job[5] else None
 
     def work(self, job, *, progress, should_stop, report):
         hologram, model, config, warning, device, refine, material, reference, name, origin = job

@@ -142,8 +142,8 @@ def refined_prediction(hologram: np.ndarray, model, config: ExperimentConfig | N
     (or the given threshold), then `refine_particles` fits every proposal on the hologram
     divided by ``background``, else by its mean. The network then looks again in what the
     refined table leaves unexplained (`residual_particles`: spheres hidden in their
-    neighbours' fringes, sizes it scored low), and the sample's particles the fit measures
-    there join the table.
+    neighbours' fringes, sizes it scored low), the sample's particles the fit measures
+    there join the table, and every particle is refitted with them in its model.
 
     Parameters
     ----------
@@ -295,6 +295,7 @@ def _refined_frames(frames, particles: dict, config: ExperimentConfig, settings:
     merged = {name: np.concatenate([part[name] for part in parts]) for name in parts[0]} if parts else particles
     summary = {"settings": records[0]["settings"] if records else None, "detections": sum(r["detections"] for r in records),
                "kept": sum(r["kept"] for r in records), "seconds": sum(r["seconds"] for r in records), "pixels_left_out": sum(r["pixels_left_out"] for r in records),
+               "refit": {key: sum(r.get("refit", {}).get(key, 0) for r in records) for key in ("particles", "kept")},
                "residual": {key: sum(r["residual"][key] for r in records) for key in ("proposals", "found", "seconds")}}
     if material is not None:
         from napari_lbs._core.refine import MATERIAL_SIGMAS, MATERIAL_TOLERANCE
@@ -315,9 +316,12 @@ def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, se
     reach twice as far and see the fringes of a sphere 50 µm from focus at angles that tell
     its depth; the network's second look sees the binned residual at its trained pitch,
     each binned pixel's value over its block. Positions are reported in the hologram's own
-    coordinates. ``valid``: the pixels the fits compare (`unsaturated_pixels` of the raw
-    frame: a saturated camera's clipped pixels left out), the provenance's
-    ``pixels_left_out``.
+    coordinates. Where the second look finds particles, every refined particle is fitted
+    again with them in its neighbours' model (two rounds, each started at its fit and at the
+    settings' index contrast), as `refine`'s looks do (the provenance's ``refit``), and a row
+    the first fit could not refine leaves the table once a refined particle lies on it.
+    ``valid``: the pixels the fits compare (`unsaturated_pixels` of the raw frame: a
+    saturated camera's clipped pixels left out), the provenance's ``pixels_left_out``.
     """
     from dataclasses import asdict
 
@@ -325,6 +329,7 @@ def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, se
     import pandas as pd
 
     from napari_lbs._core.pipeline._binning import binned_hologram, binned_valid
+    from napari_lbs._core.pipeline._refine_step import _explained
     from napari_lbs._core.refine import MATERIAL_SIGMAS, MATERIAL_TOLERANCE, same_material
     from napari_lbs._core.refine import refine_particles
     from napari_lbs._core.refine import residual_particles
@@ -348,13 +353,26 @@ def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, se
         proposals.append(found)
         return {**found, "x_um": np.asarray(found["x_um"]) - shift_um, "y_um": np.asarray(found["y_um"]) - shift_um}
 
+    found = ()
     if len(table) and table["refined"].any():  # with nothing refined, the residual is the hologram the network has seen
         begin_phase(progress, "second look")
         found = residual_particles(image, table, fit_config, propose=counted, settings=settings, background=np.ones(image.shape), valid=fit_valid, progress=progress,
                                    should_stop=should_stop)
-        table = pd.concat([table, found], ignore_index=True) if len(found) else table
+    record["residual"] = {"proposals": len(pd.DataFrame(dict(proposals[0]))) if proposals else 0, "found": len(found)}
+    if len(found):
+        # every particle refitted with the finds in its neighbours' model, as `refine`'s looks do:
+        # a sphere's fringes reach tens of micrometres, and a miss's pulled its neighbours' fits
+        refined = table["refined"].astype(bool).to_numpy()
+        restart = pd.concat([table[refined], found], ignore_index=True)
+        restart["index_contrast"] = settings.index_contrast  # the start's valley, not one a missed neighbour pulled a fit into
+        begin_phase(progress, f"refit {len(restart)} particles")
+        refit = refine_particles(image, restart, fit_config, settings=replace(settings, rounds=max(settings.rounds, 2)), valid=fit_valid, progress=progress,
+                                 should_stop=should_stop)
+        pending = table[~refined]
+        table = pd.concat([refit, pending[~_explained(pending, refit)]], ignore_index=True)
+        record["refit"] = {"particles": len(restart), "kept": len(refit)}
+    record["residual"]["seconds"] = time.perf_counter() - started  # the second look and the refit it asks for
     table[["x_um", "y_um"]] += shift_um
-    record["residual"] = {"proposals": len(pd.DataFrame(dict(proposals[0]))) if proposals else 0, "found": len(table) - record["kept"], "seconds": time.perf_counter() - started}
     if material is not None:
         member = same_material(table, index_contrast=material, tolerance=MATERIAL_TOLERANCE, sigmas=MATERIAL_SIGMAS)
         record["material"] = {"index_contrast": float(material), "tolerance": MATERIAL_TOLERANCE, "sigmas": MATERIAL_SIGMAS, "other_material": int((~member).sum()),
