@@ -458,7 +458,7 @@ def test_a_particle_layer_saved_under_its_proposed_name_gets_csv_and_opens_again
 
 
 def test_a_refined_prediction_shows_one_bar_over_its_named_phases(make_napari_viewer, qtbot, monkeypatch, detector):
-    """The network's planes, the fit's batches and the second look count from 0 each: the bar goes once from 0 to the end, each phase named, time left of the whole."""
+    """The network's planes, the fit's batches, the second look and its refit count from 0 each: the bar goes once from 0 to the end, each phase named, time left of the whole."""
     import time
 
     from napari_lbs._core import Stopped
@@ -466,12 +466,12 @@ def test_a_refined_prediction_shows_one_bar_over_its_named_phases(make_napari_vi
     from napari_lbs._widgets import _prediction
 
     def refined(*args, progress, should_stop, **kwargs):
-        for name, steps, seconds in (("network", 10, 0.02), ("fit 7 particles", 5, 0.2), ("second look", 10, 0.02)):
+        for name, steps, seconds in (("network", 10, 0.02), ("fit 7 particles", 5, 0.2), ("second look", 10, 0.02), ("refit 8 particles", 5, 0.02)):
             begin_phase(progress, name)
             for done in range(1, steps + 1):
                 time.sleep(seconds)
                 progress(done, steps)
-        raise Stopped("stopped after the second look")
+        raise Stopped("stopped after the refit")
 
     monkeypatch.setattr(_prediction, "refined_prediction", refined)
     viewer = laptop_viewer(make_napari_viewer)
@@ -487,7 +487,7 @@ def test_a_refined_prediction_shows_one_bar_over_its_named_phases(make_napari_vi
     assert values == sorted(values) and values[-1] == 1.0 and max(values[:-1]) < 1.0  # once from 0 to the end
     timing = [text for _, _, text in seen]
     assert any(text.startswith("network 10/10") for text in timing) and any(text.startswith("fit 7 particles 1/5") for text in timing)
-    assert any(text.startswith("second look") for text in timing)
+    assert any(text.startswith("second look") for text in timing) and any(text.startswith("refit 8 particles") for text in timing)
     at_fit = next(text for text in timing if text.startswith("fit 7 particles 2/5"))
     assert left_on(at_fit) >= 1, at_fit  # the fit's 3 batches of 0.2 s and the second look are left
 

@@ -98,7 +98,8 @@ class PredictionWidget(StepWidget):
         return job[3]
 
     def phase_weights(self, job):
-        # a refined prediction's phases and their usual shares of the time (the seed's hologram on 2 cores)
+        # a refined prediction's phases and their usual shares of the time (the seed's hologram on 2 cores);
+        # the refit runs where the second look found particles, as it does on such holograms
         return {"network": 1.0, "fit": 3.0, "second": 1.5, "refit": 3.0} if job[5] else None
 
     def work(self, job, *, progress, should_stop, report):

@@ -17,7 +17,7 @@ from napari_lbs._core.foundation import ExperimentConfig
 from napari_lbs._core.foundation import InputError
 from napari_lbs._core.foundation import check_target, read_json_object
 
-__all__ = ["Log", "StepResult", "provenance", "read_calibration", "check_outputs"]
+__all__ = ["Log", "StepResult", "provenance", "read_calibration", "check_outputs", "explained_by_fits"]
 
 Log = Callable[[str], None]
 
@@ -87,3 +87,20 @@ def read_calibration(path) -> dict:
     calibration = read_json_object(path, what="calibration")
     check_calibration(calibration, name=str(path))
     return calibration
+
+
+def explained_by_fits(pending, table):
+    """For each unrefined row of ``pending``, whether a refined particle of ``table`` lies within a quarter of its fitted diameter laterally.
+
+    An unrefined row keeps its detection's guess, whose depth is the back-propagated focal
+    spot's (a few micrometres off) and whose diameter is the config's mean: only its
+    position says which particle it was, as `refine_particles`' twins are told apart.
+    """
+    import numpy as np
+
+    refined = table[table["refined"].astype(bool)]
+    if pending.empty or refined.empty:
+        return np.zeros(len(pending), dtype=bool)
+    lateral = np.hypot(pending["x_um"].to_numpy()[:, None] - refined["x_um"].to_numpy()[None],
+                       pending["y_um"].to_numpy()[:, None] - refined["y_um"].to_numpy()[None])
+    return (lateral < 0.25 * refined["diameter_um"].to_numpy()[None]).any(axis=1)

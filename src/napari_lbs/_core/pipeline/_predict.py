@@ -329,7 +329,7 @@ def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, se
     import pandas as pd
 
     from napari_lbs._core.pipeline._binning import binned_hologram, binned_valid
-    from napari_lbs._core.pipeline._refine_step import _explained
+    from napari_lbs._core.pipeline._common import explained_by_fits
     from napari_lbs._core.refine import MATERIAL_SIGMAS, MATERIAL_TOLERANCE, same_material
     from napari_lbs._core.refine import refine_particles
     from napari_lbs._core.refine import residual_particles
@@ -369,7 +369,7 @@ def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, se
         refit = refine_particles(image, restart, fit_config, settings=replace(settings, rounds=max(settings.rounds, 2)), valid=fit_valid, progress=progress,
                                  should_stop=should_stop)
         pending = table[~refined]
-        table = pd.concat([refit, pending[~_explained(pending, refit)]], ignore_index=True)
+        table = pd.concat([refit, pending[~explained_by_fits(pending, refit)]], ignore_index=True)
         record["refit"] = {"particles": len(restart), "kept": len(refit)}
     record["residual"]["seconds"] = time.perf_counter() - started  # the second look and the refit it asks for
     table[["x_um", "y_um"]] += shift_um

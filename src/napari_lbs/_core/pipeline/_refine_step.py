@@ -18,7 +18,7 @@ import numpy as np
 
 from napari_lbs._core.foundation import ExperimentConfig, InputError, ProgressCallback, StopCallback, write_json
 from napari_lbs._core.pipeline._binning import binned_hologram, binned_valid, default_depth_window_um, fringe_binning
-from napari_lbs._core.pipeline._common import Log, StepResult, _background, _hologram, _quiet, _source, provenance
+from napari_lbs._core.pipeline._common import Log, StepResult, _background, _hologram, _quiet, _source, explained_by_fits, provenance
 
 __all__ = ["DETECTION_ROUNDS", "RefineRequest", "refine", "refine_hologram"]
 
@@ -135,21 +135,6 @@ def _residual_detector(config: ExperimentConfig, *, max_particles: int, progress
     return propose, peaks
 
 
-def _explained(pending, table) -> np.ndarray:
-    """For each unrefined row of ``pending``, whether a refined particle of ``table`` lies within a quarter of its fitted diameter laterally.
-
-    An unrefined row keeps its detection's guess, whose depth is the back-propagated focal
-    spot's (a few micrometres off) and whose diameter is the config's mean: only its
-    position says which particle it was, as `refine_particles`' twins are told apart.
-    """
-    refined = table[table["refined"].astype(bool)]
-    if pending.empty or refined.empty:
-        return np.zeros(len(pending), dtype=bool)
-    lateral = np.hypot(pending["x_um"].to_numpy()[:, None] - refined["x_um"].to_numpy()[None],
-                       pending["y_um"].to_numpy()[:, None] - refined["y_um"].to_numpy()[None])
-    return (lateral < 0.25 * refined["diameter_um"].to_numpy()[None]).any(axis=1)
-
-
 def _residual_rounds(image: np.ndarray, table, config: ExperimentConfig, settings, *, rounds: int, max_particles: int, valid: np.ndarray | None,
                      progress: ProgressCallback | None, should_stop: StopCallback | None) -> tuple[object, list[dict]]:
     """The refined ``table`` after up to ``rounds`` looks in its residual; each look's record.
@@ -165,7 +150,7 @@ def _residual_rounds(image: np.ndarray, table, config: ExperimentConfig, setting
     built-in example's 2.2 µm sphere: 0.54 for 0.26) would otherwise anchor the refit's
     valley search there. The looks stop when one finds nothing new or the table holds
     ``max_particles``. Rows the fit did not refine stay out of the residual's model and of
-    the refits, and out of the table once a refined particle lies on them (`_explained`).
+    the refits, and out of the table once a refined particle lies on them (`explained_by_fits`).
     """
     from dataclasses import replace
 
@@ -196,7 +181,7 @@ def _residual_rounds(image: np.ndarray, table, config: ExperimentConfig, setting
         begin_phase(progress, f"fit {len(restart)} particles")
         refit = refine_particles(image, restart, config, settings=replace(settings, rounds=max(settings.rounds, 2)), valid=valid, progress=progress,
                                  should_stop=should_stop)
-        table = pd.concat([refit, pending[~_explained(pending, refit)]], ignore_index=True)
+        table = pd.concat([refit, pending[~explained_by_fits(pending, refit)]], ignore_index=True)
         records.append({"peaks": peaks[0], "found": len(found), "kept": len(table), "seconds": time.perf_counter() - started})
     return table, records
 
