@@ -7,7 +7,9 @@ the outside sets) is right when the verdict says the catalog does not explain it
 (``catalog_explains`` false) or is undecided, and wrong when the catalog is said to explain
 it, whatever is named. Printed per case: the verdict, the selected effects' z, the structured
 share, the particle optics' z, the seconds, the outside effects; then the score, the outside
-cases' score, the controls' false alarms and the load average before and after. ``real``:
+cases' score, the controls' false alarms and the load average before and after; each named
+effect's parameters that the case sets exactly (an etalon's, photon noise's) against their
+estimates, in units of the reported error bar, and how many lie within two. ``real``:
 the built-in hologram's report. ``--grid N``: the held-out checkerboard's tiles per side
 (`SceneDiagnosisSettings.grid`), written to the result.
 
@@ -39,8 +41,42 @@ def _case_line(name: str, report: dict, seconds: float) -> dict:
         "structured_share": round(report["verdict"]["residual"], 4),
         "z": {k: (None if v["z"] is None else round(float(v["z"]), 2)) for k, v in effects.items()},
         "particles": report["gap"]["particles"],
+        "params": {k: {name: [_rounded(value), _rounded(v.get("params_err", {}).get(name))] for name, value in v["params"].items()}
+                   for k, v in effects.items() if v["params"]},
         "seconds": round(seconds, 1),
     }
+
+
+def _rounded(value) -> float | None:
+    return None if value is None else float(f"{value:.5g}")
+
+
+def _truths(effects: dict) -> dict:
+    """The catalog parameters a case's withheld effects set exactly (the suite's etalon and photon noise are the catalog's models)."""
+    truths = {}
+    fringe = effects.get("parasitic_fringes", {})
+    if "etalon" in fringe:
+        truths["parasitic_fringes"] = {"amplitude": fringe["etalon"], "period_px": fringe["period_px"], "angle_rad": fringe["angle_rad"],
+                                       "phase_rad": fringe.get("phase_rad", 0.0)}
+    if "shot_noise" in effects:
+        truths["shot_noise"] = {"log10_photons": float(np.log10(effects["shot_noise"]["photons"]))}
+    return truths
+
+
+def _recovered(line: dict, effects: dict) -> list:
+    """Each exactly known parameter of a named effect against its estimate: the error in units of the reported error bar."""
+    named = set((line["verdict"] or "").split("+"))
+    rows = []
+    for effect, truths in _truths(effects).items():
+        for name, truth in truths.items():
+            value, error = line["params"].get(effect, {}).get(name, [None, None])
+            if effect not in named or value is None or not error:
+                continue
+            difference = value - truth
+            if name == "phase_rad":
+                difference = (difference + np.pi) % (2 * np.pi) - np.pi
+            rows.append({"effect": effect, "param": name, "truth": truth, "value": value, "err": error, "z": round(difference / error, 2)})
+    return rows
 
 
 def suite(folder: Path, settings: SceneDiagnosisSettings) -> dict:
@@ -56,6 +92,7 @@ def suite(folder: Path, settings: SceneDiagnosisSettings) -> dict:
         line = _case_line(case["name"], report, time.perf_counter() - started)
         named = sorted((line["verdict"] or "").split("+")) if line["verdict"] else []
         line["expected"] = case["expected"]
+        line["recovered"] = _recovered(line, case.get("effects", {}))
         line["outside"] = case.get("outside", [])  # designs written before the outside sets have none
         line["undecided"] = report["verdict"]["undecided"]
         if line["outside"]:
@@ -73,8 +110,10 @@ def suite(folder: Path, settings: SceneDiagnosisSettings) -> dict:
         right += line["right"]
         lines.append(line)
         print(json.dumps(line), flush=True)
+    recovered = [row for line in lines for row in line["recovered"]]
     return {"suite": design["suite"], "cases": lines, "right": right, "of": len(lines), "control_false_alarms": alarms, "controls": controls,
-            "outside_right": outside_right, "outside_cases": outside_cases}
+            "outside_right": outside_right, "outside_cases": outside_cases,
+            "within_2_errors": sum(abs(row["z"]) <= 2 for row in recovered), "known_parameters": len(recovered)}
 
 
 def main() -> None:
@@ -99,7 +138,8 @@ def main() -> None:
     Path(args.out).write_text(json.dumps(result, indent=1, default=float))
     if args.what == "suite":
         outside = f"; outside the catalog {result['outside_right']}/{result['outside_cases']} right" if result["outside_cases"] else ""
-        print(f"{result['right']}/{result['of']} right{outside}; {result['control_false_alarms']} false alarms in {result['controls']} controls; load {load}")
+        print(f"{result['right']}/{result['of']} right{outside}; {result['control_false_alarms']} false alarms in {result['controls']} controls; "
+              f"{result['within_2_errors']}/{result['known_parameters']} known parameters within 2 error bars; load {load}")
 
 
 if __name__ == "__main__":

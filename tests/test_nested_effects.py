@@ -435,3 +435,28 @@ def test_a_vignetting_wider_than_the_default_beam_is_fitted_with_its_waist():
     selection = select_effects(image / image.mean(), scene, TileSplit.of(image.shape))
     assert selection.chosen == ("illumination",)
     assert all(fit["illumination.waist"] > 0.5 for fit in selection.fits["illumination"].params)
+
+
+def test_an_etalon_written_by_hand_is_recovered_within_its_error_bars():
+    """A fringe of 4 % and 11.3 px at 0.6 rad, 1.2 rad at the first pixel (not the catalog's code): every parameter within 3 errors."""
+    data, scene = _frame({})
+    yy, xx = np.mgrid[0:SIZE, 0:SIZE].astype(float)
+    data = data * (1.0 + 0.04 * np.cos(2 * np.pi * (xx * np.cos(0.6) + yy * np.sin(0.6)) / 11.3 + 1.2))
+    fit = fit_frame(data, scene, TileSplit.of(data.shape), ("parasitic_fringes",))
+    for name, truth in (("amplitude", 0.04), ("period_px", 11.3), ("angle_rad", 0.6), ("phase_rad", 1.2)):
+        value, error = fit.estimate(f"parasitic_fringes.{name}")
+        assert 0 < error < 0.05 * abs(truth)
+        assert abs(value - truth) <= 3 * error, name
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+@pytest.mark.parametrize(("effects", "truth"), [
+    ({"sensor_blur": {"sigma_px": 1.2}}, {"sensor_blur.sigma_px": 1.2}),
+    ({"illumination": {"depth": 0.35, "x0": 0.2, "y0": -0.1}}, {"illumination.depth": 0.35, "illumination.x0": 0.2, "illumination.y0": -0.1}),
+])
+def test_a_catalog_effect_is_recovered_within_its_error_bars(effects, truth, seed):
+    data, scene = _frame(effects, seed=seed)
+    fit = fit_frame(data, scene, TileSplit.of(data.shape), tuple(effects))
+    for name, value in truth.items():
+        estimate, error = fit.estimate(name)
+        assert abs(estimate - value) <= 3 * error, (name, estimate, error)

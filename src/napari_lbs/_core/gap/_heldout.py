@@ -74,6 +74,13 @@ class TileSplit:
         i, j = np.divmod(np.arange(self.grid * self.grid), self.grid)
         return (i + j) % 2
 
+    def labels(self) -> np.ndarray:
+        """(rows, cols) int: each pixel's tile (its index in `windows`), -1 outside every tile."""
+        out = np.full(self.shape, -1)
+        for index, window in enumerate(self.windows()):
+            out[window] = index
+        return out
+
     def mask(self, colour: int) -> np.ndarray:
         """(rows, cols) bool: the pixels of the tiles of ``colour``."""
         out = np.zeros(self.shape, bool)

@@ -43,6 +43,7 @@ from scipy import ndimage, optimize
 
 from napari_lbs._core.foundation import ProgressCallback, Steps, StopCallback, Stopped, process_threads, thread_pool
 from napari_lbs._core.gap._heldout import TileSplit, model_probabilities, tile_spectra, whittle_loglik
+from napari_lbs._core.gap._tile_errors import clustered_errors
 from napari_lbs._core.physics import EFFECTS, sensor_image
 
 __all__ = ["EVERY_OTHER", "MEAN_EFFECTS", "FrameFit", "Scene", "Selection", "both_colours", "fit_frame", "last_two", "select_effects"]
@@ -124,6 +125,13 @@ class FrameFit:
     loglik: np.ndarray = field(repr=False)
     residuals: tuple[np.ndarray, np.ndarray] = field(repr=False)
     means: tuple[np.ndarray, np.ndarray] = field(repr=False)
+    errors: tuple[dict, dict] = field(default=({}, {}), repr=False)  # each colour's standard errors (`clustered_errors`; NaN on a bound)
+
+    def estimate(self, name: str) -> tuple[float, float]:
+        """Parameter ``name``: the mean of the two colours' fits and its standard error (NaN where either colour has none)."""
+        values = [params[name] for params in self.params]
+        errors = [errors.get(name, np.nan) for errors in self.errors]
+        return float(np.mean(values)), float(0.5 * np.hypot(*errors))
 
 
 @dataclass(frozen=True)
@@ -201,7 +209,9 @@ def _mean(scene: Scene, values: dict, effects: tuple[str, ...], zeros: np.ndarra
     return values["gain"] * sensor_image(image, baseline, chosen, noise=zeros, keep=keep).astype(np.float64)
 
 
-def _fit(data: np.ndarray, scene: Scene, mask: np.ndarray, effects: tuple[str, ...], start: dict, zeros: np.ndarray, check) -> dict:
+def _fit(data: np.ndarray, scene: Scene, mask: np.ndarray, effects: tuple[str, ...], start: dict, zeros: np.ndarray, check,
+         tiles: np.ndarray) -> tuple[dict, dict]:
+    """The least-squares fit on ``mask``'s pixels (every other one) and its parameters' errors, ``tiles`` (`TileSplit.labels`) their clusters."""
     names = [name for name, _, _ in _BASELINE] + [f"{e}.{p}" for e in effects for p in MEAN_EFFECTS[e]]
     bounds = {name: limits for name, _, limits in _BASELINE}
     bounds.update({f"{e}.{p}": EFFECTS[e].bounds[p] for e in effects for p in MEAN_EFFECTS[e]})
@@ -218,7 +228,8 @@ def _fit(data: np.ndarray, scene: Scene, mask: np.ndarray, effects: tuple[str, .
     low, high = np.array([bounds[n][0] for n in names]), np.array([bounds[n][1] for n in names])
     # ``max_nfev`` counts steps here: each also costs one evaluation per parameter for the Jacobian
     result = optimize.least_squares(residual, x0, bounds=(low, high), x_scale="jac", max_nfev=_STEPS, diff_step=1e-3, ftol=1e-5, xtol=1e-5)
-    return dict(zip(names, (float(v) for v in result.x), strict=True))
+    errors = clustered_errors(result.jac, result.fun, tiles[EVERY_OTHER][sample], fixed=result.active_mask != 0)
+    return dict(zip(names, (float(v) for v in result.x), strict=True)), dict(zip(names, (float(e) for e in errors), strict=True))
 
 
 def fit_frame(data: np.ndarray, scene, split: TileSplit, effects: tuple[str, ...], *, starts: tuple[dict, dict] | None = None, check=None) -> FrameFit:
@@ -239,12 +250,14 @@ def fit_frame(data: np.ndarray, scene, split: TileSplit, effects: tuple[str, ...
             if not all(f"{effect}.{p}" in start for p in MEAN_EFFECTS[effect]):
                 guess = _starts(effect, np.where(split.mask(colour), data - start["gain"] * scene.image, 0.0))
                 start.update({f"{effect}.{p}": v for p, v in guess.items()})
-        fitted = _fit(data, scene32, split.mask(colour), effects, start, zeros, heard)
+        fitted, errors = _fit(data, scene32, split.mask(colour), effects, start, zeros, heard, tiles)
         mean = _mean(scene32, fitted, effects, zeros)
-        return fitted, mean, data - mean, tile_spectra(data - mean, split)
+        return fitted, errors, mean, data - mean, tile_spectra(data - mean, split)
 
-    (params0, mean0, residual0, spectra0), (params1, mean1, residual1, spectra1) = both_colours(on_colour, check)
-    return FrameFit(tuple(effects), (params0, params1), whittle_loglik((spectra0, spectra1), split), (residual0, residual1), (mean0, mean1))
+    tiles = split.labels()
+    (params0, errors0, mean0, residual0, spectra0), (params1, errors1, mean1, residual1, spectra1) = both_colours(on_colour, check)
+    return FrameFit(tuple(effects), (params0, params1), whittle_loglik((spectra0, spectra1), split), (residual0, residual1), (mean0, mean1),
+                    (errors0, errors1))
 
 
 def both_colours(on_colour, check) -> tuple:
@@ -304,14 +317,15 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
     fringes than on the dark ones), and the Gaussian log-likelihoods of the two are compared
     on the other colour's tiles, every other pixel of every other row. ``log10_photons`` is
     the catalog's parameter: photons per unit of normalised light, from the slope corrected
-    for the high pass's share of white noise.
+    for the high pass's share of white noise; ``log10_photons_err`` its standard error, the
+    tiles the slope was fitted on its clusters (`clustered_errors`).
     """
     impulse = np.zeros((15, 15))
     impulse[7, 7] = 1.0
     kept = float(np.sum((impulse - ndimage.gaussian_filter(impulse, _HIGH_PASS_PX)) ** 2))  # white noise's variance kept by the high pass
     colours = split.colours()
     gains = np.zeros(len(colours))
-    slopes = []
+    slopes, slope_errors = [], []
     for fitted_on in (0, 1):
         residual, mean = fit.residuals[fitted_on], fit.means[fitted_on]
         high = residual - ndimage.gaussian_filter(residual, _HIGH_PASS_PX)
@@ -326,6 +340,8 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
         null, *_ = np.linalg.lstsq(x_null, h2, rcond=None)
         alternative, *_ = np.linalg.lstsq(x_photon, h2, rcond=None)
         slopes.append(float(alternative[-1]))
+        tile_of = np.concatenate([np.full(s[0].size, k) for k, s in enumerate(fitted)])
+        slope_errors.append(float(clustered_errors(x_photon, h2 - x_photon @ alternative, tile_of)[-1]))
         least = 0.1 * float(np.mean(h2))  # a linear variance may fall below zero off the fitted range: a tenth of the mean bounds it
         for k, (h, x_t, m_t, colour) in enumerate(samples):
             if colour == fitted_on:
@@ -337,7 +353,10 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
     slope = float(np.mean(slopes)) / kept
     if slope <= 0:
         total, z = min(total, 0.0), min(z, 0.0)  # a variance that falls with the light is no photon noise
-    return {"gain": total, "z": z, "log10_photons": float(np.log10(1.0 / slope)) if slope > 0 else None}
+    # the mean slope's error; log10(1/slope) moves by its relative error over ln 10
+    relative = 0.5 * float(np.hypot(*slope_errors)) / kept / slope if slope > 0 else np.nan
+    return {"gain": total, "z": z, "log10_photons": float(np.log10(1.0 / slope)) if slope > 0 else None,
+            "log10_photons_err": float(relative / np.log(10.0)) if np.isfinite(relative) else None}
 
 
 def select_effects(data: np.ndarray, scene, split: TileSplit, *, candidates=tuple(MEAN_EFFECTS), level_z: float = 3.0,

@@ -79,6 +79,11 @@ def _text(value, spec: str = ".3g") -> str:
     return "—" if np.isnan(number) else format(number, spec)
 
 
+def _estimate(name: str, value, error) -> str:
+    """``name value ± error`` (the error to two significant figures), or ``name value`` where it has none."""
+    return f"{name} {_text(value)}" + ("" if np.isnan(_value(error)) else f" ± {_text(error, '.2g')}")
+
+
 def _where_figure(report: dict, tile_map: np.ndarray, levels: SceneDiagnosisSettings):
     """Where: each tile's unexplained share (with the level the catalog explains a frame at), and the residual's power by band."""
     gap = report["gap"]
@@ -169,7 +174,7 @@ def _summary(report: dict, levels: SceneDiagnosisSettings) -> list[str]:
         "|---|---|---|---|---|---|---|",
         *[
             f"| {e['id']} | {'yes' if e['selected'] else 'no'} | {_text(e.get('z'), '.2f')} | {_text(e.get('heldout_gain_nats'), '.4g')} | {_text(e.get('gap_after'))} | "
-            f"{_text(100 * _value(e.get('shrink')), '.0f')} % | " + (", ".join(f"{k} {_text(v)}" for k, v in e["params"].items()) or "—") + " |"
+            f"{_text(100 * _value(e.get('shrink')), '.0f')} % | " + (", ".join(_estimate(k, v, e.get("params_err", {}).get(k)) for k, v in e["params"].items()) or "—") + " |"
             for e in report["effects"]
         ],
         "",

@@ -378,10 +378,12 @@ def diagnose_scene(hologram: np.ndarray, config: ExperimentConfig, *, settings: 
         fit = selection.fits.get(effect)
         # an effect not tried (coherence without two particles to group by depth) leaves the gap as it is
         after = _structure(fit.residuals, split, frame_spectra)[0] if fit is not None else baseline_share
-        params = {name.split(".", 1)[1]: float(np.mean([fit.params[0][name], fit.params[1][name]])) for name in fit.params[0] if name.startswith(f"{effect}.")} if fit else {}
+        estimates = {name.split(".", 1)[1]: fit.estimate(name) for name in fit.params[0] if name.startswith(f"{effect}.")} if fit else {}
         gain = first_round.get(effect, {})
         effects.append({"id": effect, "gap_after": after, "shrink": 1.0 - after / baseline_share if baseline_share > 0 else 0.0,
-                        "params": params, "heldout_gain_nats": gain.get("gain_nats"), "z": gain.get("z"), "selected": effect in selection.chosen})
+                        "params": {name: value for name, (value, _) in estimates.items()},
+                        "params_err": {name: (error if np.isfinite(error) else None) for name, (_, error) in estimates.items()},
+                        "heldout_gain_nats": gain.get("gain_nats"), "z": gain.get("z"), "selected": effect in selection.chosen})
     phase_selected = bool(optics["model"] == "transparent")
     # the particles' optics and the camera's noise and levels leave the fitted mean, so the gap, as it is
     effects.append({"id": "particle_phase", "gap_after": baseline_share, "shrink": 0.0, "z": optics["z"], "selected": phase_selected,
@@ -389,7 +391,8 @@ def diagnose_scene(hologram: np.ndarray, config: ExperimentConfig, *, settings: 
     shot = selection.shot_noise
     shot_selected = bool(shot["z"] >= settings.level_z and shot["gain"] > 0)
     effects.append({"id": "shot_noise", "gap_after": baseline_share, "shrink": 0.0, "z": shot["z"], "heldout_gain_nats": shot["gain"], "selected": shot_selected,
-                    "params": {"log10_photons": shot["log10_photons"]} if shot["log10_photons"] is not None else {}})
+                    "params": {"log10_photons": shot["log10_photons"]} if shot["log10_photons"] is not None else {},
+                    "params_err": {"log10_photons": shot["log10_photons_err"]} if shot["log10_photons"] is not None else {}})
     levels = levels_test(np.asarray(hologram), floor_variance=floor_variance)
     effects.append({"id": "quantization", "gap_after": baseline_share, "shrink": 0.0, "z": None, "selected": levels["selected"], "params": levels["params"],
                     "levels": {k: levels[k] for k in ("integer", "step_counts", "noise_share", "saturated_share")}})
