@@ -460,3 +460,16 @@ def test_a_catalog_effect_is_recovered_within_its_error_bars(effects, truth, see
     for name, value in truth.items():
         estimate, error = fit.estimate(name)
         assert abs(estimate - value) <= 3 * error, (name, estimate, error)
+
+
+def test_the_halves_disagreeing_widen_the_error_of_their_mean():
+    """Two colours' fits are two measurements: the mean's error is their errors' half quadrature sum, or half their difference if larger."""
+    from napari_lbs._core.gap._nested import FrameFit
+
+    def fit(first, second, errors):
+        return FrameFit(("sensor_blur",), ({"sensor_blur.sigma_px": first}, {"sensor_blur.sigma_px": second}), np.zeros(16), (None, None), (None, None),
+                        tuple({"sensor_blur.sigma_px": e} for e in errors))
+
+    assert fit(1.0, 1.02, (0.03, 0.04)).estimate("sensor_blur.sigma_px") == pytest.approx((1.01, 0.025))
+    assert fit(1.0, 1.2, (0.03, 0.04)).estimate("sensor_blur.sigma_px") == pytest.approx((1.1, 0.1))
+    assert np.isnan(fit(1.0, 1.2, (np.nan, 0.04)).estimate("sensor_blur.sigma_px")[1])  # on a bound in one half

@@ -128,10 +128,16 @@ class FrameFit:
     errors: tuple[dict, dict] = field(default=({}, {}), repr=False)  # each colour's standard errors (`clustered_errors`; NaN on a bound)
 
     def estimate(self, name: str) -> tuple[float, float]:
-        """Parameter ``name``: the mean of the two colours' fits and its standard error (NaN where either colour has none)."""
-        values = [params[name] for params in self.params]
+        """Parameter ``name``: the mean of the two colours' fits and its standard error (NaN where either colour has none).
+
+        The two colours' tiles are disjoint halves of the frame, so their fits are two
+        independent measurements: the mean's error is half their errors' quadrature sum,
+        scaled up where the halves disagree by more than that (the Particle Data Group's
+        scale factor ``S = √(χ² / (N - 1))`` for N = 2), so never below half their difference.
+        """
+        first, second = (params[name] for params in self.params)
         errors = [errors.get(name, np.nan) for errors in self.errors]
-        return float(np.mean(values)), float(0.5 * np.hypot(*errors))
+        return float(np.mean([first, second])), float(0.5 * max(np.hypot(*errors), abs(first - second)))
 
 
 @dataclass(frozen=True)
@@ -353,8 +359,8 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
     slope = float(np.mean(slopes)) / kept
     if slope <= 0:
         total, z = min(total, 0.0), min(z, 0.0)  # a variance that falls with the light is no photon noise
-    # the mean slope's error; log10(1/slope) moves by its relative error over ln 10
-    relative = 0.5 * float(np.hypot(*slope_errors)) / kept / slope if slope > 0 else np.nan
+    # the mean slope's error (as `FrameFit.estimate`: never below half the colours' difference); log10(1/slope) moves by its relative error over ln 10
+    relative = 0.5 * max(float(np.hypot(*slope_errors)), abs(slopes[0] - slopes[1])) / kept / slope if slope > 0 else np.nan
     return {"gain": total, "z": z, "log10_photons": float(np.log10(1.0 / slope)) if slope > 0 else None,
             "log10_photons_err": float(relative / np.log(10.0)) if np.isfinite(relative) else None}
 
