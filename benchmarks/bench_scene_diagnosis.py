@@ -30,6 +30,7 @@ import numpy as np
 
 from napari_lbs._core import ExperimentConfig, load_sample_hologram, read_hologram
 from napari_lbs._core.gap import SceneDiagnosisSettings, diagnose_scene
+from withheld_suite import vignetting_divisor
 
 
 def _case_line(name: str, report: dict, seconds: float) -> dict:
@@ -51,23 +52,29 @@ def _rounded(value) -> float | None:
     return None if value is None else float(f"{value:.5g}")
 
 
-def _truths(effects: dict) -> dict:
-    """The catalog parameters a case's withheld effects set exactly (the suite's etalon and photon noise are the catalog's models)."""
+def _truths(effects: dict, size: int) -> dict:
+    """The catalog parameters a case's withheld effects set exactly (the suite's etalon and photon noise are the catalog's models).
+
+    Photons count per unit of the frame's mean light, which the diagnosis divides the frame
+    by: the suite's are per unit of unobstructed light on the axis, which a vignetting
+    lowers on average.
+    """
     truths = {}
     fringe = effects.get("parasitic_fringes", {})
     if "etalon" in fringe:
         truths["parasitic_fringes"] = {"amplitude": fringe["etalon"], "period_px": fringe["period_px"], "angle_rad": fringe["angle_rad"],
                                        "phase_rad": fringe.get("phase_rad", 0.0)}
     if "shot_noise" in effects:
-        truths["shot_noise"] = {"log10_photons": float(np.log10(effects["shot_noise"]["photons"]))}
+        light = float(np.mean(1.0 / vignetting_divisor((size, size), effects["illumination"]))) if "illumination" in effects else 1.0
+        truths["shot_noise"] = {"log10_photons": float(np.log10(effects["shot_noise"]["photons"] * light))}
     return truths
 
 
-def _recovered(line: dict, effects: dict) -> list:
+def _recovered(line: dict, effects: dict, size: int) -> list:
     """Each exactly known parameter of a named effect against its estimate: the error in units of the reported error bar."""
     named = set((line["verdict"] or "").split("+"))
     rows = []
-    for effect, truths in _truths(effects).items():
+    for effect, truths in _truths(effects, size).items():
         for name, truth in truths.items():
             value, error = line["params"].get(effect, {}).get(name, [None, None])
             if effect not in named or value is None or not error:
@@ -92,7 +99,7 @@ def suite(folder: Path, settings: SceneDiagnosisSettings) -> dict:
         line = _case_line(case["name"], report, time.perf_counter() - started)
         named = sorted((line["verdict"] or "").split("+")) if line["verdict"] else []
         line["expected"] = case["expected"]
-        line["recovered"] = _recovered(line, case.get("effects", {}))
+        line["recovered"] = _recovered(line, case.get("effects", {}), case["size"])
         line["outside"] = case.get("outside", [])  # designs written before the outside sets have none
         line["undecided"] = report["verdict"]["undecided"]
         if line["outside"]:

@@ -331,17 +331,24 @@ def _scene(case: Case, rng: np.random.Generator) -> np.ndarray:
     return _mie(case, shape, x, y, z, d, index)
 
 
+def vignetting_divisor(shape: tuple[int, int], illumination: dict) -> np.ndarray:
+    """What cos⁴ vignetting about an off-centre axis (``centre``, in frame sides) divides the light by: ``falloff`` of it lost at the farthest corner."""
+    rows, cols = shape
+    yy, xx = np.mgrid[0:rows, 0:cols] / max(rows, cols)
+    cx, cy = illumination["centre"]
+    distance = np.hypot(xx - cx, yy - cy)
+    focal = distance.max() / np.sqrt((1 - illumination["falloff"]) ** -0.5 - 1)
+    return (1 + (distance / focal) ** 2) ** 2
+
+
 def _camera(intensity: np.ndarray, case: Case, rng: np.random.Generator) -> np.ndarray:
     """The suite's camera: the case's sensor-side effects, photon and read noise, 8-bit counts."""
     rows, cols = intensity.shape
     image = intensity.astype(np.float64)
     yy, xx = np.mgrid[0:rows, 0:cols] / max(rows, cols)
     illumination = case.effects.get("illumination")
-    if illumination:  # cos⁴ vignetting about an off-centre axis: ``falloff`` lost at the field's farthest corner
-        cx, cy = illumination["centre"]
-        distance = np.hypot(xx - cx, yy - cy)
-        focal = distance.max() / np.sqrt((1 - illumination["falloff"]) ** -0.5 - 1)
-        image = image / (1 + (distance / focal) ** 2) ** 2
+    if illumination:
+        image = image / vignetting_divisor((rows, cols), illumination)
     fringes = case.effects.get("parasitic_fringes", {})
     if "etalon" in fringes:
         phase = 2 * np.pi * (xx * np.cos(fringes["angle_rad"]) + yy * np.sin(fringes["angle_rad"])) * max(rows, cols) / fringes["period_px"] + fringes.get("phase_rad", 0.0)

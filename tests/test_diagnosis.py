@@ -58,6 +58,9 @@ def test_diagnose_writes_the_contract_report_its_figures_and_summary(diagnosed):
     for effect in effects:
         assert isinstance(effect["gap_after"], float) and isinstance(effect["shrink"], float) and isinstance(effect["params"], dict), effect
         assert effect["shrink"] == pytest.approx(1.0 - effect["gap_after"] / gap["baseline"])
+        if effect["id"] in ("illumination", "sensor_blur", "parasitic_fringes", "coherence", "shot_noise") and effect["params"]:
+            assert set(effect["params_err"]) == set(effect["params"]) and all(e is None or e >= 0 for e in effect["params_err"].values()), effect
+    assert [group["particles"] for group in gap["by_depth"]] == [1, 1] and gap["by_depth"][0]["z_um"] < gap["by_depth"][1]["z_um"]
     assert {e["id"] for e in effects} | set(report["not_tested"]) >= REPORT_EFFECT_IDS
     assert isinstance(verdict["shrink"], float) and isinstance(verdict["residual"], float) and verdict["undecided"] == [] and verdict["catalog_explains"] is True
     # the file's levels: a converter of 6 bits at 1.6 times the mean light; the spheres: transparent, of index contrast 0.26
@@ -211,3 +214,35 @@ def test_the_report_shows_the_blur_by_depth_where_a_blur_was_selected(tmp_path):
     assert "| 3.00 | 0.9 | 0.88 |" in summary
     write_report(SceneDiagnosis(scene_report("illumination"), np.full((2, 2), 0.01), None, 1.0), tmp_path / "s")
     assert "blur by depth" not in (tmp_path / "s" / "report.md").read_text()
+
+
+def test_the_unexplained_share_is_told_by_the_particles_depth():
+    """Four particles, each at its own depth: what is left about the deep ones is their whole structure, about the shallow ones none of it."""
+    import pandas as pd
+
+    from napari_lbs._core.gap._heldout import TileSplit
+    from napari_lbs._core.gap._scene_diagnosis import _by_depth
+
+    rng = np.random.default_rng(0)
+    yy, xx = np.mgrid[0:256, 0:256]
+    table = pd.DataFrame({"x_um": [40.0, 200.0, 60.0, 190.0], "y_um": [50.0, 60.0, 200.0, 190.0], "z_um": [1000.0, 2000.0, 3000.0, 4000.0]})
+    rings = [0.2 * np.cos(np.hypot(yy - y, xx - x) / 3.0) * np.exp(-np.hypot(yy - y, xx - x) ** 2 / 800.0) for x, y in zip(table["x_um"], table["y_um"], strict=True)]
+    noise = rng.normal(0.0, 0.002, (256, 256))
+    data = 1.0 + sum(rings) + noise
+    left = rings[2] + rings[3] + noise  # the two deep particles' rings are not explained
+    groups = _by_depth((data - 1.0, data - 1.0), (left, left), data, table, TileSplit.of((256, 256), grid=4), 0.002**2, pixel_um=1.0, reach_px=30)
+    assert [g["z_um"] for g in groups] == [1000.0, 2000.0, 3000.0, 4000.0] and all(g["particles"] == 1 and g["pixels"] > 1000 for g in groups)
+    assert all(g["baseline"] == pytest.approx(1.0, abs=0.05) for g in groups)
+    assert [g["after"] for g in groups][:2] == pytest.approx([0.0, 0.0], abs=0.02) and [g["after"] for g in groups][2:] == pytest.approx([1.0, 1.0], abs=0.05)
+
+
+def test_the_report_shows_each_parameter_with_its_error_and_the_share_left_by_depth(tmp_path):
+    report = scene_report("sensor_blur")
+    blur = next(e for e in report["effects"] if e["id"] == "sensor_blur")
+    blur["params"], blur["params_err"] = {"sigma_px": 1.0213}, {"sigma_px": 0.01234}
+    report["gap"]["by_depth"] = [{"z_um": 2400.0, "particles": 20, "pixels": 5000, "baseline": 0.4, "after": 0.1},
+                                 {"z_um": 4100.0, "particles": 20, "pixels": 5200, "baseline": 0.5, "after": 0.35}]
+    write_report(SceneDiagnosis(report, np.full((2, 2), 0.01), None, 1.0), tmp_path / "r")
+    summary = (tmp_path / "r" / "report.md").read_text()
+    assert "sigma_px 1.02 ± 0.012" in summary
+    assert "| 2.40 | 20 | 0.4 | 0.1 |" in summary and "| 4.10 | 20 | 0.5 | 0.35 |" in summary

@@ -205,6 +205,7 @@ def _summary(report: dict, levels: SceneDiagnosisSettings) -> list[str]:
         "|---|---|---|",
         *[f"| {b['cycles_per_px'][0]:g}–{b['cycles_per_px'][1]:g} | {_text(b['share_of_power'])} | {_text(b['structured'])} |" for b in gap["by_band"]],
         "",
+        *_depth_lines(gap.get("by_depth")),
         "![where](gap_where.png)",
         "",
         "## Not tested",
@@ -213,6 +214,18 @@ def _summary(report: dict, levels: SceneDiagnosisSettings) -> list[str]:
         "",
     ]
     return lines
+
+
+def _depth_lines(by_depth: list | None) -> list[str]:
+    """The unexplained share about each depth group's particles, before and after the selected effects (`gap.by_depth`)."""
+    if not by_depth:
+        return []
+    return [
+        "| particles' depth (mm) | particles | unexplained share about them, before the effects | after |",
+        "|---|---|---|---|",
+        *[f"| {group['z_um'] / 1000:.2f} | {group['particles']} | {_text(group['baseline'])} | {_text(group['after'])} |" for group in by_depth],
+        "",
+    ]
 
 
 def _blur_lines(profile: dict | None, levels: SceneDiagnosisSettings) -> list[str]:

@@ -302,6 +302,47 @@ def _structure(residuals: tuple[np.ndarray, np.ndarray], split: TileSplit, frame
     return float(np.median(per_tile)), bands, per_tile.reshape(split.grid, split.grid), float(np.mean(floors))
 
 
+def _by_depth(before: tuple[np.ndarray, np.ndarray], after: tuple[np.ndarray, np.ndarray], data: np.ndarray, table, split: TileSplit,
+              floor_variance: float, *, pixel_um: float, reach_px: int) -> list:
+    """The unexplained share of the structure about the particles of each depth group, before and after the selected effects.
+
+    Each held-out pixel within ``reach_px`` of a particle's centre belongs to its nearest
+    particle, so to that particle's depth group (the scene's: equal counts, by depth). A
+    group's share is the held-out residual's power there beyond the white floor over the
+    frame's own beyond it, as the tiles' share (`_structure`) but summed over the group's
+    pixels: a source's size leaves the deep groups' rings, a sensor's blur every group's.
+    """
+    from scipy.spatial import cKDTree
+
+    if len(table) < 2:
+        return []
+    colour_of = np.append(split.colours(), -1)[split.labels()]  # -1: outside the tiles
+    centres = np.stack([table["y_um"].to_numpy(), table["x_um"].to_numpy()], axis=1) / pixel_um
+    rows, cols = np.nonzero(colour_of >= 0)
+    distance, nearest = cKDTree(centres).query(np.stack([rows, cols], axis=1), distance_upper_bound=reach_px)
+    near = np.isfinite(distance)
+    rows, cols, nearest = rows[near], cols[near], nearest[near]
+    group_of = np.empty(len(table), int)
+    bins = np.array_split(np.argsort(table["z_um"].to_numpy()), min(_DEPTH_GROUPS, len(table)))
+    for index, members in enumerate(bins):
+        group_of[members] = index
+
+    def held_out(residuals):  # each pixel from the fit on the other colour's tiles
+        return np.where(colour_of[rows, cols] == 1, residuals[0][rows, cols], residuals[1][rows, cols])
+
+    frame = (data[rows, cols] - 1.0) ** 2
+    left_before, left_after = held_out(before) ** 2, held_out(after) ** 2
+    out = []
+    for index, members in enumerate(bins):
+        inside = group_of[nearest] == index
+        count = int(inside.sum())
+        structure = max(float(frame[inside].sum()) - count * floor_variance, 1e-30)
+        shares = [max(float(left[inside].sum()) - count * floor_variance, 0.0) / structure if count else None for left in (left_before, left_after)]
+        out.append({"z_um": float(table["z_um"].to_numpy()[members].mean()), "particles": int(len(members)), "pixels": count,
+                    "baseline": shares[0], "after": shares[1]})
+    return out
+
+
 def _line_pattern(residuals: tuple[np.ndarray, np.ndarray]) -> dict:
     """Fixed column and row patterns: the variance of the high-passed residual's column and row means over what white noise gives.
 
@@ -372,6 +413,8 @@ def diagnose_scene(hologram: np.ndarray, config: ExperimentConfig, *, settings: 
     final = selection.fits["+".join(selection.chosen) or "baseline"]
     share, bands, tile_map, floor_variance = _structure(final.residuals, split, frame_spectra)
     lines = _line_pattern(final.residuals)
+    by_depth = _by_depth(selection.fits["baseline"].residuals, final.residuals, data, table, split, floor_variance,
+                         pixel_um=config.optics.pixel_um, reach_px=settings.refine.patch_px // 2)
     effects = []
     first_round = selection.steps[0]["gains"] if selection.steps else {}
     for effect in MEAN_EFFECTS:
@@ -408,7 +451,7 @@ def diagnose_scene(hologram: np.ndarray, config: ExperimentConfig, *, settings: 
     report = {
         "method": "scene",
         "gap": {"metric": "unexplained share of the frame's structure (median over the held-out tiles)", "baseline": baseline_share, "by_band": bands,
-                "line_pattern": lines, "particles": optics["particles"], "tiles": split.grid**2, "tile_px": split.size},
+                "by_depth": by_depth, "line_pattern": lines, "particles": optics["particles"], "tiles": split.grid**2, "tile_px": split.size},
         "effects": effects,
         "verdict": {"id": None if undecided else "+".join(named) or None, "shrink": 1.0 - share / baseline_share if baseline_share > 0 else 0.0,
                     "residual": share, "undecided": undecided, "catalog_explains": bool(catalog_explains),
