@@ -57,6 +57,22 @@ def test_overlapping_spheres_add_as_fields():
     assert np.max(np.abs(coherent)) > 1e-3  # the field cross term is not negligible here
 
 
+def test_a_table_rendered_in_several_materials_at_once_is_each_material_rendered_alone():
+    from napari_lbs._core.refine import particle_holograms
+
+    table = guess_table([(60.0 * PIXEL_UM, 60.0 * PIXEL_UM, 900.0, 25.0), (70.0 * PIXEL_UM, 64.0 * PIXEL_UM, 1100.0, 20.0)])
+    materials = [{"index_contrast": 0.0, "absorption": 1.0}, {"index_contrast": 0.12, "absorption": 0.0}, {"index_contrast": 0.26, "absorption": 0.01}]
+    together = particle_holograms((120, 120), table, default_config(), materials=materials, reach_cycles_per_px=1.0)
+    assert together.shape == (3, 120, 120)
+    for rendered, material in zip(together, materials, strict=True):
+        alone = particle_hologram((120, 120), table.assign(**material), default_config(), reach_cycles_per_px=1.0)
+        np.testing.assert_allclose(rendered, alone, rtol=0, atol=1e-12)
+    assert np.max(np.abs(together[0] - together[2])) > 0.01  # the materials differ
+    for bad in ([], [{"index_contrast": 0.1}], [{"index_contrast": float("nan"), "absorption": 0.0}]):
+        with pytest.raises(InputError, match="^particle holograms: "):
+            particle_holograms((120, 120), table, default_config(), materials=bad)
+
+
 def test_the_residual_of_a_scene_by_its_own_table_is_its_noise():
     particles = [(70.0 * PIXEL_UM, 80.0 * PIXEL_UM, 900.0, 24.0)]
     hologram = sphere_scene(particles, shape=(150, 150), noise=0.01, seed=4)

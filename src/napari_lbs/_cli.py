@@ -451,10 +451,35 @@ def console_main() -> None:
     """
     status = main()
     if status == 130:
+        _end_children()
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(130)
     sys.exit(status)
+
+
+def _end_children() -> None:
+    """Kill every process this one started that is still running, before an interrupted command leaves.
+
+    A pool or cluster abandoned while it starts goes on spawning workers in a helper thread;
+    a worker still being handed its start-up data when the command leaves reads a closed pipe
+    and prints a traceback, and one already running lingers until it notices its parent gone.
+    psutil (a dependency of dask.distributed) sees them all, those being spawned included;
+    without it, the workers multiprocessing knows of.
+    """
+    try:
+        import psutil
+    except ImportError:
+        import multiprocessing
+
+        for child in multiprocessing.active_children():
+            child.kill()
+        return
+    for child in psutil.Process().children(recursive=True):
+        try:
+            child.kill()
+        except psutil.Error:
+            pass  # gone already
 
 
 if __name__ == "__main__":

@@ -28,7 +28,7 @@ from scipy import ndimage
 
 from napari_lbs._core.foundation import ExperimentConfig, Steps
 from napari_lbs._core.gap._heldout import TileSplit
-from napari_lbs._core.refine import RefineSettings, particle_hologram
+from napari_lbs._core.refine import RefineSettings, particle_holograms
 
 __all__ = ["OPAQUE_KAPPA", "fine_fringe_power", "optics_power_test"]
 
@@ -72,7 +72,8 @@ def optics_power_test(data: np.ndarray, table, config: ExperimentConfig, split: 
     level_z : float
         The sign test's z from which transparent spheres are named.
     steps : Steps, optional
-        Advanced by each model rendered and checked for a stop within a render.
+        Advanced by each particle rendered (under every model at once, `particle_holograms`)
+        and checked for a stop before each.
 
     Returns
     -------
@@ -89,8 +90,11 @@ def optics_power_test(data: np.ndarray, table, config: ExperimentConfig, split: 
     windows, colours = split.windows(), split.colours()
     check = (lambda: bool(steps.check())) if steps is not None else None
     errors, slopes = {}, {}
-    for name, optics in _models(index_grid).items():
-        rendered = particle_hologram(data.shape, table.assign(**optics), config, settings=settings, reach_cycles_per_px=1.0, should_stop=check)
+    models = _models(index_grid)
+    heard = (lambda done, total: steps.advance()) if steps is not None else None
+    renders = particle_holograms(data.shape, table, config, materials=list(models.values()), settings=settings, reach_cycles_per_px=1.0,
+                                 progress=heard, should_stop=check)
+    for name, rendered in zip(models, renders, strict=True):
         if blur_px > 0:
             rendered = ndimage.gaussian_filter(rendered, blur_px)
         predicted = fine_fringe_power(rendered)
@@ -106,8 +110,6 @@ def optics_power_test(data: np.ndarray, table, config: ExperimentConfig, split: 
                 if c != fitted_on:
                     error[k] = float(np.mean((measured[w] - coefficients[0] - coefficients[1] * predicted[w] - coefficients[2] * light[w]) ** 2))
         errors[name], slopes[name] = error, float(np.mean(fitted_slopes))
-        if steps is not None:
-            steps.advance()
     transparent = [name for name in errors if name != "opaque"]
     best = min(transparent, key=lambda name: float(errors[name].mean()))
     difference = errors["opaque"] - errors[best]  # > 0: the transparent model predicts the tile's fine-fringe power better

@@ -163,7 +163,7 @@ def _optics(data: np.ndarray, table, selection, config: ExperimentConfig, split:
               "index_contrast": None, "heldout_error": {}, "slope": {}}
     if len(tested):
         begin_phase(progress, f"particle optics: {len(tested)} particles rendered as opaque and as transparent spheres")
-        steps = Steps(1 + len(settings.index_grid), progress=progress, should_stop=should_stop, heartbeat_s=0.5)
+        steps = Steps(len(tested), progress=progress, should_stop=should_stop, heartbeat_s=0.5)
         record = optics_power_test(data, tested, config, split, index_grid=settings.index_grid, blur_px=blur_px, settings=settings.refine,
                                    level_z=settings.level_z, steps=steps)
     diameters = tested["diameter_um"].to_numpy(np.float64)

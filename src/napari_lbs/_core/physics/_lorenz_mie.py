@@ -229,7 +229,9 @@ def fields_from_profiles(
     """``(E_x, E_y, E_z)`` (K·B, P) at sensor points (B, P) from `radial_profiles` of K·B spheres (K copies of B, ``z_um`` (K·B,)).
 
     Copy ``j`` of point set ``b`` is profile row ``j·B + b``: perturbed copies of the same
-    spheres at the same points share the interpolation.
+    spheres at the same points share the interpolation. Copies at their point set's depth
+    (other materials or sizes of the same spheres) may give ``z_um`` (B,): the carrier is then
+    evaluated once for all of them.
     """
     k = 2.0 * math.pi * medium_index / wavelength_um
     count = dx_um.shape[0]
@@ -238,7 +240,7 @@ def fields_from_profiles(
     rho2 = dx**2 + dy**2
     rho = torch.sqrt(rho2 + 1e-300)
     along_x, along_y, axial = interpolated_profiles(profiles, step, rho)
-    carrier = _carrier(rho2, z_um.to(torch.float64).reshape(copies, count, 1), k)
+    carrier = _carrier(rho2, z_um.to(torch.float64).reshape(-1, count, 1), k)
     inv = 1.0 / (rho2 + 1e-300)
     ex = carrier * (along_x + (dy**2 * inv) * (along_y - along_x))
     ey = carrier * ((dx * dy * inv) * (along_x - along_y))
@@ -356,7 +358,10 @@ def sphere_fields(
 
 def holograms_from_fields(fields: tuple[torch.Tensor, torch.Tensor, torch.Tensor], dx_um: torch.Tensor, dy_um: torch.Tensor, z_um: torch.Tensor, *,
                           wavelength_um: float, medium_index: float, pixel_um: float | None) -> torch.Tensor:
-    """``|x̂ + E_s|²`` (K·B, P) from `sphere_fields`' or `fields_from_profiles`' output at points (B, P); ``pixel_um`` as in `sphere_holograms`."""
+    """``|x̂ + E_s|²`` (K·B, P) from `sphere_fields`' or `fields_from_profiles`' output at points (B, P); ``pixel_um`` as in `sphere_holograms`.
+
+    ``z_um``: (K·B,), or (B,) where every copy lies at its point set's depth (the pixels' transfer computed once).
+    """
     ex, ey, ez = fields
     cross = ex
     if pixel_um is not None:

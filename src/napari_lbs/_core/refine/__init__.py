@@ -33,6 +33,6 @@ __getattr__, __dir__, __all__ = lazy_exports(
         "_material": ("MATERIAL_SIGMAS", "MATERIAL_TOLERANCE", "same_material"),
         "_patches": ("SATURATED_PIXELS", "unsaturated_pixels"),
         "_refine": ("RefineSettings", "refine_particles"),
-        "_scene": ("particle_hologram", "residual_hologram", "residual_particles"),
+        "_scene": ("particle_hologram", "particle_holograms", "residual_hologram", "residual_particles"),
     },
 )

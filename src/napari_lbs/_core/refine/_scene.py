@@ -30,13 +30,13 @@ import torch
 from napari_lbs._core.foundation import ExperimentConfig
 from napari_lbs._core.foundation import PARTICLE_COLUMNS, InputError
 from napari_lbs._core.refine._material import MATERIAL_TOLERANCE, same_material
-from napari_lbs._core.physics import holograms_from_fields, sphere_fields, term_count
+from napari_lbs._core.physics import fields_from_profiles, holograms_from_fields, radial_profiles, term_count
 from napari_lbs._core.foundation import ProgressCallback, Steps, StopCallback
 from napari_lbs._core.refine._patches import check_table as _check_table
 from napari_lbs._core.refine._patches import samples_every_angle
 from napari_lbs._core.refine._refine import RefineSettings, refine_particles
 
-__all__ = ["particle_hologram", "residual_hologram", "residual_particles"]
+__all__ = ["particle_hologram", "particle_holograms", "residual_hologram", "residual_particles"]
 
 
 def _render_edge(z_um: float, *, reach_cycles_per_px: float, limit_px: int, wavelength_um: float, medium_index: float, pixel_um: float) -> int:
@@ -81,22 +81,54 @@ def particle_hologram(shape: tuple[int, int], table, config: ExperimentConfig, *
     import pandas as pd
 
     settings = settings or RefineSettings()
+    frame = _check_table(table)
+    column = lambda name, default: (pd.to_numeric(frame[name], errors="coerce").fillna(default).to_numpy(np.float64)
+                                    if name in frame else np.full(len(frame), default))
+    materials = (column("index_contrast", settings.index_contrast)[None], column("absorption", settings.absorption)[None])
+    return _rendered(shape, frame, config, materials, settings=settings, reach_cycles_per_px=reach_cycles_per_px, progress=progress,
+                     should_stop=should_stop)[0]
+
+
+def particle_holograms(shape: tuple[int, int], table, config: ExperimentConfig, *, materials, settings: RefineSettings | None = None,
+                       reach_cycles_per_px: float = 0.5, progress: ProgressCallback | None = None, should_stop: StopCallback | None = None) -> np.ndarray:
+    """`particle_hologram` of ``table``'s spheres made of each of ``materials`` in turn: (M, rows, cols).
+
+    ``materials``: a sequence of mappings ``{"index_contrast": n_p - n_m, "absorption": κ}``,
+    each given to every sphere of ``table`` (its own optics columns are not used). The
+    spheres' places, the radial grids and the fringes' carrier are computed once for all the
+    materials; each hologram is the one `particle_hologram` renders of the table with those
+    optics (to rounding: the partial-wave sums of several materials are matrix products).
+    Other arguments as `particle_hologram`.
+    """
+    settings = settings or RefineSettings()
+    frame = _check_table(table)
+    chosen = list(materials)
+    if not chosen or not all(isinstance(m, dict) and set(m) == {"index_contrast", "absorption"} for m in chosen):
+        raise InputError("particle holograms: materials must be a non-empty sequence of {'index_contrast': ..., 'absorption': ...}")
+    values = [np.array([[float(m[name])] * len(frame) for m in chosen]).reshape(len(chosen), len(frame)) for name in ("index_contrast", "absorption")]
+    if not all(np.all(np.isfinite(v)) for v in values):
+        raise InputError("particle holograms: a material's index contrast or absorption is not a finite number")
+    return _rendered(shape, frame, config, tuple(values), settings=settings, reach_cycles_per_px=reach_cycles_per_px, progress=progress,
+                     should_stop=should_stop)
+
+
+def _rendered(shape: tuple[int, int], frame, config: ExperimentConfig, materials: tuple[np.ndarray, np.ndarray], *, settings: RefineSettings,
+              reach_cycles_per_px: float, progress: ProgressCallback | None, should_stop: StopCallback | None) -> np.ndarray:
+    """The holograms (M, rows, cols) of the checked table ``frame`` with (M, N) index contrasts and absorptions ``materials``."""
     if len(tuple(shape)) != 2:
         raise InputError(f"particle hologram: expected a frame shape (rows, cols), got {tuple(shape)}")
     rows, cols = (int(n) for n in shape)
     if rows < 1 or cols < 1:
         raise InputError(f"particle hologram: expected a frame of at least one pixel, got shape {tuple(shape)}")
-    frame = _check_table(table)
     optics = config.optics
     pixel = optics.pixel_um
     to_physical = settings.medium_index / optics.medium_index
-    column = lambda name, default: (pd.to_numeric(frame[name], errors="coerce").fillna(default).to_numpy(np.float64)
-                                    if name in frame else np.full(len(frame), default))
     x, y = frame["x_um"].to_numpy(np.float64), frame["y_um"].to_numpy(np.float64)
     z, diameter = frame["z_um"].to_numpy(np.float64) * to_physical, frame["diameter_um"].to_numpy(np.float64)
-    contrast, absorption = column("index_contrast", settings.index_contrast), column("absorption", settings.absorption)
-    cross = np.zeros((rows, cols))
-    summed = np.zeros((3, rows, cols), dtype=np.complex128)
+    contrast, absorption = materials
+    count = contrast.shape[0]
+    cross = np.zeros((count, rows, cols))
+    summed = np.zeros((count, 3, rows, cols), dtype=np.complex128)
     optics_kw = {"wavelength_um": optics.wavelength_um, "medium_index": settings.medium_index}
     if not (isinstance(reach_cycles_per_px, int | float) and 0.0 < reach_cycles_per_px <= 1.0):
         raise InputError(f"particle hologram: reach_cycles_per_px must be in (0, 1], got {reach_cycles_per_px!r}")
@@ -117,18 +149,22 @@ def particle_hologram(shape: tuple[int, int], table, config: ExperimentConfig, *
         rr, cc = np.mgrid[r_lo:r_hi, c_lo:c_hi]
         dx = torch.as_tensor(cc.reshape(1, -1) * pixel - x[i], dtype=torch.float64)
         dy = torch.as_tensor(rr.reshape(1, -1) * pixel - y[i], dtype=torch.float64)
-        sphere = [torch.tensor([value], dtype=torch.float64) for value in (z[i], diameter[i], contrast[i], absorption[i])]
+        depth = torch.tensor([z[i]], dtype=torch.float64)
+        # (M, 1): the M materials of this sphere, at its one depth and its points
+        sphere = [torch.full((count, 1), diameter[i], dtype=torch.float64)] + [torch.as_tensor(np.ascontiguousarray(values[:, i : i + 1]), dtype=torch.float64)
+                                                                             for values in (contrast, absorption)]
         size = math.pi * settings.medium_index / optics.wavelength_um * diameter[i]
         # Wiscombe's count at the fitted size: what it leaves out is below 2e-9 of the hologram
-        fields = sphere_fields(dx, dy, *sphere, terms=term_count(size, 1.0), **optics_kw)
-        single = holograms_from_fields(fields, dx, dy, sphere[0], pixel_um=pixel if settings.pixel_integration else None, **optics_kw)
+        profiles, step = radial_profiles(depth, *sphere, rho_max_um=float(torch.sqrt(dx**2 + dy**2).max()), terms=term_count(size, 1.0), **optics_kw)
+        fields = fields_from_profiles(profiles, step, dx, dy, depth, **optics_kw)
+        single = holograms_from_fields(fields, dx, dy, depth, pixel_um=pixel if settings.pixel_integration else None, **optics_kw)
         own = sum(f.real**2 + f.imag**2 for f in fields)
-        block = (slice(r_lo, r_hi), slice(c_lo, c_hi))
-        cross[block] += (single - 1.0 - own).reshape(rr.shape).numpy()
+        block = (slice(None), slice(r_lo, r_hi), slice(c_lo, c_hi))
+        cross[block] += (single - 1.0 - own).reshape(count, *rr.shape).numpy()
         for axis in range(3):
-            summed[(axis, *block)] += fields[axis].reshape(rr.shape).numpy()
+            summed[(slice(None), axis, *block[1:])] += fields[axis].reshape(count, *rr.shape).numpy()
         steps.advance()
-    return 1.0 + cross + np.sum(summed.real**2 + summed.imag**2, axis=0)
+    return 1.0 + cross + np.sum(summed.real**2 + summed.imag**2, axis=1)
 
 
 def residual_hologram(hologram: np.ndarray, table, config: ExperimentConfig, *, settings: RefineSettings | None = None,
