@@ -240,9 +240,11 @@ def test_the_report_shows_each_parameter_with_its_error_and_the_share_left_by_de
     report = scene_report("sensor_blur")
     blur = next(e for e in report["effects"] if e["id"] == "sensor_blur")
     blur["params"], blur["params_err"] = {"sigma_px": 1.0213}, {"sigma_px": 0.01234}
+    envelope = next(e for e in report["effects"] if e["id"] == "illumination")
+    envelope["params"], envelope["params_err"] = {"depth": 0.36, "y0": 0.5}, {"depth": 0.098, "y0": None}  # y0 on its bound
     report["gap"]["by_depth"] = [{"z_um": 2400.0, "particles": 20, "pixels": 5000, "baseline": 0.4, "after": 0.1},
                                  {"z_um": 4100.0, "particles": 20, "pixels": 5200, "baseline": 0.5, "after": 0.35}]
     write_report(SceneDiagnosis(report, np.full((2, 2), 0.01), None, 1.0), tmp_path / "r")
     summary = (tmp_path / "r" / "report.md").read_text()
-    assert "sigma_px 1.02 ± 0.012" in summary
+    assert "sigma_px 1.02 ± 0.012" in summary and "depth 0.36 ± 0.098, y0 0.5 (no error bar)" in summary
     assert "| 2.40 | 20 | 0.4 | 0.1 |" in summary and "| 4.10 | 20 | 0.5 | 0.35 |" in summary

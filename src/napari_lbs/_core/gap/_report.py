@@ -79,9 +79,12 @@ def _text(value, spec: str = ".3g") -> str:
     return "—" if np.isnan(number) else format(number, spec)
 
 
-def _estimate(name: str, value, error) -> str:
-    """``name value ± error`` (the error to two significant figures), or ``name value`` where it has none."""
-    return f"{name} {_text(value)}" + ("" if np.isnan(_value(error)) else f" ± {_text(error, '.2g')}")
+def _estimate(name: str, value, errors: dict | None) -> str:
+    """``name value ± error`` (two significant figures) from ``errors`` (an effect's ``params_err``); ``(no error bar)`` where it gives none (a bound)."""
+    if errors is None:  # a parameter read, not fitted (the converter's bits)
+        return f"{name} {_text(value)}"
+    error = errors.get(name)
+    return f"{name} {_text(value)}" + (" (no error bar)" if np.isnan(_value(error)) else f" ± {_text(error, '.2g')}")
 
 
 def _where_figure(report: dict, tile_map: np.ndarray, levels: SceneDiagnosisSettings):
@@ -174,7 +177,7 @@ def _summary(report: dict, levels: SceneDiagnosisSettings) -> list[str]:
         "|---|---|---|---|---|---|---|",
         *[
             f"| {e['id']} | {'yes' if e['selected'] else 'no'} | {_text(e.get('z'), '.2f')} | {_text(e.get('heldout_gain_nats'), '.4g')} | {_text(e.get('gap_after'))} | "
-            f"{_text(100 * _value(e.get('shrink')), '.0f')} % | " + (", ".join(_estimate(k, v, e.get("params_err", {}).get(k)) for k, v in e["params"].items()) or "—") + " |"
+            f"{_text(100 * _value(e.get('shrink')), '.0f')} % | " + (", ".join(_estimate(k, v, e.get("params_err")) for k, v in e["params"].items()) or "—") + " |"
             for e in report["effects"]
         ],
         "",
