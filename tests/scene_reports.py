@@ -19,7 +19,9 @@ def scene_report(verdict: str | None = None, *, explains: bool = True, params: d
     """A report as `diagnose_scene` gives it, naming ``verdict`` (effects joined by "+"); ``params`` replace an effect's own."""
     named = set((verdict or "").split("+")) - {""}
     params = params or {}
-    effects = [{"id": effect, "gap_after": 0.02, "shrink": 0.5, "params": params.get(effect, values), "heldout_gain_nats": 40.0 if effect in named else -3.0,
+    # errors 0.01 where the frame names the effect, 0.5 where it does not: pooled reports must keep each effect's own
+    effects = [{"id": effect, "gap_after": 0.02, "shrink": 0.5, "params": params.get(effect, values),
+                "params_err": dict.fromkeys(params.get(effect, values), 0.01 if effect in named else 0.5), "heldout_gain_nats": 40.0 if effect in named else -3.0,
                 "z": 6.0 if effect in named else -1.0, "selected": effect in named} for effect, values in _MEAN.items()]
     effects += [
         {"id": "particle_phase", "gap_after": 0.04, "shrink": 0.0, "z": 0.5, "selected": "particle_phase" in named,

@@ -143,6 +143,9 @@ def test_several_frames_are_diagnosed_each_on_one_bar_and_pooled_by_majority(tmp
     # each named effect's parameters are the first naming frame's: what generate --effects-from adds
     # (an optional parameter the report leaves out, the envelope's waist, at its neutral value)
     assert effects_from_report(report) == {"illumination": {**illumination, "waist": EFFECTS["illumination"].neutral["waist"]}, "quantization": {"bits": 6.0, "saturation": 1.6}}
+    pooled = {e["id"]: e for e in report["effects"]}
+    assert sorted(name for name, e in pooled.items() if e["selected"]) == ["illumination", "quantization"]  # as the pooled verdict names them
+    assert pooled["illumination"]["params_err"] == dict.fromkeys(illumination, 0.01)  # the naming frame's errors with its parameters
     # one bar: each frame's phases named, its steps within its third of the bar
     assert listener.phases[:2] == ["frame 1 of 3: particles found", "frame 1 of 3: the catalog's effects"] and listener.phases[-1] == "frame 3 of 3: the catalog's effects"
     assert [done / total for done, total in listener.steps[::2]] == pytest.approx([1 / 6, 1 / 6, 3 / 6, 3 / 6, 5 / 6, 5 / 6])

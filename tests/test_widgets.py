@@ -322,6 +322,8 @@ def test_diagnosis_widget_diagnoses_a_stack_s_frames_shows_the_verdict_and_maps_
     assert written["verdict"]["id"] == "illumination+sensor_blur" and written["provenance"]["source"] == "recording"
     assert "frame 3 of 3: the catalog's effects" in phases and "verdict: illumination+sensor_blur" in widget._status.value
     assert widget._verdict.value.startswith("verdict: illumination+sensor_blur; named in a majority of the 3 frames")
+    # the named effects' parameters with their errors, each from a frame that named it (sensor_blur: the third)
+    assert widget._verdict.value.endswith("\nfitted: illumination (depth 0.3 ± 0.01, x0 0.1 ± 0.01, y0 -0.1 ± 0.01); sensor_blur (sigma_px 0.8 ± 0.01)")
     assert len(widget._plot.axes.patches) == len(written["effects"])  # each effect's z
     layer = viewer.layers["gap: unexplained share of the structure"]
     assert layer.data.shape == (4, 4) and tuple(layer.scale) == pytest.approx((140.8, 140.8)) and tuple(layer.translate) == pytest.approx((69.3, 69.3))

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 from magicgui.widgets import SpinBox, create_widget
 
+from napari_lbs._core.gap import parameter_text
 from napari_lbs._core.pipeline import DIAGNOSED_FRAMES
 from napari_lbs._layers import UNITS
 from napari_lbs._widgets._backprop import CONFIG_TOOLTIP, HOLOGRAM_TOOLTIP
@@ -89,7 +90,8 @@ class DiagnosisWidget(StepWidget):
         report = diagnosis.report
         self._plot.show(report["effects"], level=request.settings.level_z)
         verdict = report["verdict"]
-        self._verdict.value = f"verdict: {verdict['id'] or 'nothing named'}; {verdict['reason']}"
+        fitted = "; ".join(f"{e['id']} ({parameter_text(e)})" for e in report["effects"] if e["selected"] and e["params"])
+        self._verdict.value = f"verdict: {verdict['id'] or 'nothing named'}; {verdict['reason']}" + (f"\nfitted: {fitted}" if fitted else "")
         self._verdict.tooltip = self._verdict.value
         # the tiles: a centred checkerboard of grid × grid squares of tile_px pixels
         size, grid = int(report["gap"]["tile_px"]), diagnosis.tile_map.shape[0]

@@ -15,7 +15,7 @@ One concern per module:
 `_scene_diagnosis`
     `diagnose_scene`: the gap diagnosed on the experiment's own fitted particles.
 `_report`
-    `write_report`: ``report.json`` (docs/formats.md), ``report.md``, figures.
+    `write_report`: ``report.json`` (docs/formats.md), ``report.md``, figures; `parameter_text`: an effect's parameters with their errors.
 """
 
 from napari_lbs._core.foundation import lazy_exports
@@ -25,7 +25,7 @@ __getattr__, __dir__, __all__ = lazy_exports(
     __name__,
     {
         "_detect": ("find_particles",),
-        "_report": ("write_report",),
+        "_report": ("parameter_text", "write_report"),
         "_scene_diagnosis": ("SceneDiagnosis", "SceneDiagnosisSettings", "diagnose_scene"),
     },
 )

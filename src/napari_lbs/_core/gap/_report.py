@@ -13,7 +13,7 @@ from napari_lbs._core.foundation import atomic_path, atomic_write_bytes, check_t
 if TYPE_CHECKING:  # for the annotations only
     from napari_lbs._core.gap._scene_diagnosis import SceneDiagnosis, SceneDiagnosisSettings
 
-__all__ = ["write_report"]
+__all__ = ["parameter_text", "write_report"]
 
 
 _FILES = ("report.json", "report.md", "gap_where.png", "gap_effects.png")
@@ -79,12 +79,22 @@ def _text(value, spec: str = ".3g") -> str:
     return "—" if np.isnan(number) else format(number, spec)
 
 
-def _estimate(name: str, value, errors: dict | None) -> str:
-    """``name value ± error`` (two significant figures) from ``errors`` (an effect's ``params_err``); ``(no error bar)`` where it gives none (a bound)."""
-    if errors is None:  # a parameter read, not fitted (the converter's bits)
-        return f"{name} {_text(value)}"
-    error = errors.get(name)
-    return f"{name} {_text(value)}" + (" (no error bar)" if np.isnan(_value(error)) else f" ± {_text(error, '.2g')}")
+def parameter_text(effect: dict) -> str:
+    """A report effect's parameters as ``name value ± error, ...`` (the errors to two significant figures).
+
+    A parameter whose ``params_err`` is null (on a bound of its fit) reads ``(no error
+    bar)``; an effect without ``params_err`` (read, not fitted: the converter's bits) shows
+    its values alone. Empty where the effect has no parameters.
+    """
+    errors = effect.get("params_err")
+    parts = []
+    for name, value in effect["params"].items():
+        text = f"{name} {_text(value)}"
+        if errors is not None:
+            error = errors.get(name)
+            text += " (no error bar)" if np.isnan(_value(error)) else f" ± {_text(error, '.2g')}"
+        parts.append(text)
+    return ", ".join(parts)
 
 
 def _where_figure(report: dict, tile_map: np.ndarray, levels: SceneDiagnosisSettings):
@@ -177,7 +187,7 @@ def _summary(report: dict, levels: SceneDiagnosisSettings) -> list[str]:
         "|---|---|---|---|---|---|---|",
         *[
             f"| {e['id']} | {'yes' if e['selected'] else 'no'} | {_text(e.get('z'), '.2f')} | {_text(e.get('heldout_gain_nats'), '.4g')} | {_text(e.get('gap_after'))} | "
-            f"{_text(100 * _value(e.get('shrink')), '.0f')} % | " + (", ".join(_estimate(k, v, e.get("params_err")) for k, v in e["params"].items()) or "—") + " |"
+            f"{_text(100 * _value(e.get('shrink')), '.0f')} % | " + (parameter_text(e) or "—") + " |"
             for e in report["effects"]
         ],
         "",

@@ -150,13 +150,13 @@ def _pooled(diagnoses: list[SceneDiagnosis], names: list[str]) -> SceneDiagnosis
         report["verdict"] = {**first["verdict"], "id": "+".join(majority) or None, "catalog_explains": 2 * explained > count,
                              "reason": f"named in a majority of the {count} frames diagnosed: {', '.join(majority) or 'nothing'}; the catalog explains "
                                        f"{explained} of them; the first frame: {first['verdict']['reason']}"}
-        params = {}
+        fitted = {}  # each named effect's parameters (and their errors) from the first frame that named it
         for diagnosis in diagnoses:
             named_here = set((diagnosis.report["verdict"]["id"] or "").split("+"))
             for effect in diagnosis.report["effects"]:
                 if effect["id"] in majority and effect["id"] in named_here:
-                    params.setdefault(effect["id"], effect["params"])
-        report["effects"] = [{**e, "params": params.get(e["id"], e["params"])} for e in first["effects"]]
+                    fitted.setdefault(effect["id"], {key: effect[key] for key in ("params", "params_err") if key in effect})
+        report["effects"] = [{**e, **fitted.get(e["id"], {}), "selected": e["id"] in majority} for e in first["effects"]]
     return replace(diagnoses[0], report=report, seconds=round(sum(d.seconds for d in diagnoses), 2))
 
 
