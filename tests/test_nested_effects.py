@@ -473,3 +473,22 @@ def test_the_halves_disagreeing_widen_the_error_of_their_mean():
     assert fit(1.0, 1.02, (0.03, 0.04)).estimate("sensor_blur.sigma_px") == pytest.approx((1.01, 0.025))
     assert fit(1.0, 1.2, (0.03, 0.04)).estimate("sensor_blur.sigma_px") == pytest.approx((1.1, 0.1))
     assert np.isnan(fit(1.0, 1.2, (np.nan, 0.04)).estimate("sensor_blur.sigma_px")[1])  # on a bound in one half
+
+
+def test_a_named_effect_reports_the_named_model_s_numbers_and_another_its_own():
+    """The report's parameters: an effect the verdict names, as fitted together with the other named ones; an effect it does not name, fitted alone."""
+    from napari_lbs._core.gap._nested import FrameFit, Selection
+    from napari_lbs._core.gap._scene_diagnosis import _estimates
+
+    def fit(values):
+        return FrameFit(tuple({name.split(".")[0] for name in values}), (values, values), np.zeros(16), (None, None), (None, None),
+                        (dict.fromkeys(values, 0.01), dict.fromkeys(values, 0.01)))
+
+    fits = {"illumination": fit({"gain": 1.0, "illumination.depth": 0.36}), "sensor_blur": fit({"gain": 1.0, "sensor_blur.sigma_px": 1.019}),
+            "coherence": fit({"gain": 1.0, "coherence.theta_mrad": 0.61}),
+            "illumination+sensor_blur": fit({"gain": 1.0, "illumination.depth": 0.31, "sensor_blur.sigma_px": 1.021})}
+    selection = Selection(("illumination", "sensor_blur"), fits, [], {}, {})
+    error = 0.5 * np.hypot(0.01, 0.01)  # each colour's 0.01, the colours agreeing
+    assert _estimates("illumination", selection) == {"depth": pytest.approx((0.31, error))}
+    assert _estimates("sensor_blur", selection) == {"sigma_px": pytest.approx((1.021, error))}
+    assert _estimates("coherence", selection) == {"theta_mrad": pytest.approx((0.61, error))} and _estimates("parasitic_fringes", selection) == {}

@@ -343,6 +343,18 @@ def _by_depth(before: tuple[np.ndarray, np.ndarray], after: tuple[np.ndarray, np
     return out
 
 
+def _estimates(effect: str, selection) -> dict:
+    """``{parameter: (value, standard error)}`` of a catalog effect of the mean (`FrameFit.estimate`); empty where it was not tried.
+
+    A named effect's are those of the model the verdict names, fitted together with the other
+    named effects (what the frame holds by the verdict); any other effect's, its own fit's.
+    """
+    source = selection.fits["+".join(selection.chosen)] if effect in selection.chosen else selection.fits.get(effect)
+    if source is None:
+        return {}
+    return {name.split(".", 1)[1]: source.estimate(name) for name in source.params[0] if name.startswith(f"{effect}.")}
+
+
 def _line_pattern(residuals: tuple[np.ndarray, np.ndarray]) -> dict:
     """Fixed column and row patterns: the variance of the high-passed residual's column and row means over what white noise gives.
 
@@ -421,7 +433,7 @@ def diagnose_scene(hologram: np.ndarray, config: ExperimentConfig, *, settings: 
         fit = selection.fits.get(effect)
         # an effect not tried (coherence without two particles to group by depth) leaves the gap as it is
         after = _structure(fit.residuals, split, frame_spectra)[0] if fit is not None else baseline_share
-        estimates = {name.split(".", 1)[1]: fit.estimate(name) for name in fit.params[0] if name.startswith(f"{effect}.")} if fit else {}
+        estimates = _estimates(effect, selection)
         gain = first_round.get(effect, {})
         effects.append({"id": effect, "gap_after": after, "shrink": 1.0 - after / baseline_share if baseline_share > 0 else 0.0,
                         "params": {name: value for name, (value, _) in estimates.items()},
