@@ -151,7 +151,7 @@ def _rendered(shape: tuple[int, int], frame, config: ExperimentConfig, materials
         dy = torch.as_tensor(rr.reshape(1, -1) * pixel - y[i], dtype=torch.float64)
         depth = torch.tensor([z[i]], dtype=torch.float64)
         # (M, 1): the M materials of this sphere, at its one depth and its points
-        sphere = [torch.full((count, 1), diameter[i], dtype=torch.float64)] + [torch.as_tensor(np.ascontiguousarray(values[:, i : i + 1]), dtype=torch.float64)
+        sphere = [torch.full((count, 1), diameter[i], dtype=torch.float64)] + [torch.tensor(values[:, i : i + 1], dtype=torch.float64)
                                                                              for values in (contrast, absorption)]
         size = math.pi * settings.medium_index / optics.wavelength_um * diameter[i]
         # Wiscombe's count at the fitted size: what it leaves out is below 2e-9 of the hologram
