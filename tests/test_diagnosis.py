@@ -251,3 +251,8 @@ def test_the_report_shows_each_parameter_with_its_error_and_the_share_left_by_de
     summary = (tmp_path / "r" / "report.md").read_text()
     assert "sigma_px 1.02 ± 0.012" in summary and "depth 0.36 ± 0.098, y0 0.5 (no error bar)" in summary
     assert "| 2.40 | 20 | 0.4 | 0.1 |" in summary and "| 4.10 | 20 | 0.5 | 0.35 |" in summary
+    from PIL import Image
+
+    write_report(SceneDiagnosis(scene_report("sensor_blur"), np.full((2, 2), 0.01), None, 1.0), tmp_path / "without")
+    with Image.open(tmp_path / "r" / "gap_where.png") as with_depth, Image.open(tmp_path / "without" / "gap_where.png") as without:
+        assert with_depth.size[0] > 1.3 * without.size[0]  # a third panel: what is left by the particles' depth

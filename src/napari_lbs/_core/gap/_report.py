@@ -98,9 +98,13 @@ def parameter_text(effect: dict) -> str:
 
 
 def _where_figure(report: dict, tile_map: np.ndarray, levels: SceneDiagnosisSettings):
-    """Where: each tile's unexplained share (with the level the catalog explains a frame at), and the residual's power by band."""
+    """Where: each tile's unexplained share (with the level the catalog explains a frame at), the residual's power by band, and by the particles' depth."""
     gap = report["gap"]
-    figure, (tiles, bands) = _figure((11, 4.0), 2, widths=(1.0, 1.35))
+    by_depth = [group for group in gap.get("by_depth") or [] if group["pixels"]]
+    if by_depth:
+        figure, (tiles, bands, depths) = _figure((15, 4.0), 3, widths=(1.0, 1.35, 1.0))
+    else:
+        figure, (tiles, bands) = _figure((11, 4.0), 2, widths=(1.0, 1.35))
     shown = tile_map[np.isfinite(tile_map)]
     top = max(float(shown.max()) if shown.size else 0.0, 1.5 * levels.structure_level)
     image = tiles.imshow(tile_map, cmap="magma", vmin=0.0, vmax=top)
@@ -127,6 +131,15 @@ def _where_figure(report: dict, tile_map: np.ndarray, levels: SceneDiagnosisSett
     bands.set_ylabel("share of the held-out residual's power")
     bands.set_title("what is left: the residual by frequency band", fontsize=10)
     bands.legend(fontsize=8)
+    if by_depth:
+        depth_mm = [group["z_um"] / 1000.0 for group in by_depth]
+        depths.plot(depth_mm, [_value(group["baseline"]) for group in by_depth], "o-", color="tab:gray", label="the scene alone")
+        depths.plot(depth_mm, [_value(group["after"]) for group in by_depth], "o-", color="tab:orange", label="with the named effects")
+        depths.set_ylim(bottom=0.0)
+        depths.set_xlabel("particles' depth (mm; a group each)")
+        depths.set_ylabel("unexplained share of the structure about them")
+        depths.set_title("what is left, by the particles' depth", fontsize=10)
+        depths.legend(fontsize=8)
     return figure
 
 
