@@ -43,7 +43,7 @@ from scipy import ndimage, optimize
 
 from napari_lbs._core.foundation import ProgressCallback, Steps, StopCallback, Stopped, process_threads, thread_pool
 from napari_lbs._core.gap._heldout import TileSplit, model_probabilities, tile_spectra, whittle_loglik
-from napari_lbs._core.gap._tile_errors import clustered_errors
+from napari_lbs._core.gap._tile_errors import clustered_errors, mean_of_halves
 from napari_lbs._core.physics import EFFECTS, sensor_image
 
 __all__ = ["EVERY_OTHER", "MEAN_EFFECTS", "FrameFit", "Scene", "Selection", "both_colours", "fit_frame", "last_two", "select_effects"]
@@ -128,16 +128,12 @@ class FrameFit:
     errors: tuple[dict, dict] = field(default=({}, {}), repr=False)  # each colour's standard errors (`clustered_errors`; NaN on a bound)
 
     def estimate(self, name: str) -> tuple[float, float]:
-        """Parameter ``name``: the mean of the two colours' fits and its standard error (NaN where either colour has none).
+        """Parameter ``name``: the mean of the two colours' fits and its standard error (`mean_of_halves`; NaN where either colour has none).
 
         The two colours' tiles are disjoint halves of the frame, so their fits are two
-        independent measurements: the mean's error is half their errors' quadrature sum,
-        scaled up where the halves disagree by more than that (the Particle Data Group's
-        scale factor ``S = √(χ² / (N - 1))`` for N = 2), so never below half their difference.
+        independent measurements.
         """
-        first, second = (params[name] for params in self.params)
-        errors = [errors.get(name, np.nan) for errors in self.errors]
-        return float(np.mean([first, second])), float(0.5 * max(np.hypot(*errors), abs(first - second)))
+        return mean_of_halves([params[name] for params in self.params], [errors.get(name, np.nan) for errors in self.errors])
 
 
 @dataclass(frozen=True)
@@ -356,11 +352,11 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
             v1 = np.maximum(x_t @ alternative[:-1] + alternative[-1] * m_t, least)
             gains[k] = -0.5 * float(np.sum(h**2 / v1 + np.log(v1)) - np.sum(h**2 / v0 + np.log(v0)))
     total, z = _gain(gains, np.zeros_like(gains))
-    slope = float(np.mean(slopes)) / kept
+    mean_slope, slope_error = mean_of_halves(slopes, slope_errors)
+    slope = mean_slope / kept
     if slope <= 0:
         total, z = min(total, 0.0), min(z, 0.0)  # a variance that falls with the light is no photon noise
-    # the mean slope's error (as `FrameFit.estimate`: never below half the colours' difference); log10(1/slope) moves by its relative error over ln 10
-    relative = 0.5 * max(float(np.hypot(*slope_errors)), abs(slopes[0] - slopes[1])) / kept / slope if slope > 0 else np.nan
+    relative = slope_error / mean_slope if slope > 0 else np.nan  # log10(1/slope) moves by its relative error over ln 10
     return {"gain": total, "z": z, "log10_photons": float(np.log10(1.0 / slope)) if slope > 0 else None,
             "log10_photons_err": float(relative / np.log(10.0)) if np.isfinite(relative) else None}
 

@@ -222,7 +222,7 @@ def _scene(data: np.ndarray, found, config: ExperimentConfig, settings: SceneDia
             break
         table = pd.concat([table, new], ignore_index=True)
     # depth groups of about equal counts, each rendered alone: what a depth-dependent effect (coherence) blurs
-    bins = np.array_split(np.argsort(table["z_um"].to_numpy()), min(_DEPTH_GROUPS, len(table))) if len(table) >= 2 else []
+    bins = _depth_groups(table)
     begin_phase(progress, f"the scene of {len(table)} particles rendered, whole and in {len(bins)} depth groups")
     steps = Steps(1 + len(bins), progress=progress, should_stop=should_stop)
     scene = render(table, settings.reach_cycles_per_px)
@@ -302,6 +302,11 @@ def _structure(residuals: tuple[np.ndarray, np.ndarray], split: TileSplit, frame
     return float(np.median(per_tile)), bands, per_tile.reshape(split.grid, split.grid), float(np.mean(floors))
 
 
+def _depth_groups(table) -> list[np.ndarray]:
+    """The rows of each of the scene's depth groups: about equal counts, shallow to deep (none for fewer than two particles)."""
+    return np.array_split(np.argsort(table["z_um"].to_numpy()), min(_DEPTH_GROUPS, len(table))) if len(table) >= 2 else []
+
+
 def _by_depth(before: tuple[np.ndarray, np.ndarray], after: tuple[np.ndarray, np.ndarray], data: np.ndarray, table, split: TileSplit,
               floor_variance: float, *, pixel_um: float, reach_px: int) -> list:
     """The unexplained share of the structure about the particles of each depth group, before and after the selected effects.
@@ -323,7 +328,7 @@ def _by_depth(before: tuple[np.ndarray, np.ndarray], after: tuple[np.ndarray, np
     near = np.isfinite(distance)
     rows, cols, nearest = rows[near], cols[near], nearest[near]
     group_of = np.empty(len(table), int)
-    bins = np.array_split(np.argsort(table["z_um"].to_numpy()), min(_DEPTH_GROUPS, len(table)))
+    bins = _depth_groups(table)
     for index, members in enumerate(bins):
         group_of[members] = index
 

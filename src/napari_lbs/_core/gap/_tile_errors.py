@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["clustered_errors"]
+__all__ = ["clustered_errors", "mean_of_halves"]
 
 
 def clustered_errors(jacobian: np.ndarray, residuals: np.ndarray, clusters: np.ndarray, *, fixed: np.ndarray | None = None) -> np.ndarray:
@@ -70,3 +70,14 @@ def clustered_errors(jacobian: np.ndarray, residuals: np.ndarray, clusters: np.n
     variance = np.diag(bread @ meat @ bread)
     errors[free] = np.sqrt(np.clip(variance, 0.0, None)) / norms[free]
     return errors
+
+
+def mean_of_halves(values, errors) -> tuple[float, float]:
+    """The mean of two independent measurements (the two colours' fits) and its standard error.
+
+    Half their errors' quadrature sum, scaled up where the two disagree by more than that
+    (the Particle Data Group's scale factor ``S = √(χ² / (N - 1))`` for N = 2): never below
+    half their difference. NaN where either has no error.
+    """
+    first, second = (float(v) for v in values)
+    return float(np.mean([first, second])), float(0.5 * max(np.hypot(*errors), abs(first - second)))
