@@ -63,14 +63,18 @@ def main() -> None:
     half = len(cores) // 2
     if half < 1:
         sys.exit("needs at least 2 cores")
-    base = {key: value for key, value in os.environ.items() if key not in ("NAPARI_LBS_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OMP_WAIT_POLICY")}
+    base = {key: value for key, value in os.environ.items() if key not in ("NAPARI_LBS_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OMP_WAIT_POLICY",
+                                                        "GOMP_SPINCOUNT")}
     shared = dict(base, NAPARI_LBS_THREADS=str(half))
     shares = [",".join(map(str, cores[:half])), ",".join(map(str, cores[half : 2 * half]))]
     spinning = dict(base, OMP_WAIT_POLICY="ACTIVE")
+    sleeping = dict(base, GOMP_SPINCOUNT="0")
     settings = {
         "alone": ([base], [[]]),
+        "alone, GOMP_SPINCOUNT=0": ([sleeping], [[]]),
         "alone, OMP_WAIT_POLICY=ACTIVE": ([spinning], [[]]),
         "two, as started": ([base, base], [[], []]),
+        "two, GOMP_SPINCOUNT=0": ([sleeping, sleeping], [[], []]),
         "two, OMP_WAIT_POLICY=ACTIVE": ([spinning, spinning], [[], []]),
         f"two, NAPARI_LBS_THREADS={half}": ([shared, shared], [[], []]),
         "two, taskset": ([base, base], [["taskset", "-c", shares[0]], ["taskset", "-c", shares[1]]]),

@@ -46,3 +46,22 @@ def test_a_bad_override_is_one_line_naming_the_variable(tmp_path):
     result = subprocess.run([sys.executable, "-m", "napari_lbs._cli", "config", "--write", str(tmp_path / "c.toml")], capture_output=True, text=True, env=environ)
     assert result.returncode == 2 and "NAPARI_LBS_THREADS" in result.stderr and len(result.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "c.toml").exists()
+
+
+_WAITING = """
+import json, os
+from napari_lbs._core.foundation._threads import size_threads
+size_threads()
+print(json.dumps({name: os.environ.get(name) for name in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}))
+"""
+
+
+@pytest.mark.parametrize(("given", "expected"), [({}, {"OMP_WAIT_POLICY": "PASSIVE", "GOMP_SPINCOUNT": "1000"}),
+                                                 ({"OMP_WAIT_POLICY": "ACTIVE"}, {"OMP_WAIT_POLICY": "ACTIVE", "GOMP_SPINCOUNT": None}),
+                                                 ({"GOMP_SPINCOUNT": "0"}, {"OMP_WAIT_POLICY": "PASSIVE", "GOMP_SPINCOUNT": "0"})],
+                         ids=["default", "the-users-policy", "the-users-spin"])
+def test_openmp_threads_wait_by_a_short_spin_then_sleep_unless_the_user_says_otherwise(given, expected):
+    environ = {key: value for key, value in os.environ.items() if key not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
+    result = subprocess.run([sys.executable, "-c", _WAITING], capture_output=True, text=True, env={**environ, **given})
+    assert result.returncode == 0, result.stderr
+    assert json.loads(result.stdout.strip().splitlines()[-1]) == expected

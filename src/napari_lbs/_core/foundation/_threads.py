@@ -8,10 +8,11 @@ start-up; the long functions (back-propagation, calibration, training, predictio
 use; `size_threads` re-sizes them from Python.
 
 Two jobs started side by side each see every core the machine gives them, so together they
-run twice as many threads as there are cores. OpenMP's waiting threads sleep rather than spin
-(``OMP_WAIT_POLICY=PASSIVE`` unless set otherwise), which keeps that from being far slower
-than sharing the cores, but each job still does best with its own share, by cores (``taskset
--c 0 napari-lbs ... & taskset -c 1 napari-lbs ...``) or by count (``NAPARI_LBS_THREADS=1``).
+run twice as many threads as there are cores. OpenMP's waiting threads sleep after a short
+spin (``OMP_WAIT_POLICY=PASSIVE`` and ``GOMP_SPINCOUNT=1000`` unless either is set), which
+keeps that from being far slower than sharing the cores, but each job still does best with its
+own share, by cores (``taskset -c 0 napari-lbs ... & taskset -c 1 napari-lbs ...``) or by count
+(``NAPARI_LBS_THREADS=1``).
 """
 
 from __future__ import annotations
@@ -28,6 +29,8 @@ THREADS_ENV = "NAPARI_LBS_THREADS"
 # Read by OpenMP (torch), OpenBLAS and MKL when they load: libraries loaded after the sizing,
 # and child processes, start with the count.
 _LIBRARY_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+# GNU OpenMP's busy-wait iterations before a waiting thread sleeps (about 100 000 a millisecond)
+_SPIN_COUNT = "1000"
 _count: int | None = None
 _pools: dict[tuple[str, int], tuple[int, ThreadPoolExecutor]] = {}
 
@@ -62,10 +65,14 @@ def size_threads(threads: int | None = None) -> int:
     _count = count
     for name in _LIBRARY_ENV:
         os.environ[name] = str(count)
-    # OpenMP threads waiting for work spin by default, taking the cores from the threads doing
-    # it whenever anything else runs on them (another job, a viewer): beside other work a
-    # training step ran 9x slower spinning than sleeping (docs/benchmarks.md: threads).
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    # OpenMP threads waiting for work spin by default (about 3 ms), taking the cores from the
+    # threads doing it whenever anything else runs on them (another job, a viewer): beside other
+    # work a training step ran 9x slower spinning than sleeping. Sleeping at once costs a wake-up
+    # per parallel region instead: a short spin first (about 10 µs) keeps the many small
+    # regions of a fit awake (docs/benchmarks.md: threads).
+    if "OMP_WAIT_POLICY" not in os.environ:
+        os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
+        os.environ.setdefault("GOMP_SPINCOUNT", _SPIN_COUNT)
     if "torch" in sys.modules:
         sys.modules["torch"].set_num_threads(count)
     if "numpy" in sys.modules:  # a BLAS already loaded has read its environment

@@ -19,11 +19,11 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
-from scipy import ndimage, optimize
+from scipy import optimize
 
 from napari_lbs._core.gap._heldout import TileSplit, model_probabilities
 from napari_lbs._core.gap._nested import EVERY_OTHER, MEAN_EFFECTS, Scene, Selection, both_colours, fit_frame, last_two
-from napari_lbs._core.physics import EFFECTS, sensor_image
+from napari_lbs._core.physics import EFFECTS, gaussian_blur, sensor_image
 
 __all__ = ["BLUR_EFFECTS", "blur_by_depth", "attribute_blur"]
 
@@ -41,7 +41,7 @@ def _fit_groups(data: np.ndarray, scene: Scene, mask: np.ndarray, camera: dict, 
     groups = len(scene.depths_um)
     image32 = scene.image.astype(np.float32)
     # each group's blur is redone for its own σ's moves only
-    changes = [last_two(lambda sigma, group=group: ndimage.gaussian_filter(group, sigma) - group) for group in scene.groups]
+    changes = [last_two(lambda sigma, group=group: gaussian_blur(group, sigma) - group) for group in scene.groups]
 
     def residual(x: np.ndarray) -> np.ndarray:
         if check is not None:

@@ -11,10 +11,9 @@ Lorenz–Mie fits (`refine_particles`) correct depth and size from there.
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
 
 from napari_lbs._core.foundation import ExperimentConfig, InputError, Steps
-from napari_lbs._core.physics import backpropagated_blocks
+from napari_lbs._core.physics import backpropagated_blocks, gaussian_blur
 
 __all__ = ["find_particles"]
 
@@ -61,7 +60,7 @@ def find_particles(hologram: np.ndarray, config: ExperimentConfig, *, max_partic
     for start, stop, field in backpropagated_blocks(image, depths, wavelength_um=optics.wavelength_um, pixel_um=optics.pixel_um,
                                                     medium_index=optics.medium_index, steps=steps):
         for k in range(stop - start):
-            energy = ndimage.gaussian_filter((np.abs(field[k]) - 1.0) ** 2, max(radius_px, 1.0))
+            energy = gaussian_blur((np.abs(field[k]) - 1.0) ** 2, max(radius_px, 1.0))
             better = energy > best
             best[better] = energy[better]
             depth[better] = depths[start + k]

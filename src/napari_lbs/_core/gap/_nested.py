@@ -39,12 +39,12 @@ import threading
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy import ndimage, optimize
+from scipy import optimize
 
 from napari_lbs._core.foundation import ProgressCallback, Steps, StopCallback, Stopped, process_threads, thread_pool
 from napari_lbs._core.gap._heldout import TileSplit, model_probabilities, tile_spectra, whittle_loglik
 from napari_lbs._core.gap._tile_errors import clustered_errors, mean_of_halves
-from napari_lbs._core.physics import EFFECTS, sensor_image
+from napari_lbs._core.physics import EFFECTS, gaussian_blur, sensor_image
 
 __all__ = ["EVERY_OTHER", "MEAN_EFFECTS", "FrameFit", "Scene", "Selection", "both_colours", "fit_frame", "last_two", "select_effects"]
 
@@ -92,7 +92,7 @@ class Scene:
         image = image.copy()
         for depth, group in zip(self.depths_um, self.groups, strict=True):
             sigma_px = theta_mrad * 1e-3 * depth / self.pixel_um
-            image += ndimage.gaussian_filter(group, sigma_px) - group
+            image += gaussian_blur(group, sigma_px) - group
         return image
 _BASELINE = (("gain", 1.0, (0.2, 5.0)), ("contrast", 1.0, (0.0, 3.0)), ("gamma", 1.0, (0.3, 3.0)))
 _STEPS = 12  # least-squares steps per fit: the starts are the simpler model's optimum
@@ -265,7 +265,7 @@ def fit_frame(data: np.ndarray, scene, split: TileSplit, effects: tuple[str, ...
 def both_colours(on_colour, check) -> tuple:
     """``(on_colour(0, check), on_colour(1, ...))``, the two side by side where the process has two threads.
 
-    The fits of the two colours are independent and spend their time in numpy and scipy.ndimage,
+    The fits of the two colours are independent and spend their time in numpy,
     which release the GIL. Colour 1 runs on a pool thread, which hears a stop through an event
     set when this thread's ``check`` raises (progress is reported from this thread alone).
     """
@@ -324,14 +324,14 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
     """
     impulse = np.zeros((15, 15))
     impulse[7, 7] = 1.0
-    kept = float(np.sum((impulse - ndimage.gaussian_filter(impulse, _HIGH_PASS_PX)) ** 2))  # white noise's variance kept by the high pass
+    kept = float(np.sum((impulse - gaussian_blur(impulse, _HIGH_PASS_PX)) ** 2))  # white noise's variance kept by the high pass
     colours = split.colours()
     gains = np.zeros(len(colours))
     slopes, slope_errors = [], []
     for fitted_on in (0, 1):
         residual, mean = fit.residuals[fitted_on], fit.means[fitted_on]
-        high = residual - ndimage.gaussian_filter(residual, _HIGH_PASS_PX)
-        misfit = (np.abs(mean - ndimage.gaussian_filter(mean, 8.0)), ndimage.gaussian_filter((mean - ndimage.gaussian_filter(mean, _HIGH_PASS_PX)) ** 2, 3.0))
+        high = residual - gaussian_blur(residual, _HIGH_PASS_PX)
+        misfit = (np.abs(mean - gaussian_blur(mean, 8.0)), gaussian_blur((mean - gaussian_blur(mean, _HIGH_PASS_PX)) ** 2, 3.0))
         # per tile: the high-passed residual, the null's regressors (1 and the misfit's), the mean
         samples = [(high[w][::2, ::2].ravel(), np.stack([np.ones(high[w][::2, ::2].size)] + [m[w][::2, ::2].ravel() for m in misfit], axis=1), mean[w][::2, ::2].ravel(), c)
                    for w, c in zip(split.windows(), colours, strict=True)]

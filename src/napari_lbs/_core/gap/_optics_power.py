@@ -24,10 +24,10 @@ and the test says so (z near 0) rather than naming either.
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
 
 from napari_lbs._core.foundation import ExperimentConfig, Steps
 from napari_lbs._core.gap._heldout import TileSplit
+from napari_lbs._core.physics import gaussian_blur
 from napari_lbs._core.refine import RefineSettings, particle_holograms
 
 __all__ = ["OPAQUE_KAPPA", "fine_fringe_power", "optics_power_test"]
@@ -39,8 +39,8 @@ _SMOOTH_PX = 6.0  # their power's local mean: a Gaussian of this σ
 
 def fine_fringe_power(image: np.ndarray) -> np.ndarray:
     """The local power of ``image``'s fine fringes: ``blur((image - blur(image, 1.5 px))², 6 px)``."""
-    high = image - ndimage.gaussian_filter(image, _HIGH_PASS_PX)
-    return ndimage.gaussian_filter(high * high, _SMOOTH_PX)
+    high = image - gaussian_blur(image, _HIGH_PASS_PX)
+    return gaussian_blur(high * high, _SMOOTH_PX)
 
 
 def _models(index_grid) -> dict[str, dict]:
@@ -86,7 +86,7 @@ def optics_power_test(data: np.ndarray, table, config: ExperimentConfig, split: 
     """
     settings = settings or RefineSettings()
     measured = fine_fringe_power(data)
-    light = ndimage.gaussian_filter(data, _SMOOTH_PX)
+    light = gaussian_blur(data, _SMOOTH_PX)
     windows, colours = split.windows(), split.colours()
     check = (lambda: bool(steps.check())) if steps is not None else None
     errors, slopes = {}, {}
@@ -96,7 +96,7 @@ def optics_power_test(data: np.ndarray, table, config: ExperimentConfig, split: 
                                  progress=heard, should_stop=check)
     for name, rendered in zip(models, renders, strict=True):
         if blur_px > 0:
-            rendered = ndimage.gaussian_filter(rendered, blur_px)
+            rendered = gaussian_blur(rendered, blur_px)
         predicted = fine_fringe_power(rendered)
         error = np.zeros(len(windows))
         fitted_slopes = []

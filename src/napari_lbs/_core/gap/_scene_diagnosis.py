@@ -37,7 +37,6 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import ndimage
 
 from napari_lbs._core.foundation import ExperimentConfig, InputError, ProgressCallback, Steps, StopCallback, as_hologram, begin_phase, json_safe
 from napari_lbs._core.gap._blur_depth import attribute_blur
@@ -47,6 +46,7 @@ from napari_lbs._core.gap._levels import levels_test
 from napari_lbs._core.gap._nested import MEAN_EFFECTS, Scene, select_effects
 from napari_lbs._core.gap._optics_power import optics_power_test
 from napari_lbs._core.gap._population import scene_population
+from napari_lbs._core.physics import gaussian_blur
 from napari_lbs._core.refine import RefineSettings, particle_hologram, refine_particles
 
 __all__ = ["SceneDiagnosisSettings", "SceneDiagnosis", "diagnose_scene"]
@@ -370,7 +370,7 @@ def _line_pattern(residuals: tuple[np.ndarray, np.ndarray]) -> dict:
     """
     ratios = {"columns": [], "rows": []}
     for residual in residuals:
-        high = residual - ndimage.gaussian_filter(residual, 1.5)
+        high = residual - gaussian_blur(residual, 1.5)
         white = float(high.var())
         for axis, name in ((0, "columns"), (1, "rows")):
             ratios[name].append(float(high.mean(axis=axis).var() / max(white / residual.shape[axis], 1e-30)))

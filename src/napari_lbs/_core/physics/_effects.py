@@ -38,9 +38,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.fft
-from scipy import ndimage
 
 from napari_lbs._core.foundation import InputError
+from napari_lbs._core.physics._gaussian_blur import gaussian_blur
 from napari_lbs._core.physics._optics import superpose
 from napari_lbs._core.physics._synthesis import ParticleField, layer_images, simulate_hologram
 
@@ -307,8 +307,8 @@ def optical_hologram(field: ParticleField, effects: dict, *, wavelength_um: floa
 
 def _blur(image: np.ndarray, sigma_px: float) -> np.ndarray:
     if np.iscomplexobj(image):
-        return (ndimage.gaussian_filter(image.real, sigma_px) + 1j * ndimage.gaussian_filter(image.imag, sigma_px)).astype(image.dtype)
-    return ndimage.gaussian_filter(image, sigma_px)
+        return (gaussian_blur(image.real, sigma_px) + 1j * gaussian_blur(image.imag, sigma_px)).astype(image.dtype)
+    return gaussian_blur(image, sigma_px)
 
 
 def sensor_image(intensity: np.ndarray, baseline: dict, effects: dict, *, noise: np.ndarray, frame_px: tuple | None = None,
@@ -364,9 +364,9 @@ def sensor_image(intensity: np.ndarray, baseline: dict, effects: dict, *, noise:
         image = image * (1.0 + amplitude * fringe).astype(np.float32)
     if blur > 0:  # crosstalk / MTF spreads the light over neighbouring pixels; the electronics' read noise comes later, unblurred
         if keep is None:
-            image = ndimage.gaussian_filter(image, blur)
-        else:  # `gaussian_filter`'s passes, down the columns and then along the kept rows alone
-            image = ndimage.gaussian_filter1d(ndimage.gaussian_filter1d(image, blur, axis=0)[keep[0]], blur, axis=1)[:, keep[1]]
+            image = gaussian_blur(image, blur)
+        else:  # the kept rows and columns alone
+            image = gaussian_blur(image, blur, keep=keep)
             noise = noise[keep]
     image = np.clip(image, 0.0, None) ** float(baseline["gamma"])
     photons = 10.0 ** _param(effects, "shot_noise", "log10_photons")

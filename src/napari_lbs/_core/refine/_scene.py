@@ -38,6 +38,8 @@ from napari_lbs._core.refine._refine import RefineSettings, refine_particles
 
 __all__ = ["particle_hologram", "particle_holograms", "residual_hologram", "residual_particles"]
 
+_BLOCK_POINTS = 1 << 18  # points (of all the materials) rendered at once: 4 MB a complex field
+
 
 def _render_edge(z_um: float, *, reach_cycles_per_px: float, limit_px: int, wavelength_um: float, medium_index: float, pixel_um: float) -> int:
     """Edge (px) of the square holding a sphere's fringes up to ``reach_cycles_per_px``, at most ``limit_px``."""
@@ -146,23 +148,30 @@ def _rendered(shape: tuple[int, int], frame, config: ExperimentConfig, materials
         if r_lo >= r_hi or c_lo >= c_hi:
             steps.advance()
             continue  # a sphere whose fringes miss the frame
-        rr, cc = np.mgrid[r_lo:r_hi, c_lo:c_hi]
-        dx = torch.as_tensor(cc.reshape(1, -1) * pixel - x[i], dtype=torch.float64)
-        dy = torch.as_tensor(rr.reshape(1, -1) * pixel - y[i], dtype=torch.float64)
         depth = torch.tensor([z[i]], dtype=torch.float64)
         # (M, 1): the M materials of this sphere, at its one depth and its points
         sphere = [torch.full((count, 1), diameter[i], dtype=torch.float64)] + [torch.tensor(values[:, i : i + 1], dtype=torch.float64)
                                                                              for values in (contrast, absorption)]
         size = math.pi * settings.medium_index / optics.wavelength_um * diameter[i]
+        corners_x, corners_y = np.array([c_lo, c_hi - 1]) * pixel - x[i], np.array([r_lo, r_hi - 1]) * pixel - y[i]
+        rho_max = float(np.sqrt(np.max(corners_x**2) + np.max(corners_y**2)))
         # Wiscombe's count at the fitted size: what it leaves out is below 2e-9 of the hologram
-        profiles, step = radial_profiles(depth, *sphere, rho_max_um=float(torch.sqrt(dx**2 + dy**2).max()), terms=term_count(size, 1.0), **optics_kw)
-        fields = fields_from_profiles(profiles, step, dx, dy, depth, **optics_kw)
-        single = holograms_from_fields(fields, dx, dy, depth, pixel_um=pixel if settings.pixel_integration else None, **optics_kw)
-        own = sum(f.real**2 + f.imag**2 for f in fields)
-        block = (slice(None), slice(r_lo, r_hi), slice(c_lo, c_hi))
-        cross[block] += (single - 1.0 - own).reshape(count, *rr.shape).numpy()
-        for axis in range(3):
-            summed[(slice(None), axis, *block[1:])] += fields[axis].reshape(count, *rr.shape).numpy()
+        profiles, step = radial_profiles(depth, *sphere, rho_max_um=rho_max, terms=term_count(size, 1.0), **optics_kw)
+        # rows a block: each field's temporaries stay below the size from which the C allocator maps
+        # (and unmaps) memory at every call, which costs as much in page faults as the arithmetic
+        block_rows = max(1, _BLOCK_POINTS // (count * (c_hi - c_lo)))
+        for b_lo in range(r_lo, r_hi, block_rows):
+            b_hi = min(b_lo + block_rows, r_hi)
+            rr, cc = np.mgrid[b_lo:b_hi, c_lo:c_hi]
+            dx = torch.as_tensor(cc.reshape(1, -1) * pixel - x[i], dtype=torch.float64)
+            dy = torch.as_tensor(rr.reshape(1, -1) * pixel - y[i], dtype=torch.float64)
+            fields = fields_from_profiles(profiles, step, dx, dy, depth, **optics_kw)
+            single = holograms_from_fields(fields, dx, dy, depth, pixel_um=pixel if settings.pixel_integration else None, **optics_kw)
+            own = sum(f.real**2 + f.imag**2 for f in fields)
+            block = (slice(None), slice(b_lo, b_hi), slice(c_lo, c_hi))
+            cross[block] += (single - 1.0 - own).reshape(count, *rr.shape).numpy()
+            for axis in range(3):
+                summed[(slice(None), axis, *block[1:])] += fields[axis].reshape(count, *rr.shape).numpy()
         steps.advance()
     return 1.0 + cross + np.sum(summed.real**2 + summed.imag**2, axis=1)
 
