@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from napari_lbs._core.foundation import CHECK_S, ExperimentConfig, Steps, WorkerPool
-from napari_lbs._core.physics import holograms_from_fields, sphere_fields
+from napari_lbs._core.physics import fields_from_profiles, holograms_from_fields, radial_profiles
 from napari_lbs._core.refine._levenberg_marquardt import clamp, flat_model, huber, levenberg_marquardt, residual_inflation, robust_scale
 from napari_lbs._core.refine._model import Model, scattered_terms
 from napari_lbs._core.refine._patches import Patches, cut_patches, every_other_pixel, patch_edge, samples_every_angle
@@ -183,13 +183,19 @@ def _neighbour_fields(all_params: np.ndarray, index: np.ndarray, *, present: np.
         rows, near = np.concatenate(rows).astype(np.int64), np.concatenate(near).astype(np.int64)
         if rows.size == 0:
             return None  # a batch of particles alone: no cross terms to carry
-        # every (patch, neighbour) pair in one batch of fields, summed per patch
+        # every (patch, neighbour) pair in one batch of fields, summed per patch; each neighbour's
+        # radial profiles once, however many patches it reaches (at a pitch that samples every
+        # angle every particle reaches every patch), interpolated to each pair's points
         row_t = torch.as_tensor(rows, device=device)
         p = torch.as_tensor(all_params[near], dtype=torch.float64, device=device)
         dx = patches.x_um[row_t] - p[:, :1]
         dy = patches.y_um[row_t] - p[:, 1:2]
         optics_kw = {"wavelength_um": optics.wavelength_um, "medium_index": settings.medium_index}
-        fields = sphere_fields(dx, dy, p[:, 2], p[:, 3], p[:, 4], p[:, 5], terms=terms, **optics_kw)
+        distinct, pair_of = np.unique(near, return_inverse=True)
+        q = torch.as_tensor(all_params[distinct], dtype=torch.float64, device=device)
+        profiles, step = radial_profiles(q[:, 2], q[:, 3], q[:, 4], q[:, 5], rho_max_um=float(torch.sqrt(dx**2 + dy**2).max()), terms=terms, **optics_kw)
+        pair_t = torch.as_tensor(pair_of.reshape(-1), device=device)
+        fields = fields_from_profiles(profiles[:, pair_t], step[pair_t], dx, dy, p[:, 2], **optics_kw)
         shape = tuple(patches.data.shape)
         summed = [torch.zeros(shape, dtype=torch.complex128, device=device).index_add_(0, row_t, f) for f in fields]
         # the neighbours' own hologram: each one's interference with the plane wave through
