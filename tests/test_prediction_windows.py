@@ -55,6 +55,20 @@ def assert_same_tables(a: dict, b: dict, *, atol: float = 0.0) -> None:
         np.testing.assert_allclose(a[name], b[name], rtol=0, atol=atol, err_msg=name)
 
 
+def assert_same_detections(a: dict, b: dict, *, atol: float, undecided) -> None:
+    """Every detection of each table is one of the other's within ``atol`` in every column, but a few (at most 1 %) whose score ``undecided`` says rounding decides."""
+    from scipy.spatial import cKDTree
+
+    assert set(a) == set(b) and len(a["x_um"]) > 0 and len(b["x_um"]) > 0
+    names = sorted(a)
+    for one, other in ((a, b), (b, a)):
+        mine, theirs = (np.stack([table[name] for name in names], axis=1) for table in (one, other))
+        distance, nearest = cKDTree(theirs).query(mine, p=np.inf)
+        alone = distance > atol
+        assert alone.sum() <= 0.01 * len(mine) and all(undecided(score) for score in one["score"][alone])
+        np.testing.assert_allclose(mine[~alone], theirs[nearest[~alone]], rtol=0, atol=atol)
+
+
 @pytest.mark.parametrize(("length", "most", "margin"), [(1024, 640, 32), (4096, 640, 32), (1000, 640, 32), (200, 64, 12), (190, 96, 12), (1030, 256, 32), (100, 640, 12), (640, 640, 32)])
 def test_windows_partition_the_axis_on_the_pooling_grid_with_margins(length, most, margin):
     windows = window_layout(length, most=most, margin=margin)
@@ -117,7 +131,10 @@ def test_windows_wider_than_the_networks_reach_give_the_whole_images_particles(f
     whole = predict_particles(hologram, model, tiny_config(), window_px=1000)
     tiled = predict_particles(hologram, model, tiny_config(), window_px=64)
     assert whole.provenance["windows"] == [1, 1, 200, 190] and tiled.provenance["windows"][:2] == [6, 5]
-    assert_same_tables(tiled.particles, whole.particles, atol=1e-4)
+    # where the network sees nothing its output is its bias, a plateau whose local maxima
+    # rounding places: a detection there may be in one table alone
+    plateau = float(torch.sigmoid(torch.tensor(1.0)))
+    assert_same_detections(tiled.particles, whole.particles, atol=1e-4, undecided=lambda score: abs(score - plateau) < 1e-3)
     with pytest.raises(Exception, match="window_px: expected at least the model's tile size 48"):
         predict_particles(hologram, model, tiny_config(), window_px=40)
 
