@@ -73,6 +73,15 @@ def test_a_table_rendered_in_several_materials_at_once_is_each_material_rendered
             particle_holograms((120, 120), table, default_config(), materials=bad)
 
 
+def test_a_sphere_rendered_in_blocks_of_rows_is_the_sphere_rendered_at_once(monkeypatch):
+    from napari_lbs._core.refine import _scene
+
+    table = guess_table([(60.0 * PIXEL_UM, 60.0 * PIXEL_UM, 900.0, 25.0), (70.0 * PIXEL_UM, 64.0 * PIXEL_UM, 1100.0, 20.0)])
+    at_once = particle_hologram((120, 120), table, default_config(), reach_cycles_per_px=1.0)
+    monkeypatch.setattr(_scene, "_BLOCK_POINTS", 1000)  # 8 rows of a 120-pixel patch a block
+    np.testing.assert_allclose(particle_hologram((120, 120), table, default_config(), reach_cycles_per_px=1.0), at_once, rtol=0, atol=1e-12)
+
+
 def test_the_residual_of_a_scene_by_its_own_table_is_its_noise():
     particles = [(70.0 * PIXEL_UM, 80.0 * PIXEL_UM, 900.0, 24.0)]
     hologram = sphere_scene(particles, shape=(150, 150), noise=0.01, seed=4)
