@@ -40,9 +40,9 @@ second run scores the same model again. The load average is printed before and a
 the FFTs and the fits run on ``--threads`` threads (``NAPARI_LBS_THREADS``).
 
     OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 python benchmarks/bench_microscopy_lbs.py --set development \\
-        --groups 48 --epochs 2 --work /tmp/microscopy-lbs --out benchmarks/results/microscopy/lbs_development_2026-11-27.json
+        --groups 96 --epochs 3 --work /tmp/microscopy-lbs --out benchmarks/results/microscopy/lbs_development_2026-11-28.json
     OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 python benchmarks/bench_microscopy_lbs.py --set frozen \\
-        --groups 48 --epochs 2 --work /tmp/microscopy-lbs --out benchmarks/results/microscopy/lbs_frozen.json
+        --groups 96 --epochs 3 --work /tmp/microscopy-lbs --out benchmarks/results/microscopy/lbs_frozen.json
 """
 
 from __future__ import annotations
@@ -199,8 +199,8 @@ def main() -> None:
     parser.add_argument("--set", choices=tuple(SETS), default="development")
     parser.add_argument("--work", type=Path, required=True, help="cache of the frames, the data set and the model")
     parser.add_argument("--out", type=Path, required=True, help="the results JSON")
-    parser.add_argument("--groups", type=int, default=48, help="synthetic training groups (default 48)")
-    parser.add_argument("--epochs", type=int, default=2, help="training epochs (default 2)")
+    parser.add_argument("--groups", type=int, default=96, help="synthetic training groups (default 96)")
+    parser.add_argument("--epochs", type=int, default=3, help="training epochs (default 3)")
     parser.add_argument("--threads", type=int, default=1, help="threads of torch, the FFTs and the fits (default 1)")
     args = parser.parse_args()
     os.environ["NAPARI_LBS_THREADS"] = str(args.threads)

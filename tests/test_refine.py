@@ -622,3 +622,24 @@ def test_predict_refine_refits_every_particle_once_its_second_look_finds_more(mo
     finds[0] = finds[0].iloc[:0]
     table, record = _predict._refined(np.ones((64, 64)), particles, load_config(None), RefineSettings(index_contrast=0.26), **options)
     assert len(calls) == 1 and "refit" not in record and record["residual"]["found"] == 0
+
+
+def test_a_proposal_below_the_network_s_threshold_stays_only_where_the_fit_refines_it(monkeypatch):
+    """Proposals are made below the model's threshold for the fit to judge: unrefined, such a one leaves the table; one above it stays at its guess."""
+    import pandas as pd
+
+    import napari_lbs._core.refine as refine_wing
+    from napari_lbs._core import RefineSettings, load_config
+    from napari_lbs._core.pipeline import _predict
+
+    refined = np.array([True, True, False, False])
+    monkeypatch.setattr(refine_wing, "refine_particles", lambda image, table, config, **kwargs: pd.DataFrame(table).reset_index(drop=True).assign(refined=refined))
+    monkeypatch.setattr(refine_wing, "residual_particles", lambda *args, **kwargs: pd.DataFrame({"x_um": [], "y_um": [], "z_um": [], "diameter_um": []}))
+    particles = {"x_um": np.array([10.0, 30.0, 50.0, 70.0]), "y_um": np.full(4, 20.0), "z_um": np.full(4, 2000.0), "diameter_um": np.full(4, 22.0),
+                 "score": np.array([0.3, 0.15, 0.25, 0.12])}
+    options = {"material": None, "propose": None, "valid": None, "progress": None, "should_stop": None}
+    table, record = _predict._refined(np.ones((64, 64)), particles, load_config(None), RefineSettings(), accept_score=0.2, **options)
+    assert table["x_um"].tolist() == [10.0, 30.0, 50.0] and record["unconfirmed"] == 1  # 0.15 refined stays, 0.12 unrefined goes
+    table, record = _predict._refined(np.ones((64, 64)), particles, load_config(None), RefineSettings(), **options)
+    assert len(table["x_um"]) == 4 and "unconfirmed" not in record
+    assert _predict._acceptance_threshold({"threshold": 0.2}, None) == 0.2 and _predict._acceptance_threshold({"threshold": 0.2}, 0.12) == 0.12

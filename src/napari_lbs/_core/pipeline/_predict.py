@@ -113,6 +113,11 @@ def _proposal_threshold(meta: dict, threshold: float | None) -> float:
     return float(threshold) if threshold is not None else REFINE_PROPOSAL_FRACTION * float(meta["threshold"])
 
 
+def _acceptance_threshold(meta: dict, threshold: float | None) -> float:
+    """The score a detection the fit could not refine needs to stay: ``threshold``, else the model's own."""
+    return float(threshold) if threshold is not None else float(meta["threshold"])
+
+
 def _network_proposals(model, config: ExperimentConfig | None, settings: PredictionSettings, *, progress, should_stop):
     """``propose(image)``: the network's proposals with ``settings`` (`PredictionSettings`, its threshold the proposals') in an image as the fit sees it (divided by the background, else by its mean), for `residual_particles`."""
     from napari_lbs._core.learning import predict_particles
@@ -189,6 +194,7 @@ def refined_prediction(hologram: np.ndarray, model, config: ExperimentConfig | N
     started = time.perf_counter()
     settings = prediction_settings(settings, device=device, precision=precision, force=force, threshold=threshold)
     model = model if isinstance(model, LoadedModel) else load_model(model, device=settings.device)
+    accept = _acceptance_threshold(model.meta, settings.threshold)
     settings = replace(settings, threshold=_proposal_threshold(model.meta, settings.threshold))
     begin_phase(progress, "network")
     result = predict_particles(hologram, model, config, background=background, settings=settings, progress=progress, should_stop=should_stop)
@@ -196,7 +202,7 @@ def refined_prediction(hologram: np.ndarray, model, config: ExperimentConfig | N
     propose = _network_proposals(model, config, settings, progress=progress, should_stop=should_stop)
     fit = _fit_settings(refine_settings, config or model.config, device=settings.device, material=material_index_contrast)
     particles, record = _refined(normalised, result.particles, config or model.config, fit, material=material_index_contrast, propose=propose,
-                                 valid=unsaturated_pixels(hologram), progress=progress, should_stop=should_stop)
+                                 valid=unsaturated_pixels(hologram), progress=progress, should_stop=should_stop, accept_score=accept)
     return PredictionResult(particles, {**result.provenance, "refine": record}, time.perf_counter() - started)
 
 
@@ -268,14 +274,16 @@ def predict(request: PredictRequest, *, progress: ProgressCallback | None = None
 def _refine_summary(record: dict) -> str:
     """What the fit did, for a prediction's one-line summary."""
     line = f", {record['kept']} kept by the fit in {record['seconds']:.1f} s, {record['residual']['found']} more found in its residual"
+    if record.get("unconfirmed"):
+        line += f", {record['unconfirmed']} proposals below the model's threshold that the fit could not refine left out"
     if "material" in record:
         line += f", {record['material']['other_material']} of another material than {record['material']['index_contrast']:g} left out"
     return line
 
 
 def _refined_frames(frames, particles: dict, config: ExperimentConfig, settings: RefineSettings, *, background, material: float | None, propose, log: Log, progress,
-                    should_stop) -> tuple[dict, dict]:
-    """Each frame's rows of a recording's table refined with ``settings`` on that frame (divided by the background file, else by its mean)."""
+                    should_stop, accept_score: float | None = None) -> tuple[dict, dict]:
+    """Each frame's rows of a recording's table refined with ``settings`` on that frame (divided by the background file, else by its mean); ``accept_score`` as `_refined`'s."""
     import numpy as np
 
     from napari_lbs._core.refine import unsaturated_pixels
@@ -287,7 +295,7 @@ def _refined_frames(frames, particles: dict, config: ExperimentConfig, settings:
         hologram = np.asarray(frames.read(int(index), log=log), dtype=np.float64)
         divisor = background if isinstance(background, np.ndarray) else float(hologram.mean())
         table, record = _refined(hologram / divisor, {name: np.asarray(values)[rows] for name, values in particles.items()}, config, settings, material=material,
-                                 propose=propose, valid=unsaturated_pixels(hologram), progress=progress, should_stop=should_stop)
+                                 propose=propose, valid=unsaturated_pixels(hologram), progress=progress, should_stop=should_stop, accept_score=accept_score)
         if len(table["x_um"]) and "frame" in table:
             table["frame"] = np.full(len(table["x_um"]), index, dtype=np.asarray(particles["frame"]).dtype)
         parts.append(table)
@@ -297,6 +305,8 @@ def _refined_frames(frames, particles: dict, config: ExperimentConfig, settings:
                "kept": sum(r["kept"] for r in records), "seconds": sum(r["seconds"] for r in records), "pixels_left_out": sum(r["pixels_left_out"] for r in records),
                "refit": {key: sum(r.get("refit", {}).get(key, 0) for r in records) for key in ("particles", "kept")},
                "residual": {key: sum(r["residual"][key] for r in records) for key in ("proposals", "found", "seconds")}}
+    if accept_score is not None:
+        summary["unconfirmed"] = sum(r.get("unconfirmed", 0) for r in records)
     if material is not None:
         from napari_lbs._core.refine import MATERIAL_SIGMAS, MATERIAL_TOLERANCE
 
@@ -308,7 +318,7 @@ def _refined_frames(frames, particles: dict, config: ExperimentConfig, settings:
 
 
 def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, settings: RefineSettings, *, material: float | None, propose,
-             valid: np.ndarray | None, progress, should_stop) -> tuple[dict, dict]:
+             valid: np.ndarray | None, progress, should_stop, accept_score: float | None = None) -> tuple[dict, dict]:
     """The particle table refined by `refine_particles` with ``settings``, with the finds in its residual (`residual_particles`, ``propose``), of the ``material`` where given (as a dict of arrays), and its provenance.
 
     As the ``refine`` command does, a pitch finer than half the medium wavelength is binned
@@ -322,6 +332,9 @@ def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, se
     the first fit could not refine leaves the table once a refined particle lies on it.
     ``valid``: the pixels the fits compare (`unsaturated_pixels` of the raw frame: a
     saturated camera's clipped pixels left out), the provenance's ``pixels_left_out``.
+    ``accept_score``: the network's own threshold. A proposal scored below it was made for
+    the fit to judge; one the fit could not refine leaves the table (the provenance's
+    ``unconfirmed``), where one at or above it stays at the network's guess.
     """
     from dataclasses import asdict
 
@@ -373,6 +386,10 @@ def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, se
         record["refit"] = {"particles": len(restart), "kept": len(refit)}
     record["residual"]["seconds"] = time.perf_counter() - started  # the second look and the refit it asks for
     table[["x_um", "y_um"]] += shift_um
+    if accept_score is not None and "score" in table:
+        unconfirmed = ~table["refined"].astype(bool).to_numpy() & (table["score"].to_numpy() < accept_score)
+        record["unconfirmed"] = int(unconfirmed.sum())
+        table = table[~unconfirmed]
     if material is not None:
         member = same_material(table, index_contrast=material, tolerance=MATERIAL_TOLERANCE, sigmas=MATERIAL_SIGMAS)
         record["material"] = {"index_contrast": float(material), "tolerance": MATERIAL_TOLERANCE, "sigmas": MATERIAL_SIGMAS, "other_material": int((~member).sum()),
@@ -393,6 +410,7 @@ def _predict_recording(request: PredictRequest, frames, out: Path, record_path: 
     refine = request.refine or request.material_index_contrast is not None  # the fit measures the material
     settings = request.settings()
     if refine:
+        accept = _acceptance_threshold(model.meta, request.threshold)
         settings = replace(settings, threshold=_proposal_threshold(model.meta, request.threshold))
     result = predict_sequence(frames, model, request.config, background=background, background_window=request.background_window, workers=request.workers,
                               scheduler=request.scheduler, work_dir=work_dir, settings=settings, progress=progress, should_stop=should_stop)
@@ -404,7 +422,7 @@ def _predict_recording(request: PredictRequest, frames, out: Path, record_path: 
         fit = _fit_settings(None, request.config or model.config, device=request.device, material=request.material_index_contrast)
         particles, provenance["refine"] = _refined_frames(frames, particles, request.config or model.config, fit, background=background,
                                                           material=request.material_index_contrast, propose=propose, log=log, progress=progress,
-                                                          should_stop=should_stop)
+                                                          should_stop=should_stop, accept_score=accept)
     _write_table(out, record_path, particles, {**provenance, "background_file": request.background_path, "particles": str(out)})
     shutil.rmtree(work_dir)
     count, done = len(result.particles["x_um"]), result.provenance["frames"]
