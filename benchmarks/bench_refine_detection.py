@@ -3,7 +3,8 @@
 For each hologram the network's proposals (`predict_particles` down to
 `REFINE_PROPOSAL_FRACTION` of the model's threshold) are refined by `refine_particles`
 (default `RefineSettings`, the hologram divided by its mean), as ``napari-lbs predict
---refine`` does; the network's table (the proposals at its threshold) and the refined one
+--refine`` does (a proposal below the model's threshold that the fit could not refine
+leaves the table); the network's table (the proposals at its threshold) and the refined one
 are scored one-to-one against the truth (`score_particles`): ER, JI, TP/FP/FN, median |Δz| and |Δd| of the matches, the fitted
 index contrast of the matches (polystyrene 1.59 in water 1.33: 0.26), which of the
 network's false positives the fit dropped and which true positives it dropped wrongly, and
@@ -166,6 +167,8 @@ def evaluate(name: str, image: np.ndarray, truth: dict, model, config, *, tables
     start, core = time.perf_counter(), _core_seconds()
     refined_frame = refine_particles(normalised, frame, config, settings=RefineSettings(rounds=rounds))
     refine_s, refine_core_s = time.perf_counter() - start, _core_seconds() - core
+    # as predict --refine: a proposal below the model's threshold stays only where the fit refined it
+    refined_frame = refined_frame[refined_frame["refined"].astype(bool) | (refined_frame["score"] >= float(model.meta["threshold"]))].reset_index(drop=True)
     refined = {c: refined_frame[c].to_numpy() for c in refined_frame.columns}
     residual = None
     if look_in_residual:
