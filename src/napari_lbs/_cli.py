@@ -451,11 +451,28 @@ def console_main() -> None:
     """
     status = main()
     if status == 130:
-        _end_children()
         sys.stdout.flush()
         sys.stderr.flush()
+        _silence_streams()
+        _end_children()
         os._exit(130)
     sys.exit(status)
+
+
+def _silence_streams() -> None:
+    """Point this process's standard output and error at the null device, once its last line is written.
+
+    A pool abandoned while it starts spawns workers until the process ends: one spawned
+    after `_end_children` has looked reads a closed pipe and prints a traceback on the
+    stream it inherits. Silenced first, every worker either exists when `_end_children`
+    looks (and is killed) or inherits the null device.
+    """
+    null = os.open(os.devnull, os.O_WRONLY)
+    try:
+        for stream in (1, 2):
+            os.dup2(null, stream)
+    finally:
+        os.close(null)
 
 
 def _end_children() -> None:
