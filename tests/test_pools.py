@@ -46,7 +46,10 @@ def _with_steps(task, steps):
 def _children() -> list:
     """This process's live child processes, but multiprocessing's resource tracker (one per process, from the first spawn on).
 
-    psutil's view where installed: it also sees what multiprocessing lost track of.
+    psutil's view where installed: the operating system's, which also sees what
+    multiprocessing lost track of. multiprocessing's own list can hold a worker that has
+    exited: when the executor's thread and the pool both wait for it, the one that loses the
+    race sees no exit status, and the worker stays listed until it is joined again.
     """
     from multiprocessing import resource_tracker
 
@@ -55,8 +58,14 @@ def _children() -> list:
         import psutil
     except ImportError:
         return multiprocessing.active_children()
-    alive = [child for child in psutil.Process().children(recursive=True) if child.pid != tracker and child.status() != psutil.STATUS_ZOMBIE]
-    return alive + multiprocessing.active_children()
+    alive = []
+    for child in psutil.Process().children(recursive=True):
+        try:
+            if child.pid != tracker and child.status() != psutil.STATUS_ZOMBIE:
+                alive.append(child)
+        except psutil.NoSuchProcess:
+            pass  # exited since it was listed
+    return alive
 
 
 def test_results_come_in_task_order_with_one_step_per_task_however_they_finish():
