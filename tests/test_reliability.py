@@ -135,14 +135,24 @@ def nothing_written(folder, before: set) -> bool:
 
 
 _GOOD_ROW = ["1.5", "2", "3000", "25"]
+def _spells_a_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
 _BAD_TABLES = st.one_of(
     st.integers(1, 3).map(lambda k: ("short row", ",".join(PARTICLE_COLUMNS) + "\n" + ",".join(_GOOD_ROW) + "\n" + ",".join(_GOOD_ROW[:k]) + "\n")),
     st.integers(1, 3).map(lambda k: ("long row", ",".join(PARTICLE_COLUMNS) + "\n" + ",".join(_GOOD_ROW + ["9"] * k) + "\n")),
     st.sampled_from(PARTICLE_COLUMNS).map(lambda c: ("duplicate", ",".join(PARTICLE_COLUMNS) + f",{c}\n" + ",".join(_GOOD_ROW) + ",1\n")),
     st.sampled_from(PARTICLE_COLUMNS).map(lambda c: ("missing", ",".join(x for x in PARTICLE_COLUMNS if x != c) + "\n1,2,3\n")),
-    st.tuples(st.sampled_from(PARTICLE_COLUMNS), st.text(st.characters(whitelist_categories=("L",)), min_size=1, max_size=5)).map(
+    # letters that spell a number ("INF", "nan") are numbers: the finite cases below cover them
+    st.tuples(st.sampled_from(PARTICLE_COLUMNS), st.text(st.characters(whitelist_categories=("L",)), min_size=1, max_size=5).filter(lambda t: not _spells_a_number(t))).map(
         lambda a: ("not numeric", ",".join(PARTICLE_COLUMNS) + "\n" + ",".join(a[1] if c == a[0] else "1" for c in PARTICLE_COLUMNS) + "\n")),
     st.sampled_from(["nan", "inf", "-inf"]).map(lambda v: ("not finite", ",".join(PARTICLE_COLUMNS) + f"\n{v},1,3000,25\n")),
+    st.sampled_from(["inf", "-INF", "Infinity"]).map(lambda v: ("infinite diameter", ",".join(PARTICLE_COLUMNS) + f"\n1,1,3000,{v}\n")),
     st.just(("empty", "")),
 )
 

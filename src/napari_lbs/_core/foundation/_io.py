@@ -298,7 +298,8 @@ def read_particles(path: str | Path) -> dict[str, np.ndarray]:
     InputError
         Naming the file (and the line or column): not UTF-8, empty, a required column missing,
         a column named twice, a row with more or fewer values than the header, a required
-        column not numeric, or a position (``x_um``, ``y_um``, ``z_um``) NaN or infinite.
+        column not numeric, a position (``x_um``, ``y_um``, ``z_um``) NaN or infinite, or
+        a diameter infinite (NaN: not measured).
     """
     path = Path(path)
     if _is_parquet(path):
@@ -338,10 +339,12 @@ def _check_columns(path: Path, header: list[str]) -> None:
 
 
 def _checked(path: Path, table: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """``table`` once its positions are finite numbers (its columns already checked)."""
+    """``table`` once its positions are finite numbers and its diameters finite or NaN (not measured; its columns already checked)."""
     for name in PARTICLE_COLUMNS[:3]:
         if not np.all(np.isfinite(table[name])):
             raise InputError(f"{path}: column {name} holds NaN or infinite values")
+    if np.any(np.isinf(table["diameter_um"])):
+        raise InputError(f"{path}: column diameter_um holds infinite values")
     return table
 
 
