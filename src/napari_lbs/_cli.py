@@ -352,7 +352,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--refine", action="store_true", help="refine every detection by a Lorenz-Mie fit (spheres in water): the table gains index_contrast, absorption, "
                    "z_err_um, diameter_err_um, index_err, fit_residual, refined, outside_training; then the network looks again in what the fit leaves unexplained "
                    "and adds the particles it finds there of the sample's material (--material, else 0.26); one fitting process per core (docs/refinement.md)")
-    p.add_argument("--threshold", type=_number(0.0, above=True), help="smallest detection score kept, below 1 for focus models (default: the model's; with --refine 0.8 of it, the fit checks the rest)")
+    p.add_argument("--threshold", type=_number(0.0, above=True), help="smallest detection score kept, below 1 for focus models (default: the model's; with --refine 0.8 of it, the fit checks the rest and drops those below the model's that it cannot refine)")
     p.add_argument("--material", type=_number(-0.9, 2.5), metavar="N", help="refine, and keep the particles of index contrast n_p - n_m = N (0.26: polystyrene in water)")
     p.set_defaults(run=_cmd_predict)
 
