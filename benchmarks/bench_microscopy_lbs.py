@@ -16,9 +16,10 @@ photo-electrons at the unobstructed light, Poisson noise, a dark offset of 100 c
 counts of read noise, 16-bit counts) and divided by a background frame of its own noise after
 the dark is taken off. Each frame holds 20–50 spheres (uniform count), centres uniform over
 the frame and 10–60 µm deep, diameters uniform in 0.5–3 µm, index contrast uniform in
-0.24–0.28, no two intersecting. Two sets of `FRAMES` frames of 512² (51.2 µm): ``development``
-(seed 1), where the pipeline was looked at, and ``frozen`` (`FROZEN`, fixed before its
-first run and scored once).
+0.24–0.28, no two intersecting. Sets of frames of 512² (51.2 µm): ``development`` (seed 1,
+`FRAMES` frames), where the pipeline was looked at; ``frozen`` (`FROZEN`, `FRAMES` frames,
+fixed before its first run); ``frozen-2`` (`FROZEN_2`, 6 frames, fixed before its first run,
+for the designs chosen after ``frozen`` had been scored).
 
 The pipeline, the public API of the commands (``napari-lbs generate / train / predict
 --refine``): `generate_dataset` of ``--groups`` groups with transparent spheres
@@ -68,7 +69,9 @@ INDEX_CONTRAST = 0.26
 DESIGN = {"spheres": (20, 50), "z_um": (10.0, 60.0), "diameter_um": (0.5, 3.0), "index_contrast": (0.24, 0.28), "size_px": SIZE, "frames": FRAMES,
           "pixel_um": PIXEL_UM, "bits": 16}
 FROZEN = {"seed": 20261128, **DESIGN}  # fixed before the frozen set's first run
-SETS = {"development": {"seed": 1, **DESIGN}, "frozen": FROZEN}
+# a second frozen set, fixed before its first run, for designs chosen after the first was scored
+FROZEN_2 = {**DESIGN, "seed": 20261129, "frames": 6}
+SETS = {"development": {"seed": 1, **DESIGN}, "frozen": FROZEN, "frozen-2": FROZEN_2}
 CONFIG = {"optics": {"wavelength_um": bench_microscopy.WAVELENGTH_UM, "camera_pixel_um": 6.0, "magnification": 60.0, "medium_index": bench_microscopy.N_MEDIUM},
           "volume": {"z_min_um": 5.0, "z_max_um": 65.0, "z_step_um": 0.5},
           "particles": {"diameter_min_um": 0.5, "diameter_max_um": 3.0, "per_tile": 9, "layer_step_um": 5.0},
