@@ -482,8 +482,9 @@ def test_predict_refine_writes_the_refined_columns(tmp_path, monkeypatch, flags)
     from napari_lbs._core.foundation._threads import available_threads
 
     material = {"index_contrast": 0.26} if "--material" in flags else {}
-    # the fit runs where the prediction did, a process per core, over the refine command's depth window (later: copies the fit makes)
-    assert made[0] == {"device": "cpu", "workers": available_threads(), "depth_window_um": 400.0, **material}
+    # the fit runs where the prediction did, a process per core, over the refine command's depth window, with the network's
+    # validated depth error as its depth prior (this model's file records none) (later: copies the fit makes)
+    assert made[0] == {"device": "cpu", "workers": available_threads(), "depth_window_um": 400.0, "depth_prior_um": 0.0, **material}
     # the network proposes down to 0.8 of its threshold (the fit checks them), then again in
     # the refined table's residual, where the stub's same guess finds nothing more
     assert thresholds == [0.4, 0.4]
@@ -643,3 +644,38 @@ def test_a_proposal_below_the_network_s_threshold_stays_only_where_the_fit_refin
     table, record = _predict._refined(np.ones((64, 64)), particles, load_config(None), RefineSettings(), **options)
     assert len(table["x_um"]) == 4 and "unconfirmed" not in record
     assert _predict._acceptance_threshold({"threshold": 0.2}, None) == 0.2 and _predict._acceptance_threshold({"threshold": 0.2}, 0.12) == 0.12
+
+
+def test_the_depth_prior_is_a_laplace_cost_of_the_guesses_median_error():
+    from napari_lbs._core import RefineSettings
+    from napari_lbs._core.foundation import InputError
+    from napari_lbs._core.refine._rings import depth_prior
+
+    z = torch.tensor([[10.0, 10.5, 9.0, 14.0]])
+    cost = depth_prior(z, torch.tensor([10.0]), 0.5)
+    assert torch.allclose(cost, torch.tensor([[0.0, np.log(2.0), 2 * np.log(2.0), 8 * np.log(2.0)]], dtype=cost.dtype))  # median |Δz| costs ln 2
+    assert torch.equal(depth_prior(z, torch.tensor([10.0]), 0.0), torch.zeros_like(z))
+    with pytest.raises(InputError, match="depth_prior_um"):
+        RefineSettings(depth_prior_um=-1.0)
+
+
+def test_a_fit_with_a_depth_prior_starts_at_its_guess_too_and_keeps_a_clear_sphere():
+    from napari_lbs._core import RefineSettings, refine_particles
+
+    truth = (36.3 * PIXEL_UM, 35.6 * PIXEL_UM, 1500.0, 22.0)
+    start = guess_table([(truth[0] + 1.0, truth[1] - 0.8, truth[2] + 20.0, truth[3] + 0.8)])
+    out = refine_particles(sphere_scene([truth]), start, default_config(), fixed={"absorption": 0.0, "index_contrast": 0.26},
+                           settings=RefineSettings(**{**FAST, "depth_prior_um": 15.0}))
+    assert abs(out.z_um[0] - truth[2]) < 2.0 and abs(out.diameter_um[0] - truth[3]) < 0.3
+
+
+def test_predict_refine_takes_its_depth_prior_from_the_model_s_validated_depth_error():
+    from napari_lbs._core import RefineSettings, load_config
+    from napari_lbs._core.pipeline import _predict
+
+    assert _predict._network_depth_error_um({"validation": {"median_abs_dz_um": 0.44}}) == 0.44
+    assert _predict._network_depth_error_um({"validation": {"median_abs_dz_um": None}}) == 0.0 and _predict._network_depth_error_um({}) == 0.0
+    config = load_config(None)
+    assert _predict._fit_settings(None, config, device="cpu", material=None, depth_prior_um=0.44).depth_prior_um == 0.44
+    given = RefineSettings(depth_prior_um=2.0)
+    assert _predict._fit_settings(given, config, device="cpu", material=0.26, depth_prior_um=0.44).depth_prior_um == 2.0  # a caller's settings win

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import shutil
 import time
 from collections.abc import Sequence
@@ -125,15 +126,21 @@ def _network_proposals(model, config: ExperimentConfig | None, settings: Predict
     return lambda image: predict_particles(image, model, config, settings=settings, progress=progress, should_stop=should_stop).particles
 
 
-def _fit_settings(settings: RefineSettings | None, config: ExperimentConfig, *, device: str, material: float | None) -> RefineSettings:
-    """The `RefineSettings` of a refined prediction: ``settings``, else the prediction's device with one fitting process per available core and the ``refine`` command's depth window for ``config`` (`default_depth_window_um`); a declared ``material`` is where every fit starts."""
+def _network_depth_error_um(meta: dict) -> float:
+    """The model's validated median depth error ``|Δz|`` (µm, the config's convention), 0 where its file records none."""
+    value = (meta.get("validation") or {}).get("median_abs_dz_um")
+    return float(value) if isinstance(value, int | float) and math.isfinite(value) and value > 0 else 0.0
+
+
+def _fit_settings(settings: RefineSettings | None, config: ExperimentConfig, *, device: str, material: float | None, depth_prior_um: float = 0.0) -> RefineSettings:
+    """The `RefineSettings` of a refined prediction: ``settings``, else the prediction's device with one fitting process per available core, the ``refine`` command's depth window for ``config`` (`default_depth_window_um`) and the network's validated depth error as the fits' depth prior (``depth_prior_um``); a declared ``material`` is where every fit starts."""
     from napari_lbs._core.foundation import available_threads
     from napari_lbs._core.pipeline._binning import default_depth_window_um
     from napari_lbs._core.refine import RefineSettings
 
     start = {} if material is None else {"index_contrast": float(material)}
     if settings is None:  # the prediction's device (CUDA where it ran there); on the CPU one fitting process per core
-        return RefineSettings(device=device, workers=available_threads(), depth_window_um=default_depth_window_um(config), **start)
+        return RefineSettings(device=device, workers=available_threads(), depth_window_um=default_depth_window_um(config), depth_prior_um=depth_prior_um, **start)
     return replace(settings, **start)
 
 
@@ -200,7 +207,8 @@ def refined_prediction(hologram: np.ndarray, model, config: ExperimentConfig | N
     result = predict_particles(hologram, model, config, background=background, settings=settings, progress=progress, should_stop=should_stop)
     normalised = np.asarray(hologram, dtype=np.float64) / (background if background is not None else float(np.mean(hologram)))
     propose = _network_proposals(model, config, settings, progress=progress, should_stop=should_stop)
-    fit = _fit_settings(refine_settings, config or model.config, device=settings.device, material=material_index_contrast)
+    fit = _fit_settings(refine_settings, config or model.config, device=settings.device, material=material_index_contrast,
+                        depth_prior_um=_network_depth_error_um(model.meta))
     particles, record = _refined(normalised, result.particles, config or model.config, fit, material=material_index_contrast, propose=propose,
                                  valid=unsaturated_pixels(hologram), progress=progress, should_stop=should_stop, accept_score=accept)
     return PredictionResult(particles, {**result.provenance, "refine": record}, time.perf_counter() - started)
@@ -419,7 +427,8 @@ def _predict_recording(request: PredictRequest, frames, out: Path, record_path: 
         # the second look runs in this process, on the prediction's device (the workers moved their own copies there)
         looker = load_model(request.model, device=request.device) if isinstance(request.model, (str, Path)) else model
         propose = _network_proposals(looker, request.config, settings, progress=progress, should_stop=should_stop)
-        fit = _fit_settings(None, request.config or model.config, device=request.device, material=request.material_index_contrast)
+        fit = _fit_settings(None, request.config or model.config, device=request.device, material=request.material_index_contrast,
+                            depth_prior_um=_network_depth_error_um(model.meta))
         particles, provenance["refine"] = _refined_frames(frames, particles, request.config or model.config, fit, background=background,
                                                           material=request.material_index_contrast, propose=propose, log=log, progress=progress,
                                                           should_stop=should_stop, accept_score=accept)

@@ -81,6 +81,8 @@ def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of
     scale = flat[1]
     alone_residual, _, alone_light = flat if model.others is None else flat_model(fine, model.others)  # the model without this particle
     start_index = torch.as_tensor(anchor[:, 4], dtype=torch.float64, device=device)
+    start_depth = torch.as_tensor(anchor[:, 2], dtype=torch.float64, device=device)
+    depth_prior_um = settings.depth_prior_um * settings.medium_index / optics.medium_index
     if search:
         # the rings of the data less the neighbours' hologram: theirs would pull the depth scan
         seen = fine if model.others is None else Patches(torch.where(fine.mask > 0, alone_light + alone_residual, fine.data), fine.mask, fine.x_um,
@@ -89,8 +91,8 @@ def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of
         params[:, 0] = torch.where(free_t[:, 0], torch.as_tensor(centre_x, device=device), params[:, 0])
         params[:, 1] = torch.where(free_t[:, 1], torch.as_tensor(centre_y, device=device), params[:, 1])
         rings = cut_rings(seen, params[:, 0], params[:, 1], pixel_um=optics.pixel_um)
-        params[:, 2:5] = ring_search(rings, params, free_t, scale, model=model, window_um=z_window, start_index=start_index, settings=settings,
-                                      steps=steps)
+        params[:, 2:5] = ring_search(rings, params, free_t, scale, model=model, window_um=z_window, start_index=start_index, start_depth=start_depth,
+                                      depth_prior_um=depth_prior_um, settings=settings, steps=steps)
         params = clamp(params, low, high)
         # a size search beyond the largest start (a size the network never saw) needs more partial waves
         model = model.with_terms(scattered_terms(float(params[:, 3].max()), wavelength_um=optics.wavelength_um, medium_index=settings.medium_index))
@@ -121,7 +123,8 @@ def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of
         data = torch.where(fine.mask > 0, data * (level / torch.where(gain.abs() > 1e-12, gain, level)), fine.data)
         cleaned = Patches(data, fine.mask, fine.x_um, fine.y_um, fine.u, fine.v, fine.shape)
         final, final_cost, profile = valley_profile(cleaned, coarse_model, final, final_cost, free_t, low, high, fit_scale, pixel_um=optics.pixel_um,
-                                                     start_index=start_index, settings=settings, steps=steps)
+                                                     start_index=start_index, start_depth=start_depth, depth_prior_um=depth_prior_um, settings=settings,
+                                                     steps=steps)
     final, _ = levenberg_marquardt(model, final, free_t, low, high, scale=fit_scale, settings=settings, iterations=_FINE_ITERATIONS, steps=steps)
     prediction, jac = model.jacobian(final, free_t, envelope=True)
     steps.check()

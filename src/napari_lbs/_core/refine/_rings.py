@@ -270,8 +270,15 @@ def _parabola_vertex(costs: torch.Tensor, best: torch.Tensor) -> torch.Tensor:
     return torch.clamp(vertex + (inner - best), -0.5, 0.5)
 
 
+def depth_prior(z_um: torch.Tensor, start_depth_um: torch.Tensor, prior_um: float) -> torch.Tensor:
+    """Cost (half noise variances) of depths ``z_um`` (B, ...) under a Laplace prior of median ``|Δz|`` ``prior_um`` about the guesses ``start_depth_um`` (B,); zero where ``prior_um`` is 0."""
+    if prior_um <= 0:
+        return torch.zeros_like(z_um)
+    return math.log(2.0) * (z_um - start_depth_um.reshape(-1, *([1] * (z_um.dim() - 1)))).abs() / prior_um
+
+
 def ring_search(rings: Rings, params: torch.Tensor, free: torch.Tensor, scale: torch.Tensor, *, model: Model, window_um: float,
-                 start_index: torch.Tensor, settings: RefineSettings, steps: Steps) -> torch.Tensor:
+                 start_index: torch.Tensor, start_depth: torch.Tensor, depth_prior_um: float, settings: RefineSettings, steps: Steps) -> torch.Tensor:
     """Depth, diameter and index contrast (B, 3) from the ring profiles: depth scan, size–index grid, fine depth scan.
 
     The depth is scanned over ``±window_um`` in steps that move the outermost ring's fringe
@@ -279,7 +286,10 @@ def ring_search(rings: Rings, params: torch.Tensor, free: torch.Tensor, scale: t
     quarter step apart; at each, diameters ±3.6 µm (±8 µm where the best lies on that
     grid's edge) and index contrasts one phase-delay period on each side (quarter periods)
     are compared, the valleys away from the starting index paying `VALLEY_PRIOR` per
-    period²; at the best, the depth is scanned finely again.
+    period²; at the best, the depth is scanned finely again. With a ``depth_prior_um``, the
+    guess itself starts a fit too, and depths away from the guesses ``start_depth`` (µm in
+    the medium) pay `depth_prior` in the scan's ranking and the final choice, there in units
+    of the rings' own scatter (the best fit's χ² per degree of freedom, at least 1).
     """
     k = 2.0 * math.pi * model.optics["medium_index"] / model.optics["wavelength_um"]
     wavelength = model.optics["wavelength_um"]
@@ -307,7 +317,7 @@ def ring_search(rings: Rings, params: torch.Tensor, free: torch.Tensor, scale: t
         trials = torch.where(free[:, 2:3], torch.clamp(z[:, None] + offsets, min=1.0), z[:, None])
         costs = ring_costs(rings, trials, here, scale, model=model)[:, :, 0]
         steps.check()
-        pick = _best(costs, settings.depth_candidates, local=True)
+        pick = _best(costs + depth_prior(trials, start_depth, depth_prior_um), settings.depth_candidates, local=True)
         depths = refine_depth(torch.gather(trials, 1, pick), here.expand(-1, pick.shape[1], -1))
     kk = depths.shape[1]
     candidates = torch.stack([depths, d[:, None].expand(-1, kk), n[:, None].expand(-1, kk)], dim=-1)  # (B, K, 3)
@@ -339,6 +349,9 @@ def ring_search(rings: Rings, params: torch.Tensor, free: torch.Tensor, scale: t
             better = edge & (torch.gather(outer_costs, 2, outer_best[:, :, None])[:, :, 0] < torch.gather(costs, 2, best[:, :, None])[:, :, 0])
             chosen = torch.where(better[:, :, None], torch.gather(outer_spheres, 1, outer_best[:, :, None].expand(-1, -1, 3)), chosen)
         candidates = torch.stack([depths, chosen[:, :, 0], chosen[:, :, 1]], dim=-1)
+    if depth_prior_um > 0:  # the guess itself starts a fit too: the scan's minima may all be its neighbours' fringes
+        candidates = torch.cat([candidates, torch.stack([z, d, n], dim=-1)[:, None, :]], dim=1)
+        kk += 1
     # every candidate followed down its valley, then the best (the valley prior as above)
     grow = lambda t: t.repeat_interleave(kk, dim=0)
     flat_free = grow(free[:, 2:5])
@@ -350,7 +363,12 @@ def ring_search(rings: Rings, params: torch.Tensor, free: torch.Tensor, scale: t
     fitted, cost = _ring_fit(ring_rows, candidates.reshape(count * kk, 3), flat_free, grow(kappa), grow(scale), low, high, model=model,
                              iterations=_RING_ITERATIONS, depth_reach_um=step / 2.0)
     valleys = (fitted[:, 2] - grow(start_index)) / (wavelength / fitted[:, 1])
-    cost = cost + VALLEY_PRIOR * valleys**2 * flat_free[:, 2].to(torch.float64)
+    # the depth prior in units of the rings' own scatter: neighbours' fringes make the ring
+    # means scatter by more than the pixel noise, by the best fit's χ² per degree of freedom
+    dof = torch.clamp(2.0 * (rings.weight > 0).sum(dim=1).to(torch.float64) - 4.0, min=1.0)
+    excess = torch.clamp(cost.reshape(count, kk).amin(dim=1) / (0.5 * dof), min=1.0)
+    cost = cost + VALLEY_PRIOR * valleys**2 * flat_free[:, 2].to(torch.float64) \
+        + grow(excess) * depth_prior(fitted[:, 0], grow(start_depth), depth_prior_um) * flat_free[:, 0]
     best = torch.argmin(cost.reshape(count, kk), dim=1)
     return fitted[torch.arange(count, device=device) * kk + best]
 

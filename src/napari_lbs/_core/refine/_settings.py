@@ -39,6 +39,12 @@ class RefineSettings:
         Depths scanned on each side of the guess (µm, the table's convention).
     depth_candidates : int
         Best local minima of the scan that start a fit.
+    depth_prior_um : float
+        The guesses' median depth error (µm, the table's convention; a network's validated
+        median ``|Δz|``), or 0 for none. Where the hologram tells two depths apart by less
+        than a few noise variances (a sphere's fringes among its neighbours' in a dense
+        field), the searches pick the one nearer the guess: a depth ``Δz`` from it pays
+        ``ln 2 · |Δz| / depth_prior_um`` half noise variances, a Laplace prior of that median.
     patch_px : int
         Largest patch edge (pixels).
     iterations : int
@@ -75,6 +81,7 @@ class RefineSettings:
     absorption: float = 0.0
     depth_window_um: float = 400.0
     depth_candidates: int = 3
+    depth_prior_um: float = 0.0
     patch_px: int = 128
     iterations: int = 8
     rounds: int = 1
@@ -86,7 +93,7 @@ class RefineSettings:
     workers: int = 1
 
     def __post_init__(self) -> None:
-        for name in ("medium_index", "depth_window_um", "huber", "min_gain"):
+        for name in ("medium_index", "depth_window_um", "depth_prior_um", "huber", "min_gain"):
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
                 raise InputError(f"refine settings: {name} must be a finite number >= 0, got {value!r}")

@@ -19,7 +19,7 @@ from napari_lbs._core.foundation import Steps
 from napari_lbs._core.refine._levenberg_marquardt import clamp, levenberg_marquardt
 from napari_lbs._core.refine._model import Model
 from napari_lbs._core.refine._patches import Patches
-from napari_lbs._core.refine._rings import VALLEY_PRIOR, Rings, cut_rings, ring_costs, ring_depth_step
+from napari_lbs._core.refine._rings import VALLEY_PRIOR, Rings, cut_rings, depth_prior, ring_costs, ring_depth_step
 from napari_lbs._core.refine._settings import BOUNDS, RefineSettings
 
 # the valley profile: size parameter k a along the line of constant phase delay, the
@@ -120,12 +120,14 @@ def profile_spread(profile: _Profile, diameter_um: torch.Tensor, contrast: torch
 
 
 def valley_profile(fine: Patches, model: Model, final: torch.Tensor, cost: torch.Tensor, free: torch.Tensor, low: torch.Tensor, high: torch.Tensor,
-                    scale: torch.Tensor, *, pixel_um: float, start_index: torch.Tensor, settings: RefineSettings, steps: Steps) -> tuple[torch.Tensor, torch.Tensor, _Profile]:
+                    scale: torch.Tensor, *, pixel_um: float, start_index: torch.Tensor, start_depth: torch.Tensor, depth_prior_um: float, settings: RefineSettings,
+                    steps: Steps) -> tuple[torch.Tensor, torch.Tensor, _Profile]:
     """The valley profile (`_ring_profile`) about each fit, and the fit moved to its deepest point where that lies elsewhere.
 
     Where the profile's best point (the valley prior included) is another ripple minimum
     (more than a profile step away) or another valley, the fit is restarted there and the
-    better of the two fits (robust cost plus the valley prior) is kept. ``model``: the
+    better of the two fits (robust cost plus the valley prior and `depth_prior` about
+    ``start_depth``) is kept. ``model``: the
     patches' model on every other pixel, where the restarts run.
     """
     optics = model.optics
@@ -136,9 +138,10 @@ def valley_profile(fine: Patches, model: Model, final: torch.Tensor, cost: torch
     depth_step = ring_depth_step(rings, final[:, 2], window_um=0.0, k=k_m, pixel_um=pixel_um) / 4.0
     profile = _ring_profile(rings, final[:, 2], final[:, 3], final[:, 4], final[:, 5], free, scale, model=model, depth_step_um=depth_step)
     period = lambda d: optics["wavelength_um"] / d
-    prior = lambda n, d, rows: VALLEY_PRIOR * ((n - start_index[rows]) / period(d)) ** 2 * free[rows, 4].to(torch.float64)
+    prior = lambda n, d, z, rows: VALLEY_PRIOR * ((n - start_index[rows]) / period(d)) ** 2 * free[rows, 4].to(torch.float64) \
+        + depth_prior(z, start_depth[rows], depth_prior_um) * free[rows, 2].to(torch.float64)
     ranked = profile.cost + VALLEY_PRIOR * ((profile.contrast - start_index[:, None, None]) / period(profile.diameter_um)[:, :, None]) ** 2 \
-        * free[:, 4:5, None].to(torch.float64)
+        * free[:, 4:5, None].to(torch.float64) + depth_prior(profile.depth_um, start_depth, depth_prior_um) * free[:, 2:3, None].to(torch.float64)
     flat = torch.argmin(ranked.reshape(count, -1), dim=1)
     rows = torch.arange(count, device=device)
     valleys = profile.cost.shape[2]
@@ -152,7 +155,7 @@ def valley_profile(fine: Patches, model: Model, final: torch.Tensor, cost: torch
         steps.check()
         refit, refit_cost = levenberg_marquardt(model.select(todo), clamp(moved[todo], low[todo], high[todo]), free[todo], low[todo], high[todo],
                                                  scale=scale[todo], settings=settings, iterations=settings.iterations, steps=steps)
-        better = refit_cost + prior(refit[:, 4], refit[:, 3], todo) < cost[todo] + prior(final[todo, 4], final[todo, 3], todo)
+        better = refit_cost + prior(refit[:, 4], refit[:, 3], refit[:, 2], todo) < cost[todo] + prior(final[todo, 4], final[todo, 3], final[todo, 2], todo)
         final = final.clone()
         cost = cost.clone()
         final[todo[better]] = refit[better]
