@@ -345,7 +345,7 @@ def test_worker_processes_give_the_same_table_report_progress_and_stop_at_once()
     pd.testing.assert_frame_equal(pooled, alone, check_exact=True)
     assert len(pooled) == 2
     times = [t for t, _, _ in calls]
-    assert calls[-1][1:] == (4, 4) and max(np.diff(times)) < 1.0
+    assert calls[-1][1:] == (6, 6) and max(np.diff(times)) < 1.0  # two batches in each of two rounds and the small spheres' retry
     asked = []
 
     def stop_soon() -> bool:
@@ -679,3 +679,33 @@ def test_predict_refine_takes_its_depth_prior_from_the_model_s_validated_depth_e
     assert _predict._fit_settings(None, config, device="cpu", material=None, depth_prior_um=0.44).depth_prior_um == 0.44
     given = RefineSettings(depth_prior_um=2.0)
     assert _predict._fit_settings(given, config, device="cpu", material=0.26, depth_prior_um=0.44).depth_prior_um == 2.0  # a caller's settings win
+
+
+def test_a_small_sphere_s_failed_fit_is_retried_with_its_index_held_and_a_large_one_s_is_not(monkeypatch):
+    """Below k a = 10 a hologram shows a sphere's polarisability, not its size and index apart: a fit that ran to a bound is retried with both held at their starts."""
+    from napari_lbs._core import RefineSettings, refine_particles
+    from napari_lbs._core.refine import _refine
+
+    calls = []
+
+    def run_tasks(tasks, pool, steps):
+        calls.append(tasks)
+        outputs = []
+        for task in tasks:
+            count = len(task.index)
+            params = task.start.copy()
+            params[:, 4] = np.where(task.free[:, 4], 2.5, task.start[:, 4])  # a free index runs to its bound
+            outputs.append({"params": params, "errors": 0.01 * task.free, "spread": np.full((count, 2), np.nan), "gain": np.full(count, 1e3),
+                            "residual": np.full(count, 0.1), "ok": ~task.free[:, 4]})
+            steps.advance(1)
+        return outputs
+
+    monkeypatch.setattr(_refine, "run_tasks", run_tasks)
+    # 0.8 µm at 660 nm in water: k a = 5.1; 22 µm: k a = 139
+    table = guess_table([(5.0, 5.0, 30.0, 0.8), (40.0, 40.0, 30.0, 22.0)])
+    out = refine_particles(np.ones((64, 64)), table, default_config(), settings=RefineSettings(**FAST))
+    assert len(calls) == 2 and [list(task.index) for task in calls[1]] == [[0]]  # the small sphere alone is retried
+    assert not calls[1][0].free[0, 4] and not calls[1][0].free[0, 5] and calls[1][0].free[0, 2]  # index and absorption held, depth free
+    small = out[out.diameter_um < 1.0].iloc[0]
+    assert bool(small.refined) and small.index_contrast == pytest.approx(0.26) and small.index_err == 0.0
+    assert not bool(out[out.diameter_um > 1.0].iloc[0].refined)  # the large one's failed fit stays unrefined at its guess
