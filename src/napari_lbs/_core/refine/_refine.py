@@ -205,6 +205,20 @@ def refine_particles(
     pool = WorkerPool(settings.workers if device.type == "cpu" else 1)
     try:
         present = np.ones(count, dtype=bool)
+
+        def fit(todo: np.ndarray, starts: np.ndarray, fitted: np.ndarray, *, search: bool) -> dict[str, np.ndarray] | None:
+            """The fits of rows ``todo`` from ``starts`` (every row's), ``fitted`` (every row's free parameters), the others at ``current``; one step per batch."""
+            # enough for the largest sphere of the current fits, the neighbours (a later round's fits may
+            # be larger than any guess); a batch whose size search goes further sums more (`scattered_terms`)
+            terms = scattered_terms(float(np.max(current[:, 3])), wavelength_um=optics.wavelength_um, medium_index=settings.medium_index)
+            parts = -(-todo.size // batch)
+            tasks = [FitTask(image=image, start=starts[index], free=fitted[index], anchor=start[index], neighbours=current, present=present, index=index,
+                             settings=settings, config=config, terms=terms, device=device.type, search=search, valid=valid)
+                     for index in (np.array_split(todo, parts) if parts else [])]
+            outputs = run_tasks(tasks, pool, steps)
+            steps.advance(chunks - len(outputs))
+            return {key: np.concatenate([o[key] for o in outputs]) for key in outputs[0]} if outputs else None
+
         for round_index in range(settings.rounds if count else 0):
             if round_index == 0:
                 todo = np.arange(count)
@@ -212,45 +226,31 @@ def refine_particles(
                 distance = np.hypot(current[:, None, 0] - current[None, :, 0], current[:, None, 1] - current[None, :, 1])
                 crowded = ((distance < reach) & present[None, :]).sum(axis=1) > 1
                 todo = np.flatnonzero(crowded & present & result["ok"])
-            snapshot = current.copy()
-            # enough for the largest sphere of the round's starts (a later round's fits may be larger
-            # than any guess); a batch whose size search goes further sums more (`scattered_terms`)
-            terms = scattered_terms(float(np.max(snapshot[:, 3])), wavelength_um=optics.wavelength_um, medium_index=settings.medium_index)
-            parts = -(-todo.size // batch)
-            tasks = [FitTask(image=image, start=snapshot[index], free=free[index], anchor=start[index], neighbours=snapshot, present=present, index=index,
-                             settings=settings, config=config, terms=terms, device=device.type, search=round_index == 0, valid=valid)
-                     for index in (np.array_split(todo, parts) if parts else [])]
-            outputs = run_tasks(tasks, pool, steps)
-            if outputs:
-                part = {key: np.concatenate([o[key] for o in outputs]) for key in outputs[0]}
+            part = fit(todo, current.copy(), free, search=round_index == 0)
+            if part is not None:
                 if round_index == 0:
                     result = {key: np.empty_like(values) for key, values in part.items()}
                 for key, values in part.items():
                     result[key][todo] = values
                 current = np.where(result["ok"][:, None], result["params"], start)
                 present = _kept(result, settings=settings)
-            steps.advance(chunks - len(outputs))
-        # a small sphere's fit that found no sphere inside the model's range (a parameter on its
-        # bound) is tried once more with the index and absorption held at their starts: below a
-        # size parameter k a of `_SMALL_SIZE_PARAMETER` no ripple of its hologram tells its size
-        # from its index (only its polarisability shows), and the free index runs to a bound
-        size_parameter = np.pi * settings.medium_index / optics.wavelength_um * start[:, 3]
-        retry = np.flatnonzero(~result["ok"] & free[:, 4] & (size_parameter <= _SMALL_SIZE_PARAMETER)) if count else np.array([], dtype=np.int64)
-        parts = -(-retry.size // batch)
-        held = free.copy()
-        held[:, 4:6] = False
-        terms = scattered_terms(float(np.max(current[:, 3])) if count else 1.0, wavelength_um=optics.wavelength_um, medium_index=settings.medium_index)
-        tasks = [FitTask(image=image, start=start[index], free=held[index], anchor=start[index], neighbours=current, present=present, index=index,
-                         settings=settings, config=config, terms=terms, device=device.type, search=True, valid=valid)
-                 for index in (np.array_split(retry, parts) if parts else [])]
-        outputs = run_tasks(tasks, pool, steps)
-        if outputs:
-            part = {key: np.concatenate([o[key] for o in outputs]) for key in outputs[0]}
-            better = part["ok"]
-            for key, values in part.items():
-                result[key][retry[better]] = values[better]
-            free[retry[better], 4:6] = False
-        steps.advance(chunks - len(outputs))
+        if count:
+            # a small sphere's fit that found no sphere inside the model's range (a parameter on its
+            # bound) is tried once more with the index and absorption held at their starts: below a
+            # size parameter k a of `_SMALL_SIZE_PARAMETER` no ripple of its hologram tells its size
+            # from its index (only its polarisability shows), and the free index runs to a bound
+            size_parameter = np.pi * settings.medium_index / optics.wavelength_um * start[:, 3]
+            retry = np.flatnonzero(~result["ok"] & free[:, 4] & (size_parameter <= _SMALL_SIZE_PARAMETER))
+            held = free.copy()
+            held[:, 4:6] = False
+            part = fit(retry, start, held, search=True)
+            if part is not None:
+                converged = retry[part["ok"]]
+                for key, values in part.items():
+                    result[key][converged] = values[part["ok"]]
+                free[converged, 4:6] = False
+        else:
+            steps.advance(chunks)
     finally:
         pool.close()  # a stop or a failure has already ended the running fits; nothing they did is kept
     out = frame.copy()

@@ -270,6 +270,11 @@ def _parabola_vertex(costs: torch.Tensor, best: torch.Tensor) -> torch.Tensor:
     return torch.clamp(vertex + (inner - best), -0.5, 0.5)
 
 
+def ring_dof(rings: Rings) -> torch.Tensor:
+    """(B,) degrees of freedom of a sphere's ring fit: both ring means of every ring with pixels, less the fitted c0, depth, delay and size (at least 1)."""
+    return torch.clamp(2.0 * (rings.weight > 0).sum(dim=1).to(torch.float64) - 4.0, min=1.0)
+
+
 def depth_prior(z_um: torch.Tensor, start_depth_um: torch.Tensor, prior_um: float) -> torch.Tensor:
     """Cost (half noise variances) of depths ``z_um`` (B, ...) under a Laplace prior of median ``|Δz|`` ``prior_um`` about the guesses ``start_depth_um`` (B,); zero where ``prior_um`` is 0."""
     if prior_um <= 0:
@@ -363,12 +368,12 @@ def ring_search(rings: Rings, params: torch.Tensor, free: torch.Tensor, scale: t
     fitted, cost = _ring_fit(ring_rows, candidates.reshape(count * kk, 3), flat_free, grow(kappa), grow(scale), low, high, model=model,
                              iterations=_RING_ITERATIONS, depth_reach_um=step / 2.0)
     valleys = (fitted[:, 2] - grow(start_index)) / (wavelength / fitted[:, 1])
-    # the depth prior in units of the rings' own scatter: neighbours' fringes make the ring
-    # means scatter by more than the pixel noise, by the best fit's χ² per degree of freedom
-    dof = torch.clamp(2.0 * (rings.weight > 0).sum(dim=1).to(torch.float64) - 4.0, min=1.0)
-    excess = torch.clamp(cost.reshape(count, kk).amin(dim=1) / (0.5 * dof), min=1.0)
-    cost = cost + VALLEY_PRIOR * valleys**2 * flat_free[:, 2].to(torch.float64) \
-        + grow(excess) * depth_prior(fitted[:, 0], grow(start_depth), depth_prior_um) * flat_free[:, 0]
+    if depth_prior_um > 0:
+        # the depth prior in units of the rings' own scatter: neighbours' fringes make the ring
+        # means scatter by more than the pixel noise, by the best fit's χ² per degree of freedom
+        excess = torch.clamp(cost.reshape(count, kk).amin(dim=1) / (0.5 * ring_dof(rings)), min=1.0)
+        cost = cost + grow(excess) * depth_prior(fitted[:, 0], grow(start_depth), depth_prior_um) * flat_free[:, 0]
+    cost = cost + VALLEY_PRIOR * valleys**2 * flat_free[:, 2].to(torch.float64)
     best = torch.argmin(cost.reshape(count, kk), dim=1)
     return fitted[torch.arange(count, device=device) * kk + best]
 

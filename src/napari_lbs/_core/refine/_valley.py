@@ -19,7 +19,7 @@ from napari_lbs._core.foundation import Steps
 from napari_lbs._core.refine._levenberg_marquardt import clamp, levenberg_marquardt
 from napari_lbs._core.refine._model import Model
 from napari_lbs._core.refine._patches import Patches
-from napari_lbs._core.refine._rings import VALLEY_PRIOR, Rings, cut_rings, depth_prior, ring_costs, ring_depth_step
+from napari_lbs._core.refine._rings import VALLEY_PRIOR, Rings, cut_rings, depth_prior, ring_costs, ring_depth_step, ring_dof
 from napari_lbs._core.refine._settings import BOUNDS, RefineSettings
 
 # the valley profile: size parameter k a along the line of constant phase delay, the
@@ -88,7 +88,7 @@ def _ring_profile(rings: Rings, z_um: torch.Tensor, diameter_um: torch.Tensor, c
     uu = torch.where(use, uu, u[at])
     vv = torch.where(use, vv, v[at])
     best_delay = (diameter_um * contrast)[:, None, None] + index_free[:, :, None] * (valleys + _PROFILE_DELAY * vv) * wavelength
-    dof = torch.clamp(2.0 * (rings.weight > 0).sum(dim=1).to(torch.float64) - 4.0, min=1.0)
+    dof = ring_dof(rings)
     return _Profile(diameters, best_delay / diameters[:, :, None], z_um[:, None, None] + uu * depth_step_um, profile, scale, dof)
 
 
