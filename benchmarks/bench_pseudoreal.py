@@ -25,6 +25,10 @@ synthetic groups only) on three kinds of synthetic data:
              ``generate --effects-from`` takes them; against ``plain``.
 ``plain_report_effects`` as ``plain_report`` without the impurities (``--impurities 0``): what
              the report's effects alone bring.
+``lbs_report`` the closed loop from the seed's recipe (``lbs``, what ``demo --calibrated``
+             trains on): LBS plus all that ``generate --effects-from`` takes from the report of
+             the hologram with distractors, its effects, its small scatterers as impurities and its
+             fitted particles' sizes (`sizes_from_report`); against ``lbs``.
 
 Each model predicts the pseudo-real hologram at the real hologram's density (~100 spheres in
 1024²), the same 100 spheres with distractors (50 small debris spheres of n 1.45, 3–12 µm, per
@@ -73,7 +77,7 @@ from napari_lbs._core import (
     write_report,
 )
 from napari_lbs._core.foundation._files import write_json
-from napari_lbs._core.physics import distractors_from_report
+from napari_lbs._core.physics import distractors_from_report, sizes_from_report
 from napari_lbs._core.learning._metrics import depth_errors_um
 
 DENSITIES = {"real density": 100, "4x density": 400}
@@ -106,7 +110,7 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None, real
         holograms["with distractors"] = _hologram(out, "real_density_distractors", DENSITIES["real density"], seed=7, distractors=WITH_DISTRACTORS)
 
     calibration_path = out / "calibration.json"
-    calibrated = not only or {"lbs", "transparent", "effects"} & set(only)
+    calibrated = not only or {"lbs", "transparent", "effects", "lbs_report"} & set(only)
     if calibrated and not calibration_path.is_file():
         write_json(calibration_path, calibrate_hologram(experiment, config, settings=CalibrationSettings(generations=40, seed=0)).to_json())
     calibration = json.loads(calibration_path.read_text()) if calibrated else {"params": None, "ssim": None}
@@ -120,8 +124,8 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None, real
     report = json.loads(report_path.read_text()) if needs_report else {"verdict": None, "posterior": None}
     effects = effects_from_report(report, name=str(report_path)) if needs_report else {}
     busy_report_path = out / "diagnosis_distractors" / "report.json"
-    busy_effects, busy_distractors, busy_report = {}, Distractors(), {}
-    if (not only or {"plain_report", "plain_report_effects"} & set(only)) and not real_density_only:
+    busy_effects, busy_distractors, busy_report, busy_sizes = {}, Distractors(), {}, None
+    if (not only or {"plain_report", "plain_report_effects", "lbs_report"} & set(only)) and not real_density_only:
         if not busy_report_path.is_file():
             start = time.perf_counter()
             diagnosis = diagnose_scene(holograms["with distractors"][0], config)
@@ -130,6 +134,7 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None, real
         busy_report = json.loads(busy_report_path.read_text())
         busy_effects = effects_from_report(busy_report, name=str(busy_report_path))
         busy_distractors = distractors_from_report(busy_report, tile_px=config.tile.size, diameter_min_um=config.particles.diameter_min_um, name=str(busy_report_path))
+        busy_sizes = sizes_from_report(busy_report, diameter_range_um=(config.particles.diameter_min_um, config.particles.diameter_max_um), name=str(busy_report_path))
 
     lbs = InputProcessing.from_calibration(calibration) if calibrated else None
     stages = {
@@ -142,18 +147,21 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None, real
         "distractors": (InputProcessing(), TRANSPARENT, DEMO_DISTRACTORS),
         "plain_report": (InputProcessing(), busy_effects, busy_distractors),
         "plain_report_effects": (InputProcessing(), busy_effects, Distractors()),
+        "lbs_report": (lbs, busy_effects, busy_distractors, busy_sizes),
     }
     results = {"calibration": calibration["params"], "ssim": calibration["ssim"], "verdict": report["verdict"], "posterior": report.get("posterior"), "effects": effects,
                "with_distractors_report": {"verdict": (busy_report.get("verdict") or {}).get("id"), "effects": busy_effects, "distractors": busy_distractors.to_dict(),
-                                           "scene": busy_report.get("scene")} if busy_report else None, "stages": {}}
-    for stage, (processing, stage_effects, distractors) in stages.items():
+                                           "sizes": busy_sizes.to_dict() if busy_sizes else None, "scene": busy_report.get("scene")} if busy_report else None,
+               "stages": {}}
+    for stage, (processing, stage_effects, distractors, *stage_sizes) in stages.items():
         if only and stage not in only:
             continue
         model_path, log_path = out / f"{stage}.pt", out / f"{stage}.json"
         done = len(json.loads(log_path.read_text())["epochs"]) if log_path.is_file() else 0
         if done < epochs:  # not trained, or interrupted: generation and training both resume
             start = time.perf_counter()
-            dataset = generate_dataset(out / f"data_{stage}", config, groups=groups, processing=processing, effects=stage_effects, distractors=distractors, seed=0)
+            dataset = generate_dataset(out / f"data_{stage}", config, groups=groups, processing=processing, effects=stage_effects, distractors=distractors,
+                                       sizes=stage_sizes[0] if stage_sizes else None, seed=0)
             generated = time.perf_counter() - start
             trained = train_model(dataset, model_path, settings=TrainingSettings(epochs=epochs, seed=0), resume=model_path.with_suffix(".last.pt").is_file(), force=True)
             print(f"{stage}: generated {groups} groups in {generated:.0f} s, trained {epochs} epochs (from epoch {done}) in {trained.log['seconds']:.0f} s", flush=True)
