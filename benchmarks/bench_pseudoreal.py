@@ -29,6 +29,12 @@ synthetic groups only) on three kinds of synthetic data:
              trains on): LBS plus all that ``generate --effects-from`` takes from the report of
              the hologram with distractors, its effects, its small scatterers as impurities and its
              fitted particles' sizes (`sizes_from_report`); against ``lbs``.
+``plain_report_sizes`` as ``plain_report`` with the fitted sizes too: all that
+             ``generate --effects-from`` takes, on the uncalibrated recipe.
+``lbs_report_uniform`` as ``lbs_report`` with the config's uniform sizes (``--uniform-sizes``).
+``lbs_recalibrated_report`` as ``lbs_report``, the Holo-processing calibrated again with the
+             report's effects in its simulated fields (``calibrate --effects-from``): the noise
+             and gamma fitted beyond what the report explains.
 
 Each model predicts the pseudo-real hologram at the real hologram's density (~100 spheres in
 1024²), the same 100 spheres with distractors (50 small debris spheres of n 1.45, 3–12 µm, per
@@ -39,7 +45,7 @@ one with distractors), never their truth. Every stage
 is cached in ``--out`` and training resumes from its last epoch, so an interrupted run
 continues where it stopped. Seeds are fixed: same result each run.
 
-Run: python benchmarks/bench_pseudoreal.py [--out DIR] [--groups G] [--epochs E] [--stages S ...] [--real-density-only] [--without-4x] [--check]
+Run: python benchmarks/bench_pseudoreal.py [--out DIR] [--groups G] [--epochs E] [--stages S ...] [--seed S] [--real-density-only] [--without-4x] [--check]
 """
 
 from __future__ import annotations
@@ -100,7 +106,7 @@ def _hologram(folder: Path, name: str, count: int, seed: int, distractors: dict 
     return read_hologram(image_path), read_particles(truth_path)
 
 
-def run(out: Path, groups: int, epochs: int, only: list[str] | None = None, real_density_only: bool = False, without_4x: bool = False) -> dict:
+def run(out: Path, groups: int, epochs: int, only: list[str] | None = None, real_density_only: bool = False, without_4x: bool = False, seed: int = 0) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     config = load_config(None)
     densities = {"real density": DENSITIES["real density"]} if real_density_only or without_4x else DENSITIES
@@ -110,7 +116,7 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None, real
         holograms["with distractors"] = _hologram(out, "real_density_distractors", DENSITIES["real density"], seed=7, distractors=WITH_DISTRACTORS)
 
     calibration_path = out / "calibration.json"
-    calibrated = not only or {"lbs", "transparent", "effects", "lbs_report"} & set(only)
+    calibrated = not only or {"lbs", "transparent", "effects", "lbs_report", "lbs_report_uniform"} & set(only)
     if calibrated and not calibration_path.is_file():
         write_json(calibration_path, calibrate_hologram(experiment, config, settings=CalibrationSettings(generations=40, seed=0)).to_json())
     calibration = json.loads(calibration_path.read_text()) if calibrated else {"params": None, "ssim": None}
@@ -125,7 +131,7 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None, real
     effects = effects_from_report(report, name=str(report_path)) if needs_report else {}
     busy_report_path = out / "diagnosis_distractors" / "report.json"
     busy_effects, busy_distractors, busy_report, busy_sizes = {}, Distractors(), {}, None
-    if (not only or {"plain_report", "plain_report_effects", "lbs_report"} & set(only)) and not real_density_only:
+    if (not only or {"plain_report", "plain_report_effects", "lbs_report", "plain_report_sizes", "lbs_report_uniform", "lbs_recalibrated_report"} & set(only)) and not real_density_only:
         if not busy_report_path.is_file():
             start = time.perf_counter()
             diagnosis = diagnose_scene(holograms["with distractors"][0], config)
@@ -137,6 +143,7 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None, real
         busy_sizes = sizes_from_report(busy_report, diameter_range_um=(config.particles.diameter_min_um, config.particles.diameter_max_um), name=str(busy_report_path))
 
     lbs = InputProcessing.from_calibration(calibration) if calibrated else None
+    recalibration = None
     stages = {
         "plain": (InputProcessing(), {}, Distractors()),
         "lbs": (lbs, {}, Distractors()),
@@ -148,24 +155,35 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None, real
         "plain_report": (InputProcessing(), busy_effects, busy_distractors),
         "plain_report_effects": (InputProcessing(), busy_effects, Distractors()),
         "lbs_report": (lbs, busy_effects, busy_distractors, busy_sizes),
+        "plain_report_sizes": (InputProcessing(), busy_effects, busy_distractors, busy_sizes),
+        "lbs_report_uniform": (lbs, busy_effects, busy_distractors),
     }
-    results = {"calibration": calibration["params"], "ssim": calibration["ssim"], "verdict": report["verdict"], "posterior": report.get("posterior"), "effects": effects,
+    if not only or "lbs_recalibrated_report" in only:
+        # the loop through `calibrate --effects-from`: the noise and gamma fitted beyond the report's effects
+        recalibration_path = out / "calibration_report.json"
+        if not recalibration_path.is_file():
+            write_json(recalibration_path, calibrate_hologram(experiment, config, effects=busy_effects, settings=CalibrationSettings(generations=40, seed=0)).to_json())
+        recalibration = json.loads(recalibration_path.read_text())
+        stages["lbs_recalibrated_report"] = (InputProcessing.from_calibration(recalibration), busy_effects, busy_distractors, busy_sizes)
+    results = {"calibration": calibration["params"], "ssim": calibration["ssim"], "recalibration": recalibration and recalibration["params"], "verdict": report["verdict"], "posterior": report.get("posterior"), "effects": effects,
                "with_distractors_report": {"verdict": (busy_report.get("verdict") or {}).get("id"), "effects": busy_effects, "distractors": busy_distractors.to_dict(),
                                            "sizes": busy_sizes.to_dict() if busy_sizes else None, "scene": busy_report.get("scene")} if busy_report else None,
                "stages": {}}
     for stage, (processing, stage_effects, distractors, *stage_sizes) in stages.items():
         if only and stage not in only:
             continue
-        model_path, log_path = out / f"{stage}.pt", out / f"{stage}.json"
+        # another seed (`--seed`) draws other training data and another network start: the spread of a recipe's scores
+        name = stage if seed == 0 else f"{stage}_seed{seed}"
+        model_path, log_path = out / f"{name}.pt", out / f"{name}.json"
         done = len(json.loads(log_path.read_text())["epochs"]) if log_path.is_file() else 0
         if done < epochs:  # not trained, or interrupted: generation and training both resume
             start = time.perf_counter()
-            dataset = generate_dataset(out / f"data_{stage}", config, groups=groups, processing=processing, effects=stage_effects, distractors=distractors,
-                                       sizes=stage_sizes[0] if stage_sizes else None, seed=0)
+            dataset = generate_dataset(out / f"data_{name}", config, groups=groups, processing=processing, effects=stage_effects, distractors=distractors,
+                                       sizes=stage_sizes[0] if stage_sizes else None, seed=seed)
             generated = time.perf_counter() - start
-            trained = train_model(dataset, model_path, settings=TrainingSettings(epochs=epochs, seed=0), resume=model_path.with_suffix(".last.pt").is_file(), force=True)
+            trained = train_model(dataset, model_path, settings=TrainingSettings(epochs=epochs, seed=seed), resume=model_path.with_suffix(".last.pt").is_file(), force=True)
             print(f"{stage}: generated {groups} groups in {generated:.0f} s, trained {epochs} epochs (from epoch {done}) in {trained.log['seconds']:.0f} s", flush=True)
-        scores_path = out / f"{stage}_scores.json"
+        scores_path = out / f"{name}_scores.json"
         log = json.loads(log_path.read_text())
         best = log["best"]
         row = json.loads(scores_path.read_text()) if scores_path.is_file() else {}
@@ -197,7 +215,7 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None, real
                   f"(corr {diameters.get('diameter_corr', float('nan')):.2f})  (synthetic validation JI {validation['ji']:.3f})", flush=True)
         results["stages"][stage] = row
         write_json(scores_path, row)
-    write_json(out / "results.json", results)
+    write_json(out / ("results.json" if seed == 0 else f"results_seed{seed}.json"), results)
     return results
 
 
@@ -207,13 +225,14 @@ def main() -> None:
     parser.add_argument("--groups", type=int, default=64)
     parser.add_argument("--epochs", type=int, default=5)
     parser.add_argument("--stages", nargs="+", help="run only these stages (default: all)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the training data and the network (calibration and diagnosis stay those of seed 0)")
     parser.add_argument("--real-density-only", action="store_true", help="only the real-density hologram (no 4x density, no distractors): the closed loop's short form")
     parser.add_argument("--without-4x", action="store_true", help="leave the 4x density hologram out (its 400 Lorenz-Mie spheres take the longest to make)")
     parser.add_argument("--check", action="store_true", help="only check the fast Lorenz-Mie field against pylorenzmie on a full plane")
     args = parser.parse_args()
     print(f"azimuthal decomposition vs pylorenzmie on a full plane: max relative error {pseudoreal.check_azimuthal():.1e}", flush=True)
     if not args.check:
-        results = run(Path(args.out), args.groups, args.epochs, args.stages, real_density_only=args.real_density_only, without_4x=args.without_4x)
+        results = run(Path(args.out), args.groups, args.epochs, args.stages, real_density_only=args.real_density_only, without_4x=args.without_4x, seed=args.seed)
         print(json.dumps(results, indent=1))
 
 
