@@ -32,9 +32,6 @@ synthetic groups only) on three kinds of synthetic data:
 ``plain_report_sizes`` as ``plain_report`` with the fitted sizes too: all that
              ``generate --effects-from`` takes, on the uncalibrated recipe.
 ``lbs_report_uniform`` as ``lbs_report`` with the config's uniform sizes (``--uniform-sizes``).
-``lbs_recalibrated_report`` as ``lbs_report``, the Holo-processing calibrated again with the
-             report's effects in its simulated fields (``calibrate --effects-from``): the noise
-             and gamma fitted beyond what the report explains.
 
 Each model predicts the pseudo-real hologram at the real hologram's density (~100 spheres in
 1024²), the same 100 spheres with distractors (50 small debris spheres of n 1.45, 3–12 µm, per
@@ -131,7 +128,7 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None, real
     effects = effects_from_report(report, name=str(report_path)) if needs_report else {}
     busy_report_path = out / "diagnosis_distractors" / "report.json"
     busy_effects, busy_distractors, busy_report, busy_sizes = {}, Distractors(), {}, None
-    if (not only or {"plain_report", "plain_report_effects", "lbs_report", "plain_report_sizes", "lbs_report_uniform", "lbs_recalibrated_report"} & set(only)) and not real_density_only:
+    if (not only or {"plain_report", "plain_report_effects", "lbs_report", "plain_report_sizes", "lbs_report_uniform"} & set(only)) and not real_density_only:
         if not busy_report_path.is_file():
             start = time.perf_counter()
             diagnosis = diagnose_scene(holograms["with distractors"][0], config)
@@ -143,7 +140,6 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None, real
         busy_sizes = sizes_from_report(busy_report, diameter_range_um=(config.particles.diameter_min_um, config.particles.diameter_max_um), name=str(busy_report_path))
 
     lbs = InputProcessing.from_calibration(calibration) if calibrated else None
-    recalibration = None
     stages = {
         "plain": (InputProcessing(), {}, Distractors()),
         "lbs": (lbs, {}, Distractors()),
@@ -158,14 +154,7 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None, real
         "plain_report_sizes": (InputProcessing(), busy_effects, busy_distractors, busy_sizes),
         "lbs_report_uniform": (lbs, busy_effects, busy_distractors),
     }
-    if not only or "lbs_recalibrated_report" in only:
-        # the loop through `calibrate --effects-from`: the noise and gamma fitted beyond the report's effects
-        recalibration_path = out / "calibration_report.json"
-        if not recalibration_path.is_file():
-            write_json(recalibration_path, calibrate_hologram(experiment, config, effects=busy_effects, settings=CalibrationSettings(generations=40, seed=0)).to_json())
-        recalibration = json.loads(recalibration_path.read_text())
-        stages["lbs_recalibrated_report"] = (InputProcessing.from_calibration(recalibration), busy_effects, busy_distractors, busy_sizes)
-    results = {"calibration": calibration["params"], "ssim": calibration["ssim"], "recalibration": recalibration and recalibration["params"], "verdict": report["verdict"], "posterior": report.get("posterior"), "effects": effects,
+    results = {"calibration": calibration["params"], "ssim": calibration["ssim"], "verdict": report["verdict"], "posterior": report.get("posterior"), "effects": effects,
                "with_distractors_report": {"verdict": (busy_report.get("verdict") or {}).get("id"), "effects": busy_effects, "distractors": busy_distractors.to_dict(),
                                            "sizes": busy_sizes.to_dict() if busy_sizes else None, "scene": busy_report.get("scene")} if busy_report else None,
                "stages": {}}

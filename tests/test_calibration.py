@@ -171,17 +171,3 @@ def test_experimental_reference_is_bright_particles_in_unit_range():
     stack[:, 10:14, 10:14] = 0.1  # a dark particle in the raw reconstruction
     image = experimental_reference(stack)
     assert image[12, 12] == pytest.approx(1.0) and image[0, 0] == pytest.approx(0.0)
-
-
-def test_calibration_fits_noise_and_gamma_beyond_the_given_effects():
-    settings = CalibrationSettings(generations=2, population=6, parents=2, fields=2)
-    hologram_image = load_sample_hologram()[:256, :256]
-    discs = calibrate_hologram(hologram_image, ExperimentConfig(), roi=(0, 0), settings=settings)
-    spheres = calibrate_hologram(hologram_image, ExperimentConfig(), roi=(0, 0), settings=settings,
-                                 effects={"particle_phase": {"index_contrast": 0.26, "transmission": 1.0}})
-    assert discs.effects == {} and discs.to_json()["effects"] == {}
-    assert spheres.to_json()["effects"]["particle_phase"]["index_contrast"] == pytest.approx(0.26)
-    # the simulated fields are transparent spheres: their processed reference is not the discs'
-    assert np.abs(spheres.reference_synthetic - discs.reference_synthetic).mean() > 0.01
-    with pytest.raises(InputError, match="nonsense"):
-        calibrate_hologram(hologram_image, ExperimentConfig(), roi=(0, 0), settings=settings, effects={"nonsense": {}})

@@ -134,15 +134,6 @@ def test_calibrate_writes_contract_json(tmp_path):
     assert payload["seconds"] > 0 and payload["provenance"]["seed"] == 3
     result = run("calibrate", tmp_path / "h.tif", "--config", config, "--out", tmp_path / "c2.json", "--roi", "400", "0")
     assert result.returncode == 2 and "roi" in result.stderr and len(result.stderr.strip().splitlines()) == 1
-    assert payload["effects"] == {} and payload["effects_source"] is None
-    # the noise and gamma fitted beyond an effect the training data will hold, recorded with its source
-    effect = "particle_phase:index_contrast=0.26,transmission=1"
-    assert main(["calibrate", str(tmp_path / "h.tif"), "--config", str(config), "--out", str(tmp_path / "fx.json"), "--generations", "2", "--population", "6",
-                 "--effect", effect]) == 0
-    payload = json.loads((tmp_path / "fx.json").read_text())
-    assert payload["effects"]["particle_phase"]["transmission"] == 1.0 and payload["effects_source"] == {"explicit": [effect]}
-    result = run("calibrate", tmp_path / "h.tif", "--config", config, "--out", tmp_path / "c3.json", "--effect", "particle_phase:colour=2")
-    assert result.returncode == 2 and "colour" in result.stderr and len(result.stderr.strip().splitlines()) == 1 and not (tmp_path / "c3.json").exists()
 
 
 def test_refine_refuses_bad_input_and_replaces_only_its_own_outputs(tmp_path):

@@ -94,15 +94,6 @@ def test_calibration_widget_fits_on_the_roi_writes_json_and_stops(make_napari_vi
     payload = json.loads((tmp_path / "cal.json").read_text())
     assert payload["roi"] == [50, 0, 256] and len(payload["history"]) == 2
     assert viewer.layers["I_e (experiment)"].data.shape == (256, 256) and "I_s (synthetic)" in viewer.layers
-    assert payload["effects"] == {} and payload["effects_source"] is None
-    # a diagnosis report whose effects the simulated fields would carry: a malformed one is named before any work
-    (tmp_path / "bad.json").write_text(json.dumps({"verdict": {"id": "nonsense"}}))
-    widget.report.value = tmp_path / "bad.json"
-    assert "bad.json" in widget.problem()
-    widget.report.value = tmp_path / "absent.json"
-    assert "absent.json not found" in widget.problem()
-    widget.report.line_edit.value = ""
-    assert widget.problem() is None
     # a long run, stopped in its set-up: nothing to keep, within 2 s
     import time
 

@@ -152,9 +152,8 @@ def _cmd_calibrate(args) -> None:
 
     config = load_config(args.config)
     settings = _settings(CalibrationSettings, mode=args.mode, generations=args.generations, population=args.population, runs=args.runs, seed=args.seed)
-    effects, source = pipeline.requested_effects(report_path=args.effects_from, explicit=args.effect)
     request = pipeline.CalibrateRequest(args.holo, Path(args.out), config, settings=settings, roi=tuple(args.roi) if args.roi else None, background_path=args.background,
-                                        effects=effects, effects_source=source, replace=args.force)
+                                        replace=args.force)
     _run(pipeline.calibrate, _checked(args, request), "calibrate", log=_summary)
 
 
@@ -288,10 +287,6 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--generations", type=_integer(1), default=100)
     p.add_argument("--population", type=_integer(2), default=12)
     p.add_argument("--runs", type=_integer(1), default=1)
-    p.add_argument("--effects-from", metavar="REPORT.json",
-                   help="fit the noise and gamma beyond the effects a diagnosis report names (give the same report to generate --effects-from)")
-    p.add_argument("--effect", action="append", default=[], metavar="ID[:NAME=VALUE,...]",
-                   help="an effect of the catalog the training data will hold, as generate's --effect (repeatable)")
     p.set_defaults(run=_cmd_calibrate)
 
     p = sub.add_parser("generate", help="write a synthetic training set (HCS + Holo-processing)")

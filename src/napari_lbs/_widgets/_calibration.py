@@ -14,14 +14,13 @@ import numpy as np
 from magicgui.widgets import ComboBox, PushButton, SpinBox, create_widget
 from qtpy.QtCore import QTimer
 
-from napari_lbs._core import CalibrationSettings, InputError
+from napari_lbs._core import CalibrationSettings
 from napari_lbs._core.calibration import experimental_reference, reference_planes
-from napari_lbs._core.pipeline import CalibrateRequest, calibrate, requested_effects
+from napari_lbs._core.pipeline import CalibrateRequest, calibrate
 from napari_lbs._layers import UNITS
 from napari_lbs._widgets._backprop import CONFIG_TOOLTIP, HOLOGRAM_TOOLTIP
 from napari_lbs._widgets._base import StepWidget
-from napari_lbs._widgets._fields import (chosen, config_from, config_problem, doc_of, hologram_data, hologram_problem, missing, output_problem, path_edit,
-                                         replacing)
+from napari_lbs._widgets._fields import chosen, config_from, config_problem, doc_of, hologram_data, hologram_problem, output_problem, path_edit, replacing
 from napari_lbs._widgets._plots import FitnessPlot
 from napari_lbs._widgets._setup import place_hologram
 
@@ -51,14 +50,10 @@ class CalibrationWidget(StepWidget):
         self.mode = ComboBox(label="mode", name="mode", choices=["robust", "seed"], value="robust",
                              tooltip="robust: several simulated fields, common random numbers, finalists re-scored on fresh noise; seed: the seed paper's single field and fresh noise")
         self.seed = SpinBox(label="seed", name="seed", value=0, min=0, max=2**31 - 1, tooltip=doc_of(CalibrationSettings, "seed"))
-        self.report = path_edit(label="diagnosis report", name="report", placeholder="empty: the seed's discs alone", filter="*.json",
-                                tooltip="A Gap diagnosis report.json: the simulated fields carry its effects, so the noise and gamma are fitted beyond "
-                                        "them (as calibrate --effects-from); give Synthetic data the same report")
         self.output = path_edit(label="save calibration", name="output", mode="w", filter="*.json", value="calibration.json",
                                 tooltip="The calibration JSON (docs/formats.md): params, ssim, roi, history; Synthetic data reads it")
         self.add_roi = PushButton(text="Add reference ROI", tooltip="Put (or select) the one tile-sized rectangle on the hologram; drag it where the hologram is typical")
-        super().__init__(napari_viewer, [self.hologram, self.roi, self.add_roi, self.config, self.report, self.generations, self.population, self.mode, self.seed,
-                                         self.output])
+        super().__init__(napari_viewer, [self.hologram, self.roi, self.add_roi, self.config, self.generations, self.population, self.mode, self.seed, self.output])
         self._plot = FitnessPlot()
         self.add_view(self._plot.canvas)
         self.add_roi.changed.connect(self._add_roi)
@@ -85,17 +80,7 @@ class CalibrationWidget(StepWidget):
         shape = self.hologram.value.data.shape[:2]
         if size > min(shape):
             return f"tile.size: a {size}² tile is larger than the hologram {shape}"
-        return missing(self.report, "diagnosis report") or self._report_problem() or output_problem(self.output, "save calibration", suffix=".json")
-
-    def _report_problem(self) -> str | None:
-        path = chosen(self.report)
-        if path is None:
-            return None
-        try:
-            requested_effects(report_path=path)
-        except (InputError, ValueError) as error:  # a malformed report
-            return str(error)
-        return None
+        return output_problem(self.output, "save calibration", suffix=".json")
 
     def _add_roi(self, *_):
         """One ROI layer with one tile-sized rectangle, on the hologram's µm grid (a second click selects it)."""
@@ -233,10 +218,8 @@ class CalibrationWidget(StepWidget):
         layer = self.hologram.value
         place_hologram(layer, chosen(self.config))
         output = Path(self.output.value)
-        report = chosen(self.report)
-        effects, source = requested_effects(report_path=str(report) if report else None)
         request = CalibrateRequest(hologram_data(layer), output, config_from(self.config), settings=settings, roi=self._roi_origin(), source=layer.name,
-                                   effects=effects, effects_source=source, replace=replacing([output]) is not None)  # run only once `caution` is confirmed
+                                   replace=replacing([output]) is not None)  # run only once `caution` is confirmed
         return request, layer
 
     def caution(self, job):

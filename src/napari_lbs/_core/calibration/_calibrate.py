@@ -35,7 +35,7 @@ from napari_lbs._core.foundation import ExperimentConfig
 from napari_lbs._core.foundation import InputError
 from napari_lbs._core.physics import backpropagate, propagate
 from napari_lbs._core.foundation import ProgressCallback, ReportCallback, Steps, StopCallback, Stopped
-from napari_lbs._core.physics import check_effects, effect_hologram, random_particle_field, simulate_hologram
+from napari_lbs._core.physics import random_particle_field, simulate_hologram
 from napari_lbs._core.foundation import thread_pool
 from napari_lbs._core.foundation import check_holo_params, check_memory
 
@@ -127,7 +127,6 @@ class CalibrationResult:
     settings: CalibrationSettings = field(default_factory=CalibrationSettings)
     roi: tuple[int, int, int] | None = None
     roi_choice: str = ""
-    effects: dict = field(default_factory=dict)
     reference_experimental: np.ndarray | None = None
     reference_synthetic: np.ndarray | None = None
 
@@ -138,7 +137,6 @@ class CalibrationResult:
             "ssim": float(self.ssim),
             "roi": list(self.roi) if self.roi else None,
             "roi_choice": self.roi_choice,
-            "effects": self.effects,
             "seconds": round(float(self.seconds), 3),
             "evaluations": int(self.evaluations),
             "stopped": bool(self.stopped),
@@ -511,7 +509,6 @@ def calibrate_hologram(
     *,
     roi: tuple[int, int] | None = None,
     background: np.ndarray | None = None,
-    effects: dict | None = None,
     settings: CalibrationSettings = CalibrationSettings(),
     progress: ProgressCallback | None = None,
     should_stop: StopCallback | None = None,
@@ -523,13 +520,6 @@ def calibrate_hologram(
     the tile keeps its true surroundings;
     ``roi = (x, y)`` is the tile's top-left pixel, or None to let `choose_reference_tile` pick.
     The simulated fields have ``particles.per_tile`` particles on the same layers.
-
-    ``effects`` (the catalog's, as `generate --effect` or a diagnosis report give them,
-    `check_effects`): the effects the training data will hold. The simulated fields then
-    carry them (`effect_hologram`), so the noise and gamma fitted are what remains beyond
-    them: fitted to discs alone, the noise and gamma also stand in for what the discs lack
-    (a transparent sphere's focal spot, an envelope), and added to data that holds those
-    effects they count them twice.
     """
     size = config.tile.size
     rows, cols = np.shape(hologram)
@@ -547,7 +537,6 @@ def calibrate_hologram(
     else:
         reason = "given"
     reference = experimental_reference(stack[:, y : y + size, x : x + size], mode=settings.mode)
-    effects = check_effects(effects or {})
     rng = np.random.default_rng([settings.seed, 3])
     holograms = []
     for _ in range(1 if settings.mode == "seed" else settings.fields):
@@ -560,7 +549,6 @@ def calibrate_hologram(
             pixel_um=config.optics.pixel_um,
             seed=rng,
         )
-        light = {"wavelength_um": config.optics.wavelength_um, "medium_index": config.optics.medium_index}
-        holograms.append(effect_hologram(particles, effects, rng=rng, **light) if effects else simulate_hologram(particles, **light))
+        holograms.append(simulate_hologram(particles, wavelength_um=config.optics.wavelength_um, medium_index=config.optics.medium_index))
     result = calibrate(reference, holograms, planes_um=planes_um, settings=settings, progress=progress, should_stop=should_stop, report=report, **optics)
-    return replace(result, roi=(x, y, size), roi_choice=reason, effects=effects)
+    return replace(result, roi=(x, y, size), roi_choice=reason)

@@ -206,12 +206,6 @@ class CalibrateRequest:
     roi : (x, y), optional
         Top-left pixel of the reference tile (default: the tool picks).
     background_path : path, optional
-    effects : dict, optional
-        The catalog's effects the training data will hold (`requested_effects`: a
-        diagnosis report's and explicit ones): the simulated fields carry them, so the noise
-        and gamma are fitted beyond them (`calibrate_hologram`).
-    effects_source : dict, optional
-        Where they came from, for the provenance (`requested_effects`).
     source : str, optional
         The hologram's name in the provenance (default: its path).
     replace : bool
@@ -225,8 +219,6 @@ class CalibrateRequest:
     settings: CalibrationSettings | None = None
     roi: tuple[int, int] | None = None
     background_path: str | Path | None = None
-    effects: dict | None = None
-    effects_source: dict | None = None
     source: str | None = None
     replace: bool = False
 
@@ -247,16 +239,14 @@ def calibrate(request: CalibrateRequest, *, progress: ProgressCallback | None = 
     check_outputs(request.outputs(), replace=request.replace)
     hologram = _hologram(request.hologram, log=log)
     background = _background(request.background_path, hologram.shape, log=log)
-    result = calibrate_hologram(hologram, config, roi=request.roi, background=background, effects=request.effects, settings=settings, progress=progress,
-                                should_stop=should_stop, report=report)
+    result = calibrate_hologram(hologram, config, roi=request.roi, background=background, settings=settings, progress=progress, should_stop=should_stop,
+                                report=report)
     payload = result.to_json()
-    payload["effects_source"] = request.effects_source
     payload["provenance"] = provenance(config, source=_source(request.hologram, request.source), background=request.background_path and str(request.background_path), seed=settings.seed)
     write_json(request.out_path, payload, force=request.replace)
     p = result.params
     x, y, size = result.roi
     chosen = "" if request.roi else f" (chosen: {result.roi_choice})"
-    beyond = f" beyond {', '.join(sorted(result.effects))}" if result.effects else ""
-    summary = (f"calibrated on the {size}² tile at x={x}, y={y}{chosen}{beyond}: N_R={p.N_R:.4f}, N_sigma={p.N_sigma:.4f}, gamma={p.gamma:.4f}, "
+    summary = (f"calibrated on the {size}² tile at x={x}, y={y}{chosen}: N_R={p.N_R:.4f}, N_sigma={p.N_sigma:.4f}, gamma={p.gamma:.4f}, "
                f"SSIM={result.ssim:.4f}, {result.evaluations} evaluations in {result.seconds:.1f} s -> {request.out_path}")
     return StepResult(summary, result, (Path(request.out_path),))
