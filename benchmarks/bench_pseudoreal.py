@@ -141,24 +141,24 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None, real
 
     lbs = InputProcessing.from_calibration(calibration) if calibrated else None
     stages = {
-        "plain": (InputProcessing(), {}, Distractors()),
-        "lbs": (lbs, {}, Distractors()),
-        "plain_transparent": (InputProcessing(), TRANSPARENT, Distractors()),
-        "transparent": (lbs, {**effects, **TRANSPARENT}, Distractors()),
-        "effects": (lbs, effects, Distractors()),
-        "plain_effects": (InputProcessing(), effects, Distractors()),
-        "distractors": (InputProcessing(), TRANSPARENT, DEMO_DISTRACTORS),
-        "plain_report": (InputProcessing(), busy_effects, busy_distractors),
-        "plain_report_effects": (InputProcessing(), busy_effects, Distractors()),
+        "plain": (InputProcessing(), {}, Distractors(), None),
+        "lbs": (lbs, {}, Distractors(), None),
+        "plain_transparent": (InputProcessing(), TRANSPARENT, Distractors(), None),
+        "transparent": (lbs, {**effects, **TRANSPARENT}, Distractors(), None),
+        "effects": (lbs, effects, Distractors(), None),
+        "plain_effects": (InputProcessing(), effects, Distractors(), None),
+        "distractors": (InputProcessing(), TRANSPARENT, DEMO_DISTRACTORS, None),
+        "plain_report": (InputProcessing(), busy_effects, busy_distractors, None),
+        "plain_report_effects": (InputProcessing(), busy_effects, Distractors(), None),
         "lbs_report": (lbs, busy_effects, busy_distractors, busy_sizes),
         "plain_report_sizes": (InputProcessing(), busy_effects, busy_distractors, busy_sizes),
-        "lbs_report_uniform": (lbs, busy_effects, busy_distractors),
+        "lbs_report_uniform": (lbs, busy_effects, busy_distractors, None),
     }
     results = {"calibration": calibration["params"], "ssim": calibration["ssim"], "verdict": report["verdict"], "posterior": report.get("posterior"), "effects": effects,
                "with_distractors_report": {"verdict": (busy_report.get("verdict") or {}).get("id"), "effects": busy_effects, "distractors": busy_distractors.to_dict(),
                                            "sizes": busy_sizes.to_dict() if busy_sizes else None, "scene": busy_report.get("scene")} if busy_report else None,
                "stages": {}}
-    for stage, (processing, stage_effects, distractors, *stage_sizes) in stages.items():
+    for stage, (processing, stage_effects, distractors, sizes) in stages.items():
         if only and stage not in only:
             continue
         # another seed (`--seed`) draws other training data and another network start: the spread of a recipe's scores
@@ -168,7 +168,7 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None, real
         if done < epochs:  # not trained, or interrupted: generation and training both resume
             start = time.perf_counter()
             dataset = generate_dataset(out / f"data_{name}", config, groups=groups, processing=processing, effects=stage_effects, distractors=distractors,
-                                       sizes=stage_sizes[0] if stage_sizes else None, seed=seed)
+                                       sizes=sizes, seed=seed)
             generated = time.perf_counter() - start
             trained = train_model(dataset, model_path, settings=TrainingSettings(epochs=epochs, seed=seed), resume=model_path.with_suffix(".last.pt").is_file(), force=True)
             print(f"{stage}: generated {groups} groups in {generated:.0f} s, trained {epochs} epochs (from epoch {done}) in {trained.log['seconds']:.0f} s", flush=True)

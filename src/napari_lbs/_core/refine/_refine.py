@@ -250,7 +250,7 @@ def refine_particles(
                     result[key][converged] = values[part["ok"]]
                 free[converged, 4:6] = False
         else:
-            steps.advance(chunks)
+            steps.advance(steps.total - steps.done)  # nothing to fit: every round done
     finally:
         pool.close()  # a stop or a failure has already ended the running fits; nothing they did is kept
     out = frame.copy()
