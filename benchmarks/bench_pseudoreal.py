@@ -25,10 +25,14 @@ synthetic groups only) on three kinds of synthetic data:
              ``generate --effects-from`` takes them; against ``plain``.
 ``plain_report_effects`` as ``plain_report`` without the impurities (``--impurities 0``): what
              the report's effects alone bring.
-``lbs_report`` the closed loop from the seed's recipe (``lbs``, what ``demo --calibrated``
-             trains on): LBS plus all that ``generate --effects-from`` takes from the report of
-             the hologram with distractors, its effects, its small scatterers as impurities and its
-             fitted particles' sizes (`sizes_from_report`); against ``lbs``.
+``lbs_report`` LBS (``lbs``, what ``demo --calibrated`` trains on) plus all that
+             ``generate --effects-from`` takes from the report of the hologram with
+             distractors, its effects, its small scatterers as impurities and its fitted
+             particles' sizes (`sizes_from_report`), the calibration applied on top
+             (``generate --keep-calibration``); against ``lbs``.
+``loop_report`` the closed loop from the seed's recipe as ``generate --calibration C
+             --effects-from REPORT`` makes it (`training_processing`: the report's model
+             replaces the calibration's Holo-processing); against ``lbs``.
 ``plain_report_sizes`` as ``plain_report`` with the fitted sizes too: all that
              ``generate --effects-from`` takes, on the uncalibrated recipe.
 ``lbs_report_uniform`` as ``lbs_report`` with the config's uniform sizes (``--uniform-sizes``).
@@ -58,7 +62,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import pseudoreal  # noqa: E402
 
-from napari_lbs._core.pipeline import DEMO_SAMPLE_DISTRACTORS  # noqa: E402
+from napari_lbs._core.pipeline import DEMO_SAMPLE_DISTRACTORS, training_processing  # noqa: E402
 
 from napari_lbs._core import (
     CalibrationSettings,
@@ -113,7 +117,7 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None, real
         holograms["with distractors"] = _hologram(out, "real_density_distractors", DENSITIES["real density"], seed=7, distractors=WITH_DISTRACTORS)
 
     calibration_path = out / "calibration.json"
-    calibrated = not only or {"lbs", "transparent", "effects", "lbs_report", "lbs_report_uniform"} & set(only)
+    calibrated = not only or {"lbs", "transparent", "effects", "lbs_report", "lbs_report_uniform", "loop_report"} & set(only)
     if calibrated and not calibration_path.is_file():
         write_json(calibration_path, calibrate_hologram(experiment, config, settings=CalibrationSettings(generations=40, seed=0)).to_json())
     calibration = json.loads(calibration_path.read_text()) if calibrated else {"params": None, "ssim": None}
@@ -128,7 +132,7 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None, real
     effects = effects_from_report(report, name=str(report_path)) if needs_report else {}
     busy_report_path = out / "diagnosis_distractors" / "report.json"
     busy_effects, busy_distractors, busy_report, busy_sizes = {}, Distractors(), {}, None
-    if (not only or {"plain_report", "plain_report_effects", "lbs_report", "plain_report_sizes", "lbs_report_uniform"} & set(only)) and not real_density_only:
+    if (not only or {"plain_report", "plain_report_effects", "lbs_report", "plain_report_sizes", "lbs_report_uniform", "loop_report"} & set(only)) and not real_density_only:
         if not busy_report_path.is_file():
             start = time.perf_counter()
             diagnosis = diagnose_scene(holograms["with distractors"][0], config)
@@ -153,6 +157,7 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None, real
         "lbs_report": (lbs, busy_effects, busy_distractors, busy_sizes),
         "plain_report_sizes": (InputProcessing(), busy_effects, busy_distractors, busy_sizes),
         "lbs_report_uniform": (lbs, busy_effects, busy_distractors, None),
+        "loop_report": (training_processing(calibration if calibrated else None, from_report=True)[0], busy_effects, busy_distractors, busy_sizes),
     }
     results = {"calibration": calibration["params"], "ssim": calibration["ssim"], "verdict": report["verdict"], "posterior": report.get("posterior"), "effects": effects,
                "with_distractors_report": {"verdict": (busy_report.get("verdict") or {}).get("id"), "effects": busy_effects, "distractors": busy_distractors.to_dict(),

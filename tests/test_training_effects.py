@@ -156,3 +156,25 @@ def test_cli_generate_effects_from_a_report_and_refusals(tmp_path, capsys):
     assert len(error) == 1 and "calib.json" in error[0] and "not a diagnosis report" in error[0]
     assert main(["generate", "--config", str(config), "--groups", "1", "--out", str(tmp_path / "y"), "--effect", "particle_phase:index_contrast=inf,transmission=1"]) == 2
     assert not (tmp_path / "y").exists()
+
+
+def test_cli_generate_a_reports_model_replaces_the_calibration_unless_kept(tmp_path, capsys):
+    config = tmp_path / "c.toml"
+    config.write_text('[tile]\nsize = 64\n[particles]\nper_tile = 2\nlayer_step_um = 50.0\n[volume]\nz_min_um = 1800.0\nz_max_um = 1900.0\n')
+    report = tmp_path / "report.json"
+    report.write_text(json.dumps(_report("quantization")))
+    calibration = tmp_path / "calibration.json"
+    calibration.write_text(json.dumps({"params": {"N_R": -0.9, "N_sigma": 0.3, "gamma": 0.8}, "ssim": 0.7, "settings": {"mode": "robust"}}))
+    common = ["generate", "--config", str(config), "--groups", "1", "--context-planes", "1", "--calibration", str(calibration)]
+    specs = {}
+    for name, extra in {"calibrated": [], "report": ["--effects-from", str(report)], "kept": ["--effects-from", str(report), "--keep-calibration"]}.items():
+        assert main([*common, "--out", str(tmp_path / name), *extra]) == 0
+        specs[name] = json.loads((tmp_path / name / "dataset.json").read_text())
+        assert specs[name]["calibration"]["params"]["N_R"] == -0.9  # recorded in every case
+        assert ("the report's model replaces the Holo-processing" in capsys.readouterr().err) == (name == "report")
+    assert specs["calibrated"]["processing"]["params"]["N_R"] == -0.9 and specs["calibrated"]["processing"]["invert_experiment"]
+    assert specs["report"]["processing"] == {"params": {"N_R": 0.0, "N_sigma": 0.0, "gamma": 1.0}, "invert_experiment": False, "mode": "robust"}
+    assert specs["report"]["effects_source"]["calibration_applied"] is False
+    assert specs["kept"]["processing"] == specs["calibrated"]["processing"] and "calibration_applied" not in specs["kept"]["effects_source"]
+    inputs = {name: open_dataset(tmp_path / name).read_group(0)[0] for name in specs}
+    assert not np.array_equal(inputs["report"], inputs["kept"])

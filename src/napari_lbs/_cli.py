@@ -178,7 +178,7 @@ def _cmd_generate(args) -> None:
                                 neighbours_margin_px=args.neighbours_margin_px)
     sizes = pipeline.report_sizes(args.effects_from, config) if args.effects_from and not args.uniform_sizes else None
     request = pipeline.GenerateRequest(Path(args.out), config, groups=args.groups, calibration_path=args.calibration, effects=effects, effects_source=source, layout=layout,
-                                       distractors=distractors, sizes=sizes, seed=args.seed, workers=args.workers)
+                                       distractors=distractors, sizes=sizes, keep_calibration=args.keep_calibration, seed=args.seed, workers=args.workers)
     _run(pipeline.generate, request, "generate")
 
 
@@ -311,6 +311,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="simulate each group with unlabelled particles in a margin of PX pixels around it and keep the window, as a crop of a real hologram is (default 0; the demo uses %d)" % pipeline.DEMO_SAMPLE_DISTRACTORS["neighbours_margin_px"])
     p.add_argument("--uniform-sizes", action="store_true",
                    help="particle diameters uniform over the config's range even with --effects-from (default: the sizes the report's scene measured, where it measured ten or more)")
+    p.add_argument("--keep-calibration", action="store_true",
+                   help="with --effects-from and --calibration: apply the calibration's Holo-processing on top of the report's effects (default: the report's model replaces it; "
+                        "the calibration is recorded)")
     p.set_defaults(run=_cmd_generate)
 
     p = sub.add_parser("train", help="train the U-Net on a synthetic training set", parents=[_FORCE])

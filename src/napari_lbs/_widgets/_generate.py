@@ -42,10 +42,12 @@ class GenerateWidget(StepWidget):
         self.measured_sizes = CheckBox(label="particle sizes", text="as the report measured", name="measured_sizes", value=True,
                                        tooltip="With a diagnosis report: particle diameters as its scene measured them, within the config's range "
                                                "(where it fitted ten or more). Off, or without a report: uniform over the config's range")
+        self.keep_calibration = CheckBox(label="with a report", text="keep the calibration", name="keep_calibration", value=False,
+                                         tooltip=doc_of(GenerateRequest, "keep_calibration") + " (generate --keep-calibration)")
         self.seed = SpinBox(label="seed", name="seed", value=0, min=0, max=2**31 - 1, tooltip="Seeds the particle fields and the noise")
         self.output = path_edit(label="data set folder", name="output", mode="d", value="lbs-data", tooltip=f"{doc_of(generate_dataset, 'out_dir')} Resumable: run again after a Stop")
         super().__init__(napari_viewer, [self.config, self.calibration, self.groups, self.layout_kind, self.report, self.effects, self.impurities, self.neighbours_margin,
-                                         self.measured_sizes, self.seed, self.output])
+                                         self.measured_sizes, self.keep_calibration, self.seed, self.output])
         self.report.changed.connect(self._take_report_distractors)
 
     def _report_measured(self) -> Distractors:
@@ -101,7 +103,8 @@ class GenerateWidget(StepWidget):
         config = config_from(self.config)
         sizes = report_sizes(report, config) if report and self.measured_sizes.value else None
         return GenerateRequest(Path(self.output.value), config, groups=self.groups.value, calibration_path=self.calibration.value, effects=effects,
-                               effects_source=source, layout=DatasetLayout(kind=self.layout_kind.value), distractors=distractors, sizes=sizes, seed=self.seed.value)
+                               effects_source=source, layout=DatasetLayout(kind=self.layout_kind.value), distractors=distractors, sizes=sizes,
+                               keep_calibration=self.keep_calibration.value, seed=self.seed.value)
 
     def work(self, request, *, progress, should_stop, report):
         return generate(request, progress=progress, should_stop=should_stop).value

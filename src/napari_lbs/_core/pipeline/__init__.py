@@ -30,7 +30,7 @@ __getattr__, __dir__, __all__ = lazy_exports(
     {
         "_common": ("StepResult", "provenance", "read_calibration"),
         "_setup_steps": ("BackpropRequest", "CalibrateRequest", "SimulateRequest", "backprop", "calibrate", "simulate"),
-        "_data_steps": ("GenerateRequest", "TrainRequest", "generate", "report_distractors", "report_sizes", "requested_effects", "train"),
+        "_data_steps": ("GenerateRequest", "TrainRequest", "generate", "report_distractors", "report_sizes", "requested_effects", "train", "training_processing"),
         "_predict": ("PredictRequest", "REFINE_PROPOSAL_FRACTION", "TrackRequest", "predict", "prediction_outputs", "refined_prediction", "track"),
         "_binning": ("fringe_binning",),
         "_refine_step": ("DETECTION_ROUNDS", "RefineRequest", "refine", "refine_hologram"),

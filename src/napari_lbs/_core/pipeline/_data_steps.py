@@ -19,7 +19,7 @@ if TYPE_CHECKING:  # for the annotations only: the steps import these modules wh
     from napari_lbs._core.learning import DatasetLayout, InputProcessing, TrainingSettings
     from napari_lbs._core.physics import Distractors, SizeDistribution
 
-__all__ = ["GenerateRequest", "requested_effects", "report_distractors", "report_sizes", "generate", "TrainRequest", "train"]
+__all__ = ["GenerateRequest", "training_processing", "requested_effects", "report_distractors", "report_sizes", "generate", "TrainRequest", "train"]
 
 
 # --- generate ------------------------------------------------------------------------------
@@ -36,7 +36,8 @@ class GenerateRequest:
     groups : int
     calibration_path : path, optional
         A calibration JSON: recorded, and its Holo-processing makes the inputs unless
-        ``processing`` is given.
+        ``processing`` is given or the effects come from a diagnosis report
+        (`training_processing`).
     processing : InputProcessing, optional
         How inputs are made (default: the calibration's, else none: the seed's normal simulation).
     effects : mapping
@@ -47,6 +48,9 @@ class GenerateRequest:
     distractors : Distractors, optional
     sizes : SizeDistribution, optional
         The particles' diameter distribution (`report_sizes`); default uniform over the config's range.
+    keep_calibration : bool
+        With effects from a diagnosis report, apply the calibration's Holo-processing on top
+        of them too (default: the report's model replaces it; `training_processing`).
     seed : int
     workers : int
         Processes simulating groups at once.
@@ -63,8 +67,36 @@ class GenerateRequest:
     layout: DatasetLayout | None = None
     distractors: Distractors | None = None
     sizes: SizeDistribution | None = None
+    keep_calibration: bool = False
     seed: int = 0
     workers: int = 1
+
+
+def training_processing(calibration: dict | None, *, from_report: bool, keep_calibration: bool = False) -> tuple[InputProcessing, bool]:
+    """How a training set's inputs are made from a calibration and the effects' origin.
+
+    The calibration's Holo-processing (the seed's SSIM-fitted noise offset, noise width and
+    gamma map) stands in for what the seed's simulator lacks without naming any of it. A
+    diagnosis report measures those differences on the experiment's own particles: the
+    effects it names with their fitted parameters, the small scatterers and the sizes. With a
+    report the calibration is therefore recorded and not applied, unless ``keep_calibration``:
+    applied on top, its noise offset at the bound of its range (N_R = -1) folds the
+    back-propagated particles bright, and on pseudo-real holograms the same report's effects
+    scored JI 0.36-0.41 lower with it (docs/diagnosis.md, the loop).
+
+    Returns
+    -------
+    processing : InputProcessing
+    replaced : bool
+        Whether a calibration was given and is not applied.
+    """
+    from napari_lbs._core.learning import InputProcessing
+
+    if calibration is None:
+        return InputProcessing(), False
+    if from_report and not keep_calibration:
+        return InputProcessing(), True
+    return InputProcessing.from_calibration(calibration), False
 
 
 def requested_effects(*, report_path=None, explicit: Sequence[str] = (), flag: str = "--effect") -> tuple[dict, dict | None]:
@@ -117,20 +149,29 @@ def report_sizes(report_path, config: ExperimentConfig):
 
 def generate(request: GenerateRequest, *, progress: ProgressCallback | None = None, should_stop: StopCallback | None = None) -> StepResult:
     """Write the synthetic training set (`generate_dataset`)."""
-    from napari_lbs._core.learning import DatasetLayout, InputProcessing, generate_dataset
+    from napari_lbs._core.learning import DatasetLayout, generate_dataset
     from napari_lbs._core.physics import Distractors
 
     calibration = read_calibration(request.calibration_path) if request.calibration_path else None
-    processing = request.processing or (InputProcessing.from_calibration(calibration) if calibration else InputProcessing())
+    from_report = bool(request.effects_source and "report" in request.effects_source)
+    processing, replaced = training_processing(calibration, from_report=from_report, keep_calibration=request.keep_calibration)
+    if request.processing is not None:
+        processing, replaced = request.processing, False
     distractors = request.distractors or Distractors()
     effects = dict(request.effects)
     start = time.perf_counter()
+    source = {**request.effects_source, "calibration_applied": False} if replaced else request.effects_source
     dataset = generate_dataset(request.out_dir, request.config, groups=request.groups, processing=processing, layout=request.layout or DatasetLayout(),
-                               calibration=calibration, effects=effects, effects_source=request.effects_source, distractors=distractors, sizes=request.sizes, seed=request.seed,
+                               calibration=calibration, effects=effects, effects_source=source, distractors=distractors, sizes=request.sizes, seed=request.seed,
                                workers=request.workers, progress=progress, should_stop=should_stop)
     seconds = time.perf_counter() - start
     planes = len(dataset.groups) * len(dataset.planes_um)
-    kind = f"calibrated ({request.calibration_path})" if request.processing is None and calibration else "uncalibrated: Holo-processing (0, 0, 1)"
+    if replaced:
+        kind = f"uncalibrated: the report's model replaces the Holo-processing of {request.calibration_path} (recorded; --keep-calibration applies it)"
+    elif request.processing is None and calibration:
+        kind = f"calibrated ({request.calibration_path})"
+    else:
+        kind = "uncalibrated: Holo-processing (0, 0, 1)"
     added = f", effects: {', '.join(effects)}" if effects else ""
     if request.effects_source and "report" in request.effects_source and not effects:
         added = f", no effects: {request.effects_source['report']} names none"
