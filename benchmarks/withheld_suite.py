@@ -39,7 +39,7 @@ vignetting) is what any choice about them is made on. `OUTSIDE_FROZEN` (seed 915
 controls, astigmatism, motion and pixel gain at two strengths, the column pattern once) is
 judged on only: its design and seed were written and committed before its first run.
 
-Run ``python benchmarks/withheld_suite.py make frozen DIR`` (or ``frozen-2``, ``frozen-3``, ``frozen-4``, ``development``,
+Run ``python benchmarks/withheld_suite.py make frozen DIR`` (or ``frozen-2`` … ``frozen-5``, ``development``,
 ``outside-development``, ``outside-frozen``) to write the holograms and ``design.json`` (a few
 minutes on 2 cores); ``bench_diagnosis.py suite DIR`` scores the catalog sets and
 ``bench_scene_diagnosis.py suite DIR`` every set, the outside ones included.
@@ -188,6 +188,31 @@ FROZEN_4 = (
     Case("polystyrene+photons", 512, {"particle_phase": {"index": 1.59}, "shot_noise": {"photons": 80.0}}),
 )
 
+# a fifth frozen set, written when the fourth had been scored three times (the same verdicts)
+# and a design (each tile's spectrum its own per radial bin) had been chosen on the development
+# set: six controls, strengths drawn from the development ranges with the seed 20261128;
+# committed before its first run, scored once per design
+FROZEN_5_SEED = 52817
+FROZEN_5 = (
+    Case("control-a5", 512, spheres_per_512=22, level=168, read_noise=2.1), Case("control-b5", 512, spheres_per_512=36, level=160, read_noise=1.8),
+    Case("control-c5", 512, spheres_per_512=31, level=153, read_noise=2.5), Case("control-d5", 512, spheres_per_512=31, level=159, read_noise=1.9),
+    Case("control-e5", 512, spheres_per_512=32, level=151, read_noise=2.4), Case("control-f5", 512, spheres_per_512=34, level=163, read_noise=1.5),
+    Case("vignetting", 512, {"illumination": {"falloff": 0.39, "centre": (0.33, 0.52)}}),
+    Case("photons", 512, {"shot_noise": {"photons": 116.0}}),
+    Case("bits", 512, {"quantization": {"step_counts": 8}}),
+    Case("crosstalk", 512, {"sensor_blur": {"kernel": "binomial3"}}),
+    Case("source-disc", 512, {"coherence": {"source_mrad": 2.1}}),
+    Case("polystyrene", 512, {"particle_phase": {"index": 1.59}}),
+    Case("low-index", 512, {"particle_phase": {"index": 1.45}}),
+    Case("etalon", 512, {"parasitic_fringes": {"etalon": 0.05, "period_px": 12.1, "angle_rad": 0.1, "phase_rad": 3.0}}),
+    Case("vignetting+photons", 512, {"illumination": {"falloff": 0.5, "centre": (0.68, 0.31)}, "shot_noise": {"photons": 108.0}}),
+    Case("crosstalk+etalon", 512, {"sensor_blur": {"kernel": "binomial5"}, "parasitic_fringes": {"etalon": 0.05, "period_px": 10.1, "angle_rad": 1.46, "phase_rad": 2.6}}),
+    Case("source-disc+vignetting", 512, {"coherence": {"source_mrad": 2.1}, "illumination": {"falloff": 0.49, "centre": (0.47, 0.61)}}),
+    Case("polystyrene+photons", 512, {"particle_phase": {"index": 1.59}, "shot_noise": {"photons": 63.0}}),
+    Case("source-disc+polystyrene", 512, {"coherence": {"source_mrad": 2.0}, "particle_phase": {"index": 1.59}}),
+    Case("bits+photons", 512, {"quantization": {"step_counts": 8}, "shot_noise": {"photons": 108.0}}),
+)
+
 DEVELOPMENT_SEED = 1234
 DEVELOPMENT = (
     Case("control-1", 512), Case("control-2", 512, spheres_per_512=35, level=160, read_noise=2.0), Case("control-3", 512, spheres_per_512=22, level=140, read_noise=1.2),
@@ -232,6 +257,7 @@ OUTSIDE_FROZEN = (
 )
 SUITES = {
     "frozen": (FROZEN, FROZEN_SEED), "frozen-2": (FROZEN_2, FROZEN_2_SEED), "frozen-3": (FROZEN_3, FROZEN_3_SEED), "frozen-4": (FROZEN_4, FROZEN_4_SEED),
+    "frozen-5": (FROZEN_5, FROZEN_5_SEED),
     "development": (DEVELOPMENT, DEVELOPMENT_SEED),
     "outside-frozen": (OUTSIDE_FROZEN, OUTSIDE_FROZEN_SEED), "outside-development": (OUTSIDE_DEVELOPMENT, OUTSIDE_DEVELOPMENT_SEED),
 }
