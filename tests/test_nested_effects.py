@@ -137,6 +137,27 @@ def test_a_tile_of_misfit_is_judged_at_its_own_level():
     assert np.all(gains > 0)
 
 
+def test_an_envelope_taken_out_gains_in_a_tile_of_low_frequency_misfit_too():
+    """A model that takes a smooth illumination envelope out of every tile gains in every tile, the one holding a broad misfit too.
+
+    Judged at one level per tile, the misfit's tile lost about 3 000 nats: the envelope had
+    raised the lowest frequencies its misfit was judged against. Each radial bin of a tile at
+    its own level judges each band against itself.
+    """
+    split = TileSplit.of((SIZE, SIZE))
+    rng = np.random.default_rng(5)
+    yy, xx = np.mgrid[0:SIZE, 0:SIZE].astype(float)
+    noise = 0.01 * rng.standard_normal((SIZE, SIZE))
+    window = split.windows()[1]
+    cy, cx = (window[0].start + window[0].stop) / 2, (window[1].start + window[1].stop) / 2
+    misfit = np.zeros((SIZE, SIZE))
+    misfit[window] = (0.05 * np.exp(-((yy - cy) ** 2 + (xx - cx) ** 2) / (2 * 12.0**2)))[window]  # the broad blob a misfit particle's mean leaves
+    envelope = 0.03 * np.exp(-((xx - 0.7 * SIZE) ** 2 + (yy - 0.4 * SIZE) ** 2) / (2 * (0.6 * SIZE) ** 2))
+    left, taken = noise + misfit + envelope, noise + misfit
+    gains = whittle_loglik((tile_spectra(taken, split),) * 2, split) - whittle_loglik((tile_spectra(left, split),) * 2, split)
+    assert np.all(gains > 0)
+
+
 def test_a_straight_fringe_between_the_frequency_bins_is_fitted_with_its_phase():
     """An etalon's fringe of 11.3 px at 0.6 rad, 1.2 rad at the first pixel (written here, not by the catalog): recovered and selected."""
     data, scene = _frame({})
