@@ -33,6 +33,8 @@ synthetic groups only) on three kinds of synthetic data:
 ``loop_report`` the closed loop from the seed's recipe as ``generate --calibration C
              --effects-from REPORT`` makes it (`training_processing`: the report's model
              replaces the calibration's Holo-processing); against ``lbs``.
+``loop_report_margin`` as ``loop_report`` with neighbours in the demo's margin
+             (``--neighbours-margin-px 96``).
 ``plain_report_sizes`` as ``plain_report`` with the fitted sizes too: all that
              ``generate --effects-from`` takes, on the uncalibrated recipe.
 ``lbs_report_uniform`` as ``lbs_report`` with the config's uniform sizes (``--uniform-sizes``).
@@ -52,6 +54,7 @@ Run: python benchmarks/bench_pseudoreal.py [--out DIR] [--groups G] [--epochs E]
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -117,7 +120,7 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None, real
         holograms["with distractors"] = _hologram(out, "real_density_distractors", DENSITIES["real density"], seed=7, distractors=WITH_DISTRACTORS)
 
     calibration_path = out / "calibration.json"
-    calibrated = not only or {"lbs", "transparent", "effects", "lbs_report", "lbs_report_uniform", "loop_report"} & set(only)
+    calibrated = not only or {"lbs", "transparent", "effects", "lbs_report", "lbs_report_uniform", "loop_report", "loop_report_margin"} & set(only)
     if calibrated and not calibration_path.is_file():
         write_json(calibration_path, calibrate_hologram(experiment, config, settings=CalibrationSettings(generations=40, seed=0)).to_json())
     calibration = json.loads(calibration_path.read_text()) if calibrated else {"params": None, "ssim": None}
@@ -132,7 +135,7 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None, real
     effects = effects_from_report(report, name=str(report_path)) if needs_report else {}
     busy_report_path = out / "diagnosis_distractors" / "report.json"
     busy_effects, busy_distractors, busy_report, busy_sizes = {}, Distractors(), {}, None
-    if (not only or {"plain_report", "plain_report_effects", "lbs_report", "plain_report_sizes", "lbs_report_uniform", "loop_report"} & set(only)) and not real_density_only:
+    if (not only or {"plain_report", "plain_report_effects", "lbs_report", "plain_report_sizes", "lbs_report_uniform", "loop_report", "loop_report_margin"} & set(only)) and not real_density_only:
         if not busy_report_path.is_file():
             start = time.perf_counter()
             diagnosis = diagnose_scene(holograms["with distractors"][0], config)
@@ -158,6 +161,8 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None, real
         "plain_report_sizes": (InputProcessing(), busy_effects, busy_distractors, busy_sizes),
         "lbs_report_uniform": (lbs, busy_effects, busy_distractors, None),
         "loop_report": (training_processing(calibration if calibrated else None, from_report=True)[0], busy_effects, busy_distractors, busy_sizes),
+        "loop_report_margin": (training_processing(calibration if calibrated else None, from_report=True)[0], busy_effects,
+                               dataclasses.replace(busy_distractors, neighbours_margin_px=DEMO_SAMPLE_DISTRACTORS["neighbours_margin_px"]), busy_sizes),
     }
     results = {"calibration": calibration["params"], "ssim": calibration["ssim"], "verdict": report["verdict"], "posterior": report.get("posterior"), "effects": effects,
                "with_distractors_report": {"verdict": (busy_report.get("verdict") or {}).get("id"), "effects": busy_effects, "distractors": busy_distractors.to_dict(),

@@ -145,3 +145,37 @@ def test_cli_generate_takes_the_report_s_small_scatterers_unless_told_otherwise(
     assert spec["distractors"] == {"impurities_per_tile": 2, "impurity_diameter_min_um": 6.0, "impurity_diameter_max_um": 12.0, "neighbours_margin_px": 0}
     assert main(["generate", "--config", str(config), "--groups", "1", "--out", str(tmp_path / "b"), "--context-planes", "1", "--effects-from", str(report), "--impurities", "0"]) == 0
     assert "distractors" not in json.loads((tmp_path / "b" / "dataset.json").read_text())
+
+
+def _particles_report(particles: int, median_diameter_um: float, median_z_um: float) -> dict:
+    report = _scene_report(0.0, None)
+    report["scene"].update(particles=particles, in_size_range=particles, percentiles=[5, 25, 50, 75, 95],
+                           diameter_um=[f * median_diameter_um for f in (0.8, 0.9, 1.0, 1.05, 1.1)],
+                           z_um=[2000.0, 3000.0, median_z_um, 4000.0, 4500.0])
+    return report
+
+
+def test_the_neighbours_margin_is_two_airy_radii_of_the_scenes_median_particle():
+    from napari_lbs._core.physics import distractors_from_report
+
+    optics = {"wavelength_um": 0.66, "pixel_um": 2.2}
+    # 2 x 1.22 x 0.66 um x 3500 um / 25 um = 225.4 um = 102.5 px
+    assert distractors_from_report(_particles_report(40, 25.0, 3500.0), tile_px=256, diameter_min_um=20.0, **optics).neighbours_margin_px == 103
+    assert distractors_from_report(_particles_report(40, 25.0, 3500.0), tile_px=256, diameter_min_um=20.0, medium_index=1.33, **optics).neighbours_margin_px == 78
+    assert distractors_from_report(_particles_report(40, 5.0, 3500.0), tile_px=256, diameter_min_um=20.0, **optics).neighbours_margin_px == 128  # half a tile at most
+    assert distractors_from_report(_particles_report(9, 25.0, 3500.0), tile_px=256, diameter_min_um=20.0, **optics).neighbours_margin_px == 0  # too few fitted
+    assert distractors_from_report(_particles_report(40, 25.0, 3500.0), tile_px=256, diameter_min_um=20.0).neighbours_margin_px == 0  # no optics given
+    with pytest.raises(InputError, match="r.json: scene: the median"):
+        distractors_from_report(_particles_report(40, float("nan"), 3500.0), tile_px=256, diameter_min_um=20.0, name="r.json", **optics)
+
+
+def test_cli_generate_takes_the_reports_neighbours_margin_unless_told_otherwise(tmp_path):
+    config = tmp_path / "c.toml"
+    config.write_text('[tile]\nsize = 64\n[particles]\nper_tile = 2\nlayer_step_um = 50.0\n[volume]\nz_min_um = 1800.0\nz_max_um = 1900.0\n')
+    report = tmp_path / "report.json"
+    report.write_text(json.dumps(_particles_report(40, 100.0, 1850.0)))  # 2 x 1.22 x 0.66 x 1850 / 100 um = 29.8 um: 14 px of 2.2 um
+    common = ["generate", "--config", str(config), "--groups", "1", "--context-planes", "1", "--effects-from", str(report)]
+    assert main([*common, "--out", str(tmp_path / "a")]) == 0
+    assert json.loads((tmp_path / "a" / "dataset.json").read_text())["distractors"]["neighbours_margin_px"] == 14
+    assert main([*common, "--out", str(tmp_path / "b"), "--neighbours-margin-px", "0"]) == 0
+    assert "distractors" not in json.loads((tmp_path / "b" / "dataset.json").read_text())

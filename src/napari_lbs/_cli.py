@@ -164,18 +164,18 @@ def _cmd_generate(args) -> None:
     check_output_path(args.out, flag="--out", folder=True, inputs=_inputs(args))
     effects, source = pipeline.requested_effects(report_path=args.effects_from, explicit=args.effect)
     layout = _settings(DatasetLayout, kind=args.layout, depths=args.depths, context_planes=args.context_planes)
+    # the small scatterers and the neighbours the report's scene measured, unless --impurities / --neighbours-margin-px say otherwise
+    measured = pipeline.report_distractors(args.effects_from, config) if args.effects_from else Distractors()
+    margin = measured.neighbours_margin_px if args.neighbours_margin_px is None else args.neighbours_margin_px
     if args.impurities is None and args.effects_from:
-        # the small scatterers the report's scene measured, unless --impurities says otherwise
-        measured = pipeline.report_distractors(args.effects_from, config)
         distractors = _settings(Distractors, impurities_per_tile=measured.impurities_per_tile, impurity_diameter_min_um=measured.impurity_diameter_min_um,
-                                impurity_diameter_max_um=measured.impurity_diameter_max_um, neighbours_margin_px=args.neighbours_margin_px)
+                                impurity_diameter_max_um=measured.impurity_diameter_max_um, neighbours_margin_px=margin)
     else:
         low, high = args.impurity_diameter_um
         impurities = args.impurities or 0
         if low > high or (impurities and high >= config.particles.diameter_min_um):
             raise InputError(f"--impurity-diameter-um: expected MIN <= MAX below the particles' diameter_min_um={config.particles.diameter_min_um:g} of {args.config}, got {low:g} {high:g}")
-        distractors = _settings(Distractors, impurities_per_tile=impurities, impurity_diameter_min_um=low, impurity_diameter_max_um=high,
-                                neighbours_margin_px=args.neighbours_margin_px)
+        distractors = _settings(Distractors, impurities_per_tile=impurities, impurity_diameter_min_um=low, impurity_diameter_max_um=high, neighbours_margin_px=margin)
     sizes = pipeline.report_sizes(args.effects_from, config) if args.effects_from and not args.uniform_sizes else None
     request = pipeline.GenerateRequest(Path(args.out), config, groups=args.groups, calibration_path=args.calibration, effects=effects, effects_source=source, layout=layout,
                                        distractors=distractors, sizes=sizes, keep_calibration=args.keep_calibration, seed=args.seed, workers=args.workers)
@@ -307,8 +307,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="unlabelled small scatterers per tile, smaller than the particles (default: as many as the --effects-from report's scene measured, "
                         "with their sizes, else 0; the demo uses %d)" % pipeline.DEMO_SAMPLE_DISTRACTORS["impurities_per_tile"])
     p.add_argument("--impurity-diameter-um", type=_number(0.0, above=True), nargs=2, default=(4.0, 14.0), metavar=("MIN", "MAX"), help="their diameter range in um (default 4 14)")
-    p.add_argument("--neighbours-margin-px", type=_integer(0, 4096), default=0, metavar="PX",
-                   help="simulate each group with unlabelled particles in a margin of PX pixels around it and keep the window, as a crop of a real hologram is (default 0; the demo uses %d)" % pipeline.DEMO_SAMPLE_DISTRACTORS["neighbours_margin_px"])
+    p.add_argument("--neighbours-margin-px", type=_integer(0, 4096), default=None, metavar="PX",
+                   help="simulate each group with unlabelled particles in a margin of PX pixels around it and keep the window, as a crop of a real hologram is "
+                        "(default: two Airy radii of the --effects-from report's median particle, else 0; the demo uses %d)" % pipeline.DEMO_SAMPLE_DISTRACTORS["neighbours_margin_px"])
     p.add_argument("--uniform-sizes", action="store_true",
                    help="particle diameters uniform over the config's range even with --effects-from (default: the sizes the report's scene measured, where it measured ten or more)")
     p.add_argument("--keep-calibration", action="store_true",

@@ -61,9 +61,11 @@ class GenerateWidget(StepWidget):
             return Distractors()
 
     def _take_report_distractors(self, *_) -> None:
-        """Fill the impurities field with what the chosen report's scene measured (the user may change it)."""
+        """Fill the impurities and neighbours fields with what the chosen report's scene measured (the user may change them)."""
         if chosen(self.report) is not None and self._report_problem() is None:
-            self.impurities.value = self._report_measured().impurities_per_tile
+            measured = self._report_measured()
+            self.impurities.value = measured.impurities_per_tile
+            self.neighbours_margin.value = measured.neighbours_margin_px
 
     def problem(self):
         return (missing(self.calibration, "calibration") or missing(self.report, "diagnosis report") or config_problem(self.config) or self._report_problem()

@@ -206,14 +206,24 @@ def sizes_from_report(report: dict, *, diameter_range_um: tuple[float, float], n
     return sizes
 
 
-def distractors_from_report(report: dict, *, tile_px: int, diameter_min_um: float, name: str = "report") -> Distractors:
-    """The small scatterers a diagnosis report's scene measured, as training data's unlabelled impurities.
+def distractors_from_report(report: dict, *, tile_px: int, diameter_min_um: float, wavelength_um: float | None = None, pixel_um: float | None = None,
+                            medium_index: float = 1.0, name: str = "report") -> Distractors:
+    """What a diagnosis report's scene measured besides the particles, as training data's unlabelled distractors.
 
-    The report's ``scene.small_scatterers`` (`scene_population`): their count per 256-pixel
-    tile, scaled to ``tile_px``, rounded (none below half a scatterer per tile), and their
-    diameters' least and largest, kept below the particles' ``diameter_min_um``. A report
-    without a scene (an older engine's) or without small scatterers gives none. Neighbours
-    outside the window are not measured by the diagnosis: ``neighbours_margin_px`` stays 0.
+    **Impurities**: the report's ``scene.small_scatterers`` (`scene_population`): their count
+    per 256-pixel tile, scaled to ``tile_px``, rounded (none below half a scatterer per tile),
+    and their diameters' least and largest, kept below the particles' ``diameter_min_um``.
+
+    **Neighbours**: the frame's particles lie all over it, so a training tile, a crop of such
+    a field, has particles outside it whose fringes reach in. Where the scene fitted ten
+    particles or more and ``wavelength_um`` and ``pixel_um`` are given, each group is
+    simulated with neighbours in a margin of two Airy radii of the scene's median particle at
+    its median depth, ``2 × 1.22 (λ/n) z / d`` (the central diffraction lobe and the first
+    ring, which hold most of the light it scatters), in pixels, rounded up, at most half a
+    tile. On the built-in real hologram that is 104 pixels (25.3 µm at 3.59 mm, 660 nm, 2.2 µm
+    pixels), near the demo's hand-set 96.
+
+    A report without a scene (an older engine's) gives neither.
 
     Raises
     ------
@@ -223,6 +233,7 @@ def distractors_from_report(report: dict, *, tile_px: int, diameter_min_um: floa
     scene = report.get("scene") if isinstance(report, dict) else None
     if scene is None:
         return Distractors()
+    margin = _neighbours_margin_px(scene, tile_px=tile_px, wavelength_um=wavelength_um, pixel_um=pixel_um, medium_index=medium_index, name=name)
     try:
         small = scene["small_scatterers"]
         per_tile = float(small["per_256px_tile"]) * (tile_px / 256.0) ** 2
@@ -233,7 +244,7 @@ def distractors_from_report(report: dict, *, tile_px: int, diameter_min_um: floa
         raise InputError(f"{name}: scene: small_scatterers: per_256px_tile must be a number >= 0, got {small['per_256px_tile']!r}")
     count = int(round(per_tile))
     if count == 0 or sizes is None:
-        return Distractors()
+        return Distractors(neighbours_margin_px=margin)
     try:
         low, high = (float(value) for value in sizes)
     except (TypeError, ValueError):
@@ -242,7 +253,29 @@ def distractors_from_report(report: dict, *, tile_px: int, diameter_min_um: floa
         raise InputError(f"{name}: scene: small_scatterers: diameter_um must be 0 < least <= largest, got {sizes!r}")
     # what the fits sized at the particles' lower bound is kept just below it
     high = min(high, 0.98 * float(diameter_min_um))
-    return Distractors(impurities_per_tile=count, impurity_diameter_min_um=min(low, high), impurity_diameter_max_um=high)
+    return Distractors(impurities_per_tile=count, impurity_diameter_min_um=min(low, high), impurity_diameter_max_um=high, neighbours_margin_px=margin)
+
+
+def _neighbours_margin_px(scene: dict, *, tile_px: int, wavelength_um: float | None, pixel_um: float | None, medium_index: float, name: str) -> int:
+    """Two Airy radii of the scene's median particle at its median depth (pixels, at most half a tile); 0 without ten fitted particles or the optics."""
+    if wavelength_um is None or pixel_um is None or not all(key in scene for key in ("particles", "percentiles", "diameter_um", "z_um")):
+        return 0  # no optics, or a scene that did not record its particles' sizes and depths
+    try:
+        fitted = int(scene["particles"])
+        levels = [float(v) for v in scene["percentiles"]]
+        diameters, depths = scene["diameter_um"], scene["z_um"]
+    except (TypeError, ValueError) as error:
+        raise InputError(f"{name}: scene: particles and percentiles must be numbers ({error})") from None
+    if fitted < 10 or 50.0 not in levels or diameters is None or depths is None:
+        return 0
+    try:
+        diameter, depth = float(diameters[levels.index(50.0)]), float(depths[levels.index(50.0)])
+    except (TypeError, ValueError, IndexError):
+        raise InputError(f"{name}: scene: diameter_um and z_um must hold a number at each of percentiles, got {diameters!r} and {depths!r}") from None
+    if not (np.isfinite(diameter) and np.isfinite(depth) and diameter > 0):
+        raise InputError(f"{name}: scene: the median diameter_um and z_um must be finite, the diameter > 0, got {diameter!r} and {depth!r}")
+    reach_um = 2.0 * 1.22 * (wavelength_um / medium_index) * abs(depth) / diameter
+    return int(min(np.ceil(reach_um / pixel_um), tile_px // 2))
 
 
 def distractor_scene(

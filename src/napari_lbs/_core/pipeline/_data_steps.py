@@ -132,11 +132,12 @@ def requested_effects(*, report_path=None, explicit: Sequence[str] = (), flag: s
 
 
 def report_distractors(report_path, config: ExperimentConfig):
-    """The unlabelled impurities a diagnosis report's scene measured (`distractors_from_report`), for ``config``'s tiles."""
+    """The unlabelled impurities and neighbours a diagnosis report's scene measured (`distractors_from_report`), for ``config``'s tiles and optics."""
     from napari_lbs._core.physics import distractors_from_report
 
     report = read_json_object(report_path, what="diagnosis report")
-    return distractors_from_report(report, tile_px=config.tile.size, diameter_min_um=config.particles.diameter_min_um, name=str(report_path))
+    return distractors_from_report(report, tile_px=config.tile.size, diameter_min_um=config.particles.diameter_min_um, wavelength_um=config.optics.wavelength_um,
+                                   pixel_um=config.optics.pixel_um, medium_index=config.optics.medium_index, name=str(report_path))
 
 
 def report_sizes(report_path, config: ExperimentConfig):
