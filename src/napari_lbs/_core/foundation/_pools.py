@@ -30,7 +30,7 @@ from collections.abc import Callable, Iterable
 from concurrent.futures.process import BrokenProcessPool
 from typing import Self
 
-from napari_lbs._core.foundation._interrupts import _inside_import
+from napari_lbs._core.foundation._interrupts import _RETRY_S, _inside_import
 from napari_lbs._core.foundation._progress import Steps
 from napari_lbs._core.foundation._threads import available_threads, size_threads
 
@@ -167,10 +167,16 @@ def _start_worker() -> None:
 
 
 def _on_terminate(signum, frame) -> None:
-    # an exception crossing an extension's initialisation aborts the process instead of unwinding it
-    if _in_task and not _inside_import(frame):
-        raise _Ended
-    os._exit(1)
+    if not _in_task:
+        os._exit(1)
+    # an exception crossing an extension's initialisation aborts the process instead of unwinding
+    # it, and a task's first file write imports its encoding: asked again once the import is done
+    # (`END_S` still bounds the wait), so that the task unwinds and removes what it half wrote
+    if _inside_import(frame) and hasattr(signal, "setitimer"):
+        signal.signal(signal.SIGALRM, _on_terminate)
+        signal.setitimer(signal.ITIMER_REAL, _RETRY_S)
+        return
+    raise _Ended
 
 
 def _run_task(function: Callable, task):
