@@ -147,6 +147,7 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None, real
         busy_sizes = sizes_from_report(busy_report, diameter_range_um=(config.particles.diameter_min_um, config.particles.diameter_max_um), name=str(busy_report_path))
 
     lbs = InputProcessing.from_calibration(calibration) if calibrated else None
+    loop = training_processing(calibration if calibrated else None, from_report=True)[0]  # what generate --calibration --effects-from makes
     stages = {
         "plain": (InputProcessing(), {}, Distractors(), None),
         "lbs": (lbs, {}, Distractors(), None),
@@ -160,8 +161,8 @@ def run(out: Path, groups: int, epochs: int, only: list[str] | None = None, real
         "lbs_report": (lbs, busy_effects, busy_distractors, busy_sizes),
         "plain_report_sizes": (InputProcessing(), busy_effects, busy_distractors, busy_sizes),
         "lbs_report_uniform": (lbs, busy_effects, busy_distractors, None),
-        "loop_report": (training_processing(calibration if calibrated else None, from_report=True)[0], busy_effects, busy_distractors, busy_sizes),
-        "loop_report_margin": (training_processing(calibration if calibrated else None, from_report=True)[0], busy_effects,
+        "loop_report": (loop, busy_effects, busy_distractors, busy_sizes),
+        "loop_report_margin": (loop, busy_effects,
                                dataclasses.replace(busy_distractors, neighbours_margin_px=DEMO_SAMPLE_DISTRACTORS["neighbours_margin_px"]), busy_sizes),
     }
     results = {"calibration": calibration["params"], "ssim": calibration["ssim"], "verdict": report["verdict"], "posterior": report.get("posterior"), "effects": effects,

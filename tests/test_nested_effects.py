@@ -116,25 +116,28 @@ def test_whittle_likelihood_prefers_the_residual_that_is_noise():
     assert probabilities["clean"] > 0.99 and sum(probabilities.values()) == pytest.approx(1.0)
 
 
+def _gains_of_taking_out(structure, misfit_of_r2) -> np.ndarray:
+    """Each tile's held-out gain of a model that takes ``structure(yy, xx)`` out of every tile, one tile also holding ``misfit_of_r2(r²)`` about its centre."""
+    split = TileSplit.of((SIZE, SIZE))
+    noise = 0.01 * np.random.default_rng(5).standard_normal((SIZE, SIZE))
+    yy, xx = np.mgrid[0:SIZE, 0:SIZE].astype(float)
+    window = split.windows()[1]
+    cy, cx = (window[0].start + window[0].stop) / 2, (window[1].start + window[1].stop) / 2
+    misfit = np.zeros((SIZE, SIZE))
+    misfit[window] = misfit_of_r2((yy - cy) ** 2 + (xx - cx) ** 2)[window]
+    left, taken = noise + misfit + structure(yy, xx), noise + misfit
+    return whittle_loglik((tile_spectra(taken, split),) * 2, split) - whittle_loglik((tile_spectra(left, split),) * 2, split)
+
+
 def test_a_tile_of_misfit_is_judged_at_its_own_level():
     """A model that takes a fringe out of every tile gains in every tile, the one holding a particle's misfit too.
 
     Judged at the level of a spectrum shared by every tile, the misfit's tile loses: the
     fringe had raised the spectrum its structure was judged against.
     """
-    split = TileSplit.of((SIZE, SIZE))
-    rng = np.random.default_rng(5)
-    yy, xx = np.mgrid[0:SIZE, 0:SIZE].astype(float)
-    noise = 0.01 * rng.standard_normal((SIZE, SIZE))
-    window = split.windows()[1]
-    cy, cx = (window[0].start + window[0].stop) / 2, (window[1].start + window[1].stop) / 2
-    misfit = np.zeros((SIZE, SIZE))
-    r2 = (yy - cy) ** 2 + (xx - cx) ** 2
-    misfit[window] = (0.3 * np.cos(r2 / 60.0) * np.exp(-r2 / (2 * 30.0**2)))[window]  # a sphere's chirped rings: power at every radius
-    fringe = 0.05 * np.cos(2 * np.pi * (xx * np.cos(0.5) + yy * np.sin(0.5)) / 8.0 + 0.4)
-    left, taken = noise + misfit + fringe, noise + misfit
-    gains = whittle_loglik((tile_spectra(taken, split),) * 2, split) - whittle_loglik((tile_spectra(left, split),) * 2, split)
-    assert np.all(gains > 0)
+    fringe = lambda yy, xx: 0.05 * np.cos(2 * np.pi * (xx * np.cos(0.5) + yy * np.sin(0.5)) / 8.0 + 0.4)
+    rings = lambda r2: 0.3 * np.cos(r2 / 60.0) * np.exp(-r2 / (2 * 30.0**2))  # a sphere's chirped rings: power at every radius
+    assert np.all(_gains_of_taking_out(fringe, rings) > 0)
 
 
 def test_an_envelope_taken_out_gains_in_a_tile_of_low_frequency_misfit_too():
@@ -144,18 +147,9 @@ def test_an_envelope_taken_out_gains_in_a_tile_of_low_frequency_misfit_too():
     raised the lowest frequencies its misfit was judged against. Each radial bin of a tile at
     its own level judges each band against itself.
     """
-    split = TileSplit.of((SIZE, SIZE))
-    rng = np.random.default_rng(5)
-    yy, xx = np.mgrid[0:SIZE, 0:SIZE].astype(float)
-    noise = 0.01 * rng.standard_normal((SIZE, SIZE))
-    window = split.windows()[1]
-    cy, cx = (window[0].start + window[0].stop) / 2, (window[1].start + window[1].stop) / 2
-    misfit = np.zeros((SIZE, SIZE))
-    misfit[window] = (0.05 * np.exp(-((yy - cy) ** 2 + (xx - cx) ** 2) / (2 * 12.0**2)))[window]  # the broad blob a misfit particle's mean leaves
-    envelope = 0.03 * np.exp(-((xx - 0.7 * SIZE) ** 2 + (yy - 0.4 * SIZE) ** 2) / (2 * (0.6 * SIZE) ** 2))
-    left, taken = noise + misfit + envelope, noise + misfit
-    gains = whittle_loglik((tile_spectra(taken, split),) * 2, split) - whittle_loglik((tile_spectra(left, split),) * 2, split)
-    assert np.all(gains > 0)
+    envelope = lambda yy, xx: 0.03 * np.exp(-((xx - 0.7 * SIZE) ** 2 + (yy - 0.4 * SIZE) ** 2) / (2 * (0.6 * SIZE) ** 2))
+    blob = lambda r2: 0.05 * np.exp(-r2 / (2 * 12.0**2))  # the broad blob a misfit particle's mean leaves
+    assert np.all(_gains_of_taking_out(envelope, blob) > 0)
 
 
 def test_a_straight_fringe_between_the_frequency_bins_is_fitted_with_its_phase():

@@ -138,11 +138,17 @@ def test_generate_records_the_effects_and_the_data_differs_only_through_them(tmp
     assert len(generate_dataset(tmp_path / "fringe", CONFIG, groups=2, layout=layout, seed=3, effects=fringe).groups) == 2
 
 
-def test_cli_generate_effects_from_a_report_and_refusals(tmp_path, capsys):
+def _config_and_report(tmp_path, verdict: str):
+    """A small config of 64-pixel tiles and a report naming ``verdict``, written in ``tmp_path``."""
     config = tmp_path / "c.toml"
     config.write_text('[tile]\nsize = 64\n[particles]\nper_tile = 2\nlayer_step_um = 50.0\n[volume]\nz_min_um = 1800.0\nz_max_um = 1900.0\n')
     report = tmp_path / "report.json"
-    report.write_text(json.dumps(_report("quantization+particle_phase")))
+    report.write_text(json.dumps(_report(verdict)))
+    return config, report
+
+
+def test_cli_generate_effects_from_a_report_and_refusals(tmp_path, capsys):
+    config, report = _config_and_report(tmp_path, "quantization+particle_phase")
     out = tmp_path / "data"
     assert main(["generate", "--config", str(config), "--groups", "1", "--out", str(out), "--context-planes", "1", "--effects-from", str(report), "--effect", "sensor_blur:sigma_px=0.5"]) == 0
     spec = json.loads((out / "dataset.json").read_text())
@@ -159,10 +165,7 @@ def test_cli_generate_effects_from_a_report_and_refusals(tmp_path, capsys):
 
 
 def test_cli_generate_a_reports_model_replaces_the_calibration_unless_kept(tmp_path, capsys):
-    config = tmp_path / "c.toml"
-    config.write_text('[tile]\nsize = 64\n[particles]\nper_tile = 2\nlayer_step_um = 50.0\n[volume]\nz_min_um = 1800.0\nz_max_um = 1900.0\n')
-    report = tmp_path / "report.json"
-    report.write_text(json.dumps(_report("quantization")))
+    config, report = _config_and_report(tmp_path, "quantization")
     calibration = tmp_path / "calibration.json"
     calibration.write_text(json.dumps({"params": {"N_R": -0.9, "N_sigma": 0.3, "gamma": 0.8}, "ssim": 0.7, "settings": {"mode": "robust"}}))
     common = ["generate", "--config", str(config), "--groups", "1", "--context-planes", "1", "--calibration", str(calibration)]

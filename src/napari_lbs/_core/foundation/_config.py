@@ -286,7 +286,7 @@ def config_to_toml(config: ExperimentConfig) -> str:
 
 
 def write_config(path: str | Path, config: ExperimentConfig | None = None, *, force: bool = False) -> Path:
-    """Write ``config`` (default: the contract's defaults) as TOML, atomically.
+    """Write ``config`` (default: the defaults docs/config.md lists) as TOML, atomically.
 
     An existing ``path`` is replaced only with ``force`` (and only a regular file: `check_target`).
     """

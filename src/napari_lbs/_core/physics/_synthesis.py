@@ -215,8 +215,8 @@ def distractors_from_report(report: dict, *, tile_px: int, diameter_min_um: floa
     and their diameters' least and largest, kept below the particles' ``diameter_min_um``.
 
     **Neighbours**: the frame's particles lie all over it, so a training tile, a crop of such
-    a field, has particles outside it whose fringes reach in. Where the scene fitted ten
-    particles or more and ``wavelength_um`` and ``pixel_um`` are given, each group is
+    a field, has particles outside it whose fringes reach in. Where the scene sized ten
+    particles or more within the config's range and ``wavelength_um`` and ``pixel_um`` are given, each group is
     simulated with neighbours in a margin of two Airy radii of the scene's median particle at
     its median depth, ``2 × 1.22 (λ/n) z / d`` (the central diffraction lobe and the first
     ring, which hold most of the light it scatters), in pixels, rounded up, at most half a
@@ -257,16 +257,16 @@ def distractors_from_report(report: dict, *, tile_px: int, diameter_min_um: floa
 
 
 def _neighbours_margin_px(scene: dict, *, tile_px: int, wavelength_um: float | None, pixel_um: float | None, medium_index: float, name: str) -> int:
-    """Two Airy radii of the scene's median particle at its median depth (pixels, at most half a tile); 0 without ten fitted particles or the optics."""
-    if wavelength_um is None or pixel_um is None or not all(key in scene for key in ("particles", "percentiles", "diameter_um", "z_um")):
+    """Two Airy radii of the scene's median particle at its median depth (pixels, at most half a tile); 0 without `_LEAST_SIZED` sized particles or the optics."""
+    if wavelength_um is None or pixel_um is None or not all(key in scene for key in ("in_size_range", "percentiles", "diameter_um", "z_um")):
         return 0  # no optics, or a scene that did not record its particles' sizes and depths
     try:
-        fitted = int(scene["particles"])
+        sized = int(scene["in_size_range"])
         levels = [float(v) for v in scene["percentiles"]]
         diameters, depths = scene["diameter_um"], scene["z_um"]
     except (TypeError, ValueError) as error:
-        raise InputError(f"{name}: scene: particles and percentiles must be numbers ({error})") from None
-    if fitted < 10 or 50.0 not in levels or diameters is None or depths is None:
+        raise InputError(f"{name}: scene: in_size_range and percentiles must be numbers ({error})") from None
+    if sized < _LEAST_SIZED or 50.0 not in levels or diameters is None or depths is None:
         return 0
     try:
         diameter, depth = float(diameters[levels.index(50.0)]), float(depths[levels.index(50.0)])

@@ -154,10 +154,11 @@ def generate(request: GenerateRequest, *, progress: ProgressCallback | None = No
     from napari_lbs._core.physics import Distractors
 
     calibration = read_calibration(request.calibration_path) if request.calibration_path else None
-    from_report = bool(request.effects_source and "report" in request.effects_source)
-    processing, replaced = training_processing(calibration, from_report=from_report, keep_calibration=request.keep_calibration)
     if request.processing is not None:
         processing, replaced = request.processing, False
+    else:
+        from_report = bool(request.effects_source and "report" in request.effects_source)
+        processing, replaced = training_processing(calibration, from_report=from_report, keep_calibration=request.keep_calibration)
     distractors = request.distractors or Distractors()
     effects = dict(request.effects)
     start = time.perf_counter()
