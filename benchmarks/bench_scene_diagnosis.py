@@ -11,7 +11,8 @@ cases' score, the controls' false alarms and the load average before and after; 
 effect's parameters that the case sets exactly (an etalon's, photon noise's) against their
 estimates, in units of the reported error bar, and how many lie within two. ``real``:
 the built-in hologram's report. ``--grid N``: the held-out checkerboard's tiles per side
-(`SceneDiagnosisSettings.grid`), written to the result.
+(`SceneDiagnosisSettings.grid`), written to the result; ``--workers N``: fitting processes
+(default one per available core, as ``napari-lbs diagnose``).
 
     python benchmarks/withheld_suite.py make development /tmp/dev
     python benchmarks/bench_scene_diagnosis.py suite /tmp/dev --out benchmarks/results/diagnosis/scene_development.json
@@ -21,6 +22,7 @@ the built-in hologram's report. ``--grid N``: the held-out checkerboard's tiles 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import time
@@ -29,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from napari_lbs._core import ExperimentConfig, load_sample_hologram, read_hologram
+from napari_lbs._core.foundation import available_threads
 from napari_lbs._core.gap import SceneDiagnosisSettings, diagnose_scene
 from withheld_suite import vignetting_divisor
 
@@ -129,8 +132,10 @@ def main() -> None:
     parser.add_argument("folder", nargs="?")
     parser.add_argument("--out", required=True)
     parser.add_argument("--grid", type=int, default=SceneDiagnosisSettings().grid, help="tiles per side of the held-out checkerboard")
+    parser.add_argument("--workers", type=int, default=available_threads(), help="fitting processes (default: one per available core, as the CLI's)")
     args = parser.parse_args()
-    settings = SceneDiagnosisSettings(grid=args.grid)
+    default = SceneDiagnosisSettings(grid=args.grid)
+    settings = dataclasses.replace(default, refine=dataclasses.replace(default.refine, workers=args.workers))
     load = [os.getloadavg()[0]]
     if args.what == "suite":
         result = suite(Path(args.folder), settings)
@@ -142,6 +147,7 @@ def main() -> None:
     load.append(os.getloadavg()[0])
     result["load_average"] = load
     result["grid"] = args.grid
+    result["workers"] = args.workers
     Path(args.out).write_text(json.dumps(result, indent=1, default=float))
     if args.what == "suite":
         outside = f"; outside the catalog {result['outside_right']}/{result['outside_cases']} right" if result["outside_cases"] else ""

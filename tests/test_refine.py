@@ -320,11 +320,12 @@ def test_two_overlapping_particles_are_both_recovered(rounds):
 
 
 def test_worker_processes_give_the_same_table_report_progress_and_stop_at_once():
-    """Batches fitted in two spawned processes: the same table bit for bit every run and as in one process, progress at least every second, a stop within 2 s."""
+    """Batches fitted in two spawned processes: the same table bit for bit every run, as in one process and in a pool kept across calls; progress at least every second, a stop within 2 s."""
     import multiprocessing
     import time
 
     from napari_lbs._core import RefineSettings, Stopped, refine_particles
+    from napari_lbs._core.foundation import WorkerPool
 
     truths = [(30.2 * PIXEL_UM, 33.7 * PIXEL_UM, 850.0, 17.0), (44.6 * PIXEL_UM, 39.1 * PIXEL_UM, 1000.0, 19.0)]
     hologram = sphere_scene(truths, (80, 80))
@@ -343,6 +344,16 @@ def test_worker_processes_give_the_same_table_report_progress_and_stop_at_once()
     # run after run, and against one process on one thread: bit for bit
     pd.testing.assert_frame_equal(pooled, again, check_exact=True)
     pd.testing.assert_frame_equal(pooled, alone, check_exact=True)
+    # a pool the caller keeps: its processes start once and fit both calls, the same table again
+    with WorkerPool(2) as pool:
+        kept = [refine_particles(hologram, starts, default_config(), fixed={"absorption": 0.0}, settings=RefineSettings(**settings), pool=pool)
+                for _ in range(2)]
+        processes = [set(pool._executor._processes)]
+        refine_particles(hologram, starts.iloc[:1], default_config(), fixed={"absorption": 0.0}, settings=RefineSettings(**settings), pool=pool)
+        processes.append(set(pool._executor._processes))
+    assert len(processes[0]) == 2 and processes[0] == processes[1] and not multiprocessing.active_children()
+    for table in kept:
+        pd.testing.assert_frame_equal(table, alone, check_exact=True)
     assert len(pooled) == 2
     times = [t for t, _, _ in calls]
     assert calls[-1][1:] == (6, 6) and max(np.diff(times)) < 1.0  # two batches in each of two rounds and the small spheres' retry

@@ -65,12 +65,11 @@ class DiagnosisWidget(StepWidget):
         return output_problem(self.output, "report folder", folder=True)
 
     def prepare(self):
-        from napari_lbs._core import SceneDiagnosisSettings
         from napari_lbs._core.pipeline import DiagnoseRequest
 
         layer = self.hologram.value
         place_hologram(layer, chosen(self.config))
-        request = DiagnoseRequest(np.asarray(layer.data), Path(self.output.value), config_from(self.config), settings=SceneDiagnosisSettings(),
+        request = DiagnoseRequest(np.asarray(layer.data), Path(self.output.value), config_from(self.config),
                                   tile_px=self.tile.value or None, source=layer.name)
         # the report's files are replaced only once `caution` is confirmed
         return replace(request, replace=replacing(request.outputs()) is not None), layer
@@ -85,10 +84,13 @@ class DiagnosisWidget(StepWidget):
         return diagnose(request, progress=progress, should_stop=should_stop), request, layer
 
     def show(self, outcome):
+        from napari_lbs._core import SceneDiagnosisSettings
+
         result, request, layer = outcome
         diagnosis = result.value
         report = diagnosis.report
-        self._plot.show(report["effects"], level=request.settings.level_z)
+        levels = request.settings or SceneDiagnosisSettings()  # the decisions' levels (the step's default only sizes the fits' processes)
+        self._plot.show(report["effects"], level=levels.level_z)
         verdict = report["verdict"]
         fitted = "; ".join(f"{e['id']} ({parameter_text(e)})" for e in report["effects"] if e["selected"] and e["params"])
         self._verdict.value = f"verdict: {verdict['id'] or 'nothing named'}; {verdict['reason']}" + (f"\nfitted: {fitted}" if fitted else "")
@@ -99,7 +101,7 @@ class DiagnosisWidget(StepWidget):
         pixel = np.asarray(layer.scale[-2:], float)
         translate = tuple(np.asarray(layer.translate[-2:]) + pixel * (offset + (size - 1) / 2))
         where = np.nan_to_num(diagnosis.tile_map, nan=0.0).astype(np.float32)
-        limits = (0.0, max(float(where.max()), 1.5 * request.settings.structure_level))
+        limits = (0.0, max(float(where.max()), 1.5 * levels.structure_level))
         gap_map = self._viewer.add_image(where, name="gap: unexplained share of the structure", scale=tuple(pixel * size), translate=translate, units=UNITS,
                                          colormap="magma", contrast_limits=limits, opacity=0.45, blending="additive",
                                          metadata={"report": report, "folder": str(request.out_dir)})

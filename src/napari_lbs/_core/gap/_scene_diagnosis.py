@@ -37,8 +37,9 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
-from napari_lbs._core.foundation import ExperimentConfig, InputError, ProgressCallback, Steps, StopCallback, as_hologram, begin_phase, json_safe
+from napari_lbs._core.foundation import ExperimentConfig, InputError, ProgressCallback, Steps, StopCallback, WorkerPool, as_hologram, begin_phase, json_safe
 from napari_lbs._core.gap._blur_depth import attribute_blur
 from napari_lbs._core.gap._detect import find_particles
 from napari_lbs._core.gap._heldout import TileSplit, tile_spectra
@@ -99,7 +100,9 @@ class SceneDiagnosisSettings:
     grid : int
         Tiles per side of the held-out checkerboard.
     refine : RefineSettings
-        How the particles are fitted.
+        How the particles are fitted; its ``workers`` processes, started once, fit every
+        table of the diagnosis (the scene's, its looks', the small scatterers'). More than one
+        spawns processes: a script then starts its work under ``if __name__ == "__main__":``.
     """
 
     particles: int = 64
@@ -179,7 +182,7 @@ def _found(image: np.ndarray, config: ExperimentConfig, most: int, progress, sho
     return find_particles(image, config, max_particles=most, steps=Steps(planes, progress=progress, should_stop=should_stop))
 
 
-def _scene(data: np.ndarray, found, config: ExperimentConfig, settings: SceneDiagnosisSettings, progress, should_stop) -> tuple:
+def _scene(data: np.ndarray, found, config: ExperimentConfig, settings: SceneDiagnosisSettings, progress, should_stop, pool: WorkerPool) -> tuple:
     """The frame's particles fitted, with what the fits leave looked at again; their hologram as the camera records it.
 
     Every particle is fitted with its index and absorption free, the model closest to the
@@ -200,7 +203,7 @@ def _scene(data: np.ndarray, found, config: ExperimentConfig, settings: SceneDia
         if not len(guesses):
             return guesses
         begin_phase(progress, f"the frame's scene: {len(guesses)} particles fitted")
-        fitted = refine_particles(image, guesses, config, settings=settings.refine, progress=progress, should_stop=should_stop)
+        fitted = refine_particles(image, guesses, config, settings=settings.refine, progress=progress, should_stop=should_stop, pool=pool)
         return fitted[fitted["refined"]].reset_index(drop=True)
 
     columns = ["x_um", "y_um", "z_um", "diameter_um"]
@@ -238,7 +241,8 @@ def _scene(data: np.ndarray, found, config: ExperimentConfig, settings: SceneDia
     return table, Scene(scene, depths, groups, config.optics.pixel_um)
 
 
-def _small_scatterers(data: np.ndarray, table, scene: Scene, config: ExperimentConfig, settings: SceneDiagnosisSettings, progress, should_stop):
+def _small_scatterers(data: np.ndarray, table, scene: Scene, config: ExperimentConfig, settings: SceneDiagnosisSettings, progress, should_stop,
+                      pool: WorkerPool):
     """What the fitted scene leaves, searched at the sizes below the config's: the frame's small scatterers, fitted.
 
     Debris, dust and bubbles are smaller than the sample and focus more weakly: the search
@@ -266,7 +270,7 @@ def _small_scatterers(data: np.ndarray, table, scene: Scene, config: ExperimentC
         return found
     begin_phase(progress, f"the small scatterers: {len(found)} fitted")
     significant = dataclasses.replace(settings.refine, min_gain=RefineSettings().min_gain)
-    fitted = refine_particles(residual, found.reset_index(drop=True), config, settings=significant, progress=progress, should_stop=should_stop)
+    fitted = refine_particles(residual, found.reset_index(drop=True), config, settings=significant, progress=progress, should_stop=should_stop, pool=pool)
     return fitted[fitted["refined"] & (fitted["diameter_um"] < low)].reset_index(drop=True)
 
 
@@ -411,11 +415,22 @@ def diagnose_scene(hologram: np.ndarray, config: ExperimentConfig, *, settings: 
             raise InputError(f"background: expected the hologram's shape {data.shape}, got {scale.shape}")
         data = data / np.maximum(scale, 1e-12)
     data = data / float(np.mean(data))
+    # numpy's and scipy's BLAS work here on tall, narrow matrices (least squares over 131 000
+    # pixels of a 1024² frame and a dozen parameters): a second OpenBLAS thread costs more in
+    # hand-offs than it computes (the effects' selection 14.0 s on two threads, 7.8 s on one;
+    # torch's fits keep their threads)
+    with threadpool_limits(limits=1, user_api="blas"), WorkerPool(settings.refine.workers) as pool:
+        return _diagnosed(data, np.asarray(hologram), config, settings, progress, should_stop, started, pool)
+
+
+def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig, settings: SceneDiagnosisSettings, progress, should_stop,
+               started: float, pool: WorkerPool) -> SceneDiagnosis:
+    """`diagnose_scene` of the frame ``data`` (divided by its background and mean; ``hologram`` as recorded, for its levels)."""
     import pandas as pd
 
     begin_phase(progress, "particles found in the back-propagated volume")
     found = pd.DataFrame(_found(data, config, max(settings.particles, settings.scene_particles), progress, should_stop)).drop(columns="focus")
-    table, scene = _scene(data, found, config, settings, progress, should_stop)
+    table, scene = _scene(data, found, config, settings, progress, should_stop, pool)
     split = TileSplit.of(data.shape, grid=settings.grid)
     begin_phase(progress, f"the catalog's effects around {len(table)} fitted particles")
     selection = select_effects(data, scene, split, level_z=settings.level_z, progress=progress, should_stop=should_stop)
@@ -424,7 +439,7 @@ def diagnose_scene(hologram: np.ndarray, config: ExperimentConfig, *, settings: 
     selection, blur_profile = attribute_blur(data, scene, split, selection, level_z=settings.level_z, check=steps.check)
     steps.advance()
     optics = _optics(data, table, selection, config, split, settings, progress, should_stop)
-    small = _small_scatterers(data, table, scene, config, settings, progress, should_stop)
+    small = _small_scatterers(data, table, scene, config, settings, progress, should_stop, pool)
     frame_spectra = tile_spectra(data - 1.0, split)
     baseline_share = _structure(selection.fits["baseline"].residuals, split, frame_spectra)[0]
     final = selection.fits["+".join(selection.chosen) or "baseline"]
@@ -453,7 +468,7 @@ def diagnose_scene(hologram: np.ndarray, config: ExperimentConfig, *, settings: 
     effects.append({"id": "shot_noise", "gap_after": baseline_share, "shrink": 0.0, "z": shot["z"], "heldout_gain_nats": shot["gain"], "selected": shot_selected,
                     "params": {"log10_photons": shot["log10_photons"]} if shot["log10_photons"] is not None else {},
                     "params_err": {"log10_photons": shot["log10_photons_err"]} if shot["log10_photons"] is not None else {}})
-    levels = levels_test(np.asarray(hologram), floor_variance=floor_variance)
+    levels = levels_test(hologram, floor_variance=floor_variance)
     effects.append({"id": "quantization", "gap_after": baseline_share, "shrink": 0.0, "z": None, "selected": levels["selected"], "params": levels["params"],
                     "levels": {k: levels[k] for k in ("integer", "step_counts", "noise_share", "saturated_share")}})
     effects.sort(key=lambda entry: -(entry["z"] if entry["z"] is not None and np.isfinite(entry["z"]) else -np.inf))

@@ -220,7 +220,7 @@ def distractors_from_report(report: dict, *, tile_px: int, diameter_min_um: floa
     simulated with neighbours in a margin of two Airy radii of the scene's median particle at
     its median depth, ``2 × 1.22 (λ/n) z / d`` (the central diffraction lobe and the first
     ring, which hold most of the light it scatters), in pixels, rounded up, at most half a
-    tile. On the built-in real hologram that is 104 pixels (25.3 µm at 3.59 mm, 660 nm, 2.2 µm
+    tile. On the built-in real hologram that is 105 pixels (25.3 µm at 3.61 mm, 660 nm, 2.2 µm
     pixels), near the demo's hand-set 96.
 
     A report without a scene (an older engine's) gives neither.

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 
 from napari_lbs._core.foundation import ExperimentConfig
 from napari_lbs._core.foundation import InputError
-from napari_lbs._core.foundation import ProgressCallback, StopCallback, begin_phase
+from napari_lbs._core.foundation import ProgressCallback, StopCallback, available_threads, begin_phase
 from napari_lbs._core.pipeline._common import Log, StepResult, _background, _quiet, _source, check_outputs, provenance, read_calibration
 
 if TYPE_CHECKING:  # for the annotations only: the steps import these modules when they run
@@ -49,7 +49,8 @@ class DiagnoseRequest:
         Gets ``report.json``, ``report.md`` and the figures.
     config : ExperimentConfig
     settings : SceneDiagnosisSettings, optional
-        How `diagnose_scene` fits and decides (default: its defaults).
+        How `diagnose_scene` fits and decides (default: its defaults, with the fits in one
+        process per available core, `available_threads`).
     background_path : path, optional
     calibration_path : path, optional
         Recorded as provenance.
@@ -180,7 +181,10 @@ def diagnose(request: DiagnoseRequest, *, progress: ProgressCallback | None = No
         raise InputError(f"--roi {request.roi[0]} {request.roi[1]}: outside the {shape[1]}x{shape[0]} (x by y) hologram {source}")
     from napari_lbs._core.gap import SceneDiagnosisSettings, diagnose_scene, write_report  # the fits' torch, once the inputs are checked
 
-    settings = request.settings or SceneDiagnosisSettings()
+    settings = request.settings
+    if settings is None:  # the fits in one process per core, as `predict --refine`'s
+        default = SceneDiagnosisSettings()
+        settings = replace(default, refine=replace(default.refine, workers=available_threads()))
     if grid is not None:
         settings = replace(settings, grid=grid)
     diagnoses = [diagnose_scene(frame, config, settings=settings, background=background, progress=_FrameProgress(progress, k, len(frames)) if progress else None,

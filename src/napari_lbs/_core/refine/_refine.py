@@ -123,6 +123,7 @@ def refine_particles(
     valid: np.ndarray | None = None,
     progress: ProgressCallback | None = None,
     should_stop: StopCallback | None = None,
+    pool: WorkerPool | None = None,
 ):
     """Refine every particle of ``table`` by a Lorenz–Mie fit of its patch of ``hologram`` (module docstring).
 
@@ -149,6 +150,11 @@ def refine_particles(
     progress, should_stop
         See `napari_lbs._core.foundation._progress`; one step per batch and fitting round. Raises
         `Stopped` when asked.
+    pool : WorkerPool, optional
+        Processes to fit the batches in, kept open by the caller across several calls, so
+        that they start once (`diagnose_scene` fits three or four tables in a row). Default:
+        ``settings.workers`` processes started for this call and ended after it. Ignored on a
+        GPU.
 
     Returns
     -------
@@ -202,7 +208,9 @@ def refine_particles(
     result: dict[str, np.ndarray] = {}
     reach = 1.5 * settings.patch_px * optics.pixel_um
     # workers on the CPU only: on a GPU the batches share the one device
-    pool = WorkerPool(settings.workers if device.type == "cpu" else 1)
+    own_pool = pool is None or device.type != "cpu"
+    if own_pool:
+        pool = WorkerPool(settings.workers if device.type == "cpu" else 1)
     try:
         present = np.ones(count, dtype=bool)
 
@@ -252,7 +260,8 @@ def refine_particles(
         else:
             steps.advance(steps.total - steps.done)  # nothing to fit: every round done
     finally:
-        pool.close()  # a stop or a failure has already ended the running fits; nothing they did is kept
+        if own_pool:
+            pool.close()  # a stop or a failure has already ended the running fits; nothing they did is kept
     out = frame.copy()
     if count:
         keep = _kept(result, settings=settings)
