@@ -37,10 +37,13 @@ confidently names catalog effects. Parameterised here, as a 660 nm, 2.2 µm-pixe
 `OUTSIDE_DEVELOPMENT` (seed 4321, 512²: one case per outside effect, and motion beside
 vignetting) is what any choice about them is made on. `OUTSIDE_FROZEN` (seed 9157, 512²: two
 controls, astigmatism, motion and pixel gain at two strengths, the column pattern once) is
-judged on only: its design and seed were written and committed before its first run.
+judged on only: its design and seed were written and committed before its first run;
+`OUTSIDE_FROZEN_2` (seed 60817, 512²: three controls, two round catalog blurs, motion at three
+lengths, motion beside a round blur, astigmatism, pixel gain, a column pattern) likewise,
+written after the test for a blur by direction was chosen on the development sets.
 
 Run ``python benchmarks/withheld_suite.py make frozen DIR`` (or ``frozen-2`` … ``frozen-5``, ``development``,
-``outside-development``, ``outside-frozen``) to write the holograms and ``design.json`` (a few
+``outside-development``, ``outside-frozen``, ``outside-frozen-2``) to write the holograms and ``design.json`` (a few
 minutes on 2 cores); ``bench_diagnosis.py suite DIR`` scores the catalog sets and
 ``bench_scene_diagnosis.py suite DIR`` every set, the outside ones included.
 """
@@ -255,11 +258,31 @@ OUTSIDE_FROZEN = (
     Case("pixel-gain-weak", 512, {"pixel_gain": {"rms": 0.01}}),
     Case("pixel-gain-strong", 512, {"pixel_gain": {"rms": 0.03}}),
 )
+# judged on only, written and committed before its first run (2026-11-28): three controls, two
+# round blurs of the catalog (which must be named, and not taken for a blur by direction),
+# motion at three lengths and angles (one beside a round blur), astigmatism, pixel gain and a
+# column pattern. Right as in the other outside set; a catalog case right when the verdict
+# names exactly its effects.
+OUTSIDE_FROZEN_2_SEED = 60817
+OUTSIDE_FROZEN_2 = (
+    Case("control-a", 512, spheres_per_512=30, level=150, read_noise=1.5), Case("control-b", 512, spheres_per_512=25, level=170, read_noise=2.0),
+    Case("control-c", 512, spheres_per_512=35, level=130, read_noise=1.0),
+    Case("crosstalk", 512, {"sensor_blur": {"kernel": "binomial3"}}),
+    Case("source-disc", 512, {"coherence": {"source_mrad": 2.5}}),
+    Case("motion-short", 512, {"motion": {"streak_um": 8.0, "angle_rad": 1.0}}),
+    Case("motion-mid", 512, {"motion": {"streak_um": 14.0, "angle_rad": 2.3}}),
+    Case("motion-long", 512, {"motion": {"streak_um": 25.0, "angle_rad": 0.8}}),
+    Case("motion+crosstalk", 512, {"motion": {"streak_um": 12.0, "angle_rad": 1.9}, "sensor_blur": {"kernel": "binomial3"}}),
+    Case("astigmatism", 512, {"astigmatism": {"delta_um": 300.0, "angle_rad": 0.7}}),
+    Case("pixel-gain", 512, {"pixel_gain": {"rms": 0.02}}),
+    Case("column-pattern", 512, {"column_pattern": {"column_rms": 1.2, "row_rms": 0.4}}),
+)
 SUITES = {
     "frozen": (FROZEN, FROZEN_SEED), "frozen-2": (FROZEN_2, FROZEN_2_SEED), "frozen-3": (FROZEN_3, FROZEN_3_SEED), "frozen-4": (FROZEN_4, FROZEN_4_SEED),
     "frozen-5": (FROZEN_5, FROZEN_5_SEED),
     "development": (DEVELOPMENT, DEVELOPMENT_SEED),
-    "outside-frozen": (OUTSIDE_FROZEN, OUTSIDE_FROZEN_SEED), "outside-development": (OUTSIDE_DEVELOPMENT, OUTSIDE_DEVELOPMENT_SEED),
+    "outside-frozen": (OUTSIDE_FROZEN, OUTSIDE_FROZEN_SEED), "outside-frozen-2": (OUTSIDE_FROZEN_2, OUTSIDE_FROZEN_2_SEED),
+    "outside-development": (OUTSIDE_DEVELOPMENT, OUTSIDE_DEVELOPMENT_SEED),
 }
 
 
