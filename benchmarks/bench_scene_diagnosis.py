@@ -43,6 +43,7 @@ def _case_line(name: str, report: dict, seconds: float) -> dict:
         "verdict": report["verdict"]["id"],
         "catalog_explains": report["verdict"]["catalog_explains"],
         "structured_share": round(report["verdict"]["residual"], 4),
+        "directional_blur": {k: round(float(v), 3) for k, v in report["gap"].get("directional_blur", {}).items()},
         "z": {k: (None if v["z"] is None else round(float(v["z"]), 2)) for k, v in effects.items()},
         "particles": report["gap"]["particles"],
         "params": {k: {name: [_rounded(value), _rounded(v.get("params_err", {}).get(name))] for name, value in v["params"].items()}

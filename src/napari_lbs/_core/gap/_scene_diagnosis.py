@@ -42,6 +42,7 @@ from threadpoolctl import threadpool_limits
 from napari_lbs._core.foundation import ExperimentConfig, InputError, ProgressCallback, Steps, StopCallback, WorkerPool, as_hologram, begin_phase, json_safe
 from napari_lbs._core.gap._blur_depth import attribute_blur
 from napari_lbs._core.gap._detect import find_particles
+from napari_lbs._core.gap._directional import directional_blur_test
 from napari_lbs._core.gap._heldout import TileSplit, tile_spectra
 from napari_lbs._core.gap._levels import levels_test
 from napari_lbs._core.gap._nested import MEAN_EFFECTS, Scene, select_effects
@@ -445,6 +446,7 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
     final = selection.fits["+".join(selection.chosen) or "baseline"]
     share, bands, tile_map, floor_variance = _structure(final.residuals, split, frame_spectra)
     lines = _line_pattern(final.residuals)
+    directional = directional_blur_test(final.residuals, final.means, split, final.loglik)
     by_depth = _by_depth(selection.fits["baseline"].residuals, final.residuals, data, table, split, floor_variance,
                          pixel_um=config.optics.pixel_um, reach_px=settings.refine.patch_px // 2)
     effects = []
@@ -476,14 +478,17 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
     undecided = sorted({name for pair in selection.undecided for name in (pair["selected"], pair["rival"])})
     between = "; ".join(f"{pair['selected']} or {pair['rival']} (z {pair['z']:.1f} in its favour)" for pair in selection.undecided)
     patterned = [name for name, ratio in lines.items() if ratio > settings.line_level]
-    catalog_explains = share <= settings.structure_level and not patterned
+    streaked = bool(directional["z"] >= settings.level_z and directional["gain_nats"] > 0)
+    catalog_explains = share <= settings.structure_level and not patterned and not streaked
     left = (f"unexplained share of the frame's structure {share:.3f} (median over the tiles; {'at most' if share <= settings.structure_level else 'above'} "
-            f"{settings.structure_level:g})" + (f"; a fixed pattern in the {' and '.join(patterned)} (variance of their means {max(lines.values()):.1f}x white noise's)" if patterned else ""))
+            f"{settings.structure_level:g})" + (f"; a fixed pattern in the {' and '.join(patterned)} (variance of their means {max(lines.values()):.1f}x white noise's)" if patterned else "")
+            + (f"; a blur that differs by direction, outside the catalog (motion during the exposure, astigmatism: z {directional['z']:.1f}, "
+               f"{directional['variance_difference_px2']:.2f} px² more along {np.degrees(directional['angle_rad']):.0f}°)" if streaked else ""))
     posterior = {("null" if name == "baseline" else name): p for name, p in selection.probabilities.items()}
     report = {
         "method": "scene",
         "gap": {"metric": "unexplained share of the frame's structure (median over the held-out tiles)", "baseline": baseline_share, "by_band": bands,
-                "by_depth": by_depth, "line_pattern": lines, "particles": optics["particles"], "tiles": split.grid**2, "tile_px": split.size},
+                "by_depth": by_depth, "line_pattern": lines, "directional_blur": directional, "particles": optics["particles"], "tiles": split.grid**2, "tile_px": split.size},
         "effects": effects,
         "verdict": {"id": None if undecided else "+".join(named) or None, "shrink": 1.0 - share / baseline_share if baseline_share > 0 else 0.0,
                     "residual": share, "undecided": undecided, "catalog_explains": bool(catalog_explains),
