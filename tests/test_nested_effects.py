@@ -210,6 +210,9 @@ def test_a_frame_of_spheres_is_diagnosed_end_to_end_with_the_report_fields():
     assert report["particle_optics"]["particles"] == 2 and abs(report["particle_optics"]["diameter_median_um"] - 25.0) < 2.0
     assert report["scene"]["particles"] == 2 and report["scene"]["in_size_range"] == 2 and report["scene"]["small_scatterers"]["count"] == 0
     assert abs(report["scene"]["diameter_um"][2] - 25.0) < 2.0 and abs(report["scene"]["z_um"][2] - 2200.0) < 100.0
+    directional = report["gap"]["directional_blur"]
+    assert set(directional) == {"gain_nats", "z", "variance_difference_px2", "angle_rad"} and 0.0 <= directional["angle_rad"] < np.pi
+    assert directional["variance_difference_px2"] < 0.05  # no blur in the frame, none by direction
     assert first.to_json() == second.to_json()
 
 
@@ -260,6 +263,29 @@ def test_a_column_pattern_is_found_and_white_noise_or_a_smooth_envelope_hold_non
     columns = rng.normal(0.0, 0.005, SIZE)[None, :]
     ratios = _line_pattern(tuple(r + columns for r in plain))
     assert ratios["columns"] > 20.0 and ratios["rows"] < 2.0
+
+
+@pytest.mark.parametrize("sigma_rows, sigma_cols, angle", [(0.6, 2.0, 0.0), (2.0, 0.6, np.pi / 2), (1.8, 1.8, None)])
+def test_a_blur_by_direction_is_found_with_its_axis_and_a_round_one_is_not(sigma_rows, sigma_cols, angle):
+    """A frame blurred more along one axis than the model (motion) gains held out in every tile, its long axis measured; a round blur the model underrates is no blur by direction."""
+    from scipy import ndimage
+
+    from napari_lbs._core.gap._directional import directional_blur_test
+
+    rng = np.random.default_rng(3)
+    texture = 1.0 + 0.3 * ndimage.gaussian_filter(rng.standard_normal((SIZE, SIZE)), 2.0) / 0.14  # fringes of a few pixels
+    model = ndimage.gaussian_filter(texture, 1.2)  # the fitted round blur
+    data = ndimage.gaussian_filter(texture, (sigma_rows, sigma_cols)) + rng.normal(0.0, 0.01, (SIZE, SIZE))
+    split = TileSplit.of((SIZE, SIZE), grid=4)
+    residual = data - model
+    baseline = whittle_loglik((tile_spectra(residual, split),) * 2, split)
+    found = directional_blur_test((residual, residual), (model, model), split, baseline)
+    if angle is None:
+        assert found["z"] < 3.0 and found["variance_difference_px2"] < 0.2
+        return
+    assert found["z"] >= 3.0 and found["gain_nats"] > 0
+    assert abs(np.angle(np.exp(2j * (found["angle_rad"] - angle)))) / 2 < 0.05  # the long axis, as an axis
+    assert 0.5 * abs(sigma_cols**2 - sigma_rows**2) < found["variance_difference_px2"] < 2.0 * abs(sigma_cols**2 - sigma_rows**2)
 
 
 def test_a_scene_diagnosis_names_its_phases_reports_every_second_and_stops_at_once():

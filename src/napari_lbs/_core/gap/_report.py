@@ -226,6 +226,7 @@ def _summary(report: dict, levels: SceneDiagnosisSettings) -> list[str]:
         f"the catalog explains a frame up to {levels.structure_level:g}.",
         f"- Fixed line pattern: the variance of the residual's column means is {_text(gap['line_pattern']['columns'], '.2f')} times, "
         f"of its row means {_text(gap['line_pattern']['rows'], '.2f')} times what white noise gives them (a pattern above {levels.line_level:g}).",
+        *_directional_lines(gap.get("directional_blur"), levels.level_z),
         "",
         "| band (cycles per pixel) | share of the residual's power | structured share |",
         "|---|---|---|",
@@ -240,6 +241,15 @@ def _summary(report: dict, levels: SceneDiagnosisSettings) -> list[str]:
         "",
     ]
     return lines
+
+
+def _directional_lines(directional: dict | None, level_z: float) -> list[str]:
+    """The report's line on a blur that differs by direction (none for a report without the test)."""
+    if not directional:
+        return []
+    return [f"- Blur by direction (motion, astigmatism; outside the catalog): held-out gain {_text(directional['gain_nats'], '.0f')} nats, "
+            f"sign test z {_text(directional['z'], '.2f')} (found from {level_z:g}); the long axis's variance exceeds the short one's by "
+            f"{_text(directional['variance_difference_px2'], '.2f')} px² at {_text(float(np.degrees(directional['angle_rad'])), '.0f')}° from the x axis."]
 
 
 def _depth_lines(by_depth: list | None) -> list[str]:
