@@ -16,6 +16,7 @@ from scene_reports import StandIn, scene_report
 
 from napari_lbs._cli import main
 from napari_lbs._core import InputError, SceneDiagnosis, SceneDiagnosisSettings, Stopped, effects_from_report, write_report
+from napari_lbs._core.foundation import available_threads
 from napari_lbs._core.physics import EFFECTS
 from napari_lbs._core.pipeline import DIAGNOSED_FRAMES, DiagnoseRequest, diagnose, tiles_per_side
 
@@ -134,6 +135,8 @@ def test_several_frames_are_diagnosed_each_on_one_bar_and_pooled_by_majority(tmp
     result = diagnose(DiagnoseRequest(tmp_path / "rec.tif", tmp_path / "report", tile_px=64), progress=listener)
     assert DIAGNOSED_FRAMES == 3 and [float(call["hologram"].mean()) for call in engine.calls] == pytest.approx([float(frames[k].mean()) for k in (0, 2, 4)])
     assert all(call["settings"].grid == 4 for call in engine.calls)
+    # the step's default fits in one process per core, as predict --refine's (the API's default: one)
+    assert all(call["settings"].refine.workers == available_threads() for call in engine.calls) and SceneDiagnosisSettings().refine.workers == 1
     report = json.loads((tmp_path / "report" / "report.json").read_text())
     assert [f["name"] for f in report["frames"]] == [f"{tmp_path / 'rec.tif'}[frame {k}]" for k in (0, 2, 4)]
     assert [f["verdict"] for f in report["frames"]] == ["illumination", "illumination+quantization", "quantization"]
@@ -205,6 +208,15 @@ def test_the_report_shows_the_scene_s_numbers(tmp_path):
     assert "## The scene" in summary and "12 particles fitted (2.4 per mm²" in summary and "10 within the config's sizes, 2 below" in summary
     assert "diameter median 25.1 (quartiles 24–25.7) µm" in summary and "Depth median 3.6 (quartiles 2.8–3.9) mm" in summary
     assert "Small scatterers (below the config's sizes): 2, 0.12 per 256-pixel tile, 11–17.5 µm." in summary
+
+
+def test_the_report_shows_a_blur_by_direction(tmp_path):
+    report = scene_report("sensor_blur")
+    report["gap"]["directional_blur"] = {"gain_nats": 19131.0, "z": 4.0, "variance_difference_px2": 9.72, "angle_rad": 0.512}
+    write_report(SceneDiagnosis(report, np.full((2, 2), 0.01), None, 1.0), tmp_path / "r")
+    summary = (tmp_path / "r" / "report.md").read_text()
+    assert "Blur by direction (motion, astigmatism; outside the catalog): held-out gain 19131 nats, sign test z 4.00" in summary
+    assert "exceeds the short one's by 9.72 px² at 29° from the x axis" in summary
 
 
 def test_the_report_shows_the_blur_by_depth_where_a_blur_was_selected(tmp_path):
