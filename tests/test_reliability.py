@@ -655,6 +655,35 @@ def test_an_interrupt_inside_an_import_waits_for_the_import_to_end(tmp_path, mon
     assert signal.getsignal(signal.SIGTERM) is before
 
 
+@pytest.mark.parametrize("where", ["created", "removed"])
+def test_an_interrupt_as_a_temporary_file_is_created_or_removed_leaves_no_file(tmp_path, monkeypatch, where):
+    """SIGTERM landing between a temporary's creation and its name's keeping, or amid its removal, is raised once that step is over: no file is left."""
+    import tempfile
+
+    from napari_lbs._core.foundation import interruptible
+    from napari_lbs._core.foundation import _files
+    from napari_lbs._core.foundation._files import write_json
+
+    def signalled(function):
+        def wrapper(*args, **kwargs):
+            result = function(*args, **kwargs)
+            if ".part" in str(result if where == "created" else args[0]):  # the temporary's own step
+                os.kill(os.getpid(), signal.SIGTERM)
+                time.sleep(0.2)  # the handler runs here, inside the step
+            return result
+        return wrapper
+
+    if where == "created":
+        monkeypatch.setattr(_files.tempfile, "mkstemp", signalled(tempfile.mkstemp))
+    else:  # the write fails, and the interrupt lands as its temporary is looked for
+        monkeypatch.setattr(_files, "_commit", lambda *a, **k: (_ for _ in ()).throw(OSError("disk full")))
+        monkeypatch.setattr(_files.Path, "exists", signalled(Path.exists))
+    with pytest.raises(KeyboardInterrupt), interruptible():
+        write_json(tmp_path / "m.json", {"epochs": 1})
+    monkeypatch.undo()
+    assert not list(tmp_path.iterdir())
+
+
 # --- values that make NaN or all-zero data, hangs, memory, garbage ------------------------------
 
 @pytest.mark.parametrize("params, culprit", [

@@ -36,7 +36,7 @@ __getattr__, __dir__, __all__ = lazy_exports(
         "_errors": ("ConfigError", "InputError"),
         "_files": ("atomic_path", "atomic_write_bytes", "check_target", "json_safe", "read_json_object", "write_json"),
         "_io": ("PARTICLE_COLUMNS", "as_hologram", "check_table_name", "read_hologram", "read_particles", "read_stack", "refusing_damaged_tiff", "tiff_pages", "write_particles", "write_stack"),
-        "_interrupts": ("interruptible", "run_interruptibly"),
+        "_interrupts": ("deferred_interrupts", "interruptible", "run_interruptibly"),
         "_lazy": ("lazy_exports",),
         "_pools": ("CHECK_S", "WorkerPool", "run_in_workers"),
         "_progress": ("ProgressCallback", "ReportCallback", "Steps", "StopCallback", "Stopped", "begin_phase"),

@@ -24,6 +24,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from napari_lbs._core.foundation._errors import InputError
+from napari_lbs._core.foundation._interrupts import deferred_interrupts
 
 __all__ = ["check_target", "atomic_path", "atomic_write_bytes", "json_safe", "write_json", "read_text", "read_json_object"]
 
@@ -148,15 +149,19 @@ def atomic_path(path: Path, *, force: bool = True):
     if path.parent and not path.parent.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
     _remove_stale_temporaries(path)
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part" + path.suffix, dir=path.parent)
-    os.close(handle)
-    temporary = Path(temporary)
+    temporary = None
     try:
+        # an interrupt between the file's creation and its name's keeping, or amid its removal, would leave it behind
+        with deferred_interrupts():
+            handle, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part" + path.suffix, dir=path.parent)
+            os.close(handle)
+            temporary = Path(name)
         yield temporary
         _commit(temporary, path, force=force)
     finally:
-        if temporary.exists():
-            temporary.unlink()
+        with deferred_interrupts():
+            if temporary is not None and temporary.exists():
+                temporary.unlink()
 
 
 def atomic_write_bytes(path: Path, data: bytes, *, force: bool = True) -> Path:

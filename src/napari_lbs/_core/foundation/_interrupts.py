@@ -21,9 +21,12 @@ from typing import TypeVar
 
 T = TypeVar("T")
 
-__all__ = ["interruptible", "run_interruptibly"]
+__all__ = ["deferred_interrupts", "interruptible", "run_interruptibly"]
 
 _RETRY_S = 0.05
+# per thread: how deep in `deferred_interrupts` blocks, and whether an interrupt waits for their end
+# (the handler runs in the main thread, so it reads the main thread's)
+_deferral = threading.local()
 
 
 def _inside_import(frame) -> bool:
@@ -35,11 +38,31 @@ def _inside_import(frame) -> bool:
 
 
 def _interrupt(signum, frame) -> None:
+    if getattr(_deferral, "depth", 0):
+        _deferral.pending = True
+        return
     if _inside_import(frame) and hasattr(signal, "setitimer"):
         signal.signal(signal.SIGALRM, _interrupt)
         signal.setitimer(signal.ITIMER_REAL, _RETRY_S)
         return
     raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def deferred_interrupts() -> Iterator[None]:
+    """Within the block an interrupt (SIGTERM or Ctrl-C, under `interruptible`) waits, and is raised where the block ends.
+
+    For the few steps that must not be cut in two: a temporary file created and its name
+    kept, or removed (`atomic_path`); an interrupt between the two would leave the file behind.
+    """
+    _deferral.depth = getattr(_deferral, "depth", 0) + 1
+    try:
+        yield
+    finally:
+        _deferral.depth -= 1
+        if not _deferral.depth and getattr(_deferral, "pending", False):
+            _deferral.pending = False
+            raise KeyboardInterrupt
 
 
 @contextlib.contextmanager
