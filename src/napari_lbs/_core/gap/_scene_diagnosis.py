@@ -22,9 +22,10 @@
    frame itself, the *unexplained share* of the frame's structure. Its median over the tiles
    is the gap: a pair fitted as one particle or a particle cut by the frame's edge spoils a
    few tiles, an effect the model lacks spoils them all. The catalog explains the frame where
-   that median is at most ``structure_level`` and the residual's column and row means hold no
+   that median is at most ``structure_level``, the residual's column and row means hold no
    fixed pattern (`_line_pattern`: what a camera's column amplifiers and row read-out leave,
-   the EMVA 1288 standard's check of non-uniformity).
+   the EMVA 1288 standard's check of non-uniformity) and it holds no blur that differs by
+   direction (`directional_blur_test`: a sample moving during the exposure).
 5. **The scene's numbers** (`scene_population`): the fitted particles' count, density, sizes,
    depths and index contrasts, and the small scatterers: the scene's fits below the config's
    sizes and what a search at smaller sizes finds in the residual (`_small_scatterers`).
