@@ -604,7 +604,7 @@ def test_a_diameter_beyond_the_inner_size_grid_is_recovered_by_its_outer_part():
 
 
 def test_predict_refine_refits_every_particle_once_its_second_look_finds_more(monkeypatch):
-    """A find in the residual joins every particle's model: the table is refitted with it (two rounds, from the fits, at the start's index contrast)."""
+    """A find in the residual joins every particle's model: the table is refitted with it (two rounds, from the fits, at the start's index contrast), in the first fit's pool."""
     import pandas as pd
 
     import napari_lbs._core.refine as refine_wing
@@ -616,8 +616,8 @@ def test_predict_refine_refits_every_particle_once_its_second_look_finds_more(mo
     def fitted(table):
         return pd.DataFrame(table).reset_index(drop=True).assign(index_contrast=0.5, refined=True)
 
-    def refine_particles(image, table, config, *, settings, valid=None, progress=None, should_stop=None):
-        calls.append((pd.DataFrame(table).reset_index(drop=True), settings.rounds))
+    def refine_particles(image, table, config, *, settings, valid=None, progress=None, should_stop=None, pool=None):
+        calls.append((pd.DataFrame(table).reset_index(drop=True), settings.rounds, pool))
         return fitted(table)
 
     finds = [pd.DataFrame({"x_um": [30.0], "y_um": [40.0], "z_um": [2100.0], "diameter_um": [22.0]})]
@@ -627,8 +627,9 @@ def test_predict_refine_refits_every_particle_once_its_second_look_finds_more(mo
     options = {"material": None, "propose": None, "valid": None, "progress": None, "should_stop": None}
     table, record = _predict._refined(np.ones((64, 64)), particles, load_config(None), RefineSettings(index_contrast=0.26), **options)
     assert len(calls) == 2 and len(table["x_um"]) == 3
-    refit, rounds = calls[1]
+    refit, rounds, pool = calls[1]
     assert len(refit) == 3 and rounds >= 2 and np.all(refit["index_contrast"] == 0.26)  # the finds in the model; each restarted in its start's valley
+    assert pool is not None and calls[0][2] is pool  # both fits in one pool of processes, started once
     assert record["residual"]["found"] == 1 and record["refit"] == {"particles": 3, "kept": 3}
     calls.clear()
     finds[0] = finds[0].iloc[:0]

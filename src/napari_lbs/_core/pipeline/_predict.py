@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 from napari_lbs._core.foundation import ExperimentConfig
 from napari_lbs._core.foundation import InputError
-from napari_lbs._core.foundation import ProgressCallback, StopCallback, begin_phase
+from napari_lbs._core.foundation import ProgressCallback, StopCallback, WorkerPool, begin_phase
 from napari_lbs._core.foundation import check_output_path, check_target, write_json
 from napari_lbs._core.pipeline._common import Log, StepResult, _background, _quiet, _source
 
@@ -298,16 +298,18 @@ def _refined_frames(frames, particles: dict, config: ExperimentConfig, settings:
 
     frame_of = np.asarray(particles["frame"]).astype(np.int64)
     parts, records = [], []
-    for index in np.unique(frame_of):
-        rows = frame_of == index
-        hologram = np.asarray(frames.read(int(index), log=log), dtype=np.float64)
-        divisor = background if isinstance(background, np.ndarray) else float(hologram.mean())
-        table, record = _refined(hologram / divisor, {name: np.asarray(values)[rows] for name, values in particles.items()}, config, settings, material=material,
-                                 propose=propose, valid=unsaturated_pixels(hologram), progress=progress, should_stop=should_stop, accept_score=accept_score)
-        if len(table["x_um"]) and "frame" in table:
-            table["frame"] = np.full(len(table["x_um"]), index, dtype=np.asarray(particles["frame"]).dtype)
-        parts.append(table)
-        records.append(record)
+    with WorkerPool(settings.workers) as pool:  # the fitting processes start once for the recording
+        for index in np.unique(frame_of):
+            rows = frame_of == index
+            hologram = np.asarray(frames.read(int(index), log=log), dtype=np.float64)
+            divisor = background if isinstance(background, np.ndarray) else float(hologram.mean())
+            table, record = _refined(hologram / divisor, {name: np.asarray(values)[rows] for name, values in particles.items()}, config, settings, material=material,
+                                     propose=propose, valid=unsaturated_pixels(hologram), progress=progress, should_stop=should_stop, accept_score=accept_score,
+                                     pool=pool)
+            if len(table["x_um"]) and "frame" in table:
+                table["frame"] = np.full(len(table["x_um"]), index, dtype=np.asarray(particles["frame"]).dtype)
+            parts.append(table)
+            records.append(record)
     merged = {name: np.concatenate([part[name] for part in parts]) for name in parts[0]} if parts else particles
     summary = {"settings": records[0]["settings"] if records else None, "detections": sum(r["detections"] for r in records),
                "kept": sum(r["kept"] for r in records), "seconds": sum(r["seconds"] for r in records), "pixels_left_out": sum(r["pixels_left_out"] for r in records),
@@ -326,7 +328,7 @@ def _refined_frames(frames, particles: dict, config: ExperimentConfig, settings:
 
 
 def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, settings: RefineSettings, *, material: float | None, propose,
-             valid: np.ndarray | None, progress, should_stop, accept_score: float | None = None) -> tuple[dict, dict]:
+             valid: np.ndarray | None, progress, should_stop, accept_score: float | None = None, pool: WorkerPool | None = None) -> tuple[dict, dict]:
     """The particle table refined by `refine_particles` with ``settings``, with the finds in its residual (`residual_particles`, ``propose``), of the ``material`` where given (as a dict of arrays), and its provenance.
 
     As the ``refine`` command does, a pitch finer than half the medium wavelength is binned
@@ -342,8 +344,14 @@ def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, se
     saturated camera's clipped pixels left out), the provenance's ``pixels_left_out``.
     ``accept_score``: the network's own threshold. A proposal scored below it was made for
     the fit to judge; one the fit could not refine leaves the table (the provenance's
-    ``unconfirmed``), where one at or above it stays at the network's guess.
+    ``unconfirmed``), where one at or above it stays at the network's guess. ``pool``: the
+    processes every fit runs in (`WorkerPool` of ``settings.workers``; default: one for this
+    frame's three fits, started once).
     """
+    if pool is None:
+        with WorkerPool(settings.workers) as pool:
+            return _refined(hologram, particles, config, settings, material=material, propose=propose, valid=valid, progress=progress,
+                            should_stop=should_stop, accept_score=accept_score, pool=pool)
     from dataclasses import asdict
 
     import numpy as np
@@ -362,7 +370,7 @@ def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, se
     guesses = pd.DataFrame(particles)
     guesses[["x_um", "y_um"]] = guesses[["x_um", "y_um"]].astype(np.float64) - shift_um
     begin_phase(progress, f"fit {len(particles['x_um'])} particles")
-    table = refine_particles(image, guesses, fit_config, settings=settings, valid=fit_valid, progress=progress, should_stop=should_stop)
+    table = refine_particles(image, guesses, fit_config, settings=settings, valid=fit_valid, progress=progress, should_stop=should_stop, pool=pool)
     record = {"settings": asdict(settings), "binning": factor, "detections": len(particles["x_um"]), "kept": len(table), "seconds": time.perf_counter() - started,
               "pixels_left_out": 0 if valid is None else int(np.count_nonzero(~valid))}
     started = time.perf_counter()
@@ -378,7 +386,7 @@ def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, se
     if len(table) and table["refined"].any():  # with nothing refined, the residual is the hologram the network has seen
         begin_phase(progress, "second look")
         found = residual_particles(image, table, fit_config, propose=counted, settings=settings, background=np.ones(image.shape), valid=fit_valid, progress=progress,
-                                   should_stop=should_stop)
+                                   should_stop=should_stop, pool=pool)
     record["residual"] = {"proposals": len(pd.DataFrame(dict(proposals[0]))) if proposals else 0, "found": len(found)}
     if len(found):
         # every particle refitted with the finds in its neighbours' model, as `refine`'s looks do:
@@ -388,7 +396,7 @@ def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, se
         restart["index_contrast"] = settings.index_contrast  # the start's valley, not one a missed neighbour pulled a fit into
         begin_phase(progress, f"refit {len(restart)} particles")
         refit = refine_particles(image, restart, fit_config, settings=replace(settings, rounds=max(settings.rounds, 2)), valid=fit_valid, progress=progress,
-                                 should_stop=should_stop)
+                                 should_stop=should_stop, pool=pool)
         pending = table[~refined]
         table = pd.concat([refit, pending[~explained_by_fits(pending, refit)]], ignore_index=True)
         record["refit"] = {"particles": len(restart), "kept": len(refit)}

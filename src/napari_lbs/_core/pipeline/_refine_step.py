@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from napari_lbs._core.foundation import ExperimentConfig, InputError, ProgressCallback, StopCallback, write_json
+from napari_lbs._core.foundation import ExperimentConfig, InputError, ProgressCallback, StopCallback, WorkerPool, write_json
 from napari_lbs._core.pipeline._binning import binned_hologram, binned_valid, default_depth_window_um, fringe_binning
 from napari_lbs._core.pipeline._common import Log, StepResult, _background, _hologram, _quiet, _source, explained_by_fits, provenance
 
@@ -136,8 +136,8 @@ def _residual_detector(config: ExperimentConfig, *, max_particles: int, progress
 
 
 def _residual_rounds(image: np.ndarray, table, config: ExperimentConfig, settings, *, rounds: int, max_particles: int, valid: np.ndarray | None,
-                     progress: ProgressCallback | None, should_stop: StopCallback | None) -> tuple[object, list[dict]]:
-    """The refined ``table`` after up to ``rounds`` looks in its residual; each look's record.
+                     progress: ProgressCallback | None, should_stop: StopCallback | None, pool: WorkerPool) -> tuple[object, list[dict]]:
+    """The refined ``table`` after up to ``rounds`` looks in its residual, every fit in ``pool``; each look's record.
 
     Each look renders the refined particles (`particle_hologram`), looks for peaks in what
     they leave (`residual_particles` with `_residual_detector`: the detector's peaks fitted
@@ -170,7 +170,7 @@ def _residual_rounds(image: np.ndarray, table, config: ExperimentConfig, setting
         refined = table["refined"].astype(bool).to_numpy()
         fitted, pending = table[refined], table[~refined]
         found = residual_particles(image, fitted, config, propose=propose, settings=settings, background=np.ones(image.shape), valid=valid, progress=progress,
-                                   should_stop=should_stop)
+                                   should_stop=should_stop, pool=pool)
         if found.empty:
             records.append({"peaks": peaks[0], "found": 0, "kept": len(table), "seconds": time.perf_counter() - started})
             break
@@ -180,7 +180,7 @@ def _residual_rounds(image: np.ndarray, table, config: ExperimentConfig, setting
         restart["index_contrast"] = restart[_START_INDEX].fillna(settings.index_contrast)
         begin_phase(progress, f"fit {len(restart)} particles")
         refit = refine_particles(image, restart, config, settings=replace(settings, rounds=max(settings.rounds, 2)), valid=valid, progress=progress,
-                                 should_stop=should_stop)
+                                 should_stop=should_stop, pool=pool)
         table = pd.concat([refit, pending[~explained_by_fits(pending, refit)]], ignore_index=True)
         records.append({"peaks": peaks[0], "found": len(found), "kept": len(table), "seconds": time.perf_counter() - started})
     return table, records
@@ -262,11 +262,12 @@ def refine_hologram(hologram: np.ndarray, config: ExperimentConfig, *, guesses=N
     searched = time.perf_counter() - started
     begin_phase(progress, f"fit {len(starts)} particles")
     start_index = pd.to_numeric(starts["index_contrast"], errors="coerce").fillna(index_contrast) if "index_contrast" in starts else index_contrast
-    table = refine_particles(image, starts.assign(**{_START_INDEX: start_index}), fit_config, settings=settings, valid=valid, progress=progress,
-                             should_stop=should_stop)
-    fit_s = time.perf_counter() - started - searched
-    table, rounds = _residual_rounds(image, table, fit_config, settings, rounds=detection_rounds, max_particles=max_particles, valid=valid, progress=progress,
-                                     should_stop=should_stop)
+    with WorkerPool(workers) as pool:  # started once for the fits and the looks' fits
+        table = refine_particles(image, starts.assign(**{_START_INDEX: start_index}), fit_config, settings=settings, valid=valid, progress=progress,
+                                 should_stop=should_stop, pool=pool)
+        fit_s = time.perf_counter() - started - searched
+        table, rounds = _residual_rounds(image, table, fit_config, settings, rounds=detection_rounds, max_particles=max_particles, valid=valid, progress=progress,
+                                         should_stop=should_stop, pool=pool)
     table = table.drop(columns=_START_INDEX)
     table[["x_um", "y_um"]] += shift_um
     record = {"detector": detector, "binning": factor, "settings": asdict(settings), "detections": len(starts), "kept": len(table),

@@ -31,7 +31,7 @@ from napari_lbs._core.foundation import ExperimentConfig
 from napari_lbs._core.foundation import PARTICLE_COLUMNS, InputError
 from napari_lbs._core.refine._material import MATERIAL_TOLERANCE, same_material
 from napari_lbs._core.physics import fields_from_profiles, holograms_from_fields, radial_profiles, term_count
-from napari_lbs._core.foundation import ProgressCallback, Steps, StopCallback
+from napari_lbs._core.foundation import ProgressCallback, Steps, StopCallback, WorkerPool
 from napari_lbs._core.refine._patches import check_table as _check_table
 from napari_lbs._core.refine._patches import samples_every_angle
 from napari_lbs._core.refine._refine import RefineSettings, refine_particles
@@ -199,7 +199,7 @@ def residual_hologram(hologram: np.ndarray, table, config: ExperimentConfig, *, 
 
 def residual_particles(hologram: np.ndarray, table, config: ExperimentConfig, *, propose, settings: RefineSettings | None = None,
                        background: np.ndarray | None = None, valid: np.ndarray | None = None, progress: ProgressCallback | None = None,
-                       should_stop: StopCallback | None = None):
+                       should_stop: StopCallback | None = None, pool: WorkerPool | None = None):
     """Particles the residual of a refined ``table`` holds: proposed there, refined there.
 
     Parameters
@@ -222,6 +222,8 @@ def residual_particles(hologram: np.ndarray, table, config: ExperimentConfig, *,
     progress, should_stop
         Passed to the rendering of the table's spheres (one step per sphere), then to the
         refinement (one step per batch); ``propose`` reports its own.
+    pool : WorkerPool, optional
+        Processes the finds are fitted in (`refine_particles`'s ``pool``).
 
     Returns
     -------
@@ -252,7 +254,7 @@ def residual_particles(hologram: np.ndarray, table, config: ExperimentConfig, *,
         raise InputError(f"propose: expected a particle table (columns of equal length), got {error}") from None
     if guesses.empty:
         guesses = pd.DataFrame({name: np.empty(0) for name in PARTICLE_COLUMNS})
-    found = refine_particles(residual / scale, guesses, config, settings=settings, valid=valid, progress=progress, should_stop=should_stop)
+    found = refine_particles(residual / scale, guesses, config, settings=settings, valid=valid, progress=progress, should_stop=should_stop, pool=pool)
     # a find is a particle of the sample, measured as one: the residual also holds debris and
     # what the fits left, which the network, seeing them without their context, proposes too
     # (whatever their uncertainty, sigmas=0: a loose index does not make a find)
