@@ -609,6 +609,7 @@ def test_predict_refine_refits_every_particle_once_its_second_look_finds_more(mo
 
     import napari_lbs._core.refine as refine_wing
     from napari_lbs._core import RefineSettings, load_config
+    from napari_lbs._core.foundation import WorkerPool
     from napari_lbs._core.pipeline import _predict
 
     calls = []
@@ -624,7 +625,7 @@ def test_predict_refine_refits_every_particle_once_its_second_look_finds_more(mo
     monkeypatch.setattr(refine_wing, "refine_particles", refine_particles)
     monkeypatch.setattr(refine_wing, "residual_particles", lambda *args, **kwargs: fitted(finds[0]) if len(finds[0]) else finds[0])
     particles = {"x_um": np.array([10.0, 90.0]), "y_um": np.array([10.0, 90.0]), "z_um": np.array([2000.0, 2500.0]), "diameter_um": np.array([20.0, 25.0])}
-    options = {"material": None, "propose": None, "valid": None, "progress": None, "should_stop": None}
+    options = {"material": None, "propose": None, "valid": None, "progress": None, "should_stop": None, "pool": WorkerPool(1)}
     table, record = _predict._refined(np.ones((64, 64)), particles, load_config(None), RefineSettings(index_contrast=0.26), **options)
     assert len(calls) == 2 and len(table["x_um"]) == 3
     refit, rounds, pool = calls[1]
@@ -643,6 +644,7 @@ def test_a_proposal_below_the_network_s_threshold_stays_only_where_the_fit_refin
 
     import napari_lbs._core.refine as refine_wing
     from napari_lbs._core import RefineSettings, load_config
+    from napari_lbs._core.foundation import WorkerPool
     from napari_lbs._core.pipeline import _predict
 
     refined = np.array([True, True, False, False])
@@ -650,7 +652,7 @@ def test_a_proposal_below_the_network_s_threshold_stays_only_where_the_fit_refin
     monkeypatch.setattr(refine_wing, "residual_particles", lambda *args, **kwargs: pd.DataFrame({"x_um": [], "y_um": [], "z_um": [], "diameter_um": []}))
     particles = {"x_um": np.array([10.0, 30.0, 50.0, 70.0]), "y_um": np.full(4, 20.0), "z_um": np.full(4, 2000.0), "diameter_um": np.full(4, 22.0),
                  "score": np.array([0.3, 0.15, 0.25, 0.12])}
-    options = {"material": None, "propose": None, "valid": None, "progress": None, "should_stop": None}
+    options = {"material": None, "propose": None, "valid": None, "progress": None, "should_stop": None, "pool": WorkerPool(1)}
     table, record = _predict._refined(np.ones((64, 64)), particles, load_config(None), RefineSettings(), accept_score=0.2, **options)
     assert table["x_um"].tolist() == [10.0, 30.0, 50.0] and record["unconfirmed"] == 1  # 0.15 refined stays, 0.12 unrefined goes
     table, record = _predict._refined(np.ones((64, 64)), particles, load_config(None), RefineSettings(), **options)

@@ -209,8 +209,9 @@ def refined_prediction(hologram: np.ndarray, model, config: ExperimentConfig | N
     propose = _network_proposals(model, config, settings, progress=progress, should_stop=should_stop)
     fit = _fit_settings(refine_settings, config or model.config, device=settings.device, material=material_index_contrast,
                         depth_prior_um=_network_depth_error_um(model.meta))
-    particles, record = _refined(normalised, result.particles, config or model.config, fit, material=material_index_contrast, propose=propose,
-                                 valid=unsaturated_pixels(hologram), progress=progress, should_stop=should_stop, accept_score=accept)
+    with WorkerPool(fit.workers) as pool:  # the frame's fits' processes, started once
+        particles, record = _refined(normalised, result.particles, config or model.config, fit, material=material_index_contrast, propose=propose,
+                                     valid=unsaturated_pixels(hologram), progress=progress, should_stop=should_stop, accept_score=accept, pool=pool)
     return PredictionResult(particles, {**result.provenance, "refine": record}, time.perf_counter() - started)
 
 
@@ -328,7 +329,7 @@ def _refined_frames(frames, particles: dict, config: ExperimentConfig, settings:
 
 
 def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, settings: RefineSettings, *, material: float | None, propose,
-             valid: np.ndarray | None, progress, should_stop, accept_score: float | None = None, pool: WorkerPool | None = None) -> tuple[dict, dict]:
+             valid: np.ndarray | None, progress, should_stop, pool: WorkerPool, accept_score: float | None = None) -> tuple[dict, dict]:
     """The particle table refined by `refine_particles` with ``settings``, with the finds in its residual (`residual_particles`, ``propose``), of the ``material`` where given (as a dict of arrays), and its provenance.
 
     As the ``refine`` command does, a pitch finer than half the medium wavelength is binned
@@ -345,13 +346,8 @@ def _refined(hologram: np.ndarray, particles: dict, config: ExperimentConfig, se
     ``accept_score``: the network's own threshold. A proposal scored below it was made for
     the fit to judge; one the fit could not refine leaves the table (the provenance's
     ``unconfirmed``), where one at or above it stays at the network's guess. ``pool``: the
-    processes every fit runs in (`WorkerPool` of ``settings.workers``; default: one for this
-    frame's three fits, started once).
+    processes the three fits run in (a `WorkerPool` of ``settings.workers``, kept by the caller).
     """
-    if pool is None:
-        with WorkerPool(settings.workers) as pool:
-            return _refined(hologram, particles, config, settings, material=material, propose=propose, valid=valid, progress=progress,
-                            should_stop=should_stop, accept_score=accept_score, pool=pool)
     from dataclasses import asdict
 
     import numpy as np
