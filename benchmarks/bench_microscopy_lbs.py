@@ -19,7 +19,8 @@ the frame and 10–60 µm deep, diameters uniform in 0.5–3 µm, index contrast
 0.24–0.28, no two intersecting. Sets of frames of 512² (51.2 µm): ``development`` (seed 1,
 `FRAMES` frames), where the pipeline was looked at; ``frozen`` (`FROZEN`, `FRAMES` frames,
 fixed before its first run); ``frozen-2`` (`FROZEN_2`, 6 frames, fixed before its first run,
-for the designs chosen after ``frozen`` had been scored).
+for the designs chosen after ``frozen`` had been scored); ``frozen-3`` (`FROZEN_3`, 6 frames,
+fixed before its first run, for those chosen after ``frozen-2`` had been scored).
 
 The pipeline, the public API of the commands (``napari-lbs generate / train / predict
 --refine``): `generate_dataset` of ``--groups`` groups with transparent spheres
@@ -71,7 +72,9 @@ DESIGN = {"spheres": (20, 50), "z_um": (10.0, 60.0), "diameter_um": (0.5, 3.0), 
 FROZEN = {"seed": 20261128, **DESIGN}  # fixed before the frozen set's first run
 # a second frozen set, fixed before its first run, for designs chosen after the first was scored
 FROZEN_2 = {**DESIGN, "seed": 20261129, "frames": 6}
-SETS = {"development": {"seed": 1, **DESIGN}, "frozen": FROZEN, "frozen-2": FROZEN_2}
+# a third, fixed before its first run, for designs chosen after the second was scored
+FROZEN_3 = {**DESIGN, "seed": 20261130, "frames": 6}
+SETS = {"development": {"seed": 1, **DESIGN}, "frozen": FROZEN, "frozen-2": FROZEN_2, "frozen-3": FROZEN_3}
 CONFIG = {"optics": {"wavelength_um": bench_microscopy.WAVELENGTH_UM, "camera_pixel_um": 6.0, "magnification": 60.0, "medium_index": bench_microscopy.N_MEDIUM},
           "volume": {"z_min_um": 5.0, "z_max_um": 65.0, "z_step_um": 0.5},
           "particles": {"diameter_min_um": 0.5, "diameter_max_um": 3.0, "per_tile": 9, "layer_step_um": 5.0},
@@ -119,21 +122,27 @@ def frames_of(which: str, work: Path) -> list[tuple[Path, Path]]:
     return paths
 
 
-def trained_model(work: Path, *, groups: int, epochs: int) -> tuple[Path, dict]:
-    """The model trained on the microscope config's synthetic data (made where missing) and what making it cost (s)."""
-    from napari_lbs._core import ExperimentConfig, TrainingSettings, generate_dataset, train_model
+def trained_model(work: Path, *, groups: int, epochs: int, margin_px: int = 0) -> tuple[Path, dict]:
+    """The model trained on the microscope config's synthetic data (made where missing) and what making it cost (s).
 
-    model = work / f"model_g{groups}_e{epochs}.pt"
+    ``margin_px``: each group simulated with unlabelled spheres in a margin of that many pixels
+    around its window (``generate --neighbours-margin-px``), as a window of a larger frame is.
+    """
+    from napari_lbs._core import Distractors, ExperimentConfig, TrainingSettings, generate_dataset, train_model
+
+    tag = f"g{groups}_e{epochs}" + (f"_m{margin_px}" if margin_px else "")
+    model = work / f"model_{tag}.pt"
     costs_path = model.with_suffix(".costs.json")
     if costs_path.is_file():  # written once the training finished
         return model, json.loads(costs_path.read_text())
     config = ExperimentConfig.from_dict(CONFIG)
     started = time.perf_counter()
-    dataset = generate_dataset(work / f"data_g{groups}", config, groups=groups, effects=EFFECTS, seed=0)
+    data = work / (f"data_g{groups}" + (f"_m{margin_px}" if margin_px else ""))
+    dataset = generate_dataset(data, config, groups=groups, effects=EFFECTS, seed=0, distractors=Distractors(neighbours_margin_px=margin_px))
     generate_s = time.perf_counter() - started
     started = time.perf_counter()
     log = train_model(dataset, model, settings=TrainingSettings(epochs=epochs, seed=0, device="cpu"), force=True).log
-    costs = {"generate_s": generate_s, "train_s": time.perf_counter() - started, "groups": groups, "epochs": epochs, "best_epoch": log["best"]["epoch"],
+    costs = {"generate_s": generate_s, "train_s": time.perf_counter() - started, "groups": groups, "epochs": epochs, "neighbours_margin_px": margin_px, "best_epoch": log["best"]["epoch"],
              "validation": next(e for e in log["epochs"] if e["epoch"] == log["best"]["epoch"])["validation"]}
     costs_path.write_text(json.dumps(costs, indent=1, default=float) + "\n")
     return model, costs
@@ -152,7 +161,7 @@ def matched_errors(pred: dict, truth: dict) -> dict:
     return errors
 
 
-def run(which: str, work: Path, *, groups: int, epochs: int) -> dict:
+def run(which: str, work: Path, *, groups: int, epochs: int, margin_px: int = 0) -> dict:
     import pandas as pd
 
     from napari_lbs._core import predict_particles, read_hologram, read_particles, score_particles
@@ -160,7 +169,7 @@ def run(which: str, work: Path, *, groups: int, epochs: int) -> dict:
 
     load_before = os.getloadavg()
     frames = frames_of(which, work)
-    model, costs = trained_model(work, groups=groups, epochs=epochs)
+    model, costs = trained_model(work, groups=groups, epochs=epochs, margin_px=margin_px)
     rows, tables = [], {"network": [], "refined": []}
     for image, truth_path in frames:
         truth = {name: np.asarray(values) for name, values in read_particles(truth_path).items()}
@@ -204,6 +213,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True, help="the results JSON")
     parser.add_argument("--groups", type=int, default=96, help="synthetic training groups (default 96)")
     parser.add_argument("--epochs", type=int, default=3, help="training epochs (default 3)")
+    parser.add_argument("--neighbours-margin-px", type=int, default=0, help="unlabelled spheres in this margin around each training window (default 0)")
     parser.add_argument("--threads", type=int, default=1, help="threads of torch, the FFTs and the fits (default 1)")
     args = parser.parse_args()
     os.environ["NAPARI_LBS_THREADS"] = str(args.threads)
@@ -212,7 +222,7 @@ def main() -> None:
     size_threads(args.threads)
     load = os.getloadavg()
     print(f"load average before: {load[0]:.2f} ({'idle' if load[0] < 0.5 else 'loaded'} machine of {os.cpu_count()} cores)", flush=True)
-    result = run(args.set, args.work, groups=args.groups, epochs=args.epochs)
+    result = run(args.set, args.work, groups=args.groups, epochs=args.epochs, margin_px=args.neighbours_margin_px)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1, default=float) + "\n")
     load = os.getloadavg()
