@@ -54,20 +54,20 @@ class StandIn:
     """Called as `diagnose_scene`: names two phases, counts their steps, stops when asked; each call's report names the next of ``verdicts``.
 
     ``verdicts`` are ``(verdict, catalog_explains)`` or ``(verdict, catalog_explains, params)``,
-    one per call, the last repeated. ``calls`` records each call's frame and settings;
+    one per call, the last repeated. ``calls`` records each call's frame, settings and pool;
     ``wait_for_stop``: the second phase runs until ``should_stop`` says stop.
     """
 
     def __init__(self, verdicts=((None, True),), *, wait_for_stop: bool = False) -> None:
         self.verdicts, self.wait_for_stop, self.calls = list(verdicts), wait_for_stop, []
 
-    def __call__(self, hologram, config, *, settings=None, background=None, progress=None, should_stop=None):
+    def __call__(self, hologram, config, *, settings=None, background=None, progress=None, should_stop=None, pool=None):
         import time
 
         from napari_lbs._core.gap import SceneDiagnosis, SceneDiagnosisSettings
 
         settings = settings or SceneDiagnosisSettings()
-        self.calls.append({"hologram": np.asarray(hologram), "settings": settings, "background": background})
+        self.calls.append({"hologram": np.asarray(hologram), "settings": settings, "background": background, "pool": pool})
         verdict, explains, *params = self.verdicts[min(len(self.calls), len(self.verdicts)) - 1]
         for name in ("particles found", "the catalog's effects"):
             if progress is not None and hasattr(progress, "phase"):

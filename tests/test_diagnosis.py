@@ -137,6 +137,8 @@ def test_several_frames_are_diagnosed_each_on_one_bar_and_pooled_by_majority(tmp
     assert all(call["settings"].grid == 4 for call in engine.calls)
     # the step's default fits in one process per core, as predict --refine's (the API's default: one)
     assert all(call["settings"].refine.workers == available_threads() for call in engine.calls) and SceneDiagnosisSettings().refine.workers == 1
+    # one pool of workers for the frames' fits: its processes start once
+    assert engine.calls[0]["pool"] is not None and all(call["pool"] is engine.calls[0]["pool"] for call in engine.calls)
     report = json.loads((tmp_path / "report" / "report.json").read_text())
     assert [f["name"] for f in report["frames"]] == [f"{tmp_path / 'rec.tif'}[frame {k}]" for k in (0, 2, 4)]
     assert [f["verdict"] for f in report["frames"]] == ["illumination", "illumination+quantization", "quantization"]
@@ -156,6 +158,24 @@ def test_several_frames_are_diagnosed_each_on_one_bar_and_pooled_by_majority(tmp
     with pytest.raises(Stopped):
         diagnose(DiagnoseRequest(tmp_path / "rec.tif", tmp_path / "stopped"), should_stop=lambda: len(engine.calls) > 4)
     assert not (tmp_path / "stopped").exists()
+
+
+def test_diagnose_scene_fits_in_the_pool_it_is_given_and_leaves_it_open(monkeypatch):
+    from napari_lbs._core import ExperimentConfig
+    from napari_lbs._core.foundation import WorkerPool
+    from napari_lbs._core.gap import _scene_diagnosis, diagnose_scene
+
+    used, closed = [], []
+    monkeypatch.setattr(_scene_diagnosis, "_diagnosed", lambda *args: used.append(args[-1]))
+    monkeypatch.setattr(WorkerPool, "close", lambda self: closed.append(self))
+    frame = 1.0 + 0.1 * np.random.default_rng(0).random((128, 128))
+    pool = WorkerPool(2)
+    diagnose_scene(frame, ExperimentConfig(), pool=pool)
+    diagnose_scene(frame, ExperimentConfig(), pool=pool)
+    assert used == [pool, pool] and closed == []
+    # without one, each call starts its own and ends it
+    diagnose_scene(frame, ExperimentConfig())
+    assert used[-1] is not pool and closed == [used[-1]]
 
 
 def test_one_frame_s_report_is_its_diagnosis_with_one_frame(tmp_path, monkeypatch):

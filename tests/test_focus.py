@@ -143,6 +143,40 @@ def test_non_maximum_suppression_keeps_one_particle_per_peak():
     assert len(suppress(candidates, threshold=0.95, lateral_um=10.0, axial_um=300.0)["x_um"]) == 0
 
 
+def test_suppression_at_a_threshold_is_suppression_at_a_lower_one_cut_at_it():
+    # the validation scores every threshold from one suppression at the lowest
+    from napari_lbs._core.learning._formulations import FOCUS_THRESHOLDS, _at_least
+
+    rng = np.random.default_rng(3)
+    n = 400
+    candidates = {"x_um": rng.uniform(0, 200, n), "y_um": rng.uniform(0, 200, n), "z_um": rng.uniform(0, 60, n),
+                  "diameter_um": rng.uniform(0.5, 3, n), "score": rng.uniform(0.05, 0.6, n)}
+    for axial_um in (1.0, 2.5, np.inf):
+        lowest = suppress(candidates, threshold=FOCUS_THRESHOLDS[0], lateral_um=8.0, axial_um=axial_um)
+        for threshold in (0.07, 0.23, 0.31, 0.55):
+            direct = suppress(candidates, threshold=threshold, lateral_um=8.0, axial_um=axial_um)
+            cut = _at_least(lowest, threshold)
+            assert {name: values.tolist() for name, values in direct.items()} == {name: values.tolist() for name, values in cut.items()}
+
+
+def test_the_validation_finds_a_threshold_between_the_tenths():
+    # peaks crowded between 0.2 and 0.3: the true ones at 0.26-0.29, the false at 0.21-0.24
+    from napari_lbs._core.learning import _formulations
+
+    formulation = _formulations._FocusFormulation.__new__(_formulations._FocusFormulation)
+    formulation.lateral_um, formulation.step_um = 0.25, 0.5
+    truth = {"x_um": np.array([5.0, 15.0, 25.0]), "y_um": np.array([5.0, 5.0, 5.0]), "z_um": np.array([20.0, 30.0, 40.0]), "diameter_um": np.array([1.0, 1.0, 1.0])}
+    candidates = {"x_um": np.array([5.0, 15.0, 25.0, 40.0, 50.0]), "y_um": np.array([5.0, 5.0, 5.0, 30.0, 30.0]), "z_um": np.array([20.0, 30.0, 40.0, 20.0, 30.0]),
+                  "diameter_um": np.ones(5), "score": np.array([0.26, 0.27, 0.29, 0.22, 0.24])}
+    formulation.dataset = type("Groups", (), {"read_group": staticmethod(lambda group: (None, None, {"particles": truth}))})()
+    formulation.candidates = lambda network, stack: candidates
+    metrics = formulation.validate(None, [0], lambda: False)
+    # 0.25 and 0.26 tie: the upper of the two middle ones
+    assert metrics["threshold"] == 0.26 and (metrics["tp"], metrics["fp"], metrics["fn"]) == (3, 0, 0)
+    assert metrics["median_abs_dz_um"] == 0.0
+    assert any(m["threshold"] == 0.2 for m in metrics["by_threshold"]) and any(m["threshold"] == metrics["threshold"] for m in metrics["by_threshold"])
+
+
 def test_a_plateau_or_a_peak_on_the_last_plane_is_still_one_particle():
     planes = [1800.0, 1900.0, 1950.0]
     decoder = PeakDecoder(planes, pixel_um=2.0, step_um=50.0)

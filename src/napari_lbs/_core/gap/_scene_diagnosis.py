@@ -35,9 +35,11 @@ from __future__ import annotations
 
 import json
 import time
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 
 import numpy as np
+
 from threadpoolctl import threadpool_limits
 
 from napari_lbs._core.foundation import ExperimentConfig, InputError, ProgressCallback, Steps, StopCallback, WorkerPool, as_hologram, begin_phase, json_safe
@@ -385,7 +387,7 @@ def _line_pattern(residuals: tuple[np.ndarray, np.ndarray]) -> dict:
 
 def diagnose_scene(hologram: np.ndarray, config: ExperimentConfig, *, settings: SceneDiagnosisSettings | None = None,
                    background: np.ndarray | None = None, progress: ProgressCallback | None = None,
-                   should_stop: StopCallback | None = None) -> SceneDiagnosis:
+                   should_stop: StopCallback | None = None, pool: WorkerPool | None = None) -> SceneDiagnosis:
     """Which catalog effects the experiment's frame holds, given its own particles (module docstring).
 
     Parameters
@@ -401,6 +403,10 @@ def diagnose_scene(hologram: np.ndarray, config: ExperimentConfig, *, settings: 
         ``progress(done, total)`` per phase (`begin_phase` names each: the particle models'
         fits, the scene's, the effects' selection), at least every second; ``should_stop``
         is heard within 2 s and raises `Stopped`.
+    pool : WorkerPool, optional
+        Processes for the fits, kept open by the caller across several frames so that they
+        start once. Default: ``settings.refine.workers`` processes started for this frame and
+        ended after it.
 
     Returns
     -------
@@ -421,8 +427,8 @@ def diagnose_scene(hologram: np.ndarray, config: ExperimentConfig, *, settings: 
     # pixels of a 1024² frame and a dozen parameters): a second OpenBLAS thread costs more in
     # hand-offs than it computes (the effects' selection 14.0 s on two threads, 7.8 s on one;
     # torch's fits keep their threads)
-    with threadpool_limits(limits=1, user_api="blas"), WorkerPool(settings.refine.workers) as pool:
-        return _diagnosed(data, np.asarray(hologram), config, settings, progress, should_stop, started, pool)
+    with threadpool_limits(limits=1, user_api="blas"), (nullcontext(pool) if pool is not None else WorkerPool(settings.refine.workers)) as fits:
+        return _diagnosed(data, np.asarray(hologram), config, settings, progress, should_stop, started, fits)
 
 
 def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig, settings: SceneDiagnosisSettings, progress, should_stop,

@@ -40,9 +40,13 @@ from napari_lbs._core.physics import LABEL_SCALE
 __all__ = ["THRESHOLD_FRACTIONS", "FOCUS_THRESHOLDS", "merge_lateral_um"]
 
 # Detection thresholds tried on validation: seed formulation, fractions of the smallest label
-# value; focus formulation, probabilities.
+# value; focus formulation, every hundredth of a probability from the decoder's floor (0.05):
+# a short training's peak scores crowd into a tenth (a microscope network's true peaks lay at
+# 0.2-0.3), where a grid of tenths picks its edge and ranks the epochs by it.
 THRESHOLD_FRACTIONS = (0.15, 0.25, 0.35, 0.5, 0.65)
-FOCUS_THRESHOLDS = (0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8)
+FOCUS_THRESHOLDS = tuple(round(0.05 + 0.01 * step, 2) for step in range(91))
+# the validation log's table of settings: the thresholds at every twentieth, and the chosen one
+_LOGGED_THRESHOLDS = frozenset(round(0.05 * step, 2) for step in range(1, 20))
 _AXIAL_PLANES = (2.0, 5.0, 1e6)  # axial suppression radii tried on validation, in planes (1e6: any depth)
 _FOCAL_ALPHA, _FOCAL_BETA = 2.0, 4.0
 
@@ -50,6 +54,12 @@ _FOCAL_ALPHA, _FOCAL_BETA = 2.0, 4.0
 def merge_lateral_um(config) -> float:
     """Detections closer than half the smallest trained diameter are one particle."""
     return 0.5 * config.particles.diameter_min_um
+
+
+def _at_least(found: dict[str, np.ndarray], threshold: float) -> dict[str, np.ndarray]:
+    """The rows of ``found`` scoring at least ``threshold``."""
+    keep = found["score"] >= threshold
+    return {name: values[keep] for name, values in found.items()}
 
 
 def _metrics(totals: dict) -> dict:
@@ -229,29 +239,41 @@ class _FocusFormulation:
     def validate(self, network, groups: list[int], stop: StopCallback) -> dict | None:
         settings = [(t, a) for t in FOCUS_THRESHOLDS for a in _AXIAL_PLANES]
         totals = {key: {"tp": 0, "fp": 0, "fn": 0} for key in settings}
-        depth_errors = {key: [] for key in settings}
-        diameter_errors = {key: [] for key in settings}
+        kept_by_group = []
         for group in groups:
             if stop():
                 return None
             stack, _, description = self.dataset.read_group(group)
             truth = {key: np.asarray(values) for key, values in description["particles"].items()}
             candidates = self.candidates(network, stack)
+            # greedy suppression keeps a candidate whatever scores below it: the detections at a
+            # threshold are those at the lowest one that reach it
+            kept = {axial: suppress(candidates, threshold=FOCUS_THRESHOLDS[0], lateral_um=self.lateral_um, axial_um=axial * self.step_um) for axial in _AXIAL_PLANES}
+            kept_by_group.append((kept, truth))
             for threshold, axial in settings:
-                found = suppress(candidates, threshold=threshold, lateral_um=self.lateral_um, axial_um=axial * self.step_um)
-                metrics = score_particles(found, truth)
+                metrics = score_particles(_at_least(kept[axial], threshold), truth)
                 for key in ("tp", "fp", "fn"):
                     totals[(threshold, axial)][key] += metrics[key]
-                depth_errors[(threshold, axial)].extend(depth_errors_um(found, truth))
-                diameter_errors[(threshold, axial)].extend(diameter_errors_um(found, truth))
-        by_setting = [
-            {"threshold": t, "axial_um": a * self.step_um if a < 1e5 else None, **_metrics(totals[(t, a)]),
-             "median_abs_dz_um": float(np.median(np.abs(depth_errors[(t, a)]))) if depth_errors[(t, a)] else None,
-             "median_abs_dd_um": float(np.median(np.abs(diameter_errors[(t, a)]))) if diameter_errors[(t, a)] else None}
-            for t, a in settings
-        ]
-        best = max(by_setting, key=lambda m: (m["ji"], m["er"], -(m["axial_um"] or 1e9)))
-        return {**best, "by_threshold": by_setting}
+        by_setting = [{"threshold": t, "axial_um": a * self.step_um if a < 1e5 else None, **_metrics(totals[(t, a)])} for t, a in settings]
+        def rank(i: int) -> tuple:
+            return by_setting[i]["ji"], by_setting[i]["er"], -(by_setting[i]["axial_um"] or 1e9)
+
+        # of the thresholds that tie for the best, the middle one: the farthest from both edges
+        # of the plateau when real scores sit a little above or below synthetic ones
+        top = max(rank(i) for i in range(len(settings)))
+        tied = [i for i in range(len(settings)) if rank(i) == top]
+        best_index = tied[len(tied) // 2]
+        threshold, axial = settings[best_index]
+        depth_errors, diameter_errors = [], []
+        for kept, truth in kept_by_group:
+            found = _at_least(kept[axial], threshold)
+            depth_errors.extend(depth_errors_um(found, truth))
+            diameter_errors.extend(diameter_errors_um(found, truth))
+        best = {**by_setting[best_index],
+                "median_abs_dz_um": float(np.median(np.abs(depth_errors))) if depth_errors else None,
+                "median_abs_dd_um": float(np.median(np.abs(diameter_errors))) if diameter_errors else None}
+        logged = [m for i, m in enumerate(by_setting) if settings[i][0] in _LOGGED_THRESHOLDS or settings[i][0] == threshold]
+        return {**best, "by_threshold": logged}
 
     def meta(self) -> dict:
         return {

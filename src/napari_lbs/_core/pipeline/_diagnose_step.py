@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 
 from napari_lbs._core.foundation import ExperimentConfig
 from napari_lbs._core.foundation import InputError
-from napari_lbs._core.foundation import ProgressCallback, StopCallback, available_threads, begin_phase
+from napari_lbs._core.foundation import ProgressCallback, StopCallback, WorkerPool, available_threads, begin_phase
 from napari_lbs._core.pipeline._common import Log, StepResult, _background, _quiet, _source, check_outputs, provenance, read_calibration
 
 if TYPE_CHECKING:  # for the annotations only: the steps import these modules when they run
@@ -187,9 +187,10 @@ def diagnose(request: DiagnoseRequest, *, progress: ProgressCallback | None = No
         settings = replace(default, refine=replace(default.refine, workers=available_threads()))
     if grid is not None:
         settings = replace(settings, grid=grid)
-    diagnoses = [diagnose_scene(frame, config, settings=settings, background=background, progress=_FrameProgress(progress, k, len(frames)) if progress else None,
-                                should_stop=should_stop)
-                 for k, frame in enumerate(frames)]
+    with WorkerPool(settings.refine.workers) as pool:  # the frames' fits in processes that start once
+        diagnoses = [diagnose_scene(frame, config, settings=settings, background=background, progress=_FrameProgress(progress, k, len(frames)) if progress else None,
+                                    should_stop=should_stop, pool=pool)
+                     for k, frame in enumerate(frames)]
     diagnosis = _pooled(diagnoses, names)
     if request.roi:
         diagnosis.report["roi"] = {"x": int(request.roi[0]), "y": int(request.roi[1])}
