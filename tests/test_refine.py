@@ -723,3 +723,18 @@ def test_a_small_sphere_s_failed_fit_is_retried_with_its_index_held_and_a_large_
     small = out[out.diameter_um < 1.0].iloc[0]
     assert bool(small.refined) and small.index_contrast == pytest.approx(0.26) and small.index_err == 0.0
     assert not bool(out[out.diameter_um > 1.0].iloc[0].refined)  # the large one's failed fit stays unrefined at its guess
+
+
+def test_a_fit_on_another_s_line_of_sight_is_its_twin_at_any_depth():
+    # detections a quarter diameter apart laterally stay out of each other's model, so both
+    # explain the same fringes: the worse fit is a twin, however far in depth it stopped
+    from napari_lbs._core.refine._refine import _duplicates
+
+    params = np.array([[10.0, 10.0, 30.0, 2.9, 0.26, 0.0],   # the sphere
+                       [10.03, 10.0, 40.7, 1.8, -0.3, 0.0],  # its twin a depth minimum below (3.7 diameters)
+                       [10.0, 13.0, 30.0, 1.0, 0.26, 0.0],   # a neighbour 3 um aside
+                       [10.0, 10.1, 20.0, 2.0, 0.26, 0.0]])  # a fit that failed: never anyone's twin
+    result = {"params": params, "ok": np.array([True, True, True, False]), "residual": np.array([0.10, 0.20, 0.15, 0.05])}
+    assert _duplicates(result).tolist() == [False, True, False, False]
+    # the better-fitted one keeps the particle, whichever depth it has
+    assert _duplicates({**result, "residual": np.array([0.20, 0.10, 0.15, 0.05])}).tolist() == [True, False, False, False]

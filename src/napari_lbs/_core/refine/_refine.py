@@ -70,9 +70,11 @@ def _duplicates(result: dict[str, np.ndarray]) -> np.ndarray:
     """Fits that converged onto a particle another detection fitted better (a network's depth-shifted twin, a double click).
 
     Two fits are one particle when their centres lie within a quarter of the smaller
-    diameter of each other laterally and within two diameters in depth (a fit stopped in a
-    neighbouring depth minimum, 16 µm off, was measured); the one with the smaller residual
-    keeps it.
+    diameter of each other laterally, at any depth: such detections stay out of each other's
+    model (`_batches`), so each explains the same fringes and a second one is never judged
+    against the first. Twins were measured a neighbouring depth minimum away: 16 µm for a
+    lensless 25 µm sphere, 4–12 µm (2–8 diameters) for a microscope's 1.5–3 µm ones. The one
+    with the smaller residual keeps it.
     """
     params, ok = result["params"], result["ok"]
     order = np.argsort(np.where(ok, result["residual"], np.inf))
@@ -83,7 +85,7 @@ def _duplicates(result: dict[str, np.ndarray]) -> np.ndarray:
         for j in order[rank + 1 :]:
             smaller = min(params[i, 3], params[j, 3])
             lateral = np.hypot(params[i, 0] - params[j, 0], params[i, 1] - params[j, 1])
-            if ok[j] and not duplicate[j] and lateral < 0.25 * smaller and abs(params[i, 2] - params[j, 2]) < 2.0 * smaller:
+            if ok[j] and not duplicate[j] and lateral < 0.25 * smaller:
                 duplicate[j] = True
     return duplicate
 
