@@ -264,7 +264,10 @@ def residual_particles(hologram: np.ndarray, table, config: ExperimentConfig, *,
         return found
     lateral = np.hypot(found["x_um"].to_numpy()[:, None] - kept["x_um"].to_numpy()[None], found["y_um"].to_numpy()[:, None] - kept["y_um"].to_numpy()[None])
     smaller = np.minimum(found["diameter_um"].to_numpy()[:, None], kept["diameter_um"].to_numpy()[None])
-    # the table's depths are in the config's convention, the diameters in the medium (as `_refine._duplicates` compares them)
+    # a find near a table particle in depth is that particle's misfit; one farther along its
+    # line of sight was fitted where the particle was taken out and may be hidden behind it:
+    # it joins, and the refit's `_refine._duplicates` keeps the better fitted of the two.
+    # The table's depths are in the config's convention, the diameters in the medium.
     depth = np.abs(found["z_um"].to_numpy()[:, None] - kept["z_um"].to_numpy()[None]) * settings.medium_index / config.optics.medium_index
     twin = ((lateral < 0.25 * smaller) & (depth < 2.0 * smaller)).any(axis=1)
     return found[~twin].reset_index(drop=True)
