@@ -130,15 +130,14 @@ def trained_model(work: Path, *, groups: int, epochs: int, margin_px: int = 0) -
     """
     from napari_lbs._core import Distractors, ExperimentConfig, TrainingSettings, generate_dataset, train_model
 
-    tag = f"g{groups}_e{epochs}" + (f"_m{margin_px}" if margin_px else "")
-    model = work / f"model_{tag}.pt"
+    margin = f"_m{margin_px}" if margin_px else ""
+    model = work / f"model_g{groups}_e{epochs}{margin}.pt"
     costs_path = model.with_suffix(".costs.json")
     if costs_path.is_file():  # written once the training finished
         return model, json.loads(costs_path.read_text())
     config = ExperimentConfig.from_dict(CONFIG)
     started = time.perf_counter()
-    data = work / (f"data_g{groups}" + (f"_m{margin_px}" if margin_px else ""))
-    dataset = generate_dataset(data, config, groups=groups, effects=EFFECTS, seed=0, distractors=Distractors(neighbours_margin_px=margin_px))
+    dataset = generate_dataset(work / f"data_g{groups}{margin}", config, groups=groups, effects=EFFECTS, seed=0, distractors=Distractors(neighbours_margin_px=margin_px))
     generate_s = time.perf_counter() - started
     started = time.perf_counter()
     log = train_model(dataset, model, settings=TrainingSettings(epochs=epochs, seed=0, device="cpu"), force=True).log

@@ -255,6 +255,7 @@ class _FocusFormulation:
                 for key in ("tp", "fp", "fn"):
                     totals[(threshold, axial)][key] += metrics[key]
         by_setting = [{"threshold": t, "axial_um": a * self.step_um if a < 1e5 else None, **_metrics(totals[(t, a)])} for t, a in settings]
+
         def rank(i: int) -> tuple:
             return by_setting[i]["ji"], by_setting[i]["er"], -(by_setting[i]["axial_um"] or 1e9)
 
