@@ -46,6 +46,7 @@ def _case_line(name: str, report: dict, seconds: float) -> dict:
         "directional_blur": {k: round(float(v), 3) for k, v in report["gap"].get("directional_blur", {}).items()},
         "z": {k: (None if v["z"] is None else round(float(v["z"]), 2)) for k, v in effects.items()},
         "particles": report["gap"]["particles"],
+        "levels": {k: _rounded(v) for k, v in effects["quantization"].get("levels", {}).items()},
         "params": {k: {name: [_rounded(value), _rounded(v.get("params_err", {}).get(name))] for name, value in v["params"].items()}
                    for k, v in effects.items() if v["params"]},
         "seconds": round(seconds, 1),

@@ -42,7 +42,7 @@ judged on only: its design and seed were written and committed before its first 
 lengths, motion beside a round blur, astigmatism, pixel gain, a column pattern) likewise,
 written after the test for a blur by direction was chosen on the development sets.
 
-Run ``python benchmarks/withheld_suite.py make frozen DIR`` (or ``frozen-2`` … ``frozen-5``, ``development``,
+Run ``python benchmarks/withheld_suite.py make frozen DIR`` (or ``frozen-2`` … ``frozen-6``, ``development``,
 ``outside-development``, ``outside-frozen``, ``outside-frozen-2``) to write the holograms and ``design.json`` (a few
 minutes on 2 cores); ``bench_diagnosis.py suite DIR`` scores the catalog sets and
 ``bench_scene_diagnosis.py suite DIR`` every set, the outside ones included.
@@ -216,6 +216,34 @@ FROZEN_5 = (
     Case("bits+photons", 512, {"quantization": {"step_counts": 8}, "shot_noise": {"photons": 108.0}}),
 )
 
+# a sixth frozen set, written when the fifth had been scored (three of its controls named
+# saturation where their brightest crests touched 255) and saturation's rule (the cut light's
+# share of the noise) had been chosen on the development set: eight controls, three cameras
+# exposed so that the crests are cut (the catalog's quantization at a step of one count), the
+# strengths drawn from the development ranges with the seed 20261201; committed before its
+# first run, scored once per design
+FROZEN_6_SEED = 20261201
+FROZEN_6 = (
+    Case("control-a6", 512, spheres_per_512=29, level=151, read_noise=1.7), Case("control-b6", 512, spheres_per_512=33, level=159, read_noise=2.1),
+    Case("control-c6", 512, spheres_per_512=29, level=159, read_noise=1.9), Case("control-d6", 512, spheres_per_512=24, level=155, read_noise=1.9),
+    Case("control-e6", 512, spheres_per_512=26, level=156, read_noise=1.6), Case("control-f6", 512, spheres_per_512=23, level=176, read_noise=1.9),
+    Case("control-g6", 512, spheres_per_512=37, level=164, read_noise=2.0), Case("control-h6", 512, spheres_per_512=25, level=168, read_noise=1.8),
+    Case("saturated", 512, {"quantization": {"step_counts": 1}}, level=216, read_noise=2.0),
+    Case("vignetting", 512, {"illumination": {"falloff": 0.37, "centre": (0.47, 0.62)}}),
+    Case("photons", 512, {"shot_noise": {"photons": 76.0}}),
+    Case("bits", 512, {"quantization": {"step_counts": 8}}),
+    Case("crosstalk", 512, {"sensor_blur": {"kernel": "binomial3"}}),
+    Case("source-disc", 512, {"coherence": {"source_mrad": 2.7}}),
+    Case("polystyrene", 512, {"particle_phase": {"index": 1.59}}),
+    Case("low-index", 512, {"particle_phase": {"index": 1.45}}),
+    Case("etalon", 512, {"parasitic_fringes": {"etalon": 0.05, "period_px": 10.1, "angle_rad": 0.3, "phase_rad": -2.0}}),
+    Case("saturated+vignetting", 512, {"quantization": {"step_counts": 1}, "illumination": {"falloff": 0.46, "centre": (0.57, 0.49)}}, level=210, read_noise=2.0),
+    Case("saturated+photons", 512, {"quantization": {"step_counts": 1}, "shot_noise": {"photons": 114.0}}, level=203, read_noise=2.0),
+    Case("vignetting+photons", 512, {"illumination": {"falloff": 0.46, "centre": (0.57, 0.49)}, "shot_noise": {"photons": 75.0}}),
+    Case("crosstalk+etalon", 512, {"sensor_blur": {"kernel": "binomial5"}, "parasitic_fringes": {"etalon": 0.05, "period_px": 10.8, "angle_rad": 0.28, "phase_rad": 2.3}}),
+    Case("polystyrene+photons", 512, {"particle_phase": {"index": 1.59}, "shot_noise": {"photons": 76.0}}),
+)
+
 DEVELOPMENT_SEED = 1234
 DEVELOPMENT = (
     Case("control-1", 512), Case("control-2", 512, spheres_per_512=35, level=160, read_noise=2.0), Case("control-3", 512, spheres_per_512=22, level=140, read_noise=1.2),
@@ -235,6 +263,11 @@ DEVELOPMENT = (
     Case("polystyrene", 512, {"particle_phase": {"index": 1.59}}),
     Case("polystyrene-dense", 512, {"particle_phase": {"index": 1.59}}, spheres_per_512=40, level=160, read_noise=2.0),
     Case("control-5", 512, spheres_per_512=30, level=165, read_noise=1.8),
+    # added later: a camera exposed so that the brightest fringes' crests reach its top (a
+    # control) and one exposed so that most crests are cut (saturation, the catalog's
+    # quantization at a converter step of one count)
+    Case("control-bright", 512, spheres_per_512=30, level=172, read_noise=2.0),
+    Case("saturated", 512, {"quantization": {"step_counts": 1}}, level=200, read_noise=2.0),
 )
 
 # effects outside the catalog, alone and beside a catalog effect (512²)
@@ -279,7 +312,7 @@ OUTSIDE_FROZEN_2 = (
 )
 SUITES = {
     "frozen": (FROZEN, FROZEN_SEED), "frozen-2": (FROZEN_2, FROZEN_2_SEED), "frozen-3": (FROZEN_3, FROZEN_3_SEED), "frozen-4": (FROZEN_4, FROZEN_4_SEED),
-    "frozen-5": (FROZEN_5, FROZEN_5_SEED),
+    "frozen-5": (FROZEN_5, FROZEN_5_SEED), "frozen-6": (FROZEN_6, FROZEN_6_SEED),
     "development": (DEVELOPMENT, DEVELOPMENT_SEED),
     "outside-frozen": (OUTSIDE_FROZEN, OUTSIDE_FROZEN_SEED), "outside-frozen-2": (OUTSIDE_FROZEN_2, OUTSIDE_FROZEN_2_SEED),
     "outside-development": (OUTSIDE_DEVELOPMENT, OUTSIDE_DEVELOPMENT_SEED),

@@ -29,7 +29,7 @@ def scene_report(verdict: str | None = None, *, explains: bool = True, params: d
         {"id": "shot_noise", "gap_after": 0.04, "shrink": 0.0, "z": 0.2, "heldout_gain_nats": 1.0, "selected": "shot_noise" in named, "params": {"log10_photons": 3.0}},
         {"id": "quantization", "gap_after": 0.04, "shrink": 0.0, "z": None, "selected": "quantization" in named,
          "params": params.get("quantization", {"bits": 6.0, "saturation": 1.6} if "quantization" in named else {}),
-         "levels": {"integer": True, "step_counts": 4, "noise_share": 0.5, "saturated_share": 0.0}},
+         "levels": {"integer": True, "step_counts": 4, "noise_share": 0.5, "saturated_share": 0.0, "saturation_noise_share": 0.0}},
     ]
     effects.sort(key=lambda e: -(e["z"] if e["z"] is not None else -np.inf))
     bands = [{"cycles_per_px": [low, high], "share_of_power": 0.1, "structured": 0.05} for low, high in ((0.0, 0.1), (0.1, 0.35), (0.35, 0.5))]

@@ -76,11 +76,25 @@ def test_the_converter_step_is_read_from_the_levels_used(step, selected):
     """8-bit counts on a grid of 8 (a 5-bit converter) name quantization with its bits; every level used names nothing."""
     rng = np.random.default_rng(0)
     counts = (np.clip(np.round((150 + rng.normal(0, 2.0, (128, 128))) / step), 0, 255 // step) * step).astype(np.uint8)
-    result = levels_test(counts, floor_variance=(2.0 / 150) ** 2)
+    result = levels_test(counts, np.zeros(counts.shape), floor_variance=(2.0 / 150) ** 2)
     assert result["step_counts"] == step and result["selected"] is selected
     if selected:
         assert abs(result["params"]["bits"] - np.log2(255 / 8 + 1)) < 1e-9
-    assert not levels_test(counts.astype(np.float64) + 0.5, floor_variance=1e-4)["integer"]
+    assert not levels_test(counts.astype(np.float64) + 0.5, np.zeros(counts.shape), floor_variance=1e-4)["integer"]
+
+
+@pytest.mark.parametrize(("level", "selected"), [(150.0, False), (215.0, True)])
+def test_saturation_is_named_when_the_light_it_cuts_is_a_share_of_the_noise(level, selected):
+    """Fringes of ±35 % about a mean of 150 counts touch 255 at their crests only (no name); about 215 counts, every crest is cut."""
+    rng = np.random.default_rng(1)
+    yy, xx = np.mgrid[0:256, 0:256]
+    light = 1.0 + 0.35 * np.cos(2 * np.pi * np.hypot(yy - 128, xx - 128) ** 2 / 4000.0) + rng.normal(0.0, 0.1, (256, 256))
+    recorded = light * level + rng.normal(0.0, 2.0, light.shape)
+    counts = np.clip(np.round(recorded), 0, 255).astype(np.uint8)
+    mean = counts.mean()
+    result = levels_test(counts, light * level / mean - counts / mean, floor_variance=(2.0 / mean) ** 2)
+    assert result["step_counts"] == 1 and result["saturated_share"] > 0 and result["selected"] is selected
+    assert (result["saturation_noise_share"] >= 0.1) is selected
 
 
 def test_a_wrong_effect_gains_nothing_held_out():

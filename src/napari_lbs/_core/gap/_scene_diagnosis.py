@@ -477,9 +477,9 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
     effects.append({"id": "shot_noise", "gap_after": baseline_share, "shrink": 0.0, "z": shot["z"], "heldout_gain_nats": shot["gain"], "selected": shot_selected,
                     "params": {"log10_photons": shot["log10_photons"]} if shot["log10_photons"] is not None else {},
                     "params_err": {"log10_photons": shot["log10_photons_err"]} if shot["log10_photons"] is not None else {}})
-    levels = levels_test(hologram, floor_variance=floor_variance)
+    levels = levels_test(hologram, 0.5 * (final.means[0] + final.means[1]) - data, floor_variance=floor_variance)
     effects.append({"id": "quantization", "gap_after": baseline_share, "shrink": 0.0, "z": None, "selected": levels["selected"], "params": levels["params"],
-                    "levels": {k: levels[k] for k in ("integer", "step_counts", "noise_share", "saturated_share")}})
+                    "levels": {k: levels[k] for k in ("integer", "step_counts", "noise_share", "saturated_share", "saturation_noise_share")}})
     effects.sort(key=lambda entry: -(entry["z"] if entry["z"] is not None and np.isfinite(entry["z"]) else -np.inf))
     named = sorted([e["id"] for e in effects if e["selected"]])
     undecided = sorted({name for pair in selection.undecided for name in (pair["selected"], pair["rival"])})
