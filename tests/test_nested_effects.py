@@ -199,6 +199,22 @@ def test_photon_noise_is_found_from_the_bright_and_dark_fringes_and_its_level_me
         assert result["z"] < 3.0
     else:
         assert result["z"] >= 3.0 and abs(result["log10_photons"] - log10_photons) < 0.3
+        assert result["white"] and all(0.5 < ratio < 2.0 for ratio in result["band_ratios"])
+
+
+def test_a_residual_that_grows_with_the_light_but_is_not_white_is_no_photon_noise():
+    """Noise blurred over 2 px (what misfit fringes leave, not photons) and scaled with the light: the slope is there, the whiteness is not."""
+    from napari_lbs._core.gap._nested import FrameFit, shot_noise_test
+    from napari_lbs._core.physics import gaussian_blur
+
+    data, scene = _frame({}, read_noise=0.002)
+    split = TileSplit.of(data.shape)
+    fit = fit_frame(data, scene, split, ())
+    rng = np.random.default_rng(4)
+    structured = [gaussian_blur(rng.standard_normal(data.shape), 2.0) * 0.2 * mean for mean in fit.means]
+    grown = FrameFit(fit.effects, fit.params, fit.loglik, tuple(r + s for r, s in zip(fit.residuals, structured, strict=True)), fit.means)
+    result = shot_noise_test(grown, split)
+    assert result["z"] >= 3.0 and not result["white"] and all(ratio > 2.0 for ratio in result["band_ratios"])
 
 
 def test_a_frame_of_spheres_is_diagnosed_end_to_end_with_the_report_fields():

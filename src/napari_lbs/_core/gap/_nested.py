@@ -97,6 +97,8 @@ class Scene:
 _BASELINE = (("gain", 1.0, (0.2, 5.0)), ("contrast", 1.0, (0.0, 3.0)), ("gamma", 1.0, (0.3, 3.0)))
 _STEPS = 12  # least-squares steps per fit: the starts are the simpler model's optimum
 _HIGH_PASS_PX = 1.5  # the shot-noise test's high pass: the residual less its Gaussian blur of this σ
+_BAND_PX = (1.0, 3.0)  # its band pass, for the whiteness check: the residual's blur of the first σ less that of the second
+WHITE_RATIO = 2.0  # photon noise's slope in the band over that in the high pass lies within this factor of 1 on each colour
 _DECIDED_Z = 2.0  # the sign test's z by which a selected effect must beat a rival in its place
 # the pixels a fit compares: every other row and column of the fitted tiles (neighbours add little but cost)
 EVERY_OTHER = (slice(0, None, 2), slice(0, None, 2))
@@ -321,16 +323,27 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
     the catalog's parameter: photons per unit of normalised light, from the slope corrected
     for the high pass's share of white noise; ``log10_photons_err`` its standard error, the
     tiles the slope was fitted on its clusters (`clustered_errors`).
+
+    Photon noise is white: per unit of the white noise each filter keeps, its slope is the
+    same in a band pass (``_BAND_PX``: the blur of σ 1 px less that of σ 3 px) as in the high
+    pass. What the fitted particles leave is not: it holds 4–10 times the read noise in the
+    high pass and more in the band, or, where it is the refracted light's finest rings, less.
+    ``band_ratios`` are each colour's slope in the band over its slope in the high pass;
+    ``white`` whether both lie within a factor ``WHITE_RATIO`` of 1.
     """
     impulse = np.zeros((15, 15))
     impulse[7, 7] = 1.0
     kept = float(np.sum((impulse - gaussian_blur(impulse, _HIGH_PASS_PX)) ** 2))  # white noise's variance kept by the high pass
+    wide = np.zeros((31, 31))
+    wide[15, 15] = 1.0
+    kept_band = float(np.sum((gaussian_blur(wide, _BAND_PX[0]) - gaussian_blur(wide, _BAND_PX[1])) ** 2))  # and by the band pass
     colours = split.colours()
     gains = np.zeros(len(colours))
-    slopes, slope_errors = [], []
+    slopes, slope_errors, band_ratios = [], [], []
     for fitted_on in (0, 1):
         residual, mean = fit.residuals[fitted_on], fit.means[fitted_on]
         high = residual - gaussian_blur(residual, _HIGH_PASS_PX)
+        band = gaussian_blur(residual, _BAND_PX[0]) - gaussian_blur(residual, _BAND_PX[1])
         misfit = (np.abs(mean - gaussian_blur(mean, 8.0)), gaussian_blur((mean - gaussian_blur(mean, _HIGH_PASS_PX)) ** 2, 3.0))
         # per tile: the high-passed residual, the null's regressors (1 and the misfit's), the mean
         samples = [(high[w][::2, ::2].ravel(), np.stack([np.ones(high[w][::2, ::2].size)] + [m[w][::2, ::2].ravel() for m in misfit], axis=1), mean[w][::2, ::2].ravel(), c)
@@ -342,6 +355,9 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
         null, *_ = np.linalg.lstsq(x_null, h2, rcond=None)
         alternative, *_ = np.linalg.lstsq(x_photon, h2, rcond=None)
         slopes.append(float(alternative[-1]))
+        b2 = np.concatenate([band[w][::2, ::2].ravel() for w, c in zip(split.windows(), colours, strict=True) if c == fitted_on]) ** 2
+        in_band, *_ = np.linalg.lstsq(x_photon, b2, rcond=None)
+        band_ratios.append(float(in_band[-1] / kept_band) / (alternative[-1] / kept) if alternative[-1] > 0 else np.nan)
         tile_of = np.concatenate([np.full(s[0].size, k) for k, s in enumerate(fitted)])
         slope_errors.append(float(clustered_errors(x_photon, h2 - x_photon @ alternative, tile_of)[-1]))
         least = 0.1 * float(np.mean(h2))  # a linear variance may fall below zero off the fitted range: a tenth of the mean bounds it
@@ -357,8 +373,10 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
     if slope <= 0:
         total, z = min(total, 0.0), min(z, 0.0)  # a variance that falls with the light is no photon noise
     relative = slope_error / mean_slope if slope > 0 else np.nan  # log10(1/slope) moves by its relative error over ln 10
+    white = bool(all(np.isfinite(r) and 1.0 / WHITE_RATIO <= r <= WHITE_RATIO for r in band_ratios))
     return {"gain": total, "z": z, "log10_photons": float(np.log10(1.0 / slope)) if slope > 0 else None,
-            "log10_photons_err": float(relative / np.log(10.0)) if np.isfinite(relative) else None}
+            "log10_photons_err": float(relative / np.log(10.0)) if np.isfinite(relative) else None,
+            "band_ratios": [float(r) for r in band_ratios], "white": white}
 
 
 def select_effects(data: np.ndarray, scene, split: TileSplit, *, candidates=tuple(MEAN_EFFECTS), level_z: float = 3.0,
