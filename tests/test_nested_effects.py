@@ -563,3 +563,20 @@ def test_a_named_effect_reports_the_named_model_s_numbers_and_another_its_own():
     assert _estimates("illumination", selection) == {"depth": pytest.approx((0.31, error))}
     assert _estimates("sensor_blur", selection) == {"sigma_px": pytest.approx((1.021, error))}
     assert _estimates("coherence", selection) == {"theta_mrad": pytest.approx((0.61, error))} and _estimates("parasitic_fringes", selection) == {}
+
+
+def test_photon_noise_blurred_by_the_camera_is_read_through_the_fitted_blur():
+    """Photons then a charge-sharing blur of σ 1 px: the band ratio is blurred noise's (about 12), not white noise's, and the photons are still measured."""
+    from napari_lbs._core.gap._nested import shot_noise_test
+    from napari_lbs._core.physics import gaussian_blur
+
+    scene = _scene()
+    light = sensor_image(scene.astype(np.float32), {"contrast": 0.9, "sigma": 0.0, "gamma": 1.0}, {}, noise=np.zeros((SIZE, SIZE), np.float32)).astype(np.float64)
+    rng = np.random.default_rng(5)
+    recorded = gaussian_blur(rng.poisson(light / light.mean() * 100.0) / 100.0, 1.0) + rng.normal(0.0, 0.002, light.shape)
+    data = recorded / recorded.mean()
+    split = TileSplit.of(data.shape)
+    fit = fit_frame(data, scene, split, ("sensor_blur",))
+    result = shot_noise_test(fit, split)
+    assert result["z"] > 2.0 and result["white"] and result["noise_blur_px"] > 0.8  # blurred noise holds fewer independent samples: z 2.5–3.5 over seeds
+    assert all(6.0 < ratio < 24.0 for ratio in result["band_ratios"]) and abs(result["log10_photons"] - 2.0) < 0.3

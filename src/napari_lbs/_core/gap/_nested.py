@@ -328,15 +328,23 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
     same in a band pass (``_BAND_PX``: the blur of σ 1 px less that of σ 3 px) as in the high
     pass. What the fitted particles leave is not: it holds 4–10 times the read noise in the
     high pass and more in the band, or, where it is the refracted light's finest rings, less.
-    ``band_ratios`` are each colour's slope in the band over its slope in the high pass;
-    ``white`` whether both lie within a factor ``WHITE_RATIO`` of 1.
+    A camera that blurs its charge (crosstalk, a colour sensor's interpolation) blurs its
+    noise too: where the model holds a sensor blur, noise blurred by it is the other
+    hypothesis, whose band ratio is larger (12 for σ 1 px). ``band_ratios`` are each colour's
+    slope in the band over its slope in the high pass, per unit of white noise's;
+    ``noise_blur_px`` the hypothesis they lie nearer (0: white), whose filters' shares give
+    ``log10_photons``; ``white`` whether both lie within a factor ``WHITE_RATIO`` of it.
     """
-    impulse = np.zeros((15, 15))
-    impulse[7, 7] = 1.0
-    kept = float(np.sum((impulse - gaussian_blur(impulse, _HIGH_PASS_PX)) ** 2))  # white noise's variance kept by the high pass
-    wide = np.zeros((31, 31))
-    wide[15, 15] = 1.0
-    kept_band = float(np.sum((gaussian_blur(wide, _BAND_PX[0]) - gaussian_blur(wide, _BAND_PX[1])) ** 2))  # and by the band pass
+    # white noise, and noise blurred by the camera's fitted blur (a colour sensor's
+    # interpolation, charge shared between pixels): each filter's share of its variance
+    blur_px = float(np.mean([params["sensor_blur.sigma_px"] for params in fit.params])) if "sensor_blur" in fit.effects else 0.0
+    kept, kept_band = {}, {}
+    for sigma in {0.0, blur_px}:
+        impulse = np.zeros((41, 41))
+        impulse[20, 20] = 1.0
+        noise = gaussian_blur(impulse, sigma) if sigma > 0 else impulse
+        kept[sigma] = float(np.sum((noise - gaussian_blur(noise, _HIGH_PASS_PX)) ** 2))
+        kept_band[sigma] = float(np.sum((gaussian_blur(noise, _BAND_PX[0]) - gaussian_blur(noise, _BAND_PX[1])) ** 2))
     colours = split.colours()
     gains = np.zeros(len(colours))
     slopes, slope_errors, band_ratios = [], [], []
@@ -357,7 +365,7 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
         slopes.append(float(alternative[-1]))
         b2 = np.concatenate([band[w][::2, ::2].ravel() for w, c in zip(split.windows(), colours, strict=True) if c == fitted_on]) ** 2
         in_band, *_ = np.linalg.lstsq(x_photon, b2, rcond=None)
-        band_ratios.append(float(in_band[-1] / kept_band) / (alternative[-1] / kept) if alternative[-1] > 0 else np.nan)
+        band_ratios.append(float(in_band[-1] / alternative[-1]) if alternative[-1] > 0 else np.nan)
         tile_of = np.concatenate([np.full(s[0].size, k) for k, s in enumerate(fitted)])
         slope_errors.append(float(clustered_errors(x_photon, h2 - x_photon @ alternative, tile_of)[-1]))
         least = 0.1 * float(np.mean(h2))  # a linear variance may fall below zero off the fitted range: a tenth of the mean bounds it
@@ -368,15 +376,20 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
             v1 = np.maximum(x_t @ alternative[:-1] + alternative[-1] * m_t, least)
             gains[k] = -0.5 * float(np.sum(h**2 / v1 + np.log(v1)) - np.sum(h**2 / v0 + np.log(v0)))
     total, z = _gain(gains, np.zeros_like(gains))
+    def off(sigma: float) -> float:  # how far the colours' ratios lie from what noise blurred by sigma gives (a factor, logged)
+        expected = kept_band[sigma] / kept[sigma]
+        return max(abs(np.log(r / expected)) if np.isfinite(r) and r > 0 else np.inf for r in band_ratios)
+
+    noise_blur = min(kept, key=off)
+    white = bool(off(noise_blur) <= np.log(WHITE_RATIO))
     mean_slope, slope_error = mean_of_halves(slopes, slope_errors)
-    slope = mean_slope / kept
+    slope = mean_slope / kept[noise_blur]
     if slope <= 0:
         total, z = min(total, 0.0), min(z, 0.0)  # a variance that falls with the light is no photon noise
     relative = slope_error / mean_slope if slope > 0 else np.nan  # log10(1/slope) moves by its relative error over ln 10
-    white = bool(all(np.isfinite(r) and 1.0 / WHITE_RATIO <= r <= WHITE_RATIO for r in band_ratios))
     return {"gain": total, "z": z, "log10_photons": float(np.log10(1.0 / slope)) if slope > 0 else None,
             "log10_photons_err": float(relative / np.log(10.0)) if np.isfinite(relative) else None,
-            "band_ratios": [float(r) for r in band_ratios], "white": white}
+            "band_ratios": [float(r * kept[0.0] / kept_band[0.0]) for r in band_ratios], "noise_blur_px": noise_blur, "white": white}
 
 
 def select_effects(data: np.ndarray, scene, split: TileSplit, *, candidates=tuple(MEAN_EFFECTS), level_z: float = 3.0,

@@ -206,6 +206,7 @@ def _summary(report: dict, levels: SceneDiagnosisSettings) -> list[str]:
         "",
         "![effects](gap_effects.png)",
         "",
+        *_noise_lines(report["effects"]),
         *_blur_lines(report.get("blur_by_depth"), levels),
         *_scene_lines(report.get("scene"), levels),
         "## Particle optics (opaque against transparent spheres, by where their fine fringes lie)",
@@ -241,6 +242,25 @@ def _summary(report: dict, levels: SceneDiagnosisSettings) -> list[str]:
         "",
     ]
     return lines
+
+
+def _noise_lines(effects: list) -> list[str]:
+    """The report's lines on the camera's noise: photon noise's whiteness (`shot_noise_test`) and the frame's levels (`levels_test`)."""
+    from napari_lbs._core.gap._levels import SHARE_LEVEL
+    from napari_lbs._core.gap._nested import WHITE_RATIO
+
+    by_id = {e["id"]: e for e in effects}
+    lines = []
+    ratios = by_id.get("shot_noise", {}).get("band_ratios")
+    if ratios:
+        lines.append(f"- Photon noise's slope in a band pass over its slope in the high pass, per colour of the tiles: "
+                     f"{', '.join(_text(r, '.2f') for r in ratios)} (white noise: 1; named within a factor of {WHITE_RATIO:g}).")
+    levels = by_id.get("quantization", {}).get("levels") or {}
+    if levels.get("integer"):
+        lines.append(f"- Levels: a converter step of {levels['step_counts']} counts, its noise {_text(levels['noise_share'], '.3f')} of the white floor's; "
+                     f"{_text(100 * _value(levels['saturated_share']), '.2f')} % of the pixels at the container's top, the light cut there "
+                     f"{_text(levels.get('saturation_noise_share'), '.3f')} of the floor (each named from {SHARE_LEVEL:g}).")
+    return lines + ([""] if lines else [])
 
 
 def _directional_lines(directional: dict | None, level_z: float) -> list[str]:
