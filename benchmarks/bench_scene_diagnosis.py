@@ -48,6 +48,7 @@ def _case_line(name: str, report: dict, seconds: float) -> dict:
         "particles": report["gap"]["particles"],
         "levels": {k: _rounded(v) for k, v in effects["quantization"].get("levels", {}).items()},
         "photon_band_ratios": [_rounded(v) for v in effects["shot_noise"].get("band_ratios", [])],
+        "photon_noise_blur_px": _rounded(effects["shot_noise"].get("noise_blur_px")),
         "params": {k: {name: [_rounded(value), _rounded(v.get("params_err", {}).get(name))] for name, value in v["params"].items()}
                    for k, v in effects.items() if v["params"]},
         "seconds": round(seconds, 1),

@@ -566,7 +566,11 @@ def test_a_named_effect_reports_the_named_model_s_numbers_and_another_its_own():
 
 
 def test_photon_noise_blurred_by_the_camera_is_read_through_the_fitted_blur():
-    """Photons then a charge-sharing blur of σ 1 px: the band ratio is blurred noise's (about 12), not white noise's, and the photons are still measured."""
+    """Photons then a charge-sharing blur of σ 1 px: the band ratio is blurred noise's (about 12), not white noise's.
+
+    The photons are measured per unit of the recorded pixel's variance, the catalog's white
+    noise of the same variance: 100 photons blurred by a kernel of Σg² = 1 / (4π) are 1 257.
+    """
     from napari_lbs._core.gap._nested import shot_noise_test
     from napari_lbs._core.physics import gaussian_blur
 
@@ -579,4 +583,4 @@ def test_photon_noise_blurred_by_the_camera_is_read_through_the_fitted_blur():
     fit = fit_frame(data, scene, split, ("sensor_blur",))
     result = shot_noise_test(fit, split)
     assert result["z"] > 2.0 and result["white"] and result["noise_blur_px"] > 0.8  # blurred noise holds fewer independent samples: z 2.5–3.5 over seeds
-    assert all(6.0 < ratio < 24.0 for ratio in result["band_ratios"]) and abs(result["log10_photons"] - 2.0) < 0.3
+    assert all(6.0 < ratio < 24.0 for ratio in result["band_ratios"]) and abs(result["log10_photons"] - np.log10(100.0 * 4 * np.pi)) < 0.3

@@ -333,7 +333,9 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
     hypothesis, whose band ratio is larger (12 for σ 1 px). ``band_ratios`` are each colour's
     slope in the band over its slope in the high pass, per unit of white noise's;
     ``noise_blur_px`` the hypothesis they lie nearer (0: white), whose filters' shares give
-    ``log10_photons``; ``white`` whether both lie within a factor ``WHITE_RATIO`` of it.
+    ``log10_photons``, per unit of the noise's variance in a pixel as recorded (blurred noise
+    of that variance came from 1 / Σg² fewer photons, g the blur's kernel: 12.6 for σ 1 px);
+    ``white`` whether both lie within a factor ``WHITE_RATIO`` of it.
     """
     # white noise, and noise blurred by the camera's fitted blur (a colour sensor's
     # interpolation, charge shared between pixels): each filter's share of its variance
@@ -343,8 +345,9 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
         impulse = np.zeros((41, 41))
         impulse[20, 20] = 1.0
         noise = gaussian_blur(impulse, sigma) if sigma > 0 else impulse
-        kept[sigma] = float(np.sum((noise - gaussian_blur(noise, _HIGH_PASS_PX)) ** 2))
-        kept_band[sigma] = float(np.sum((gaussian_blur(noise, _BAND_PX[0]) - gaussian_blur(noise, _BAND_PX[1])) ** 2))
+        # per unit of the noise's variance in a pixel, as recorded (the catalog's photon noise is added per pixel)
+        kept[sigma] = float(np.sum((noise - gaussian_blur(noise, _HIGH_PASS_PX)) ** 2) / np.sum(noise**2))
+        kept_band[sigma] = float(np.sum((gaussian_blur(noise, _BAND_PX[0]) - gaussian_blur(noise, _BAND_PX[1])) ** 2) / np.sum(noise**2))
     colours = split.colours()
     gains = np.zeros(len(colours))
     slopes, slope_errors, band_ratios = [], [], []
