@@ -98,7 +98,7 @@ _BASELINE = (("gain", 1.0, (0.2, 5.0)), ("contrast", 1.0, (0.0, 3.0)), ("gamma",
 _STEPS = 12  # least-squares steps per fit: the starts are the simpler model's optimum
 _HIGH_PASS_PX = 1.5  # the shot-noise test's high pass: the residual less its Gaussian blur of this σ
 _BAND_PX = (1.0, 3.0)  # its band pass, for the whiteness check: the residual's blur of the first σ less that of the second
-WHITE_RATIO = 2.0  # photon noise's slope in the band over that in the high pass lies within this factor of 1 on each colour
+WHITE_RATIO = 2.0  # photon noise's slope in the band over that in the high pass lies within this factor of its hypothesis's (white or blurred noise) on each colour
 _DECIDED_Z = 2.0  # the sign test's z by which a selected effect must beat a rival in its place
 # the pixels a fit compares: every other row and column of the fitted tiles (neighbours add little but cost)
 EVERY_OTHER = (slice(0, None, 2), slice(0, None, 2))
