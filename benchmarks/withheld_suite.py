@@ -295,6 +295,8 @@ DEVELOPMENT = (
     # quantization at a converter step of one count)
     Case("control-bright", 512, spheres_per_512=30, level=172, read_noise=2.0),
     Case("saturated", 512, {"quantization": {"step_counts": 1}}, level=200, read_noise=2.0),
+    # added later: an envelope beside photon noise
+    Case("vignetting+photons", 512, {"illumination": {"falloff": 0.45, "centre": (0.6, 0.35)}, "shot_noise": {"photons": 90.0}}),
 )
 
 # effects outside the catalog, alone and beside a catalog effect (512²)

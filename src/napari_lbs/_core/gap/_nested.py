@@ -40,6 +40,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import optimize
+from scipy.signal import fftconvolve
 
 from napari_lbs._core.foundation import ProgressCallback, Steps, StopCallback, Stopped, process_threads, thread_pool
 from napari_lbs._core.gap._heldout import TileSplit, model_probabilities, tile_spectra, whittle_loglik
@@ -331,7 +332,10 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
     A camera that blurs its charge (crosstalk, a colour sensor's interpolation) blurs its
     noise too: where the model holds a sensor blur, noise blurred by it is the other
     hypothesis, whose band ratio is larger (12 for σ 1 px). ``band_ratios`` are each colour's
-    slope in the band over its slope in the high pass, per unit of white noise's;
+    slope in the band over its slope in the high pass, per unit of white noise's (each on the
+    light weighted by its filter's kernel squared about each pixel, which is what a filtered
+    pixel's variance follows: on the pixel's own light, fringes a few pixels apart dilute the
+    band's slope to 0.45–0.85 of photon noise's);
     ``noise_blur_px`` the hypothesis they lie nearer (0: white), whose filters' shares give
     ``log10_photons``, per unit of the noise's variance in a pixel as recorded (blurred noise
     of that variance came from 1 / Σg² fewer photons, g the blur's kernel: 12.6 for σ 1 px);
@@ -340,17 +344,21 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
     # white noise, and noise blurred by the camera's fitted blur (a colour sensor's
     # interpolation, charge shared between pixels): each filter's share of its variance
     blur_px = float(np.mean([params["sensor_blur.sigma_px"] for params in fit.params])) if "sensor_blur" in fit.effects else 0.0
-    kept, kept_band = {}, {}
+    kept, kept_band, light_weights = {}, {}, {}  # light_weights: the high pass's and the band's
     for sigma in {0.0, blur_px}:
         impulse = np.zeros((41, 41))
         impulse[20, 20] = 1.0
         noise = gaussian_blur(impulse, sigma) if sigma > 0 else impulse
         # per unit of the noise's variance in a pixel, as recorded (the catalog's photon noise is added per pixel)
-        kept[sigma] = float(np.sum((noise - gaussian_blur(noise, _HIGH_PASS_PX)) ** 2) / np.sum(noise**2))
-        kept_band[sigma] = float(np.sum((gaussian_blur(noise, _BAND_PX[0]) - gaussian_blur(noise, _BAND_PX[1])) ** 2) / np.sum(noise**2))
+        in_high = noise - gaussian_blur(noise, _HIGH_PASS_PX)
+        in_band = gaussian_blur(noise, _BAND_PX[0]) - gaussian_blur(noise, _BAND_PX[1])
+        kept[sigma] = float(np.sum(in_high**2) / np.sum(noise**2))
+        kept_band[sigma] = float(np.sum(in_band**2) / np.sum(noise**2))
+        # a filtered pixel's variance is the light about it weighted by the filter's kernel squared
+        light_weights[sigma] = (in_high**2 / np.sum(in_high**2), in_band**2 / np.sum(in_band**2))
     colours = split.colours()
     gains = np.zeros(len(colours))
-    slopes, slope_errors, band_ratios = [], [], []
+    slopes, slope_errors, band_ratios = [], [], {sigma: [] for sigma in kept}
     for fitted_on in (0, 1):
         residual, mean = fit.residuals[fitted_on], fit.means[fitted_on]
         high = residual - gaussian_blur(residual, _HIGH_PASS_PX)
@@ -366,9 +374,15 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
         null, *_ = np.linalg.lstsq(x_null, h2, rcond=None)
         alternative, *_ = np.linalg.lstsq(x_photon, h2, rcond=None)
         slopes.append(float(alternative[-1]))
-        b2 = np.concatenate([band[w][::2, ::2].ravel() for w, c in zip(split.windows(), colours, strict=True) if c == fitted_on]) ** 2
-        in_band, *_ = np.linalg.lstsq(x_photon, b2, rcond=None)
-        band_ratios.append(float(in_band[-1] / alternative[-1]) if alternative[-1] > 0 else np.nan)
+        own = [w for w, c in zip(split.windows(), colours, strict=True) if c == fitted_on]
+        b2 = np.concatenate([band[w][::2, ::2].ravel() for w in own]) ** 2
+        for sigma, weights in light_weights.items():
+            filtered_slopes = []
+            for squares, weight in zip((h2, b2), weights, strict=True):
+                light = fftconvolve(mean, weight, mode="same")
+                x_light = np.concatenate([x_null, np.concatenate([light[w][::2, ::2].ravel() for w in own])[:, None]], axis=1)
+                filtered_slopes.append(np.linalg.lstsq(x_light, squares, rcond=None)[0][-1])
+            band_ratios[sigma].append(float(filtered_slopes[1] / filtered_slopes[0]) if filtered_slopes[0] > 0 else np.nan)
         tile_of = np.concatenate([np.full(s[0].size, k) for k, s in enumerate(fitted)])
         slope_errors.append(float(clustered_errors(x_photon, h2 - x_photon @ alternative, tile_of)[-1]))
         least = 0.1 * float(np.mean(h2))  # a linear variance may fall below zero off the fitted range: a tenth of the mean bounds it
@@ -381,7 +395,7 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
     total, z = _gain(gains, np.zeros_like(gains))
     def off(sigma: float) -> float:  # how far the colours' ratios lie from what noise blurred by sigma gives (a factor, logged)
         expected = kept_band[sigma] / kept[sigma]
-        return max(abs(np.log(r / expected)) if np.isfinite(r) and r > 0 else np.inf for r in band_ratios)
+        return max(abs(np.log(r / expected)) if np.isfinite(r) and r > 0 else np.inf for r in band_ratios[sigma])
 
     noise_blur = min(kept, key=off)
     white = bool(off(noise_blur) <= np.log(WHITE_RATIO))
@@ -392,7 +406,7 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
     relative = slope_error / mean_slope if slope > 0 else np.nan  # log10(1/slope) moves by its relative error over ln 10
     return {"gain": total, "z": z, "log10_photons": float(np.log10(1.0 / slope)) if slope > 0 else None,
             "log10_photons_err": float(relative / np.log(10.0)) if np.isfinite(relative) else None,
-            "band_ratios": [float(r * kept[0.0] / kept_band[0.0]) for r in band_ratios], "noise_blur_px": noise_blur, "white": white}
+            "band_ratios": [float(r * kept[0.0] / kept_band[0.0]) for r in band_ratios[noise_blur]], "noise_blur_px": noise_blur, "white": white}
 
 
 def select_effects(data: np.ndarray, scene, split: TileSplit, *, candidates=tuple(MEAN_EFFECTS), level_z: float = 3.0,
