@@ -42,7 +42,7 @@ judged on only: its design and seed were written and committed before its first 
 lengths, motion beside a round blur, astigmatism, pixel gain, a column pattern) likewise,
 written after the test for a blur by direction was chosen on the development sets.
 
-Run ``python benchmarks/withheld_suite.py make frozen DIR`` (or ``frozen-2`` … ``frozen-7``, ``development``,
+Run ``python benchmarks/withheld_suite.py make frozen DIR`` (or ``frozen-2`` … ``frozen-8``, ``development``,
 ``outside-development``, ``outside-frozen``, ``outside-frozen-2``) to write the holograms and ``design.json`` (a few
 minutes on 2 cores); ``bench_diagnosis.py suite DIR`` scores the catalog sets and
 ``bench_scene_diagnosis.py suite DIR`` every set, the outside ones included.
@@ -271,6 +271,33 @@ FROZEN_7 = (
     Case("vignetting+photons", 512, {"illumination": {"falloff": 0.5, "centre": (0.37, 0.61)}, "shot_noise": {"photons": 84.0}}),
 )
 
+# an eighth frozen set, written when the seventh had been scored (photon noise beside an
+# envelope and an etalon lost by the whiteness check) and each filter's slope had been put on
+# the light weighted by its kernel squared, chosen on the development set: six controls,
+# photon noise alone and beside an envelope (twice), an etalon, transparent spheres and a
+# crosstalk; the strengths drawn with the seed 20261203; committed before its first run,
+# scored once per design
+FROZEN_8_SEED = 20261203
+FROZEN_8 = (
+    Case("control-a8", 512, spheres_per_512=38, level=161, read_noise=1.5), Case("control-b8", 512, spheres_per_512=36, level=153, read_noise=1.9),
+    Case("control-c8", 512, spheres_per_512=32, level=140, read_noise=2.5), Case("control-d8", 512, spheres_per_512=22, level=158, read_noise=2.1),
+    Case("control-e8", 512, spheres_per_512=38, level=149, read_noise=1.8), Case("control-f8", 512, spheres_per_512=30, level=148, read_noise=2.2),
+    Case("photons-79", 512, {"shot_noise": {"photons": 79.0}}),
+    Case("photons-222", 512, {"shot_noise": {"photons": 222.0}}),
+    Case("vignetting+photons", 512, {"illumination": {"falloff": 0.31, "centre": (0.57, 0.33)}, "shot_noise": {"photons": 75.0}}),
+    Case("vignetting+photons-weak", 512, {"illumination": {"falloff": 0.49, "centre": (0.31, 0.44)}, "shot_noise": {"photons": 229.0}}),
+    Case("etalon+photons", 512, {"parasitic_fringes": {"etalon": 0.05, "period_px": 15.0, "angle_rad": 1.66, "phase_rad": 0.1}, "shot_noise": {"photons": 99.0}}),
+    Case("polystyrene+photons", 512, {"particle_phase": {"index": 1.59}, "shot_noise": {"photons": 238.0}}),
+    Case("crosstalk+photons", 512, {"sensor_blur": {"kernel": "binomial3"}, "shot_noise": {"photons": 99.0}}),
+    Case("polystyrene", 512, {"particle_phase": {"index": 1.59}}),
+    Case("low-index", 512, {"particle_phase": {"index": 1.45}}),
+    Case("etalon", 512, {"parasitic_fringes": {"etalon": 0.05, "period_px": 12.7, "angle_rad": 0.79, "phase_rad": 2.9}}),
+    Case("vignetting", 512, {"illumination": {"falloff": 0.46, "centre": (0.52, 0.68)}}),
+    Case("source-disc", 512, {"coherence": {"source_mrad": 2.7}}),
+    Case("bits", 512, {"quantization": {"step_counts": 7}}),
+    Case("saturated", 512, {"quantization": {"step_counts": 1}}, level=212, read_noise=2.0),
+)
+
 DEVELOPMENT_SEED = 1234
 DEVELOPMENT = (
     Case("control-1", 512), Case("control-2", 512, spheres_per_512=35, level=160, read_noise=2.0), Case("control-3", 512, spheres_per_512=22, level=140, read_noise=1.2),
@@ -342,6 +369,7 @@ OUTSIDE_FROZEN_2 = (
 SUITES = {
     "frozen": (FROZEN, FROZEN_SEED), "frozen-2": (FROZEN_2, FROZEN_2_SEED), "frozen-3": (FROZEN_3, FROZEN_3_SEED), "frozen-4": (FROZEN_4, FROZEN_4_SEED),
     "frozen-5": (FROZEN_5, FROZEN_5_SEED), "frozen-6": (FROZEN_6, FROZEN_6_SEED), "frozen-7": (FROZEN_7, FROZEN_7_SEED),
+    "frozen-8": (FROZEN_8, FROZEN_8_SEED),
     "development": (DEVELOPMENT, DEVELOPMENT_SEED),
     "outside-frozen": (OUTSIDE_FROZEN, OUTSIDE_FROZEN_SEED), "outside-frozen-2": (OUTSIDE_FROZEN_2, OUTSIDE_FROZEN_2_SEED),
     "outside-development": (OUTSIDE_DEVELOPMENT, OUTSIDE_DEVELOPMENT_SEED),
