@@ -251,15 +251,17 @@ def _noise_lines(effects: list) -> list[str]:
 
     by_id = {e["id"]: e for e in effects}
     lines = []
-    ratios = by_id.get("shot_noise", {}).get("band_ratios")
-    if ratios:
+    shot = by_id.get("shot_noise", {})
+    if shot.get("band_ratios"):
+        blur = _value(shot.get("noise_blur_px"))
+        nearer = f"nearer noise blurred by the camera's fitted {blur:.2f} px" if blur > 0 else "nearer white noise (1)"
         lines.append(f"- Photon noise's slope in a band pass over its slope in the high pass, per colour of the tiles: "
-                     f"{', '.join(_text(r, '.2f') for r in ratios)} (white noise: 1; named within a factor of {WHITE_RATIO:g}).")
+                     f"{', '.join(_text(r, '.2f') for r in shot['band_ratios'])}, {nearer}; named within a factor of {WHITE_RATIO:g} of it.")
     levels = by_id.get("quantization", {}).get("levels") or {}
     if levels.get("integer"):
-        lines.append(f"- Levels: a converter step of {levels['step_counts']} counts, its noise {_text(levels['noise_share'], '.3f')} of the white floor's; "
+        lines.append(f"- Levels: a converter step of {levels['step_counts']} count{'' if levels['step_counts'] == 1 else 's'}, its noise {_text(levels['noise_share'], '.2g')} of the white floor's; "
                      f"{_text(100 * _value(levels['saturated_share']), '.2f')} % of the pixels at the container's top, the light cut there "
-                     f"{_text(levels.get('saturation_noise_share'), '.3f')} of the floor (each named from {SHARE_LEVEL:g}).")
+                     f"{_text(levels.get('saturation_noise_share'), '.2g')} of the floor (each named from {SHARE_LEVEL:g}).")
     return lines + ([""] if lines else [])
 
 
