@@ -335,7 +335,7 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
     slope in the band over its slope in the high pass, per unit of white noise's (each on the
     light weighted by its filter's kernel squared about each pixel, which is what a filtered
     pixel's variance follows: on the pixel's own light, fringes a few pixels apart dilute the
-    band's slope to 0.45–0.85 of photon noise's);
+    band's slope, to 0.67–0.75 of photon noise's on a test frame);
     ``noise_blur_px`` the hypothesis they lie nearer (0: white), whose filters' shares give
     ``log10_photons``, per unit of the noise's variance in a pixel as recorded (blurred noise
     of that variance came from 1 / Σg² fewer photons, g the blur's kernel: 12.6 for σ 1 px);
