@@ -310,6 +310,16 @@ def _gain(better: np.ndarray, worse: np.ndarray) -> tuple[float, float]:
     return float(difference.sum()), float(z)
 
 
+def _high_passed(image: np.ndarray) -> np.ndarray:
+    """The shot-noise test's high pass: ``image`` less its Gaussian blur of ``_HIGH_PASS_PX``."""
+    return image - gaussian_blur(image, _HIGH_PASS_PX)
+
+
+def _band_passed(image: np.ndarray) -> np.ndarray:
+    """Its band pass, for the whiteness check: ``image``'s blurs of the two σ of ``_BAND_PX``, the wider subtracted."""
+    return gaussian_blur(image, _BAND_PX[0]) - gaussian_blur(image, _BAND_PX[1])
+
+
 def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
     """Does the residual's variance grow with the light? A held-out test of a signed slope in the mean.
 
@@ -350,8 +360,7 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
         impulse[20, 20] = 1.0
         noise = gaussian_blur(impulse, sigma) if sigma > 0 else impulse
         # per unit of the noise's variance in a pixel, as recorded (the catalog's photon noise is added per pixel)
-        in_high = noise - gaussian_blur(noise, _HIGH_PASS_PX)
-        in_band = gaussian_blur(noise, _BAND_PX[0]) - gaussian_blur(noise, _BAND_PX[1])
+        in_high, in_band = _high_passed(noise), _band_passed(noise)
         kept[sigma] = float(np.sum(in_high**2) / np.sum(noise**2))
         kept_band[sigma] = float(np.sum(in_band**2) / np.sum(noise**2))
         # a filtered pixel's variance is the light about it weighted by the filter's kernel squared
@@ -361,9 +370,8 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
     slopes, slope_errors, band_ratios = [], [], {sigma: [] for sigma in kept}
     for fitted_on in (0, 1):
         residual, mean = fit.residuals[fitted_on], fit.means[fitted_on]
-        high = residual - gaussian_blur(residual, _HIGH_PASS_PX)
-        band = gaussian_blur(residual, _BAND_PX[0]) - gaussian_blur(residual, _BAND_PX[1])
-        misfit = (np.abs(mean - gaussian_blur(mean, 8.0)), gaussian_blur((mean - gaussian_blur(mean, _HIGH_PASS_PX)) ** 2, 3.0))
+        high, band = _high_passed(residual), _band_passed(residual)
+        misfit = (np.abs(mean - gaussian_blur(mean, 8.0)), gaussian_blur(_high_passed(mean) ** 2, 3.0))
         # per tile: the high-passed residual, the null's regressors (1 and the misfit's), the mean
         samples = [(high[w][::2, ::2].ravel(), np.stack([np.ones(high[w][::2, ::2].size)] + [m[w][::2, ::2].ravel() for m in misfit], axis=1), mean[w][::2, ::2].ravel(), c)
                    for w, c in zip(split.windows(), colours, strict=True)]
@@ -393,6 +401,7 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
             v1 = np.maximum(x_t @ alternative[:-1] + alternative[-1] * m_t, least)
             gains[k] = -0.5 * float(np.sum(h**2 / v1 + np.log(v1)) - np.sum(h**2 / v0 + np.log(v0)))
     total, z = _gain(gains, np.zeros_like(gains))
+
     def off(sigma: float) -> float:  # how far the colours' ratios lie from what noise blurred by sigma gives (a factor, logged)
         expected = kept_band[sigma] / kept[sigma]
         return max(abs(np.log(r / expected)) if np.isfinite(r) and r > 0 else np.inf for r in band_ratios[sigma])
