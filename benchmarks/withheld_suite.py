@@ -42,7 +42,7 @@ judged on only: its design and seed were written and committed before its first 
 lengths, motion beside a round blur, astigmatism, pixel gain, a column pattern) likewise,
 written after the test for a blur by direction was chosen on the development sets.
 
-Run ``python benchmarks/withheld_suite.py make frozen DIR`` (or ``frozen-2`` … ``frozen-8``, ``development``,
+Run ``python benchmarks/withheld_suite.py make frozen DIR`` (or ``frozen-2`` … ``frozen-9``, ``development``,
 ``outside-development``, ``outside-frozen``, ``outside-frozen-2``) to write the holograms and ``design.json`` (a few
 minutes on 2 cores); ``bench_diagnosis.py suite DIR`` scores the catalog sets and
 ``bench_scene_diagnosis.py suite DIR`` every set, the outside ones included.
@@ -298,6 +298,33 @@ FROZEN_8 = (
     Case("saturated", 512, {"quantization": {"step_counts": 1}}, level=212, read_noise=2.0),
 )
 
+# a ninth frozen set, written with the whiteness check read within neighbourhoods: photon
+# noise alone and beside three envelopes, an etalon, polystyrene and a crosstalk, and eight
+# effects alone; the strengths drawn with the seed 20261204; committed before its first run,
+# scored once per design
+FROZEN_9_SEED = 20261204
+FROZEN_9 = (
+    Case("control-a9", 512, spheres_per_512=26, level=150, read_noise=2.4), Case("control-b9", 512, spheres_per_512=37, level=145, read_noise=1.5),
+    Case("control-c9", 512, spheres_per_512=22, level=150, read_noise=2.4), Case("control-d9", 512, spheres_per_512=32, level=166, read_noise=1.9),
+    Case("control-e9", 512, spheres_per_512=35, level=169, read_noise=1.3), Case("control-f9", 512, spheres_per_512=23, level=154, read_noise=2.2),
+    Case("photons-79", 512, {"shot_noise": {"photons": 79.0}}),
+    Case("photons-194", 512, {"shot_noise": {"photons": 194.0}}),
+    Case("vignetting+photons", 512, {"illumination": {"falloff": 0.5, "centre": (0.41, 0.69)}, "shot_noise": {"photons": 63.0}}),
+    Case("vignetting+photons-weak", 512, {"illumination": {"falloff": 0.51, "centre": (0.58, 0.54)}, "shot_noise": {"photons": 193.0}}),
+    Case("vignetting-corner+photons", 512, {"illumination": {"falloff": 0.44, "centre": (0.58, 0.68)}, "shot_noise": {"photons": 71.0}}),
+    Case("etalon+photons", 512, {"parasitic_fringes": {"etalon": 0.05, "period_px": 8.6, "angle_rad": 2.47, "phase_rad": -0.4}, "shot_noise": {"photons": 82.0}}),
+    Case("polystyrene+photons", 512, {"particle_phase": {"index": 1.59}, "shot_noise": {"photons": 228.0}}),
+    Case("crosstalk+photons", 512, {"sensor_blur": {"kernel": "binomial3"}, "shot_noise": {"photons": 98.0}}),
+    Case("polystyrene", 512, {"particle_phase": {"index": 1.59}}),
+    Case("low-index", 512, {"particle_phase": {"index": 1.5}}),
+    Case("etalon", 512, {"parasitic_fringes": {"etalon": 0.05, "period_px": 8.2, "angle_rad": 1.09, "phase_rad": -2.7}}),
+    Case("vignetting", 512, {"illumination": {"falloff": 0.46, "centre": (0.57, 0.41)}}),
+    Case("source-disc", 512, {"coherence": {"source_mrad": 2.5}}),
+    Case("bits", 512, {"quantization": {"step_counts": 7}}),
+    Case("saturated", 512, {"quantization": {"step_counts": 1}}, level=212, read_noise=2.0),
+    Case("crosstalk", 512, {"sensor_blur": {"kernel": "binomial5"}}),
+)
+
 DEVELOPMENT_SEED = 1234
 DEVELOPMENT = (
     Case("control-1", 512), Case("control-2", 512, spheres_per_512=35, level=160, read_noise=2.0), Case("control-3", 512, spheres_per_512=22, level=140, read_noise=1.2),
@@ -324,6 +351,9 @@ DEVELOPMENT = (
     Case("saturated", 512, {"quantization": {"step_counts": 1}}, level=200, read_noise=2.0),
     # added later: an envelope beside photon noise
     Case("vignetting+photons", 512, {"illumination": {"falloff": 0.45, "centre": (0.6, 0.35)}, "shot_noise": {"photons": 90.0}}),
+    # added later: two more envelopes beside photon noise, one strong and one off-centre
+    Case("vignetting-strong+photons", 512, {"illumination": {"falloff": 0.52, "centre": (0.42, 0.66)}, "shot_noise": {"photons": 95.0}}),
+    Case("vignetting-corner+photons", 512, {"illumination": {"falloff": 0.38, "centre": (0.72, 0.62)}, "shot_noise": {"photons": 70.0}}),
 )
 
 # effects outside the catalog, alone and beside a catalog effect (512²)
@@ -369,7 +399,7 @@ OUTSIDE_FROZEN_2 = (
 SUITES = {
     "frozen": (FROZEN, FROZEN_SEED), "frozen-2": (FROZEN_2, FROZEN_2_SEED), "frozen-3": (FROZEN_3, FROZEN_3_SEED), "frozen-4": (FROZEN_4, FROZEN_4_SEED),
     "frozen-5": (FROZEN_5, FROZEN_5_SEED), "frozen-6": (FROZEN_6, FROZEN_6_SEED), "frozen-7": (FROZEN_7, FROZEN_7_SEED),
-    "frozen-8": (FROZEN_8, FROZEN_8_SEED),
+    "frozen-8": (FROZEN_8, FROZEN_8_SEED), "frozen-9": (FROZEN_9, FROZEN_9_SEED),
     "development": (DEVELOPMENT, DEVELOPMENT_SEED),
     "outside-frozen": (OUTSIDE_FROZEN, OUTSIDE_FROZEN_SEED), "outside-frozen-2": (OUTSIDE_FROZEN_2, OUTSIDE_FROZEN_2_SEED),
     "outside-development": (OUTSIDE_DEVELOPMENT, OUTSIDE_DEVELOPMENT_SEED),

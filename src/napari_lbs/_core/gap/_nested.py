@@ -99,6 +99,7 @@ _BASELINE = (("gain", 1.0, (0.2, 5.0)), ("contrast", 1.0, (0.0, 3.0)), ("gamma",
 _STEPS = 12  # least-squares steps per fit: the starts are the simpler model's optimum
 _HIGH_PASS_PX = 1.5  # the shot-noise test's high pass: the residual less its Gaussian blur of this σ
 _BAND_PX = (1.0, 3.0)  # its band pass, for the whiteness check: the residual's blur of the first σ less that of the second
+_SMOOTH_LIGHT_PX = 8.0  # the light's smooth part, about which the fringes vary: the Gaussian blur of the mean of this σ
 WHITE_RATIO = 2.0  # photon noise's slope in the band over that in the high pass lies within this factor of its hypothesis's (white or blurred noise) on each colour
 _DECIDED_Z = 2.0  # the sign test's z by which a selected effect must beat a rival in its place
 # the pixels a fit compares: every other row and column of the fitted tiles (neighbours add little but cost)
@@ -345,7 +346,10 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
     slope in the band over its slope in the high pass, per unit of white noise's (each on the
     light weighted by its filter's kernel squared about each pixel, which is what a filtered
     pixel's variance follows: on the pixel's own light, fringes a few pixels apart dilute the
-    band's slope, to 0.67–0.75 of photon noise's on a test frame);
+    band's slope, to 0.67–0.75 of photon noise's on a test frame; and each within
+    neighbourhoods, the light's smooth part ``blur(mean, 8 px)`` a nuisance regressor: under
+    an envelope the misfit it scales follows the smooth light, and read on it one colour's
+    ratio fell to −0.3–0.5 where photon noise alone gives 1);
     ``noise_blur_px`` the hypothesis they lie nearer (0: white), whose filters' shares give
     ``log10_photons``, per unit of the noise's variance in a pixel as recorded (blurred noise
     of that variance came from 1 / Σg² fewer photons, g the blur's kernel: 12.6 for σ 1 px);
@@ -371,7 +375,7 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
     for fitted_on in (0, 1):
         residual, mean = fit.residuals[fitted_on], fit.means[fitted_on]
         high, band = _high_passed(residual), _band_passed(residual)
-        misfit = (np.abs(mean - gaussian_blur(mean, 8.0)), gaussian_blur(_high_passed(mean) ** 2, 3.0))
+        misfit = (np.abs(mean - gaussian_blur(mean, _SMOOTH_LIGHT_PX)), gaussian_blur(_high_passed(mean) ** 2, 3.0))
         # per tile: the high-passed residual, the null's regressors (1 and the misfit's), the mean
         samples = [(high[w][::2, ::2].ravel(), np.stack([np.ones(high[w][::2, ::2].size)] + [m[w][::2, ::2].ravel() for m in misfit], axis=1), mean[w][::2, ::2].ravel(), c)
                    for w, c in zip(split.windows(), colours, strict=True)]
@@ -384,11 +388,14 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
         slopes.append(float(alternative[-1]))
         own = [w for w, c in zip(split.windows(), colours, strict=True) if c == fitted_on]
         b2 = np.concatenate([band[w][::2, ::2].ravel() for w in own]) ** 2
+        # the slope within neighbourhoods: what follows the frame's smooth light (the misfit an
+        # envelope scales) is a nuisance; photon noise follows the light fringe by fringe
+        smooth = np.concatenate([gaussian_blur(mean, _SMOOTH_LIGHT_PX)[w][::2, ::2].ravel() for w in own])[:, None]
         for sigma, weights in light_weights.items():
             filtered_slopes = []
             for squares, weight in zip((h2, b2), weights, strict=True):
                 light = fftconvolve(mean, weight, mode="same")
-                x_light = np.concatenate([x_null, np.concatenate([light[w][::2, ::2].ravel() for w in own])[:, None]], axis=1)
+                x_light = np.concatenate([x_null, smooth, np.concatenate([light[w][::2, ::2].ravel() for w in own])[:, None]], axis=1)
                 filtered_slopes.append(np.linalg.lstsq(x_light, squares, rcond=None)[0][-1])
             band_ratios[sigma].append(float(filtered_slopes[1] / filtered_slopes[0]) if filtered_slopes[0] > 0 else np.nan)
         tile_of = np.concatenate([np.full(s[0].size, k) for k, s in enumerate(fitted)])
