@@ -41,6 +41,8 @@ def _case_line(name: str, report: dict, seconds: float) -> dict:
     return {
         "case": name,
         "verdict": report["verdict"]["id"],
+        # the posterior of the verdict's model of the mean (photon noise and the converter's levels are tested beside it)
+        "p_verdict": _rounded(report["posterior"].get("+".join(sorted(e for e in (report["verdict"]["id"] or "").split("+") if e and e not in ("shot_noise", "quantization"))) or "null")),
         "catalog_explains": report["verdict"]["catalog_explains"],
         "structured_share": round(report["verdict"]["residual"], 4),
         "directional_blur": {k: round(float(v), 3) for k, v in report["gap"].get("directional_blur", {}).items()},
@@ -125,8 +127,9 @@ def suite(folder: Path, settings: SceneDiagnosisSettings) -> dict:
         lines.append(line)
         print(json.dumps(line), flush=True)
     recovered = [row for line in lines for row in line["recovered"]]
+    confident = [line for line in lines if (line["p_verdict"] or 0.0) >= 0.8]  # the target: of the verdicts given at P >= 0.8, >= 90 % right
     return {"suite": design["suite"], "cases": lines, "right": right, "of": len(lines), "control_false_alarms": alarms, "controls": controls,
-            "outside_right": outside_right, "outside_cases": outside_cases,
+            "outside_right": outside_right, "outside_cases": outside_cases, "confident": len(confident), "confident_right": sum(line["right"] for line in confident),
             "within_2_errors": sum(abs(row["z"]) <= 2 for row in recovered), "known_parameters": len(recovered)}
 
 
@@ -156,6 +159,7 @@ def main() -> None:
     if args.what == "suite":
         outside = f"; outside the catalog {result['outside_right']}/{result['outside_cases']} right" if result["outside_cases"] else ""
         print(f"{result['right']}/{result['of']} right{outside}; {result['control_false_alarms']} false alarms in {result['controls']} controls; "
+              f"{result['confident_right']}/{result['confident']} right of the verdicts at P >= 0.8; "
               f"{result['within_2_errors']}/{result['known_parameters']} known parameters within 2 error bars; load {load}")
 
 
