@@ -41,8 +41,9 @@ def _case_line(name: str, report: dict, seconds: float) -> dict:
     return {
         "case": name,
         "verdict": report["verdict"]["id"],
+        "p_verdict": _rounded(report["verdict"]["probability"]),
         # the posterior of the verdict's model of the mean (photon noise and the converter's levels are tested beside it)
-        "p_verdict": _rounded(report["posterior"].get("+".join(sorted(e for e in (report["verdict"]["id"] or "").split("+") if e and e not in ("shot_noise", "quantization"))) or "null")),
+        "posterior_verdict": _rounded(report["posterior"].get("+".join(sorted(e for e in (report["verdict"]["id"] or "").split("+") if e and e not in ("shot_noise", "quantization"))) or "null")),
         "catalog_explains": report["verdict"]["catalog_explains"],
         "structured_share": round(report["verdict"]["residual"], 4),
         "directional_blur": {k: round(float(v), 3) for k, v in report["gap"].get("directional_blur", {}).items()},

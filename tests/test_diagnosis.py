@@ -71,7 +71,9 @@ def test_diagnose_writes_the_contract_report_its_figures_and_summary(diagnosed):
     bits = next(e for e in effects if e["id"] == "quantization")["params"]
     assert abs(bits["bits"] - 6.0) < 0.1 and abs(bits["saturation"] - 1.6) < 0.1
     assert sum(report["posterior"].values()) == pytest.approx(1.0)
-    assert report["frames"] == [{"name": str(diagnosed / "frame.tif"), "verdict": "particle_phase+quantization", "catalog_explains": True, "residual": verdict["residual"]}]
+    assert report["frames"] == [{"name": str(diagnosed / "frame.tif"), "verdict": "particle_phase+quantization", "catalog_explains": True, "residual": verdict["residual"],
+                                 "probability": verdict["probability"]}]
+    assert 0.0 <= verdict["probability"] <= 1.0 and any(d["name"] == "particle_phase" and d["outcome"] == 1 for d in report["confidence"])
     assert report["provenance"]["seed"] == 3 and report["provenance"]["source"] == str(diagnosed / "frame.tif") and report["settings"]["grid"] == 3
     summary = (diagnosed / "report" / "report.md").read_text()
     assert "Verdict: **particle_phase+quantization**" in summary and "bits 6" in summary and "## Not tested" in summary
@@ -146,6 +148,8 @@ def test_several_frames_are_diagnosed_each_on_one_bar_and_pooled_by_majority(tmp
     # each effect named by two frames of three; the catalog explains two of them
     assert report["verdict"]["id"] == "illumination+quantization" and report["verdict"]["catalog_explains"] is True
     assert "majority of the 3 frames" in report["verdict"]["reason"] and result.value.report["verdict"] == report["verdict"]
+    # one frame of three gives the pooled verdict, at its own 0.9
+    assert report["verdict"]["probability"] == pytest.approx(0.9 / 3)
     # each named effect's parameters are the first naming frame's: what generate --effects-from adds
     # (an optional parameter the report leaves out, the envelope's waist, at its neutral value)
     assert effects_from_report(report) == {"illumination": {**illumination, "waist": EFFECTS["illumination"].neutral["waist"]}, "quantization": {"bits": 6.0, "saturation": 1.6}}
@@ -187,7 +191,7 @@ def test_one_frame_s_report_is_its_diagnosis_with_one_frame(tmp_path, monkeypatc
     result = diagnose(DiagnoseRequest(frame, tmp_path / "report", source="holo", roi=(10, 20)))
     report = json.loads((tmp_path / "report" / "report.json").read_text())
     assert report["verdict"] == scene_report("sensor_blur", explains=False, tile_px=40)["verdict"] and report["roi"] == {"x": 10, "y": 20}
-    assert report["frames"] == [{"name": "holo", "verdict": "sensor_blur", "catalog_explains": False, "residual": 0.2}]
+    assert report["frames"] == [{"name": "holo", "verdict": "sensor_blur", "catalog_explains": False, "residual": 0.2, "probability": 0.9}]
     assert result.summary.startswith("verdict: sensor_blur;") and "does not explain" in result.summary
 
 

@@ -258,7 +258,9 @@ def test_a_frame_of_spheres_is_diagnosed_end_to_end_with_the_report_fields():
     first, second = (diagnose_scene(frame, config, settings=settings) for _ in range(2))
     report = json.loads(first.to_json())
     assert {"gap", "effects", "verdict", "posterior"} <= set(report)
-    assert {"id", "shrink", "residual", "undecided", "catalog_explains"} <= set(report["verdict"])
+    assert {"id", "shrink", "residual", "undecided", "catalog_explains", "probability"} <= set(report["verdict"])
+    assert 0.0 <= report["verdict"]["probability"] <= 1.0 and {"name", "outcome", "holds"} <= set(report["confidence"][0])
+    assert report["verdict"]["probability"] <= min(d["holds"] for d in report["confidence"])
     assert {e["id"] for e in report["effects"]} == {"illumination", "sensor_blur", "parasitic_fringes", "coherence", "particle_phase", "shot_noise", "quantization"}
     levels = next(e for e in report["effects"] if e["id"] == "quantization")["levels"]
     assert levels["integer"] is False  # a float frame holds no converter levels to read

@@ -353,7 +353,8 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
     ``noise_blur_px`` the hypothesis they lie nearer (0: white), whose filters' shares give
     ``log10_photons``, per unit of the noise's variance in a pixel as recorded (blurred noise
     of that variance came from 1 / Σg² fewer photons, g the blur's kernel: 12.6 for σ 1 px);
-    ``white`` whether both lie within a factor ``WHITE_RATIO`` of it.
+    ``white`` whether both lie within a factor ``WHITE_RATIO`` of it; ``tile_gains`` the
+    held-out gain of each tile (nats), whose signs the sign test counts (`_confidence`).
     """
     # white noise, and noise blurred by the camera's fitted blur (a colour sensor's
     # interpolation, charge shared between pixels): each filter's share of its variance
@@ -422,7 +423,8 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
     relative = slope_error / mean_slope if slope > 0 else np.nan  # log10(1/slope) moves by its relative error over ln 10
     return {"gain": total, "z": z, "log10_photons": float(np.log10(1.0 / slope)) if slope > 0 else None,
             "log10_photons_err": float(relative / np.log(10.0)) if np.isfinite(relative) else None,
-            "band_ratios": [float(r * kept[0.0] / kept_band[0.0]) for r in band_ratios[noise_blur]], "noise_blur_px": noise_blur, "white": white}
+            "band_ratios": [float(r * kept[0.0] / kept_band[0.0]) for r in band_ratios[noise_blur]], "noise_blur_px": noise_blur, "white": white,
+            "tile_gains": gains}
 
 
 def select_effects(data: np.ndarray, scene, split: TileSplit, *, candidates=tuple(MEAN_EFFECTS), level_z: float = 3.0,

@@ -82,7 +82,9 @@ def optics_power_test(data: np.ndarray, table, config: ExperimentConfig, split: 
         ``z <= -level_z``, else ``"undecided"``: the frame's fine fringes cannot tell), ``z``, ``transparent_better`` and
         ``transparent_worse`` (tiles), ``index_contrast`` (the best transparent model's),
         ``heldout_error`` and ``slope`` per model (the fitted scale of its power: near 1
-        for the model the frame holds, through its camera), ``particles``.
+        for the model the frame holds, through its camera), ``particles``;
+        ``tile_differences``, each tile's held-out error of the opaque model less the best
+        transparent one's, whose signs the sign test counts (`_confidence`).
     """
     settings = settings or RefineSettings()
     measured = fine_fringe_power(data)
@@ -122,6 +124,7 @@ def optics_power_test(data: np.ndarray, table, config: ExperimentConfig, split: 
         "z": z,
         "transparent_better": better,
         "transparent_worse": worse,
+        "tile_differences": difference,
         "index_contrast": float(best),
         "heldout_error": {name: float(e.mean()) for name, e in errors.items()},
         "slope": slopes,

@@ -177,6 +177,8 @@ def _summary(report: dict, levels: SceneDiagnosisSettings) -> list[str]:
         "# Sim-to-real gap diagnosis",
         "",
         f"- Verdict: **{_named(verdict)}** ({verdict['reason']}).",
+        f"- Probability of the verdict: {_text(verdict.get('probability'), '.2f')} (the share of the tiles' bootstrap draws on which each of its "
+        f"sign tests comes out the same).",
         f"- The catalog {'explains' if verdict['catalog_explains'] else 'does not explain'} the frame.",
         f"- Gap ({gap['metric']}): {_text(gap['baseline'])} with the scene alone, {_text(verdict['residual'])} with the verdict "
         f"(shrink {_text(100 * _value(verdict['shrink']), '.0f')} %).",

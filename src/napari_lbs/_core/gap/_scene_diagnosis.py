@@ -43,7 +43,8 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from napari_lbs._core.foundation import ExperimentConfig, InputError, ProgressCallback, Steps, StopCallback, WorkerPool, as_hologram, begin_phase, json_safe
-from napari_lbs._core.gap._blur_depth import attribute_blur
+from napari_lbs._core.gap._blur_depth import BLUR_EFFECTS, attribute_blur
+from napari_lbs._core.gap._confidence import Decision, verdict_probability
 from napari_lbs._core.gap._detect import find_particles
 from napari_lbs._core.gap._directional import directional_blur_test
 from napari_lbs._core.gap._heldout import TileSplit, tile_spectra
@@ -178,6 +179,39 @@ def _optics(data: np.ndarray, table, selection, config: ExperimentConfig, split:
                    "diameter_median_um": float(np.median(diameters)) if diameters.size else None,
                    "diameter_quartiles_um": np.percentile(diameters, [25, 75]).tolist() if diameters.size else None})
     return record
+
+
+def _decisions(selection, shot: dict, optics_votes, phase_selected: bool, optics_model: str, blur_profile, *, level_z: float) -> list[Decision]:
+    """The verdict's sign tests over the tiles (`verdict_probability`): each effect kept, each left out, photon noise, the optics.
+
+    Each selected effect of the mean against the model without it; each other one against
+    the final model with it added, where that model was fitted; photon noise where its slope
+    is white (elsewhere it is not named whatever the tiles say); the particles' optics. A blur
+    whose origin was read from the depth groups (`attribute_blur`) is left out: that choice
+    is no sign test.
+    """
+    fits = selection.fits
+    chosen = selection.chosen
+    final = fits["+".join(chosen) or "baseline"]
+    attributed = blur_profile is not None and bool(blur_profile.get("origin"))
+    decisions = []
+    for effect in MEAN_EFFECTS:
+        if attributed and effect in BLUR_EFFECTS:
+            continue
+        if effect in chosen:
+            without = "+".join(e for e in chosen if e != effect) or "baseline"
+            if without in fits:
+                decisions.append(Decision(f"{effect} kept", final.loglik - fits[without].loglik, 1))
+        else:
+            key = "+".join(sorted((*chosen, effect)))
+            if key in fits:
+                decisions.append(Decision(f"{effect} not added", fits[key].loglik - final.loglik, 0))
+    if shot["white"] and shot["log10_photons"] is not None:
+        decisions.append(Decision("shot_noise", shot["tile_gains"], int(shot["z"] >= level_z and shot["gain"] > 0)))
+    if optics_votes is not None:
+        outcome = 1 if phase_selected else -1 if optics_model == "opaque" else 0
+        decisions.append(Decision("particle_phase", optics_votes, outcome, needs_gain=False, three_way=True))
+    return decisions
 
 
 def _found(image: np.ndarray, config: ExperimentConfig, most: int, progress, should_stop) -> dict:
@@ -447,6 +481,7 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
     selection, blur_profile = attribute_blur(data, scene, split, selection, level_z=settings.level_z, check=steps.check)
     steps.advance()
     optics = _optics(data, table, selection, config, split, settings, progress, should_stop)
+    optics_votes = optics.pop("tile_differences", None)  # each tile's vote, for the verdict's probability
     small = _small_scatterers(data, table, scene, config, settings, progress, should_stop, pool)
     frame_spectra = tile_spectra(data - 1.0, split)
     baseline_share = _structure(selection.fits["baseline"].residuals, split, frame_spectra)[0]
@@ -493,17 +528,20 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
             + (f"; a blur that differs by direction, outside the catalog (motion during the exposure, astigmatism: z {directional['z']:.1f}, "
                f"{directional['variance_difference_px2']:.2f} px² more along {np.degrees(directional['angle_rad']):.0f}°)" if streaked else ""))
     posterior = {("null" if name == "baseline" else name): p for name, p in selection.probabilities.items()}
+    confidence = verdict_probability(_decisions(selection, shot, optics_votes, phase_selected, optics["model"], blur_profile, level_z=settings.level_z),
+                                     level_z=settings.level_z)
     report = {
         "method": "scene",
         "gap": {"metric": "unexplained share of the frame's structure (median over the held-out tiles)", "baseline": baseline_share, "by_band": bands,
                 "by_depth": by_depth, "line_pattern": lines, "directional_blur": directional, "particles": optics["particles"], "tiles": split.grid**2, "tile_px": split.size},
         "effects": effects,
         "verdict": {"id": None if undecided else "+".join(named) or None, "shrink": 1.0 - share / baseline_share if baseline_share > 0 else 0.0,
-                    "residual": share, "undecided": undecided, "catalog_explains": bool(catalog_explains),
+                    "residual": share, "undecided": undecided, "catalog_explains": bool(catalog_explains), "probability": confidence["probability"],
                     "reason": (f"selected by held-out gain (z >= {settings.level_z:g}): {', '.join(n for n in named if n != 'quantization') or 'nothing'}"
                                + ("; quantization or saturation read from the frame's levels" if levels["selected"] else "")
                                + (f"; undecided between {between}" if between else "") + f"; {left}")},
         "posterior": posterior,
+        "confidence": confidence["decisions"],
         "particle_optics": optics,
         "scene": scene_population(table, config, data.shape, small=small),
         "blur_by_depth": blur_profile,

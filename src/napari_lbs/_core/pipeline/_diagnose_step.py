@@ -132,15 +132,18 @@ class _FrameProgress:
 def _pooled(diagnoses: list[SceneDiagnosis], names: list[str]) -> SceneDiagnosis:
     """The first frame's diagnosis, with each frame's verdict in ``frames`` and the effects a majority of the frames name as its verdict.
 
-    The verdict's ``catalog_explains`` holds where it holds in a majority of the frames; the
-    parameters of each effect it names are those of the first frame that names it (what
-    `effects_from_report` reads).
+    The verdict's ``catalog_explains`` holds where it holds in a majority of the frames; its
+    ``probability`` is the mean over the frames of each one's probability of its own verdict
+    where that verdict is the pooled one (0 where it is another): the chance that one of these
+    frames, drawn again, gives it. The parameters of each effect it names are those of the
+    first frame that names it (what `effects_from_report` reads).
     """
     from collections import Counter
     from dataclasses import replace
 
     verdicts = [d.report["verdict"] for d in diagnoses]
-    frames = [{"name": name, "verdict": v["id"], "catalog_explains": v["catalog_explains"], "residual": v["residual"]} for name, v in zip(names, verdicts, strict=True)]
+    frames = [{"name": name, "verdict": v["id"], "catalog_explains": v["catalog_explains"], "residual": v["residual"], "probability": v.get("probability")}
+              for name, v in zip(names, verdicts, strict=True)]
     first = diagnoses[0].report
     report = {**first, "frames": frames}
     if len(diagnoses) > 1:
@@ -148,7 +151,9 @@ def _pooled(diagnoses: list[SceneDiagnosis], names: list[str]) -> SceneDiagnosis
         named = Counter(effect for v in verdicts if v["id"] for effect in v["id"].split("+"))
         majority = sorted(effect for effect, times in named.items() if 2 * times > count)
         explained = sum(bool(v["catalog_explains"]) for v in verdicts)
-        report["verdict"] = {**first["verdict"], "id": "+".join(majority) or None, "catalog_explains": 2 * explained > count,
+        pooled_id = "+".join(majority) or None
+        agreeing = [v.get("probability") or 0.0 for v in verdicts if v["id"] == pooled_id]
+        report["verdict"] = {**first["verdict"], "id": pooled_id, "catalog_explains": 2 * explained > count, "probability": sum(agreeing) / count,
                              "reason": f"named in a majority of the {count} frames diagnosed: {', '.join(majority) or 'nothing'}; the catalog explains "
                                        f"{explained} of them; the first frame: {first['verdict']['reason']}"}
         fitted = {}  # each named effect's parameters (and their errors) from the first frame that named it

@@ -1,0 +1,43 @@
+"""The verdict's probability: a Bayesian bootstrap of its sign tests over the tiles."""
+
+import numpy as np
+import pytest
+
+from napari_lbs._core.gap._confidence import Decision, verdict_probability
+
+
+def _votes(gaining: int, tiles: int = 16, *, nats: float = 100.0) -> np.ndarray:
+    return np.where(np.arange(tiles) < gaining, nats, -nats)
+
+
+def test_a_decision_every_tile_agrees_on_always_holds_and_one_on_the_level_in_about_half_the_draws():
+    assert verdict_probability([Decision("all", _votes(16), 1)], level_z=3.0)["probability"] == 1.0
+    # 14 of 16 tiles is z 3.0 exactly: a draw holds it when the gaining tiles weigh at least 14/16, Beta(14, 2) about its mean
+    on_the_level = verdict_probability([Decision("margin", _votes(14), 1)], level_z=3.0)["probability"]
+    assert 0.35 < on_the_level < 0.65
+    # an effect left out at 8 of 16 (z 0) stays left out in nearly every draw
+    assert verdict_probability([Decision("out", _votes(8), 0)], level_z=3.0)["probability"] > 0.99
+
+
+def test_the_verdict_holds_where_all_its_decisions_do_and_the_same_seed_gives_the_same_share():
+    decisions = [Decision("kept", _votes(14), 1), Decision("left out", _votes(12), 0)]
+    both = verdict_probability(decisions, level_z=3.0)
+    alone = [verdict_probability([d], level_z=3.0)["probability"] for d in decisions]
+    assert both["probability"] <= min(alone) and [d["holds"] for d in both["decisions"]] == pytest.approx(alone)
+    assert verdict_probability(decisions, level_z=3.0) == both
+
+
+def test_a_summed_loss_overrules_the_tiles_where_the_gain_is_needed_and_three_way_tests_keep_their_sign():
+    # 15 tiles gain a nat each, one loses a thousand: the sign test passes, the sum does not
+    differences = np.where(np.arange(16) < 15, 1.0, -1000.0)
+    assert verdict_probability([Decision("kept", differences, 1)], level_z=3.0)["probability"] < 0.1
+    assert verdict_probability([Decision("votes", differences, 1, needs_gain=False)], level_z=3.0)["probability"] > 0.6
+    # opaque particles (every tile votes against transparent ones) are outcome -1 of a three-way test
+    assert verdict_probability([Decision("optics", -_votes(16), -1, needs_gain=False, three_way=True)], level_z=3.0)["probability"] == 1.0
+    assert verdict_probability([Decision("optics", -_votes(16), 0, needs_gain=False, three_way=True)], level_z=3.0)["probability"] == 0.0
+
+
+def test_no_decision_is_certainty_and_tests_over_different_tiles_are_refused():
+    assert verdict_probability([], level_z=3.0) == {"probability": 1.0, "decisions": []}
+    with pytest.raises(ValueError, match="same tiles"):
+        verdict_probability([Decision("a", _votes(16), 1), Decision("b", _votes(30, tiles=64), 1)], level_z=3.0)
