@@ -321,7 +321,7 @@ def test_diagnosis_widget_diagnoses_a_stack_s_frames_shows_the_verdict_and_maps_
     assert [f["name"] for f in written["frames"]] == ["recording[frame 0]", "recording[frame 2]", "recording[frame 3]"]
     assert written["verdict"]["id"] == "illumination+sensor_blur" and written["provenance"]["source"] == "recording"
     assert "frame 3 of 3: the catalog's effects" in phases and "verdict: illumination+sensor_blur" in widget._status.value
-    assert widget._verdict.value.startswith("verdict: illumination+sensor_blur; named in a majority of the 3 frames")
+    assert widget._verdict.value.startswith("verdict: illumination+sensor_blur (probability 0.30); named in a majority of the 3 frames")
     # the named effects' parameters with their errors, each from a frame that named it (sensor_blur: the third)
     assert widget._verdict.value.endswith("\nfitted: illumination (depth 0.3 ± 0.01, x0 0.1 ± 0.01, y0 -0.1 ± 0.01); sensor_blur (sigma_px 0.8 ± 0.01)")
     assert len(widget._plot.axes.patches) == len(written["effects"])  # each effect's z

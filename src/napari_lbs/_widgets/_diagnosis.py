@@ -93,7 +93,8 @@ class DiagnosisWidget(StepWidget):
         self._plot.show(report["effects"], level=levels.level_z)
         verdict = report["verdict"]
         fitted = "; ".join(f"{e['id']} ({parameter_text(e)})" for e in report["effects"] if e["selected"] and e["params"])
-        self._verdict.value = f"verdict: {verdict['id'] or 'nothing named'}; {verdict['reason']}" + (f"\nfitted: {fitted}" if fitted else "")
+        probability = f" (probability {verdict['probability']:.2f})" if verdict.get("probability") is not None else ""
+        self._verdict.value = f"verdict: {verdict['id'] or 'nothing named'}{probability}; {verdict['reason']}" + (f"\nfitted: {fitted}" if fitted else "")
         self._verdict.tooltip = self._verdict.value
         # the tiles: a centred checkerboard of grid × grid squares of tile_px pixels
         size, grid = int(report["gap"]["tile_px"]), diagnosis.tile_map.shape[0]
