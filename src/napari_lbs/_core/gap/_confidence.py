@@ -10,7 +10,9 @@ frame, drawn again, would give the same verdict — bootstrap model-selection fr
 16 tiles at a level of z 3) holds in about half the draws; one every tile agrees on, in all.
 
 The decisions that are not sign tests over the tiles are left as they are: the converter's
-levels (a share of the noise) and the blur's origin (t statistics over depth groups).
+levels (a share of the noise) and the whiteness of photon noise's slope. A blur whose origin
+the depth groups chose (t statistics over the groups) is counted as any named effect: the
+tiles must still gain from it.
 """
 
 from __future__ import annotations

@@ -43,7 +43,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from napari_lbs._core.foundation import ExperimentConfig, InputError, ProgressCallback, Steps, StopCallback, WorkerPool, as_hologram, begin_phase, json_safe
-from napari_lbs._core.gap._blur_depth import BLUR_EFFECTS, attribute_blur
+from napari_lbs._core.gap._blur_depth import attribute_blur
 from napari_lbs._core.gap._confidence import Decision, verdict_probability
 from napari_lbs._core.gap._detect import find_particles
 from napari_lbs._core.gap._directional import directional_blur_test
@@ -181,23 +181,20 @@ def _optics(data: np.ndarray, table, selection, config: ExperimentConfig, split:
     return record
 
 
-def _decisions(selection, shot: dict, optics_votes, phase_selected: bool, optics_model: str, blur_profile, *, level_z: float) -> list[Decision]:
+def _decisions(selection, shot: dict, optics_votes, phase_selected: bool, optics_model: str, *, level_z: float) -> list[Decision]:
     """The verdict's sign tests over the tiles (`verdict_probability`): each effect kept, each left out, photon noise, the optics.
 
     Each selected effect of the mean against the model without it; each other one against
     the final model with it added, where that model was fitted; photon noise where its slope
     is white (elsewhere it is not named whatever the tiles say); the particles' optics. A blur
-    whose origin was read from the depth groups (`attribute_blur`) is left out: that choice
-    is no sign test.
+    whose origin was read from the depth groups (`attribute_blur`) is counted as any named
+    effect: the depth groups' t statistics chose it, and the tiles must still gain from it.
     """
     fits = selection.fits
     chosen = selection.chosen
     final = fits["+".join(chosen) or "baseline"]
-    attributed = blur_profile is not None and bool(blur_profile.get("origin"))
     decisions = []
     for effect in MEAN_EFFECTS:
-        if attributed and effect in BLUR_EFFECTS:
-            continue
         if effect in chosen:
             without = "+".join(e for e in chosen if e != effect) or "baseline"
             if without in fits:
@@ -528,7 +525,7 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
             + (f"; a blur that differs by direction, outside the catalog (motion during the exposure, astigmatism: z {directional['z']:.1f}, "
                f"{directional['variance_difference_px2']:.2f} px² more along {np.degrees(directional['angle_rad']):.0f}°)" if streaked else ""))
     posterior = {("null" if name == "baseline" else name): p for name, p in selection.probabilities.items()}
-    confidence = verdict_probability(_decisions(selection, shot, optics_votes, phase_selected, optics["model"], blur_profile, level_z=settings.level_z),
+    confidence = verdict_probability(_decisions(selection, shot, optics_votes, phase_selected, optics["model"], level_z=settings.level_z),
                                      level_z=settings.level_z)
     report = {
         "method": "scene",
