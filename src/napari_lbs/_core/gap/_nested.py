@@ -376,7 +376,8 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
     for fitted_on in (0, 1):
         residual, mean = fit.residuals[fitted_on], fit.means[fitted_on]
         high, band = _high_passed(residual), _band_passed(residual)
-        misfit = (np.abs(mean - gaussian_blur(mean, _SMOOTH_LIGHT_PX)), gaussian_blur(_high_passed(mean) ** 2, 3.0))
+        smooth_light = gaussian_blur(mean, _SMOOTH_LIGHT_PX)
+        misfit = (np.abs(mean - smooth_light), gaussian_blur(_high_passed(mean) ** 2, 3.0))
         # per tile: the high-passed residual, the null's regressors (1 and the misfit's), the mean
         samples = [(high[w][::2, ::2].ravel(), np.stack([np.ones(high[w][::2, ::2].size)] + [m[w][::2, ::2].ravel() for m in misfit], axis=1), mean[w][::2, ::2].ravel(), c)
                    for w, c in zip(split.windows(), colours, strict=True)]
@@ -391,7 +392,7 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
         b2 = np.concatenate([band[w][::2, ::2].ravel() for w in own]) ** 2
         # the slope within neighbourhoods: what follows the frame's smooth light (the misfit an
         # envelope scales) is a nuisance; photon noise follows the light fringe by fringe
-        smooth = np.concatenate([gaussian_blur(mean, _SMOOTH_LIGHT_PX)[w][::2, ::2].ravel() for w in own])[:, None]
+        smooth = np.concatenate([smooth_light[w][::2, ::2].ravel() for w in own])[:, None]
         for sigma, weights in light_weights.items():
             filtered_slopes = []
             for squares, weight in zip((h2, b2), weights, strict=True):
