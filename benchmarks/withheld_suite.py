@@ -42,7 +42,7 @@ judged on only: its design and seed were written and committed before its first 
 lengths, motion beside a round blur, astigmatism, pixel gain, a column pattern) likewise,
 written after the test for a blur by direction was chosen on the development sets.
 
-Run ``python benchmarks/withheld_suite.py make frozen DIR`` (or ``frozen-2`` … ``frozen-11``, ``development``,
+Run ``python benchmarks/withheld_suite.py make frozen DIR`` (or ``frozen-2`` … ``frozen-12``, ``development``,
 ``outside-development``, ``outside-frozen``, ``outside-frozen-2``) to write the holograms and ``design.json`` (a few
 minutes on 2 cores); ``bench_diagnosis.py suite DIR`` scores the catalog sets and
 ``bench_scene_diagnosis.py suite DIR`` every set, the outside ones included.
@@ -381,6 +381,36 @@ FROZEN_11 = (
     Case("crosstalk-5", 512, {"sensor_blur": {"kernel": "binomial5"}}),
 )
 
+# a twelfth frozen set, written once the blur's depth profile took the depth group, not the
+# colour, as its replicate: more blurs again (three 3 x 3 and one 5 x 5 crosstalk, one beside
+# photon noise and one beside an envelope, three source discs) beside the other effects;
+# the strengths drawn with the seed 20261207; committed before its first run, scored once per
+# design
+FROZEN_12_SEED = 20261207
+FROZEN_12 = (
+    Case("control-a12", 512, spheres_per_512=27, level=167, read_noise=1.9), Case("control-b12", 512, spheres_per_512=31, level=150, read_noise=1.5),
+    Case("control-c12", 512, spheres_per_512=22, level=154, read_noise=1.7), Case("control-d12", 512, spheres_per_512=22, level=152, read_noise=1.9),
+    Case("control-e12", 512, spheres_per_512=38, level=168, read_noise=1.4), Case("control-f12", 512, spheres_per_512=25, level=162, read_noise=1.6),
+    Case("photons-82", 512, {"shot_noise": {"photons": 82.0}}),
+    Case("photons-210", 512, {"shot_noise": {"photons": 210.0}}),
+    Case("vignetting+photons", 512, {"illumination": {"falloff": 0.49, "centre": (0.54, 0.68)}, "shot_noise": {"photons": 74.0}}),
+    Case("etalon+photons", 512, {"parasitic_fringes": {"etalon": 0.05, "period_px": 8.1, "angle_rad": 0.53, "phase_rad": -2.2}, "shot_noise": {"photons": 93.0}}),
+    Case("crosstalk+photons", 512, {"sensor_blur": {"kernel": "binomial3"}, "shot_noise": {"photons": 68.0}}),
+    Case("crosstalk+vignetting", 512, {"sensor_blur": {"kernel": "binomial3"}, "illumination": {"falloff": 0.4, "centre": (0.39, 0.66)}}),
+    Case("polystyrene", 512, {"particle_phase": {"index": 1.59}}),
+    Case("low-index", 512, {"particle_phase": {"index": 1.49}}),
+    Case("etalon", 512, {"parasitic_fringes": {"etalon": 0.05, "period_px": 12.8, "angle_rad": 0.94, "phase_rad": -2.4}}),
+    Case("vignetting", 512, {"illumination": {"falloff": 0.36, "centre": (0.34, 0.69)}}),
+    Case("source-disc-2.4", 512, {"coherence": {"source_mrad": 2.4}}),
+    Case("source-disc-2.3", 512, {"coherence": {"source_mrad": 2.3}}),
+    Case("source-disc-2.6", 512, {"coherence": {"source_mrad": 2.6}}),
+    Case("bits", 512, {"quantization": {"step_counts": 10}}),
+    Case("saturated", 512, {"quantization": {"step_counts": 1}}, level=213, read_noise=2.0),
+    Case("crosstalk-3a", 512, {"sensor_blur": {"kernel": "binomial3"}}),
+    Case("crosstalk-3b", 512, {"sensor_blur": {"kernel": "binomial3"}}),
+    Case("crosstalk-5", 512, {"sensor_blur": {"kernel": "binomial5"}}),
+)
+
 DEVELOPMENT_SEED = 1234
 DEVELOPMENT = (
     Case("control-1", 512), Case("control-2", 512, spheres_per_512=35, level=160, read_noise=2.0), Case("control-3", 512, spheres_per_512=22, level=140, read_noise=1.2),
@@ -456,7 +486,7 @@ SUITES = {
     "frozen": (FROZEN, FROZEN_SEED), "frozen-2": (FROZEN_2, FROZEN_2_SEED), "frozen-3": (FROZEN_3, FROZEN_3_SEED), "frozen-4": (FROZEN_4, FROZEN_4_SEED),
     "frozen-5": (FROZEN_5, FROZEN_5_SEED), "frozen-6": (FROZEN_6, FROZEN_6_SEED), "frozen-7": (FROZEN_7, FROZEN_7_SEED),
     "frozen-8": (FROZEN_8, FROZEN_8_SEED), "frozen-9": (FROZEN_9, FROZEN_9_SEED),
-    "frozen-10": (FROZEN_10, FROZEN_10_SEED), "frozen-11": (FROZEN_11, FROZEN_11_SEED),
+    "frozen-10": (FROZEN_10, FROZEN_10_SEED), "frozen-11": (FROZEN_11, FROZEN_11_SEED), "frozen-12": (FROZEN_12, FROZEN_12_SEED),
     "development": (DEVELOPMENT, DEVELOPMENT_SEED),
     "outside-frozen": (OUTSIDE_FROZEN, OUTSIDE_FROZEN_SEED), "outside-frozen-2": (OUTSIDE_FROZEN_2, OUTSIDE_FROZEN_2_SEED),
     "outside-development": (OUTSIDE_DEVELOPMENT, OUTSIDE_DEVELOPMENT_SEED),

@@ -246,11 +246,12 @@ def test_the_report_shows_a_blur_by_direction(tmp_path):
 
 def test_the_report_shows_the_blur_by_depth_where_a_blur_was_selected(tmp_path):
     report = scene_report("coherence")
-    report["blur_by_depth"] = {"depths_um": [2000.0, 3000.0, 4000.0], "sigma_px": [[0.6, 0.9, 1.2], [0.62, 0.88, 1.21]], "sensor_sigma_px": 0.0,
-                               "theta_mrad": 0.66, "t_sensor": 0.1, "t_source": 21.0, "origin": ["coherence"]}
+    report["blur_by_depth"] = {"depths_um": [2000.0, 2500.0, 3000.0, 3500.0, 4000.0], "sigma_px": [[0.6, 0.75, 0.9, 1.05, 1.2], [0.62, 0.74, 0.88, 1.06, 1.21]],
+                               "sensor_sigma_px": 0.0, "theta_mrad": 0.66, "t_sensor": 0.1, "t_source": 21.0, "z_sensor": 0.08, "z_source": 3.72, "dof": 3,
+                               "origin": ["coherence"]}
     write_report(SceneDiagnosis(report, np.full((2, 2), 0.01), None, 1.0), tmp_path / "r")
     summary = (tmp_path / "r" / "report.md").read_text()
-    assert "## The blur by depth" in summary and "θ 0.66 mrad (t 21.0)" in summary and "**coherence**" in summary
+    assert "## The blur by depth" in summary and "θ 0.66 mrad (t 21.0, z 3.7) on 3 degrees of freedom" in summary and "**coherence**" in summary
     assert "| 3.00 | 0.9 | 0.88 |" in summary
     write_report(SceneDiagnosis(scene_report("illumination"), np.full((2, 2), 0.01), None, 1.0), tmp_path / "s")
     assert "blur by depth" not in (tmp_path / "s" / "report.md").read_text()

@@ -6,7 +6,7 @@ import pytest
 from napari_lbs._core.gap._heldout import TileSplit, model_probabilities, tile_spectra, whittle_loglik
 from napari_lbs._core.gap._levels import levels_test
 from napari_lbs._core.gap._nested import Scene, fit_frame, select_effects
-from napari_lbs._core.physics import sensor_image
+from napari_lbs._core.physics import gaussian_blur, sensor_image
 
 SIZE = 256
 
@@ -463,10 +463,10 @@ def test_transparent_spheres_are_told_from_opaque_ones_by_where_their_fine_fring
         assert result["z"] <= -3.0 and abs(result["slope"]["opaque"] - 1.0) < 0.2
 
 
-def _three_depths() -> Scene:
-    """Three depth groups of ring patterns at 1, 3 and 5 mm, on 2 µm pixels."""
-    groups = np.stack([_scene(seed) - 1.0 for seed in (0, 5, 7)]).astype(np.float32)
-    return Scene(1.0 + groups.sum(axis=0), (1000.0, 3000.0, 5000.0), groups, 2.0)
+def _six_depths() -> Scene:
+    """Six depth groups of ring patterns from 1 to 5 mm, on 2 µm pixels (the scene diagnosis renders six)."""
+    groups = np.stack([_scene(seed) - 1.0 for seed in (0, 5, 7, 11, 13, 17)]).astype(np.float32)
+    return Scene(1.0 + groups.sum(axis=0), (1000.0, 1800.0, 2600.0, 3400.0, 4200.0, 5000.0), groups, 2.0)
 
 
 def _disc_blur(group: np.ndarray, radius_px: float) -> np.ndarray:
@@ -485,7 +485,7 @@ def test_the_blur_is_named_by_how_it_grows_with_depth(source):
     catalog's Gaussian does not have, is still a source alone, with no sensor blur beside it."""
     from napari_lbs._core.gap._blur_depth import attribute_blur, blur_by_depth
 
-    scene = _three_depths()
+    scene = _six_depths()
     if source == "sensor":
         blurred = scene.image
         effects = {"sensor_blur": {"sigma_px": 1.2}}
@@ -509,15 +509,36 @@ def test_the_blur_is_named_by_how_it_grows_with_depth(source):
     else:
         # the disc's pixelated kernel has the Gaussian's rms width but not its transfer function: its size is not the test
         assert profile["t_sensor"] < 3 and (source == "disc" or abs(profile["theta_mrad"] - 1.2) < 0.1)
-    with pytest.raises(ValueError, match="at least 3 depth groups"):
+    with pytest.raises(ValueError, match="at least 4 depth groups"):
         blur_by_depth(data, _depth_scene(), split, selection.fits["baseline"].params, ())
+
+
+def test_what_the_fits_leave_about_one_depth_group_is_not_read_as_a_source():
+    """A sensor's blur, and the deepest group's fringes softened a little more on both colours (a
+    group's particles fitted slightly off): the group, not the colour, is the replicate, so
+    one group's excess does not make a source's share; read with the colours as replicates,
+    its slope's t statistic was 3.6 and the frame was read as a sensor's blur and a source's."""
+    from napari_lbs._core.gap._blur_depth import attribute_blur
+
+    scene = _six_depths()
+    groups = list(scene.groups)
+    groups[-1] = gaussian_blur(groups[-1], 0.45)
+    noise = np.random.default_rng(3).standard_normal((SIZE, SIZE)).astype(np.float32)
+    truth = (1.0 + np.sum(groups, axis=0)).astype(np.float32)
+    image = sensor_image(truth, {"contrast": 1.0, "sigma": 0.01, "gamma": 1.0}, {"sensor_blur": {"sigma_px": 0.7}}, noise=noise).astype(np.float64)
+    data = image / image.mean()
+    split = TileSplit.of(data.shape)
+    attributed, profile = attribute_blur(data, scene, split, select_effects(data, scene, split))
+    assert attributed.chosen == ("sensor_blur",) and profile["origin"] == ["sensor_blur"]
+    assert profile["dof"] == 4 and profile["z_source"] < 3 <= profile["z_sensor"]
+    assert abs(profile["sensor_sigma_px"] - 0.7) < 0.1
 
 
 def test_a_selection_without_a_blur_is_left_as_it_is():
     from napari_lbs._core.gap._blur_depth import attribute_blur
 
     data, _ = _frame({"illumination": {"depth": 0.35, "x0": 0.2, "y0": -0.1}})
-    scene = _three_depths()
+    scene = _six_depths()
     selection = select_effects(data, _scene(), TileSplit.of(data.shape))
     assert attribute_blur(data, scene, TileSplit.of(data.shape), selection) == (selection, None)
 

@@ -8,10 +8,15 @@ The held-out comparison of the two single-parameter models (`select_effects`) ca
 them apart once both gain on every tile (its sign test saturates), and when the real kernel
 has another shape than the catalog's Gaussian (a uniform disc source, a binomial crosstalk)
 the pair of them fits better than either, so both are named. The depth profile asks the
-physical question directly: each group's blur is fitted on each colour of the checkerboard
-(two replicates per group), and ``σ_g²`` is regressed on ``z_g²``; the intercept is the
-sensor's share, the slope the source's. A share whose t statistic reaches ``level_z`` is
-named; the other is not. Neither reaching it leaves the origin undecided.
+physical question directly: each group's blur is fitted on each colour of the checkerboard,
+and the two colours' mean ``σ_g²`` is regressed on ``z_g²``; the intercept is the sensor's
+share, the slope the source's. The group, not the colour, is the replicate: what the
+particles' fits leave about a group (a depth slightly off, a neighbour missed) is blurred
+away alike on both colours, so a frame with no blur at all shows group blurs of 0.1–1.3 px
+whose two colours agree to a few hundredths. Each share's t statistic, on the groups less
+two degrees of freedom, is read as the normal deviate of the same one-sided probability; a
+share whose deviate reaches ``level_z`` is named, the other is not. Neither reaching it
+leaves the origin undecided.
 """
 
 from __future__ import annotations
@@ -19,7 +24,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
-from scipy import optimize
+from scipy import optimize, stats
 
 from napari_lbs._core.gap._heldout import TileSplit, model_probabilities
 from napari_lbs._core.gap._nested import EVERY_OTHER, MEAN_EFFECTS, Scene, Selection, both_colours, fit_frame, last_two
@@ -28,7 +33,7 @@ from napari_lbs._core.physics import EFFECTS, gaussian_blur, sensor_image
 __all__ = ["BLUR_EFFECTS", "blur_by_depth", "attribute_blur"]
 
 BLUR_EFFECTS = ("coherence", "sensor_blur")
-_MIN_GROUPS = 3  # two replicates of three groups leave four degrees of freedom to the line
+_MIN_GROUPS = 4  # the line's two coefficients leave two degrees of freedom to four groups' scatter
 _STEPS = 20  # least-squares steps of the per-group fit (each also costs one evaluation per parameter)
 _MAX_SIGMA_PX = 6.0
 
@@ -75,7 +80,8 @@ def blur_by_depth(data: np.ndarray, scene: Scene, split: TileSplit, params: tupl
         The selected model's parameters fitted on each colour and its effects: the camera's
         effects other than a blur are held at those values.
     level_z : float
-        The t statistic a share must reach to be named.
+        The normal deviate a share's t statistic must reach, read at the same one-sided
+        probability, to be named.
     check : callable, optional
         Called before each evaluation of the model (`Steps.check`: raises `Stopped`).
 
@@ -85,8 +91,9 @@ def blur_by_depth(data: np.ndarray, scene: Scene, split: TileSplit, params: tupl
         ``depths_um`` (each group's mean depth), ``sigma_px`` (the two colours' fits per
         group), ``sensor_sigma_px`` and ``theta_mrad`` (the line's intercept and slope as a
         sensor's σ and a source's angular size), ``t_sensor`` and ``t_source`` (their t
-        statistics) and ``origin`` (the blur effects named, sorted; empty when neither share
-        reaches ``level_z``).
+        statistics on ``dof`` degrees of freedom), ``z_sensor`` and ``z_source`` (the normal
+        deviates of the same one-sided probabilities) and ``origin`` (the blur effects named,
+        sorted; empty when neither deviate reaches ``level_z``).
     """
     if scene.groups is None or len(scene.depths_um) < _MIN_GROUPS:
         raise ValueError(f"scene: expected at least {_MIN_GROUPS} depth groups, got {0 if scene.groups is None else len(scene.depths_um)}")
@@ -99,16 +106,17 @@ def blur_by_depth(data: np.ndarray, scene: Scene, split: TileSplit, params: tupl
 
     sigmas = np.array(both_colours(on_colour, check))
     depths = np.asarray(scene.depths_um, np.float64)
-    # the line through both colours' points: sigma² = a + b z², z in mm to keep the columns alike in scale
-    z2 = np.tile((depths / 1000.0) ** 2, 2)
-    y = (sigmas**2).ravel()
+    # the line through the groups' points: sigma² = a + b z², z in mm to keep the columns alike in scale
+    z2 = (depths / 1000.0) ** 2
+    y = np.mean(sigmas**2, axis=0)
     design = np.stack([np.ones_like(z2), z2], axis=1)
     coefficients, *_ = np.linalg.lstsq(design, y, rcond=None)
     dof = y.size - 2
     scatter = float(np.sum((y - design @ coefficients) ** 2)) / dof
     errors = np.sqrt(np.maximum(np.diag(np.linalg.pinv(design.T @ design)) * scatter, 1e-30))
     t_sensor, t_source = (float(c / e) for c, e in zip(coefficients, errors, strict=True))
-    origin = tuple(sorted(name for name, t in (("sensor_blur", t_sensor), ("coherence", t_source)) if t >= level_z))
+    z_sensor, z_source = (float(stats.norm.isf(stats.t.sf(t, dof))) for t in (t_sensor, t_source))
+    origin = tuple(sorted(name for name, z in (("sensor_blur", z_sensor), ("coherence", z_source)) if z >= level_z))
     intercept, slope = (float(c) for c in coefficients)
     return {
         "depths_um": [float(d) for d in depths],
@@ -118,6 +126,9 @@ def blur_by_depth(data: np.ndarray, scene: Scene, split: TileSplit, params: tupl
         "theta_mrad": float(np.sqrt(max(slope, 0.0)) * scene.pixel_um),
         "t_sensor": t_sensor,
         "t_source": t_source,
+        "z_sensor": z_sensor,
+        "z_source": z_source,
+        "dof": dof,
         "origin": list(origin),
     }
 

@@ -11,7 +11,7 @@ frame, drawn again, would give the same verdict — bootstrap model-selection fr
 
 The decisions that are not sign tests over the tiles are left as they are: the converter's
 levels (a share of the noise) and the whiteness of photon noise's slope. A blur whose origin
-the depth groups chose (t statistics over the groups) is counted as any named effect: the
+the depth groups chose (the line through the groups' blurs) is counted as any named effect: the
 tiles must still gain from it.
 """
 

@@ -296,8 +296,10 @@ def _blur_lines(profile: dict | None, levels: SceneDiagnosisSettings) -> list[st
     return [
         "## The blur by depth (a sensor blurs every depth alike, a source's size more at depth)",
         "",
-        f"- σ² = σ_sensor² + (θ·z / pixel)²: σ_sensor {_text(profile['sensor_sigma_px'])} px (t {_text(profile['t_sensor'], '.1f')}), "
-        f"θ {_text(profile['theta_mrad'])} mrad (t {_text(profile['t_source'], '.1f')}); named from t {levels.level_z:g}: **{origin}**.",
+        f"- σ² = σ_sensor² + (θ·z / pixel)², fitted to the groups' σ²: σ_sensor {_text(profile['sensor_sigma_px'])} px "
+        f"(t {_text(profile['t_sensor'], '.1f')}, z {_text(profile.get('z_sensor'), '.1f')}), θ {_text(profile['theta_mrad'])} mrad "
+        f"(t {_text(profile['t_source'], '.1f')}, z {_text(profile.get('z_source'), '.1f')}) on {profile.get('dof', '—')} degrees of freedom; "
+        f"named from z {levels.level_z:g}: **{origin}**.",
         "",
         "| depth (mm) | σ (px), tiles of one colour | σ (px), the other |",
         "|---|---|---|",

@@ -188,7 +188,7 @@ def _decisions(selection, shot: dict, optics_votes, phase_selected: bool, optics
     the final model with it added, where that model was fitted; photon noise where its slope
     is white (elsewhere it is not named whatever the tiles say); the particles' optics. A blur
     whose origin was read from the depth groups (`attribute_blur`) is counted as any named
-    effect: the depth groups' t statistics chose it, and the tiles must still gain from it.
+    effect: the line through the depth groups' blurs chose it, and the tiles must still gain from it.
     """
     fits = selection.fits
     chosen = selection.chosen
