@@ -41,3 +41,31 @@ def test_no_decision_is_certainty_and_tests_over_different_tiles_are_refused():
     assert verdict_probability([], level_z=3.0) == {"probability": 1.0, "decisions": []}
     with pytest.raises(ValueError, match="same tiles"):
         verdict_probability([Decision("a", _votes(16), 1), Decision("b", _votes(30, tiles=64), 1)], level_z=3.0)
+
+
+def test_a_rival_beaten_at_its_own_level_is_redrawn_at_that_level():
+    # 12 of 16 tiles is z 2.0: on the rivals' level about half the draws keep the selected
+    # effect ahead; read at the verdict's level of 3 it would never have been decided
+    rival = Decision("sensor_blur rather than coherence", _votes(12), 1, needs_gain=False, level_z=2.0)
+    assert 0.35 < verdict_probability([rival], level_z=3.0)["probability"] < 0.65
+    assert verdict_probability([Decision("same votes, the verdict's level", _votes(12), 1, needs_gain=False)], level_z=3.0)["probability"] < 0.2
+
+
+def test_the_verdict_rests_on_each_rival_it_beat_unless_the_depth_groups_told_the_blurs_apart():
+    from types import SimpleNamespace
+
+    from napari_lbs._core.gap._scene_diagnosis import _decisions
+
+    def fit(gaining: int) -> SimpleNamespace:
+        return SimpleNamespace(loglik=np.where(np.arange(16) < gaining, 1.0, 0.0))
+
+    # sensor_blur chosen; coherence gained alone too and, in its place, loses on 12 of 16 tiles
+    fits = {"baseline": fit(0), "sensor_blur": fit(16), "coherence": fit(4), "coherence+sensor_blur": fit(8)}
+    steps = [{"given": [], "gains": {"sensor_blur": {"gain_nats": 9.0, "z": 4.0}, "coherence": {"gain_nats": 5.0, "z": 4.0},
+                                     "illumination": {"gain_nats": -1.0, "z": -1.0}}, "added": "sensor_blur"}]
+    selection = SimpleNamespace(chosen=("sensor_blur",), fits=fits, steps=steps, undecided=())
+    shot = {"white": False, "log10_photons": None}
+    names = [d.name for d in _decisions(selection, shot, None, False, "undecided", None, level_z=3.0)]
+    assert "sensor_blur rather than coherence" in names and not [n for n in names if "illumination" in n and "rather" in n]
+    told_apart = {"origin": ["sensor_blur"]}
+    assert "sensor_blur rather than coherence" not in [d.name for d in _decisions(selection, shot, None, False, "undecided", told_apart, level_z=3.0)]

@@ -2,7 +2,8 @@
 
 A verdict is a set of decisions, each a sign test over the held-out tiles (`_nested._gain`):
 each selected effect kept against the model without it, each effect left out not added to
-the final model, photon noise named or not, transparent or opaque particles or undecided.
+the final model, each selected effect ahead of a rival in its place (at the rivals' own
+level), photon noise named or not, transparent or opaque particles or undecided.
 Resampling the tiles by a Bayesian bootstrap (Dirichlet(1) weights; Rubin, *Ann. Statist.* 9,
 130 (1981)) and taking each decision again at the same level gives the probability that the
 frame, drawn again, would give the same verdict — bootstrap model-selection frequencies
@@ -32,7 +33,9 @@ class Decision:
     (nats), or any per-tile score whose sign votes. ``outcome``: +1 where the verdict took the
     effect (z at or above the level and, where ``needs_gain``, the summed difference
     positive), −1 where it took the opposite (z at or below minus the level: only for
-    ``three_way`` tests, as particle optics' opaque), 0 where it took neither.
+    ``three_way`` tests, as particle optics' opaque), 0 where it took neither. ``level_z``:
+    the test's own level where it is not the verdict's (a selected effect against a rival in
+    its place is decided at a z of 2).
     """
 
     name: str
@@ -40,6 +43,7 @@ class Decision:
     outcome: int
     needs_gain: bool = True
     three_way: bool = False
+    level_z: float | None = None
 
 
 def _outcomes(decision: Decision, weights: np.ndarray, level_z: float) -> np.ndarray:
@@ -50,6 +54,7 @@ def _outcomes(decision: Decision, weights: np.ndarray, level_z: float) -> np.nda
     losing = tiles * weights @ (differences < 0)
     either = gaining + losing
     z = np.divide(gaining - losing, np.sqrt(either), out=np.zeros_like(either), where=either > 0)
+    level_z = level_z if decision.level_z is None else decision.level_z
     taken = z >= level_z
     if decision.needs_gain:
         taken &= weights @ differences > 0

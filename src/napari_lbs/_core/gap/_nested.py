@@ -47,7 +47,7 @@ from napari_lbs._core.gap._heldout import TileSplit, model_probabilities, tile_s
 from napari_lbs._core.gap._tile_errors import clustered_errors, mean_of_halves
 from napari_lbs._core.physics import EFFECTS, gaussian_blur, sensor_image
 
-__all__ = ["EVERY_OTHER", "MEAN_EFFECTS", "FrameFit", "Scene", "Selection", "both_colours", "fit_frame", "last_two", "select_effects"]
+__all__ = ["DECIDED_Z", "EVERY_OTHER", "MEAN_EFFECTS", "FrameFit", "Scene", "Selection", "both_colours", "fit_frame", "last_two", "select_effects"]
 
 # the parameters each effect of the mean fits (the others of its catalog entry stay neutral)
 MEAN_EFFECTS = {
@@ -101,7 +101,7 @@ _HIGH_PASS_PX = 1.5  # the shot-noise test's high pass: the residual less its Ga
 _BAND_PX = (1.0, 3.0)  # its band pass, for the whiteness check: the residual's blur of the first σ less that of the second
 _SMOOTH_LIGHT_PX = 8.0  # the light's smooth part, about which the fringes vary: the Gaussian blur of the mean of this σ
 WHITE_RATIO = 2.0  # photon noise's slope in the band over that in the high pass lies within this factor of its hypothesis's (white or blurred noise) on each colour
-_DECIDED_Z = 2.0  # the sign test's z by which a selected effect must beat a rival in its place
+DECIDED_Z = 2.0  # the sign test's z by which a selected effect must beat a rival in its place
 # the pixels a fit compares: every other row and column of the fitted tiles (neighbours add little but cost)
 EVERY_OTHER = (slice(0, None, 2), slice(0, None, 2))
 
@@ -507,7 +507,7 @@ def select_effects(data: np.ndarray, scene, split: TileSplit, *, candidates=tupl
             if key not in fits:
                 fits[key] = fit_frame(data, scene, split, swapped, starts=final.params, check=steps.check)
             gain, z = _gain(final.loglik, fits[key].loglik)
-            if z < _DECIDED_Z:
+            if z < DECIDED_Z:
                 undecided.append({"selected": effect, "rival": rival, "gain_nats": gain, "z": z})
     probabilities = model_probabilities({name: fit.loglik for name, fit in fits.items()})
     steps.advance(steps.total - steps.done)

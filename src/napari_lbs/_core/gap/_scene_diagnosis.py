@@ -43,13 +43,13 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from napari_lbs._core.foundation import ExperimentConfig, InputError, ProgressCallback, Steps, StopCallback, WorkerPool, as_hologram, begin_phase, json_safe
-from napari_lbs._core.gap._blur_depth import attribute_blur
+from napari_lbs._core.gap._blur_depth import BLUR_EFFECTS, attribute_blur
 from napari_lbs._core.gap._confidence import Decision, verdict_probability
 from napari_lbs._core.gap._detect import find_particles
 from napari_lbs._core.gap._directional import directional_blur_test
 from napari_lbs._core.gap._heldout import TileSplit, tile_spectra
 from napari_lbs._core.gap._levels import levels_test
-from napari_lbs._core.gap._nested import MEAN_EFFECTS, Scene, select_effects
+from napari_lbs._core.gap._nested import DECIDED_Z, MEAN_EFFECTS, Scene, select_effects
 from napari_lbs._core.gap._optics_power import optics_power_test
 from napari_lbs._core.gap._population import scene_population
 from napari_lbs._core.physics import gaussian_blur
@@ -181,14 +181,17 @@ def _optics(data: np.ndarray, table, selection, config: ExperimentConfig, split:
     return record
 
 
-def _decisions(selection, shot: dict, optics_votes, phase_selected: bool, optics_model: str, *, level_z: float) -> list[Decision]:
-    """The verdict's sign tests over the tiles (`verdict_probability`): each effect kept, each left out, photon noise, the optics.
+def _decisions(selection, shot: dict, optics_votes, phase_selected: bool, optics_model: str, blur_profile: dict | None, *, level_z: float) -> list[Decision]:
+    """The verdict's sign tests over the tiles (`verdict_probability`): each effect kept, each left out, each rival beaten, photon noise, the optics.
 
     Each selected effect of the mean against the model without it; each other one against
-    the final model with it added, where that model was fitted; photon noise where its slope
-    is white (elsewhere it is not named whatever the tiles say); the particles' optics. A blur
-    whose origin was read from the depth groups (`attribute_blur`) is counted as any named
-    effect: the line through the depth groups' blurs chose it, and the tiles must still gain from it.
+    the final model with it added, where that model was fitted; each selected effect against
+    each rival that gained alone, put in its place, at the rivals' level (`DECIDED_Z`), where
+    that model was fitted; photon noise where its slope is white (elsewhere it is not named
+    whatever the tiles say); the particles' optics. A blur whose origin was read from the
+    depth groups (`attribute_blur`) is counted as any named effect: the line through the
+    depth groups' blurs chose it, and the tiles must still gain from it; the other blur is
+    then not its rival on the tiles (the groups, not the tiles, told them apart).
     """
     fits = selection.fits
     chosen = selection.chosen
@@ -203,6 +206,18 @@ def _decisions(selection, shot: dict, optics_votes, phase_selected: bool, optics
             key = "+".join(sorted((*chosen, effect)))
             if key in fits:
                 decisions.append(Decision(f"{effect} not added", fits[key].loglik - final.loglik, 0))
+    alone = selection.steps[0]["gains"] if selection.steps else {}
+    by_depth = bool(blur_profile and blur_profile.get("origin"))
+    undecided = {(u["selected"], u["rival"]) for u in selection.undecided}
+    for effect in chosen:
+        for rival, gain in alone.items():
+            if rival in chosen or rival not in MEAN_EFFECTS or gain.get("z") is None or gain["z"] < level_z or (effect, rival) in undecided:
+                continue
+            if by_depth and {effect, rival} <= set(BLUR_EFFECTS):
+                continue
+            key = "+".join(sorted((*(e for e in chosen if e != effect), rival)))
+            if key in fits:
+                decisions.append(Decision(f"{effect} rather than {rival}", final.loglik - fits[key].loglik, 1, needs_gain=False, level_z=DECIDED_Z))
     if shot["white"] and shot["log10_photons"] is not None:
         decisions.append(Decision("shot_noise", shot["tile_gains"], int(shot["z"] >= level_z and shot["gain"] > 0)))
     if optics_votes is not None:
@@ -525,7 +540,7 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
             + (f"; a blur that differs by direction, outside the catalog (motion during the exposure, astigmatism: z {directional['z']:.1f}, "
                f"{directional['variance_difference_px2']:.2f} px² more along {np.degrees(directional['angle_rad']):.0f}°)" if streaked else ""))
     posterior = {("null" if name == "baseline" else name): p for name, p in selection.probabilities.items()}
-    confidence = verdict_probability(_decisions(selection, shot, optics_votes, phase_selected, optics["model"], level_z=settings.level_z),
+    confidence = verdict_probability(_decisions(selection, shot, optics_votes, phase_selected, optics["model"], blur_profile, level_z=settings.level_z),
                                      level_z=settings.level_z)
     report = {
         "method": "scene",
