@@ -193,6 +193,8 @@ def test_one_frame_s_report_is_its_diagnosis_with_one_frame(tmp_path, monkeypatc
     assert report["verdict"] == scene_report("sensor_blur", explains=False, tile_px=40)["verdict"] and report["roi"] == {"x": 10, "y": 20}
     assert report["frames"] == [{"name": "holo", "verdict": "sensor_blur", "catalog_explains": False, "residual": 0.2, "probability": 0.9}]
     assert result.summary.startswith("verdict: sensor_blur; probability 0.90;") and "does not explain" in result.summary
+    # the particles' optics left undecided is said beside the verdict: a verdict naming nothing is not a claim that they are opaque
+    assert "; particle optics undecided;" in result.summary
 
 
 @pytest.mark.parametrize(("extra", "shape", "culprit"), [

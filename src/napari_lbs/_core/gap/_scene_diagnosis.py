@@ -551,7 +551,9 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
                     "residual": share, "undecided": undecided, "catalog_explains": bool(catalog_explains), "probability": confidence["probability"],
                     "reason": (f"selected by held-out gain (z >= {settings.level_z:g}): {', '.join(n for n in named if n != 'quantization') or 'nothing'}"
                                + ("; quantization or saturation read from the frame's levels" if levels["selected"] else "")
-                               + (f"; undecided between {between}" if between else "") + f"; {left}")},
+                               + (f"; undecided between {between}" if between else "")
+                               + (f"; particle optics undecided (z {optics['z']:.1f}: transparent and opaque spheres predict the held-out tiles "
+                                  f"about as well)" if optics["model"] == "undecided" and optics["particles"] else "") + f"; {left}")},
         "posterior": posterior,
         "confidence": confidence["decisions"],
         "particle_optics": optics,

@@ -204,6 +204,9 @@ def diagnose(request: DiagnoseRequest, *, progress: ProgressCallback | None = No
     verdict, gap = diagnosis.report["verdict"], diagnosis.report["gap"]
     named = verdict["id"] or ("undecided between " + " and ".join(verdict["undecided"]) if verdict["undecided"] else "nothing named")
     probability = f"; probability {verdict['probability']:.2f}" if verdict.get("probability") is not None else ""
+    optics = diagnosis.report.get("particle_optics") or {}
+    if optics.get("model") == "undecided" and optics.get("particles"):
+        probability += "; particle optics undecided"
     summary = (f"verdict: {named}{probability}; unexplained share {gap['baseline']:.3f} (the scene alone) -> {verdict['residual']:.3f}, the catalog "
                f"{'explains' if verdict['catalog_explains'] else 'does not explain'} it; {len(frames)} frame(s) in {diagnosis.seconds:.0f} s -> {paths[0]}")
     return StepResult(summary, diagnosis, tuple(Path(p) for p in paths))
