@@ -42,7 +42,7 @@ judged on only: its design and seed were written and committed before its first 
 lengths, motion beside a round blur, astigmatism, pixel gain, a column pattern) likewise,
 written after the test for a blur by direction was chosen on the development sets.
 
-Run ``python benchmarks/withheld_suite.py make frozen DIR`` (or ``frozen-2`` … ``frozen-13``, ``development``,
+Run ``python benchmarks/withheld_suite.py make frozen DIR`` (or ``frozen-2`` … ``frozen-14``, ``development``,
 ``outside-development``, ``outside-frozen``, ``outside-frozen-2``) to write the holograms and ``design.json`` (a few
 minutes on 2 cores); ``bench_diagnosis.py suite DIR`` scores the catalog sets and
 ``bench_scene_diagnosis.py suite DIR`` every set, the outside ones included.
@@ -442,6 +442,33 @@ FROZEN_13 = (
     Case("crosstalk-5", 512, {"sensor_blur": {"kernel": "binomial5"}}),
 )
 
+# a fourteenth frozen set, written once the verdict's probability redrew photon noise's
+# whiteness on each draw's tiles: photon noise alone three times (two weak) and beside an
+# envelope, an etalon, polystyrene and a crosstalk, and eight effects alone; the strengths
+# drawn with the seed 20261209; committed before its first run, scored once per design
+FROZEN_14_SEED = 20261209
+FROZEN_14 = (
+    Case("control-a14", 512, spheres_per_512=22, level=163, read_noise=1.5), Case("control-b14", 512, spheres_per_512=34, level=150, read_noise=1.4),
+    Case("control-c14", 512, spheres_per_512=36, level=150, read_noise=1.2), Case("control-d14", 512, spheres_per_512=32, level=147, read_noise=2.2),
+    Case("control-e14", 512, spheres_per_512=32, level=161, read_noise=1.2), Case("control-f14", 512, spheres_per_512=28, level=166, read_noise=2.3),
+    Case("photons-74", 512, {"shot_noise": {"photons": 74.0}}),
+    Case("photons-157", 512, {"shot_noise": {"photons": 157.0}}),
+    Case("photons-152", 512, {"shot_noise": {"photons": 152.0}}),
+    Case("vignetting+photons", 512, {"illumination": {"falloff": 0.37, "centre": (0.39, 0.5)}, "shot_noise": {"photons": 96.0}}),
+    Case("etalon+photons", 512, {"parasitic_fringes": {"etalon": 0.05, "period_px": 15.0, "angle_rad": 2.31, "phase_rad": -2.8}, "shot_noise": {"photons": 117.0}}),
+    Case("polystyrene+photons", 512, {"particle_phase": {"index": 1.59}, "shot_noise": {"photons": 192.0}}),
+    Case("crosstalk+photons", 512, {"sensor_blur": {"kernel": "binomial3"}, "shot_noise": {"photons": 99.0}}),
+    Case("polystyrene", 512, {"particle_phase": {"index": 1.59}}),
+    Case("low-index", 512, {"particle_phase": {"index": 1.45}}),
+    Case("etalon", 512, {"parasitic_fringes": {"etalon": 0.05, "period_px": 10.5, "angle_rad": 0.49, "phase_rad": 3.1}}),
+    Case("vignetting", 512, {"illumination": {"falloff": 0.48, "centre": (0.44, 0.39)}}),
+    Case("source-disc", 512, {"coherence": {"source_mrad": 2.4}}),
+    Case("bits", 512, {"quantization": {"step_counts": 9}}),
+    Case("saturated", 512, {"quantization": {"step_counts": 1}}, level=208, read_noise=2.0),
+    Case("crosstalk-3", 512, {"sensor_blur": {"kernel": "binomial3"}}),
+    Case("crosstalk-5", 512, {"sensor_blur": {"kernel": "binomial5"}}),
+)
+
 DEVELOPMENT_SEED = 1234
 DEVELOPMENT = (
     Case("control-1", 512), Case("control-2", 512, spheres_per_512=35, level=160, read_noise=2.0), Case("control-3", 512, spheres_per_512=22, level=140, read_noise=1.2),
@@ -518,7 +545,7 @@ SUITES = {
     "frozen-5": (FROZEN_5, FROZEN_5_SEED), "frozen-6": (FROZEN_6, FROZEN_6_SEED), "frozen-7": (FROZEN_7, FROZEN_7_SEED),
     "frozen-8": (FROZEN_8, FROZEN_8_SEED), "frozen-9": (FROZEN_9, FROZEN_9_SEED),
     "frozen-10": (FROZEN_10, FROZEN_10_SEED), "frozen-11": (FROZEN_11, FROZEN_11_SEED), "frozen-12": (FROZEN_12, FROZEN_12_SEED),
-    "frozen-13": (FROZEN_13, FROZEN_13_SEED),
+    "frozen-13": (FROZEN_13, FROZEN_13_SEED), "frozen-14": (FROZEN_14, FROZEN_14_SEED),
     "development": (DEVELOPMENT, DEVELOPMENT_SEED),
     "outside-frozen": (OUTSIDE_FROZEN, OUTSIDE_FROZEN_SEED), "outside-frozen-2": (OUTSIDE_FROZEN_2, OUTSIDE_FROZEN_2_SEED),
     "outside-development": (OUTSIDE_DEVELOPMENT, OUTSIDE_DEVELOPMENT_SEED),

@@ -217,6 +217,29 @@ def test_a_residual_that_grows_with_the_light_but_is_not_white_is_no_photon_nois
     assert result["z"] >= 3.0 and not result["white"] and all(ratio > 2.0 for ratio in result["band_ratios"])
 
 
+@pytest.mark.parametrize("log10_photons", [2.0, None])
+def test_the_whiteness_redrawn_on_the_tiles_weighted_alike_is_the_test_s_own(log10_photons):
+    """`whiteness_draws` refits the slopes from each tile's normal equations: weighted alike it
+    gives the test's verdict, and photon noise clearly white (or a slope clearly not) keeps it
+    in nearly every draw."""
+    from napari_lbs._core.gap._nested import FrameFit, shot_noise_test, whiteness_draws
+    from napari_lbs._core.physics import gaussian_blur
+
+    effects = {"shot_noise": {"log10_photons": log10_photons}} if log10_photons else {}
+    data, scene = _frame(effects, read_noise=0.01 if log10_photons else 0.002)
+    split = TileSplit.of(data.shape)
+    fit = fit_frame(data, scene, split, ())
+    if log10_photons is None:  # noise blurred over 2 px and scaled with the light: not white
+        rng = np.random.default_rng(4)
+        structured = [gaussian_blur(rng.standard_normal(data.shape), 2.0) * 0.2 * mean for mean in fit.means]
+        fit = FrameFit(fit.effects, fit.params, fit.loglik, tuple(r + s for r, s in zip(fit.residuals, structured, strict=True)), fit.means)
+    result = shot_noise_test(fit, split)
+    assert result["white"] == (log10_photons is not None)
+    assert whiteness_draws(result["whiteness"], np.full((1, 16), 1 / 16))[0] == result["white"]
+    draws = whiteness_draws(result["whiteness"], np.random.default_rng(0).dirichlet(np.ones(16), size=500))
+    assert draws.shape == (500,) and np.mean(draws == result["white"]) > 0.9
+
+
 def test_photon_noise_under_an_envelope_fitted_imperfectly_is_read_white_within_neighbourhoods():
     """Photon noise under an envelope, and the fringes the envelope's fit multiplies by an error that grows toward the dark side.
 

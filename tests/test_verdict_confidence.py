@@ -69,3 +69,13 @@ def test_the_verdict_rests_on_each_rival_it_beat_unless_the_depth_groups_told_th
     assert "sensor_blur rather than coherence" in names and not [n for n in names if "illumination" in n and "rather" in n]
     told_apart = {"origin": ["sensor_blur"]}
     assert "sensor_blur rather than coherence" not in [d.name for d in _decisions(selection, shot, None, False, "undecided", told_apart, level_z=3.0)]
+
+
+def test_a_gated_decision_is_taken_only_on_the_draws_its_gate_holds_on():
+    # photon noise: every tile gains, but its slope reads white on about half the draws only
+    def half(weights: np.ndarray) -> np.ndarray:
+        return weights[:, 0] > np.median(weights[:, 0])
+
+    named = verdict_probability([Decision("shot_noise", _votes(16), 1, gate=half)], level_z=3.0)["probability"]
+    left_out = verdict_probability([Decision("shot_noise", _votes(16), 0, gate=half)], level_z=3.0)["probability"]
+    assert 0.45 < named < 0.55 and named + left_out == pytest.approx(1.0)

@@ -10,14 +10,17 @@ frame, drawn again, would give the same verdict — bootstrap model-selection fr
 (Efron, *J. Am. Statist. Assoc.* 109, 991 (2014)). A decision taken on a bare margin (14 of
 16 tiles at a level of z 3) holds in about half the draws; one every tile agrees on, in all.
 
-The decisions that are not sign tests over the tiles are left as they are: the converter's
-levels (a share of the noise) and the whiteness of photon noise's slope. A blur whose origin
+The whiteness of photon noise's slope is a regression over the same tiles: each draw refits
+it on its weighted tiles (`_nested.whiteness_draws`), and photon noise is taken on a draw
+where its slope reads white and its sign test passes. The converter's levels (a share of the
+noise) are no test over the tiles and are left as they are. A blur whose origin
 the depth groups chose (the line through the groups' blurs) is counted as any named effect: the
 tiles must still gain from it.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -35,7 +38,10 @@ class Decision:
     positive), −1 where it took the opposite (z at or below minus the level: only for
     ``three_way`` tests, as particle optics' opaque), 0 where it took neither. ``level_z``:
     the test's own level where it is not the verdict's (a selected effect against a rival in
-    its place is decided at a z of 2).
+    its place is decided at a z of 2). ``gate``: for a test taken only where a condition on
+    the same tiles holds (photon noise, only where its slope reads white), the condition on
+    each draw: ``gate(weights)`` is a (draws,) bool array, and the effect is taken on a draw
+    where both the sign test and the gate hold.
     """
 
     name: str
@@ -44,6 +50,7 @@ class Decision:
     needs_gain: bool = True
     three_way: bool = False
     level_z: float | None = None
+    gate: Callable[[np.ndarray], np.ndarray] | None = None
 
 
 def _outcomes(decision: Decision, weights: np.ndarray, level_z: float) -> np.ndarray:
@@ -58,6 +65,8 @@ def _outcomes(decision: Decision, weights: np.ndarray, level_z: float) -> np.nda
     taken = z >= level_z
     if decision.needs_gain:
         taken &= weights @ differences > 0
+    if decision.gate is not None:
+        taken &= np.asarray(decision.gate(weights), dtype=bool)
     outcome = taken.astype(int)
     if decision.three_way:
         outcome[z <= -level_z] = -1

@@ -47,7 +47,7 @@ from napari_lbs._core.gap._heldout import TileSplit, model_probabilities, tile_s
 from napari_lbs._core.gap._tile_errors import clustered_errors, mean_of_halves
 from napari_lbs._core.physics import EFFECTS, gaussian_blur, sensor_image
 
-__all__ = ["DECIDED_Z", "EVERY_OTHER", "MEAN_EFFECTS", "FrameFit", "Scene", "Selection", "both_colours", "fit_frame", "last_two", "select_effects"]
+__all__ = ["DECIDED_Z", "EVERY_OTHER", "MEAN_EFFECTS", "FrameFit", "Scene", "Selection", "both_colours", "fit_frame", "last_two", "select_effects", "whiteness_draws"]
 
 # the parameters each effect of the mean fits (the others of its catalog entry stay neutral)
 MEAN_EFFECTS = {
@@ -373,6 +373,8 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
     colours = split.colours()
     gains = np.zeros(len(colours))
     slopes, slope_errors, band_ratios = [], [], {sigma: [] for sigma in kept}
+    normal = {(colour, sigma): [] for colour in (0, 1) for sigma in kept}  # per colour and hypothesis: the high pass's, then the band's
+    moments = {(colour, sigma): [] for colour in (0, 1) for sigma in kept}
     for fitted_on in (0, 1):
         residual, mean = fit.residuals[fitted_on], fit.means[fitted_on]
         high, band = _high_passed(residual), _band_passed(residual)
@@ -393,14 +395,17 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
         # the slope within neighbourhoods: what follows the frame's smooth light (the misfit an
         # envelope scales) is a nuisance; photon noise follows the light fringe by fringe
         smooth = np.concatenate([smooth_light[w][::2, ::2].ravel() for w in own])[:, None]
+        tile_of = np.concatenate([np.full(s[0].size, k) for k, s in enumerate(fitted)])
         for sigma, weights in light_weights.items():
             filtered_slopes = []
             for squares, weight in zip((h2, b2), weights, strict=True):
                 light = fftconvolve(mean, weight, mode="same")
                 x_light = np.concatenate([x_null, smooth, np.concatenate([light[w][::2, ::2].ravel() for w in own])[:, None]], axis=1)
                 filtered_slopes.append(np.linalg.lstsq(x_light, squares, rcond=None)[0][-1])
+                # each tile's normal equations, so that a reweighting of the tiles refits the slope (`whiteness_draws`)
+                normal[(fitted_on, sigma)].append(np.stack([x_light[tile_of == k].T @ x_light[tile_of == k] for k in range(len(own))]))
+                moments[(fitted_on, sigma)].append(np.stack([x_light[tile_of == k].T @ squares[tile_of == k] for k in range(len(own))]))
             band_ratios[sigma].append(float(filtered_slopes[1] / filtered_slopes[0]) if filtered_slopes[0] > 0 else np.nan)
-        tile_of = np.concatenate([np.full(s[0].size, k) for k, s in enumerate(fitted)])
         slope_errors.append(float(clustered_errors(x_photon, h2 - x_photon @ alternative, tile_of)[-1]))
         least = 0.1 * float(np.mean(h2))  # a linear variance may fall below zero off the fitted range: a tenth of the mean bounds it
         for k, (h, x_t, m_t, colour) in enumerate(samples):
@@ -425,7 +430,38 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
     return {"gain": total, "z": z, "log10_photons": float(np.log10(1.0 / slope)) if slope > 0 else None,
             "log10_photons_err": float(relative / np.log(10.0)) if np.isfinite(relative) else None,
             "band_ratios": [float(r * kept[0.0] / kept_band[0.0]) for r in band_ratios[noise_blur]], "noise_blur_px": noise_blur, "white": white,
-            "tile_gains": gains}
+            "tile_gains": gains,
+            "whiteness": {"tiles": [np.flatnonzero(colours == colour) for colour in (0, 1)], "expected": {sigma: kept_band[sigma] / kept[sigma] for sigma in kept},
+                          "normal": {key: np.stack(value) for key, value in normal.items()}, "moments": {key: np.stack(value) for key, value in moments.items()}}}
+
+
+def whiteness_draws(whiteness: dict, weights: np.ndarray) -> np.ndarray:
+    """Whether photon noise's slope reads white (`shot_noise_test`'s ``white``) on each draw of the tiles' weights.
+
+    ``whiteness``: the test's ``whiteness`` record (each tile's normal equations of the two
+    filters' slope regressions, per colour and noise hypothesis). ``weights``: (draws, tiles),
+    each row the tiles' weights of one draw (`verdict_probability`). Each draw refits every
+    slope on its weighted tiles, takes the hypothesis its colours' band ratios lie nearer,
+    and reads white where both lie within ``WHITE_RATIO`` of it, as the test does on the
+    tiles weighted alike.
+    """
+    weights = np.asarray(weights, dtype=np.float64)
+    off = {}
+    for sigma, expected in whiteness["expected"].items():
+        worst = np.zeros(len(weights))
+        for colour, tiles in enumerate(whiteness["tiles"]):
+            w = weights[:, tiles]
+            # (draws, filters): each filter's slope refitted on the weighted tiles' normal equations
+            system = np.einsum("dt,ftij->dfij", w, whiteness["normal"][(colour, sigma)])
+            rhs = np.einsum("dt,fti->dfi", w, whiteness["moments"][(colour, sigma)])
+            slope = np.linalg.solve(system, rhs[..., None])[..., -1, 0]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ratio = slope[:, 1] / slope[:, 0]
+                distance = np.where((slope[:, 0] > 0) & (ratio > 0), np.abs(np.log(ratio / expected)), np.inf)
+            worst = np.maximum(worst, distance)
+        off[sigma] = worst
+    nearest = np.min(np.stack(list(off.values())), axis=0)
+    return nearest <= np.log(WHITE_RATIO)
 
 
 def select_effects(data: np.ndarray, scene, split: TileSplit, *, candidates=tuple(MEAN_EFFECTS), level_z: float = 3.0,

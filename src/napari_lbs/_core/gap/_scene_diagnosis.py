@@ -49,7 +49,7 @@ from napari_lbs._core.gap._detect import find_particles
 from napari_lbs._core.gap._directional import directional_blur_test
 from napari_lbs._core.gap._heldout import TileSplit, tile_spectra
 from napari_lbs._core.gap._levels import levels_test
-from napari_lbs._core.gap._nested import DECIDED_Z, MEAN_EFFECTS, Scene, select_effects
+from napari_lbs._core.gap._nested import DECIDED_Z, MEAN_EFFECTS, Scene, select_effects, whiteness_draws
 from napari_lbs._core.gap._optics_power import optics_power_test
 from napari_lbs._core.gap._population import scene_population
 from napari_lbs._core.physics import gaussian_blur
@@ -187,8 +187,8 @@ def _decisions(selection, shot: dict, optics_votes, phase_selected: bool, optics
     Each selected effect of the mean against the model without it; each other one against
     the final model with it added, where that model was fitted; each selected effect against
     each rival that gained alone, put in its place, at the rivals' level (`DECIDED_Z`), where
-    that model was fitted; photon noise where its slope is white (elsewhere it is not named
-    whatever the tiles say); the particles' optics. A blur whose origin was read from the
+    that model was fitted; photon noise, taken on a draw where its slope reads white on that
+    draw's tiles and its sign test passes; the particles' optics. A blur whose origin was read from the
     depth groups (`attribute_blur`) is counted as any named effect: the line through the
     depth groups' blurs chose it, and the tiles must still gain from it; the other blur is
     then not its rival on the tiles (the groups, not the tiles, told them apart).
@@ -218,8 +218,13 @@ def _decisions(selection, shot: dict, optics_votes, phase_selected: bool, optics
             key = "+".join(sorted((*(e for e in chosen if e != effect), rival)))
             if key in fits:
                 decisions.append(Decision(f"{effect} rather than {rival}", final.loglik - fits[key].loglik, 1, needs_gain=False, level_z=DECIDED_Z))
-    if shot["white"] and shot["log10_photons"] is not None:
-        decisions.append(Decision("shot_noise", shot["tile_gains"], int(shot["z"] >= level_z and shot["gain"] > 0)))
+    if shot["log10_photons"] is not None:
+        # taken on a draw where its slope reads white there too (`whiteness_draws`): a slope on
+        # the whiteness level is as uncertain a decision as a gain on the sign test's
+        whiteness = shot.get("whiteness")
+        gate = (lambda weights: whiteness_draws(whiteness, weights)) if whiteness is not None else None
+        outcome = int(shot["white"] and shot["z"] >= level_z and shot["gain"] > 0)
+        decisions.append(Decision("shot_noise", shot["tile_gains"], outcome, gate=gate))
     if optics_votes is not None:
         outcome = 1 if phase_selected else -1 if optics_model == "opaque" else 0
         decisions.append(Decision("particle_phase", optics_votes, outcome, needs_gain=False, three_way=True))
