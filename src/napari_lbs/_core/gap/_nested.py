@@ -354,7 +354,9 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
     ``log10_photons``, per unit of the noise's variance in a pixel as recorded (blurred noise
     of that variance came from 1 / Σg² fewer photons, g the blur's kernel: 12.6 for σ 1 px);
     ``white`` whether both lie within a factor ``WHITE_RATIO`` of it; ``tile_gains`` the
-    held-out gain of each tile (nats), whose signs the sign test counts (`_confidence`).
+    held-out gain of each tile (nats), whose signs the sign test counts (`_confidence`);
+    ``whiteness`` each tile's normal equations of the filtered slopes' regressions, from
+    which `whiteness_draws` reads ``white`` again on reweighted tiles.
     """
     # white noise, and noise blurred by the camera's fitted blur (a colour sensor's
     # interpolation, charge shared between pixels): each filter's share of its variance
