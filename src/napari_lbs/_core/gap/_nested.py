@@ -374,7 +374,7 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
         light_weights[sigma] = (in_high**2 / np.sum(in_high**2), in_band**2 / np.sum(in_band**2))
     colours = split.colours()
     gains = np.zeros(len(colours))
-    slopes, slope_errors, band_ratios = [], [], {sigma: [] for sigma in kept}
+    slopes, slope_errors = [], []
     normal = {(colour, sigma): [] for colour in (0, 1) for sigma in kept}  # per colour and hypothesis: the high pass's, then the band's
     moments = {(colour, sigma): [] for colour in (0, 1) for sigma in kept}
     for fitted_on in (0, 1):
@@ -399,15 +399,12 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
         smooth = np.concatenate([smooth_light[w][::2, ::2].ravel() for w in own])[:, None]
         tile_of = np.concatenate([np.full(s[0].size, k) for k, s in enumerate(fitted)])
         for sigma, weights in light_weights.items():
-            filtered_slopes = []
             for squares, weight in zip((h2, b2), weights, strict=True):
                 light = fftconvolve(mean, weight, mode="same")
                 x_light = np.concatenate([x_null, smooth, np.concatenate([light[w][::2, ::2].ravel() for w in own])[:, None]], axis=1)
-                filtered_slopes.append(np.linalg.lstsq(x_light, squares, rcond=None)[0][-1])
-                # each tile's normal equations, so that a reweighting of the tiles refits the slope (`whiteness_draws`)
+                # each tile's normal equations: their sum gives the slope, a reweighting of the tiles refits it (`whiteness_draws`)
                 normal[(fitted_on, sigma)].append(np.stack([x_light[tile_of == k].T @ x_light[tile_of == k] for k in range(len(own))]))
                 moments[(fitted_on, sigma)].append(np.stack([x_light[tile_of == k].T @ squares[tile_of == k] for k in range(len(own))]))
-            band_ratios[sigma].append(float(filtered_slopes[1] / filtered_slopes[0]) if filtered_slopes[0] > 0 else np.nan)
         slope_errors.append(float(clustered_errors(x_photon, h2 - x_photon @ alternative, tile_of)[-1]))
         least = 0.1 * float(np.mean(h2))  # a linear variance may fall below zero off the fitted range: a tenth of the mean bounds it
         for k, (h, x_t, m_t, colour) in enumerate(samples):
@@ -417,13 +414,11 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
             v1 = np.maximum(x_t @ alternative[:-1] + alternative[-1] * m_t, least)
             gains[k] = -0.5 * float(np.sum(h**2 / v1 + np.log(v1)) - np.sum(h**2 / v0 + np.log(v0)))
     total, z = _gain(gains, np.zeros_like(gains))
-
-    def off(sigma: float) -> float:  # how far the colours' ratios lie from what noise blurred by sigma gives (a factor, logged)
-        expected = kept_band[sigma] / kept[sigma]
-        return max(abs(np.log(r / expected)) if np.isfinite(r) and r > 0 else np.inf for r in band_ratios[sigma])
-
-    noise_blur = min(kept, key=off)
-    white = bool(off(noise_blur) <= np.log(WHITE_RATIO))
+    whiteness = {"tiles": [np.flatnonzero(colours == colour) for colour in (0, 1)], "expected": {sigma: kept_band[sigma] / kept[sigma] for sigma in kept},
+                 "normal": {key: np.stack(value) for key, value in normal.items()}, "moments": {key: np.stack(value) for key, value in moments.items()}}
+    band_ratios = {sigma: ratios[0] for sigma, ratios in _band_ratios(whiteness, np.ones((1, len(colours)))).items()}
+    noise_blur = min(kept, key=lambda sigma: _off(band_ratios[sigma], whiteness["expected"][sigma]))
+    white = bool(_off(band_ratios[noise_blur], whiteness["expected"][noise_blur]) <= np.log(WHITE_RATIO))
     mean_slope, slope_error = mean_of_halves(slopes, slope_errors)
     slope = mean_slope / kept[noise_blur]
     if slope <= 0:
@@ -432,9 +427,31 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
     return {"gain": total, "z": z, "log10_photons": float(np.log10(1.0 / slope)) if slope > 0 else None,
             "log10_photons_err": float(relative / np.log(10.0)) if np.isfinite(relative) else None,
             "band_ratios": [float(r * kept[0.0] / kept_band[0.0]) for r in band_ratios[noise_blur]], "noise_blur_px": noise_blur, "white": white,
-            "tile_gains": gains,
-            "whiteness": {"tiles": [np.flatnonzero(colours == colour) for colour in (0, 1)], "expected": {sigma: kept_band[sigma] / kept[sigma] for sigma in kept},
-                          "normal": {key: np.stack(value) for key, value in normal.items()}, "moments": {key: np.stack(value) for key, value in moments.items()}}}
+            "tile_gains": gains, "whiteness": whiteness}
+
+
+def _band_ratios(whiteness: dict, weights: np.ndarray) -> dict[float, np.ndarray]:
+    """Per noise hypothesis, each colour's band-pass slope over its high-pass slope (draws, colours), the tiles weighted by each row of ``weights``; NaN where the high pass's slope is not positive."""
+    ratios = {}
+    for sigma in whiteness["expected"]:
+        per_colour = []
+        for colour, tiles in enumerate(whiteness["tiles"]):
+            w = weights[:, tiles]
+            # (draws, filters): each filter's slope from the weighted tiles' normal equations
+            system = np.einsum("dt,ftij->dfij", w, whiteness["normal"][(colour, sigma)])
+            rhs = np.einsum("dt,fti->dfi", w, whiteness["moments"][(colour, sigma)])
+            slope = np.linalg.solve(system, rhs[..., None])[..., -1, 0]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                per_colour.append(np.where(slope[:, 0] > 0, slope[:, 1] / slope[:, 0], np.nan))
+        ratios[sigma] = np.stack(per_colour, axis=-1)
+    return ratios
+
+
+def _off(ratios: np.ndarray, expected: float) -> np.ndarray:
+    """How far the colours' band ratios (last axis) lie from a hypothesis's ``expected`` ratio: the larger logged factor, infinite for a ratio that is not positive."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        distance = np.where(np.isfinite(ratios) & (ratios > 0), np.abs(np.log(ratios / expected)), np.inf)
+    return np.max(distance, axis=-1)
 
 
 def whiteness_draws(whiteness: dict, weights: np.ndarray) -> np.ndarray:
@@ -447,22 +464,8 @@ def whiteness_draws(whiteness: dict, weights: np.ndarray) -> np.ndarray:
     and reads white where both lie within ``WHITE_RATIO`` of it, as the test does on the
     tiles weighted alike.
     """
-    weights = np.asarray(weights, dtype=np.float64)
-    off = {}
-    for sigma, expected in whiteness["expected"].items():
-        worst = np.zeros(len(weights))
-        for colour, tiles in enumerate(whiteness["tiles"]):
-            w = weights[:, tiles]
-            # (draws, filters): each filter's slope refitted on the weighted tiles' normal equations
-            system = np.einsum("dt,ftij->dfij", w, whiteness["normal"][(colour, sigma)])
-            rhs = np.einsum("dt,fti->dfi", w, whiteness["moments"][(colour, sigma)])
-            slope = np.linalg.solve(system, rhs[..., None])[..., -1, 0]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                ratio = slope[:, 1] / slope[:, 0]
-                distance = np.where((slope[:, 0] > 0) & (ratio > 0), np.abs(np.log(ratio / expected)), np.inf)
-            worst = np.maximum(worst, distance)
-        off[sigma] = worst
-    nearest = np.min(np.stack(list(off.values())), axis=0)
+    ratios = _band_ratios(whiteness, np.asarray(weights, dtype=np.float64))
+    nearest = np.min(np.stack([_off(ratios[sigma], expected) for sigma, expected in whiteness["expected"].items()]), axis=0)
     return nearest <= np.log(WHITE_RATIO)
 
 
