@@ -42,7 +42,7 @@ judged on only: its design and seed were written and committed before its first 
 lengths, motion beside a round blur, astigmatism, pixel gain, a column pattern) likewise,
 written after the test for a blur by direction was chosen on the development sets.
 
-Run ``python benchmarks/withheld_suite.py make frozen DIR`` (or ``frozen-2`` … ``frozen-14``, ``development``,
+Run ``python benchmarks/withheld_suite.py make frozen DIR`` (or ``frozen-2`` … ``frozen-15``, ``development``,
 ``outside-development``, ``outside-frozen``, ``outside-frozen-2``) to write the holograms and ``design.json`` (a few
 minutes on 2 cores); ``bench_diagnosis.py suite DIR`` scores the catalog sets and
 ``bench_scene_diagnosis.py suite DIR`` every set, the outside ones included.
@@ -469,6 +469,34 @@ FROZEN_14 = (
     Case("crosstalk-5", 512, {"sensor_blur": {"kernel": "binomial5"}}),
 )
 
+# a fifteenth frozen set, written once the particle optics were told by the fine rings' power
+# spectrum: transparent spheres of five index contrasts between the test's grid points (two
+# beside photon noise and a crosstalk), polystyrene alone, beside photon noise and under an
+# envelope, and seven effects alone; the strengths drawn with the seed 20261210; committed
+# before its first run, scored once per design
+FROZEN_15_SEED = 20261210
+FROZEN_15 = (
+    Case("control-a15", 512, spheres_per_512=28, level=145, read_noise=1.4), Case("control-b15", 512, spheres_per_512=31, level=166, read_noise=2.0),
+    Case("control-c15", 512, spheres_per_512=32, level=149, read_noise=1.3), Case("control-d15", 512, spheres_per_512=35, level=159, read_noise=1.4),
+    Case("control-e15", 512, spheres_per_512=24, level=167, read_noise=1.3), Case("control-f15", 512, spheres_per_512=22, level=147, read_noise=1.4),
+    Case("low-index-145", 512, {"particle_phase": {"index": 1.45}}),
+    Case("low-index-149", 512, {"particle_phase": {"index": 1.49}}),
+    Case("low-index-150", 512, {"particle_phase": {"index": 1.50}}),
+    Case("low-index-153", 512, {"particle_phase": {"index": 1.53}}),
+    Case("low-index-146+photons", 512, {"particle_phase": {"index": 1.46}, "shot_noise": {"photons": 190.0}}),
+    Case("low-index-146+crosstalk", 512, {"particle_phase": {"index": 1.46}, "sensor_blur": {"kernel": "binomial3"}}),
+    Case("polystyrene", 512, {"particle_phase": {"index": 1.59}}),
+    Case("polystyrene+photons", 512, {"particle_phase": {"index": 1.59}, "shot_noise": {"photons": 142.0}}),
+    Case("polystyrene+vignetting", 512, {"particle_phase": {"index": 1.59}, "illumination": {"falloff": 0.49, "centre": (0.65, 0.47)}}),
+    Case("photons", 512, {"shot_noise": {"photons": 60.0}}),
+    Case("vignetting", 512, {"illumination": {"falloff": 0.37, "centre": (0.56, 0.57)}}),
+    Case("etalon", 512, {"parasitic_fringes": {"etalon": 0.05, "period_px": 15.9, "angle_rad": 1.8, "phase_rad": 0.4}}),
+    Case("source-disc", 512, {"coherence": {"source_mrad": 2.4}}),
+    Case("bits", 512, {"quantization": {"step_counts": 7}}),
+    Case("saturated", 512, {"quantization": {"step_counts": 1}}, level=202, read_noise=2.0),
+    Case("crosstalk-3", 512, {"sensor_blur": {"kernel": "binomial3"}}),
+)
+
 DEVELOPMENT_SEED = 1234
 DEVELOPMENT = (
     Case("control-1", 512), Case("control-2", 512, spheres_per_512=35, level=160, read_noise=2.0), Case("control-3", 512, spheres_per_512=22, level=140, read_noise=1.2),
@@ -498,6 +526,10 @@ DEVELOPMENT = (
     # added later: two more envelopes beside photon noise, one strong and one off-centre
     Case("vignetting-strong+photons", 512, {"illumination": {"falloff": 0.52, "centre": (0.42, 0.66)}, "shot_noise": {"photons": 95.0}}),
     Case("vignetting-corner+photons", 512, {"illumination": {"falloff": 0.38, "centre": (0.72, 0.62)}, "shot_noise": {"photons": 70.0}}),
+    # added later: transparent spheres between the optics test's grid points, alone and beside photon noise
+    Case("low-index-148", 512, {"particle_phase": {"index": 1.48}}),
+    Case("low-index-151", 512, {"particle_phase": {"index": 1.51}}),
+    Case("low-index-146+photons", 512, {"particle_phase": {"index": 1.46}, "shot_noise": {"photons": 120.0}}),
 )
 
 # effects outside the catalog, alone and beside a catalog effect (512²)
@@ -546,6 +578,7 @@ SUITES = {
     "frozen-8": (FROZEN_8, FROZEN_8_SEED), "frozen-9": (FROZEN_9, FROZEN_9_SEED),
     "frozen-10": (FROZEN_10, FROZEN_10_SEED), "frozen-11": (FROZEN_11, FROZEN_11_SEED), "frozen-12": (FROZEN_12, FROZEN_12_SEED),
     "frozen-13": (FROZEN_13, FROZEN_13_SEED), "frozen-14": (FROZEN_14, FROZEN_14_SEED),
+    "frozen-15": (FROZEN_15, FROZEN_15_SEED),
     "development": (DEVELOPMENT, DEVELOPMENT_SEED),
     "outside-frozen": (OUTSIDE_FROZEN, OUTSIDE_FROZEN_SEED), "outside-frozen-2": (OUTSIDE_FROZEN_2, OUTSIDE_FROZEN_2_SEED),
     "outside-development": (OUTSIDE_DEVELOPMENT, OUTSIDE_DEVELOPMENT_SEED),

@@ -43,7 +43,7 @@ def scene_report(verdict: str | None = None, *, explains: bool = True, params: d
                     "reason": f"selected by held-out gain (z >= 3): {', '.join(sorted(named)) or 'nothing'}"},
         "posterior": {"null": 0.1, **{effect: 0.9 / len(_MEAN) for effect in _MEAN}},
         "confidence": [{"name": f"{effect} kept", "outcome": 1, "holds": 0.9} for effect in sorted(named)],
-        "particle_optics": {"method": "fine-fringe power", "particles": 4, "model": "undecided", "z": 0.5, "transparent_better": 9, "transparent_worse": 7,
+        "particle_optics": {"method": "power spectrum", "particles": 4, "model": "undecided", "z": 0.5, "transparent_better": 9, "transparent_worse": 7,
                             "index_contrast": 0.26, "heldout_error": {"opaque": 1e-7, "0.26": 1e-7}, "slope": {"opaque": 0.9, "0.26": 0.5},
                             "camera_blur_px": 0.0, "diameter_median_um": 25.0, "diameter_quartiles_um": [24.0, 26.0]},
         "selection": [],

@@ -466,7 +466,7 @@ def test_scene_diagnosis_settings_refuse_what_cannot_decide(changes, culprit):
 
 
 @pytest.mark.parametrize(("index_contrast", "absorption", "expected"), [(0.12, 0.0, "transparent"), (0.26, 0.0, "transparent"), (0.2, 0.5, "opaque")])
-def test_transparent_spheres_are_told_from_opaque_ones_by_where_their_fine_fringes_lie(index_contrast, absorption, expected):
+def test_transparent_spheres_are_told_from_opaque_ones_by_their_fine_rings_spectrum(index_contrast, absorption, expected):
     """Spheres rendered to 1 cycle per pixel with a little noise: the optics test names their optics and the index contrast of the grid's nearest model, from the places and sizes alone."""
     import pandas as pd
 

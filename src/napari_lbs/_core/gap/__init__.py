@@ -9,7 +9,7 @@ One concern per module:
 `_nested`
     `select_effects`: the catalog's camera effects as nested models of the frame, forward selection.
 `_optics_power`
-    `optics_power_test`: opaque against transparent spheres by where their fine fringes' power lies.
+    `optics_power_test`: opaque against transparent spheres by the power spectrum of their fine rings.
 `_levels`
     `levels_test`: quantization and saturation read from the levels a frame of integer counts uses.
 `_scene_diagnosis`

@@ -211,15 +211,15 @@ def _summary(report: dict, levels: SceneDiagnosisSettings) -> list[str]:
         *_noise_lines(report["effects"]),
         *_blur_lines(report.get("blur_by_depth"), levels),
         *_scene_lines(report.get("scene"), levels),
-        "## Particle optics (opaque against transparent spheres, by where their fine fringes lie)",
+        "## Particle optics (opaque against transparent spheres, by the power spectrum of their fine rings)",
         "",
         f"- {optics['particles']} of the scene's particles rendered as opaque spheres and as transparent ones, through a camera blur of "
-        f"{_text(optics.get('camera_blur_px'))} px; the transparent model predicts the fine-fringe power of {optics.get('transparent_better', '—')} "
+        f"{_text(optics.get('camera_blur_px'))} px; the transparent model predicts the fine rings' power spectrum of {optics.get('transparent_better', '—')} "
         f"held-out tiles better and of {optics.get('transparent_worse', '—')} worse: **{optics['model']}** (sign test z {_text(optics['z'], '.2f')}; "
         f"named from ±{levels.level_z:g}).",
         f"- Best transparent index contrast n_p − n_m {_text(optics.get('index_contrast'))}; diameter {_text(optics['diameter_median_um'])} µm "
         f"(quartiles {_range(optics['diameter_quartiles_um'])} µm).",
-        "- Held-out error of the fine-fringe power (slope: near 1 for the model the frame holds): "
+        "- Held-out error of the tiles' spectra, mean squared log ratio (slope: near 1 for the model the frame holds): "
         + "; ".join(f"{'opaque' if name == 'opaque' else 'transparent ' + name} {_text(value)} (slope {_text(optics.get('slope', {}).get(name))})"
                     for name, value in optics.get("heldout_error", {}).items()) + ".",
         "",

@@ -13,9 +13,9 @@
 3. **Particle optics** (``particle_phase``, `optics_power_test`): the strongest
    ``particles`` of the scene rendered as opaque spheres and as transparent ones at each
    index contrast of ``index_grid``, to 1 cycle per pixel and through the camera's blur the
-   effects found; the local power of their fine fringes against the frame's, judged held
+   effects found; the power spectrum of their fine rings against each tile's, judged held
    out tile by tile (a transparent sphere throws its refracted light into fine rings far
-   from its centre, an opaque one does not).
+   from its centre, at frequencies that follow its index contrast; an opaque one does not).
 4. **What is left**, tile by tile: the structured power of the held-out residual (its power
    less its white floor, the median power above ``0.35`` cycles per pixel, where neither
    particles nor structure reach after the camera's blur) over the structured power of the
@@ -167,7 +167,7 @@ def _optics(data: np.ndarray, table, selection, config: ExperimentConfig, split:
         theta = float(np.mean([fit["coherence.theta_mrad"] for fit in final]))
         blur_px = float(np.hypot(blur_px, theta * 1e-3 * float(np.median(table["z_um"])) / config.optics.pixel_um))
     tested = table.iloc[: settings.particles]
-    record = {"method": "fine-fringe power", "particles": 0, "model": "undecided", "z": 0.0, "transparent_better": 0, "transparent_worse": 0,
+    record = {"method": "power spectrum", "particles": 0, "model": "undecided", "z": 0.0, "transparent_better": 0, "transparent_worse": 0,
               "index_contrast": None, "heldout_error": {}, "slope": {}}
     if len(tested):
         begin_phase(progress, f"particle optics: {len(tested)} particles rendered as opaque and as transparent spheres")
