@@ -42,7 +42,7 @@ judged on only: its design and seed were written and committed before its first 
 lengths, motion beside a round blur, astigmatism, pixel gain, a column pattern) likewise,
 written after the test for a blur by direction was chosen on the development sets.
 
-Run ``python benchmarks/withheld_suite.py make frozen DIR`` (or ``frozen-2`` … ``frozen-15``, ``development``,
+Run ``python benchmarks/withheld_suite.py make frozen DIR`` (or ``frozen-2`` … ``frozen-16``, ``development``,
 ``outside-development``, ``outside-frozen``, ``outside-frozen-2``) to write the holograms and ``design.json`` (a few
 minutes on 2 cores); ``bench_diagnosis.py suite DIR`` scores the catalog sets and
 ``bench_scene_diagnosis.py suite DIR`` every set, the outside ones included.
@@ -497,6 +497,33 @@ FROZEN_15 = (
     Case("crosstalk-3", 512, {"sensor_blur": {"kernel": "binomial3"}}),
 )
 
+# a sixteenth frozen set, written once photon noise was tested beside the far rings of the
+# transparent spheres the optics test names: transparent spheres of seven index contrasts
+# alone and beside photon noise, photon noise alone twice, and six effects alone; the
+# strengths drawn with the seed 20261211; committed before its first run, scored once per design
+FROZEN_16_SEED = 20261211
+FROZEN_16 = (
+    Case("control-a16", 512, spheres_per_512=23, level=152, read_noise=1.5), Case("control-b16", 512, spheres_per_512=35, level=165, read_noise=2.2),
+    Case("control-c16", 512, spheres_per_512=26, level=146, read_noise=1.8), Case("control-d16", 512, spheres_per_512=25, level=147, read_noise=1.3),
+    Case("control-e16", 512, spheres_per_512=28, level=166, read_noise=2.2), Case("control-f16", 512, spheres_per_512=31, level=145, read_noise=1.9),
+    Case("index-150", 512, {"particle_phase": {"index": 1.50}}),
+    Case("polystyrene", 512, {"particle_phase": {"index": 1.59}}),
+    Case("index-151", 512, {"particle_phase": {"index": 1.51}}),
+    Case("index-157", 512, {"particle_phase": {"index": 1.57}}),
+    Case("index-156+photons-93", 512, {"particle_phase": {"index": 1.56}, "shot_noise": {"photons": 93.0}}),
+    Case("index-153+photons-120", 512, {"particle_phase": {"index": 1.53}, "shot_noise": {"photons": 120.0}}),
+    Case("index-152+photons-68", 512, {"particle_phase": {"index": 1.52}, "shot_noise": {"photons": 68.0}}),
+    Case("index-156+photons-81", 512, {"particle_phase": {"index": 1.56}, "shot_noise": {"photons": 81.0}}),
+    Case("photons-138", 512, {"shot_noise": {"photons": 138.0}}),
+    Case("photons-175", 512, {"shot_noise": {"photons": 175.0}}),
+    Case("vignetting", 512, {"illumination": {"falloff": 0.42, "centre": (0.46, 0.62)}}),
+    Case("etalon", 512, {"parasitic_fringes": {"etalon": 0.05, "period_px": 14.6, "angle_rad": 1.36, "phase_rad": 0.9}}),
+    Case("bits", 512, {"quantization": {"step_counts": 10}}),
+    Case("saturated", 512, {"quantization": {"step_counts": 1}}, level=205, read_noise=2.0),
+    Case("crosstalk-3", 512, {"sensor_blur": {"kernel": "binomial3"}}),
+    Case("crosstalk-5", 512, {"sensor_blur": {"kernel": "binomial5"}}),
+)
+
 DEVELOPMENT_SEED = 1234
 DEVELOPMENT = (
     Case("control-1", 512), Case("control-2", 512, spheres_per_512=35, level=160, read_noise=2.0), Case("control-3", 512, spheres_per_512=22, level=140, read_noise=1.2),
@@ -530,6 +557,9 @@ DEVELOPMENT = (
     Case("low-index-148", 512, {"particle_phase": {"index": 1.48}}),
     Case("low-index-151", 512, {"particle_phase": {"index": 1.51}}),
     Case("low-index-146+photons", 512, {"particle_phase": {"index": 1.46}, "shot_noise": {"photons": 120.0}}),
+    # added later: transparent spheres beside photon noise, whose far rings the fitted scene does not render
+    Case("polystyrene+photons", 512, {"particle_phase": {"index": 1.59}, "shot_noise": {"photons": 110.0}}),
+    Case("low-index-150+photons", 512, {"particle_phase": {"index": 1.50}, "shot_noise": {"photons": 150.0}}),
 )
 
 # effects outside the catalog, alone and beside a catalog effect (512²)
@@ -578,7 +608,7 @@ SUITES = {
     "frozen-8": (FROZEN_8, FROZEN_8_SEED), "frozen-9": (FROZEN_9, FROZEN_9_SEED),
     "frozen-10": (FROZEN_10, FROZEN_10_SEED), "frozen-11": (FROZEN_11, FROZEN_11_SEED), "frozen-12": (FROZEN_12, FROZEN_12_SEED),
     "frozen-13": (FROZEN_13, FROZEN_13_SEED), "frozen-14": (FROZEN_14, FROZEN_14_SEED),
-    "frozen-15": (FROZEN_15, FROZEN_15_SEED),
+    "frozen-15": (FROZEN_15, FROZEN_15_SEED), "frozen-16": (FROZEN_16, FROZEN_16_SEED),
     "development": (DEVELOPMENT, DEVELOPMENT_SEED),
     "outside-frozen": (OUTSIDE_FROZEN, OUTSIDE_FROZEN_SEED), "outside-frozen-2": (OUTSIDE_FROZEN_2, OUTSIDE_FROZEN_2_SEED),
     "outside-development": (OUTSIDE_DEVELOPMENT, OUTSIDE_DEVELOPMENT_SEED),

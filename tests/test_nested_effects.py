@@ -240,6 +240,31 @@ def test_the_whiteness_redrawn_on_the_tiles_weighted_alike_is_the_test_s_own(log
     assert draws.shape == (500,) and np.mean(draws == result["white"]) > 0.9
 
 
+@pytest.mark.parametrize("log10_photons", [None, 2.0])
+def test_far_rings_the_scene_does_not_render_are_a_nuisance_of_the_photon_noise_test(log10_photons):
+    """Fine rings left in the residual whose power grows with the light about them (transparent
+    spheres' far rings beyond the fitted scene's reach): beside their rendered power
+    (`far_ring_power`) they are not taken for photon noise, and photon noise beside them is
+    still found and measured."""
+    from napari_lbs._core.gap._nested import FrameFit, far_ring_power, shot_noise_test
+    from napari_lbs._core.physics import gaussian_blur
+
+    effects = {"shot_noise": {"log10_photons": log10_photons}} if log10_photons else {}
+    data, scene = _frame(effects, read_noise=0.01 if log10_photons else 0.002)
+    split = TileSplit.of(data.shape)
+    fit = fit_frame(data, scene, split, ())
+    rng = np.random.default_rng(6)
+    rings = gaussian_blur(rng.standard_normal(data.shape), 0.6) * 0.05  # fine rings, their amplitude the light's
+    residuals = tuple(r + rings * mean for r, mean in zip(fit.residuals, fit.means, strict=True))
+    grown = FrameFit(fit.effects, fit.params, fit.loglik, residuals, fit.means)
+    rendered = 1.0 + rings * fit.means[0]
+    without, beside = shot_noise_test(grown, split), shot_noise_test(grown, split, nuisance=far_ring_power(rendered))
+    if log10_photons is None:
+        assert without["z"] >= 3.0 and beside["z"] < 3.0, (without["z"], beside["z"])
+    else:
+        assert beside["z"] >= 3.0 and beside["white"] and abs(beside["log10_photons"] - log10_photons) < 0.3, beside
+
+
 def test_photon_noise_under_an_envelope_fitted_imperfectly_is_read_white_within_neighbourhoods():
     """Photon noise under an envelope, and the fringes the envelope's fit multiplies by an error that grows toward the dark side.
 

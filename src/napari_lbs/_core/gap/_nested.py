@@ -47,7 +47,7 @@ from napari_lbs._core.gap._heldout import TileSplit, model_probabilities, tile_s
 from napari_lbs._core.gap._tile_errors import clustered_errors, mean_of_halves
 from napari_lbs._core.physics import EFFECTS, gaussian_blur, sensor_image
 
-__all__ = ["DECIDED_Z", "EVERY_OTHER", "MEAN_EFFECTS", "FrameFit", "Scene", "Selection", "both_colours", "fit_frame", "last_two", "select_effects", "whiteness_draws"]
+__all__ = ["DECIDED_Z", "EVERY_OTHER", "MEAN_EFFECTS", "FrameFit", "Scene", "Selection", "both_colours", "fit_frame", "last_two", "far_ring_power", "select_effects", "shot_noise_test", "whiteness_draws"]
 
 # the parameters each effect of the mean fits (the others of its catalog entry stay neutral)
 MEAN_EFFECTS = {
@@ -316,12 +316,23 @@ def _high_passed(image: np.ndarray) -> np.ndarray:
     return image - gaussian_blur(image, _HIGH_PASS_PX)
 
 
+def far_ring_power(rendered: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The local power of a scene's rings in the shot-noise test's high pass and band pass (``blur(filtered², 3 px)``).
+
+    ``rendered``: the scene rendered to 1 cycle per pixel under the particle model the optics
+    test named (transparent spheres' far rings, aliased as the pixels record them); the
+    fitted scene reaches the Nyquist disc only, so those rings stay in the residual, and
+    their power, which grows with the light about them, is a nuisance of `shot_noise_test`.
+    """
+    return gaussian_blur(_high_passed(rendered) ** 2, 3.0), gaussian_blur(_band_passed(rendered) ** 2, 3.0)
+
+
 def _band_passed(image: np.ndarray) -> np.ndarray:
     """Its band pass, for the whiteness check: ``image``'s blurs of the two σ of ``_BAND_PX``, the wider subtracted."""
     return gaussian_blur(image, _BAND_PX[0]) - gaussian_blur(image, _BAND_PX[1])
 
 
-def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
+def shot_noise_test(fit: FrameFit, split: TileSplit, *, nuisance: tuple[np.ndarray, ...] = ()) -> dict:
     """Does the residual's variance grow with the light? A held-out test of a signed slope in the mean.
 
     The residual is high-passed (less its Gaussian blur of σ = 1.5 px) to keep the noise and
@@ -357,6 +368,10 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
     held-out gain of each tile (nats), whose signs the sign test counts (`_confidence`);
     ``whiteness`` each tile's normal equations of the filtered slopes' regressions, from
     which `whiteness_draws` reads ``white`` again on reweighted tiles.
+
+    ``nuisance``: more maps of what the residual holds besides noise, regressors of both
+    filters' variance beside the misfit's (the local power of transparent spheres' far rings,
+    which the fitted scene does not render: `far_ring_power`).
     """
     # white noise, and noise blurred by the camera's fitted blur (a colour sensor's
     # interpolation, charge shared between pixels): each filter's share of its variance
@@ -381,7 +396,7 @@ def shot_noise_test(fit: FrameFit, split: TileSplit) -> dict:
         residual, mean = fit.residuals[fitted_on], fit.means[fitted_on]
         high, band = _high_passed(residual), _band_passed(residual)
         smooth_light = gaussian_blur(mean, _SMOOTH_LIGHT_PX)
-        misfit = (np.abs(mean - smooth_light), gaussian_blur(_high_passed(mean) ** 2, 3.0))
+        misfit = (np.abs(mean - smooth_light), gaussian_blur(_high_passed(mean) ** 2, 3.0), *nuisance)
         # per tile: the high-passed residual, the null's regressors (1 and the misfit's), the mean
         samples = [(high[w][::2, ::2].ravel(), np.stack([np.ones(high[w][::2, ::2].size)] + [m[w][::2, ::2].ravel() for m in misfit], axis=1), mean[w][::2, ::2].ravel(), c)
                    for w, c in zip(split.windows(), colours, strict=True)]

@@ -119,7 +119,8 @@ def optics_power_test(data: np.ndarray, table, config: ExperimentConfig, split: 
         tiles' spectra) and ``slope`` per model (the fitted scale of its power: near 1 for
         the model the frame holds, through its camera), ``particles``, ``band_cycles_per_px``;
         ``tile_differences``, each tile's held-out error of the opaque model less the best
-        transparent one's, whose signs the sign test counts (`_confidence`).
+        transparent one's, whose signs the sign test counts (`_confidence`); ``rendered``,
+        the best transparent model's frame through the camera's blur.
     """
     settings = settings or RefineSettings()
     edges = _band_edges()
@@ -137,10 +138,11 @@ def optics_power_test(data: np.ndarray, table, config: ExperimentConfig, split: 
     models.update({f"{v:g}": {"index_contrast": float(v), "absorption": 0.0} for v in index_grid})
     renders = particle_holograms(data.shape, table, config, materials=list(models.values()), settings=settings, reach_cycles_per_px=1.0,
                                  progress=heard, should_stop=check)
-    errors, slopes = {}, {}
+    errors, slopes, seen = {}, {}, {}
     for name, rendered in zip(models, renders, strict=True):
         if blur_px > 0:
             rendered = gaussian_blur(rendered, blur_px)
+        seen[name] = rendered
         predicted = np.array([radial_power(rendered[w], edges)[0] for w in windows])
         error = np.zeros(len(windows))
         fitted_slopes = []
@@ -171,4 +173,5 @@ def optics_power_test(data: np.ndarray, table, config: ExperimentConfig, split: 
         "index_contrast": float(best),
         "heldout_error": {name: float(e.mean()) for name, e in errors.items()},
         "slope": slopes,
+        "rendered": seen[best],
     }

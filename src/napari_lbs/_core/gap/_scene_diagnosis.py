@@ -36,7 +36,7 @@ from __future__ import annotations
 import json
 import time
 from contextlib import nullcontext
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -49,7 +49,7 @@ from napari_lbs._core.gap._detect import find_particles
 from napari_lbs._core.gap._directional import directional_blur_test
 from napari_lbs._core.gap._heldout import TileSplit, tile_spectra
 from napari_lbs._core.gap._levels import levels_test
-from napari_lbs._core.gap._nested import DECIDED_Z, MEAN_EFFECTS, Scene, select_effects, whiteness_draws
+from napari_lbs._core.gap._nested import DECIDED_Z, MEAN_EFFECTS, Scene, far_ring_power, select_effects, shot_noise_test, whiteness_draws
 from napari_lbs._core.gap._optics_power import optics_power_test
 from napari_lbs._core.gap._population import scene_population
 from napari_lbs._core.physics import gaussian_blur
@@ -499,6 +499,12 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
     steps.advance()
     optics = _optics(data, table, selection, config, split, settings, progress, should_stop)
     optics_votes = optics.pop("tile_differences", None)  # each tile's vote, for the verdict's probability
+    rendered = optics.pop("rendered", None)
+    if optics["model"] == "transparent":
+        # the named spheres' far rings, which the fitted scene does not render, stay in the
+        # residual and their power grows with the light: photon noise is tested beside it
+        final_fit = selection.fits["+".join(selection.chosen) or "baseline"]
+        selection = replace(selection, shot_noise=shot_noise_test(final_fit, split, nuisance=far_ring_power(rendered)))
     small = _small_scatterers(data, table, scene, config, settings, progress, should_stop, pool)
     frame_spectra = tile_spectra(data - 1.0, split)
     baseline_share = _structure(selection.fits["baseline"].residuals, split, frame_spectra)[0]
