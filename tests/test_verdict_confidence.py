@@ -65,10 +65,10 @@ def test_the_verdict_rests_on_each_rival_it_beat_unless_the_depth_groups_told_th
                                      "illumination": {"gain_nats": -1.0, "z": -1.0}}, "added": "sensor_blur"}]
     selection = SimpleNamespace(chosen=("sensor_blur",), fits=fits, steps=steps, undecided=())
     shot = {"white": False, "log10_photons": None}
-    names = [d.name for d in _decisions(selection, shot, None, False, "undecided", None, level_z=3.0)]
+    names = [d.name for d in _decisions(selection, shot, None, False, None, level_z=3.0)]
     assert "sensor_blur rather than coherence" in names and not [n for n in names if "illumination" in n and "rather" in n]
     told_apart = {"origin": ["sensor_blur"]}
-    assert "sensor_blur rather than coherence" not in [d.name for d in _decisions(selection, shot, None, False, "undecided", told_apart, level_z=3.0)]
+    assert "sensor_blur rather than coherence" not in [d.name for d in _decisions(selection, shot, None, False, told_apart, level_z=3.0)]
 
 
 def test_a_gated_decision_is_taken_only_on_the_draws_its_gate_holds_on():
@@ -79,3 +79,20 @@ def test_a_gated_decision_is_taken_only_on_the_draws_its_gate_holds_on():
     named = verdict_probability([Decision("shot_noise", _votes(16), 1, gate=half)], level_z=3.0)["probability"]
     left_out = verdict_probability([Decision("shot_noise", _votes(16), 0, gate=half)], level_z=3.0)["probability"]
     assert 0.45 < named < 0.55 and named + left_out == pytest.approx(1.0)
+
+
+def test_a_verdict_that_names_no_particle_optics_is_sure_only_where_the_tiles_call_them_opaque():
+    """The simulator's opaque particles are the verdict's claim where it names no optics: tiles
+    that call them opaque all round make it sure, an optics test left undecided makes it doubtful."""
+    from types import SimpleNamespace
+
+    from napari_lbs._core.gap._confidence import verdict_probability
+    from napari_lbs._core.gap._scene_diagnosis import _decisions
+
+    selection = SimpleNamespace(chosen=(), fits={"baseline": SimpleNamespace(loglik=np.zeros(16))}, steps=[], undecided=())
+    shot = {"white": False, "log10_photons": None}
+    opaque = -np.ones(16)  # every tile: the opaque model predicts the fine rings better
+    undecided = np.where(np.arange(16) < 9, 1.0, -1.0)  # 9 tiles for transparent, 7 for opaque: z 0.5
+    sure = verdict_probability(_decisions(selection, shot, opaque, False, None, level_z=3.0), level_z=3.0)["probability"]
+    doubtful = verdict_probability(_decisions(selection, shot, undecided, False, None, level_z=3.0), level_z=3.0)["probability"]
+    assert sure > 0.99 and doubtful < 0.05, (sure, doubtful)

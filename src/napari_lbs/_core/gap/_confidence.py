@@ -3,7 +3,7 @@
 A verdict is a set of decisions, each a sign test over the held-out tiles (`_nested._gain`):
 each selected effect kept against the model without it, each effect left out not added to
 the final model, each selected effect ahead of a rival in its place (at the rivals' own
-level), photon noise named or not, transparent or opaque particles or undecided.
+level), photon noise named or not, transparent or opaque particles.
 Resampling the tiles by a Bayesian bootstrap (Dirichlet(1) weights; Rubin, *Ann. Statist.* 9,
 130 (1981)) and taking each decision again at the same level gives the probability that the
 frame, drawn again, would give the same verdict — bootstrap model-selection frequencies

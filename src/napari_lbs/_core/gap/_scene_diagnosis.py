@@ -181,14 +181,15 @@ def _optics(data: np.ndarray, table, selection, config: ExperimentConfig, split:
     return record
 
 
-def _decisions(selection, shot: dict, optics_votes, phase_selected: bool, optics_model: str, blur_profile: dict | None, *, level_z: float) -> list[Decision]:
+def _decisions(selection, shot: dict, optics_votes, phase_selected: bool, blur_profile: dict | None, *, level_z: float) -> list[Decision]:
     """The verdict's sign tests over the tiles (`verdict_probability`): each effect kept, each left out, each rival beaten, photon noise, the optics.
 
     Each selected effect of the mean against the model without it; each other one against
     the final model with it added, where that model was fitted; each selected effect against
     each rival that gained alone, put in its place, at the rivals' level (`DECIDED_Z`), where
     that model was fitted; photon noise, taken on a draw where its slope reads white on that
-    draw's tiles and its sign test passes; the particles' optics. A blur whose origin was read from the
+    draw's tiles and its sign test passes; the particles' optics (transparent where the verdict
+    names them, else opaque, the simulator's: an undecided optics test is a doubt). A blur whose origin was read from the
     depth groups (`attribute_blur`) is counted as any named effect: the line through the
     depth groups' blurs chose it, and the tiles must still gain from it; the other blur is
     then not its rival on the tiles (the groups, not the tiles, told them apart).
@@ -226,8 +227,10 @@ def _decisions(selection, shot: dict, optics_votes, phase_selected: bool, optics
         outcome = int(shot["white"] and shot["z"] >= level_z and shot["gain"] > 0)
         decisions.append(Decision("shot_noise", shot["tile_gains"], outcome, gate=gate))
     if optics_votes is not None:
-        outcome = 1 if phase_selected else -1 if optics_model == "opaque" else 0
-        decisions.append(Decision("particle_phase", optics_votes, outcome, needs_gain=False, three_way=True))
+        # a verdict that does not name the particles' optics claims the simulator's opaque
+        # particles: where the optics test left them undecided, that claim holds only on the
+        # draws where the tiles call them opaque
+        decisions.append(Decision("particle_phase", optics_votes, 1 if phase_selected else -1, needs_gain=False, three_way=True))
     return decisions
 
 
@@ -551,7 +554,7 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
             + (f"; a blur that differs by direction, outside the catalog (motion during the exposure, astigmatism: z {directional['z']:.1f}, "
                f"{directional['variance_difference_px2']:.2f} px² more along {np.degrees(directional['angle_rad']):.0f}°)" if streaked else ""))
     posterior = {("null" if name == "baseline" else name): p for name, p in selection.probabilities.items()}
-    confidence = verdict_probability(_decisions(selection, shot, optics_votes, phase_selected, optics["model"], blur_profile, level_z=settings.level_z),
+    confidence = verdict_probability(_decisions(selection, shot, optics_votes, phase_selected, blur_profile, level_z=settings.level_z),
                                      level_z=settings.level_z)
     report = {
         "method": "scene",
