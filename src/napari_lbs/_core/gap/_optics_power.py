@@ -24,10 +24,10 @@ colour of the checkerboard of tiles by relative least squares and judged on the 
 each tile's mean squared log ratio over the bins. The best transparent model against the
 opaque one, tile by tile, gives a sign test's z, as the catalog's effects get.
 
-The local fine-fringe power (a high pass's square smoothed over a few pixels) that this
-replaces left spheres of index contrast 0.14–0.18 undecided (z 0–1): their refracted cones
-overlap across the frame, so their fine fringes raise the power nearly everywhere alike, and
-the local map's free offset took it as noise. Their spectra keep the cone's shape.
+A map of the fine rings' local power (a high pass's square smoothed over a few pixels)
+cannot tell spheres of index contrast 0.14–0.18 (z 0–1 on frozen frames): their refracted
+cones overlap across the frame and raise that power nearly everywhere alike, which the map's
+free offset takes as noise. Their spectra keep the cone's shape.
 """
 
 from __future__ import annotations
