@@ -588,6 +588,10 @@ DEVELOPMENT = (
     # added later: transparent spheres beside photon noise, whose far rings the fitted scene does not render
     Case("polystyrene+photons", 512, {"particle_phase": {"index": 1.59}, "shot_noise": {"photons": 110.0}}),
     Case("low-index-150+photons", 512, {"particle_phase": {"index": 1.50}, "shot_noise": {"photons": 150.0}}),
+    # added later: envelopes of falloff 0.42–0.48 near the frame's centre, alone
+    Case("vignetting-centre", 512, {"illumination": {"falloff": 0.45, "centre": (0.5, 0.5)}}),
+    Case("vignetting-48", 512, {"illumination": {"falloff": 0.48, "centre": (0.4, 0.55)}}),
+    Case("vignetting-42", 512, {"illumination": {"falloff": 0.42, "centre": (0.6, 0.45)}}),
 )
 
 # effects outside the catalog, alone and beside a catalog effect (512²)
