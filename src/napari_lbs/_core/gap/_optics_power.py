@@ -36,11 +36,11 @@ import numpy as np
 from scipy.optimize import nnls
 
 from napari_lbs._core.foundation import ExperimentConfig, Steps
-from napari_lbs._core.gap._heldout import TileSplit
+from napari_lbs._core.gap._heldout import TileSplit, tile_spectra
 from napari_lbs._core.physics import gaussian_blur
 from napari_lbs._core.refine import RefineSettings, particle_holograms
 
-__all__ = ["OPAQUE_KAPPA", "radial_power", "optics_power_test"]
+__all__ = ["OPAQUE_KAPPA", "optics_power_test"]
 
 OPAQUE_KAPPA = 1.0  # an absorption length λ/(4πκ) of 0.05 µm at 660 nm: opaque for a sphere of microns
 _BAND_CYCLES_PER_PX = (0.08, 0.70)  # the fine rings' band: above the coarse rings and an envelope, to the pixel grid's corner
@@ -51,28 +51,22 @@ def _band_edges() -> np.ndarray:
     return np.linspace(*_BAND_CYCLES_PER_PX, _BINS + 1)
 
 
-def radial_power(tile: np.ndarray, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """A square tile's power spectrum (Hann-tapered, its mean removed) averaged over rings of radial frequency.
+def _ring_powers(image: np.ndarray, split: TileSplit, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each tile's power spectrum (`tile_spectra`, each tile's mean removed) averaged over rings of radial frequency.
 
-    Parameters
-    ----------
-    tile : (n, n) array
-    edges : (bins + 1,) array
-        The rings' edges, cycles per pixel.
-
-    Returns
-    -------
-    power, counts : (bins,) arrays
-        The mean power in each ring (per unit of the taper's energy) and the frequencies it averages.
+    Returns ``(tiles, bins)`` mean powers and the ``(bins,)`` number of frequencies in each
+    ring (``edges``: the rings' edges, cycles per pixel).
     """
-    n = tile.shape[0]
-    taper = np.outer(np.hanning(n), np.hanning(n))
-    power = np.abs(np.fft.fft2((tile - tile.mean()) * taper)) ** 2 / np.sum(taper * taper)
-    frequency = np.hypot(*np.meshgrid(np.fft.fftfreq(n), np.fft.fftfreq(n), indexing="ij"))
+    centred = np.array(image, dtype=np.float64)
+    for window in split.windows():
+        centred[window] -= centred[window].mean()
+    frequency = np.hypot(*np.meshgrid(np.fft.fftfreq(split.size), np.fft.fftfreq(split.size), indexing="ij"))
     ring = np.digitize(frequency.ravel(), edges) - 1
     inside = (ring >= 0) & (ring < len(edges) - 1)
     counts = np.bincount(ring[inside], minlength=len(edges) - 1).astype(np.float64)
-    return np.bincount(ring[inside], power.ravel()[inside], len(edges) - 1) / np.maximum(counts, 1.0), counts
+    spectra = tile_spectra(centred, split).reshape(len(split.windows()), -1)[:, inside]
+    sums = np.stack([np.bincount(ring[inside], tile, len(edges) - 1) for tile in spectra])
+    return sums / np.maximum(counts, 1.0), counts
 
 
 def _design(model_power: np.ndarray, light: float, blur_transfer: np.ndarray | None) -> np.ndarray:
@@ -126,8 +120,8 @@ def optics_power_test(data: np.ndarray, table, config: ExperimentConfig, split: 
     edges = _band_edges()
     centres = 0.5 * (edges[1:] + edges[:-1])
     windows, colours = split.windows(), split.colours()
-    measured = np.maximum(np.array([radial_power(data[w], edges)[0] for w in windows]), 1e-30)
-    counts = radial_power(data[windows[0]], edges)[1]
+    measured, counts = _ring_powers(data, split, edges)
+    measured = np.maximum(measured, 1e-30)
     weights = counts / counts.sum()
     light = np.array([float(data[w].mean()) for w in windows])
     # a Gaussian blur of σ passes power as exp(-(2πfσ)²)
@@ -143,7 +137,7 @@ def optics_power_test(data: np.ndarray, table, config: ExperimentConfig, split: 
         if blur_px > 0:
             rendered = gaussian_blur(rendered, blur_px)
         seen[name] = rendered
-        predicted = np.array([radial_power(rendered[w], edges)[0] for w in windows])
+        predicted = _ring_powers(rendered, split, edges)[0]
         error = np.zeros(len(windows))
         fitted_slopes = []
         for fitted_on in (0, 1):
