@@ -738,3 +738,70 @@ def test_a_fit_on_another_s_line_of_sight_is_its_twin_at_any_depth():
     assert _duplicates(result).tolist() == [False, True, False, False]
     # the better-fitted one keeps the particle, whichever depth it has
     assert _duplicates({**result, "residual": np.array([0.20, 0.10, 0.15, 0.05])}).tolist() == [True, False, False, False]
+
+
+def test_a_ring_fit_whose_stencil_leaves_physics_keeps_finite_parameters(monkeypatch):
+    """A sphere on the size bound (0.05 µm) puts the secant stencil at a negative size: that point has no hologram, the fit no NaN."""
+    from types import SimpleNamespace
+
+    from napari_lbs._core.refine import _rings
+
+    def residuals(rings, z_um, spheres, scale, *, model):
+        # a smooth bowl about (20 µm, 0.5 µm, 0.26), with no hologram below a size of zero;
+        # as Lorenz–Mie theory's term count, a NaN sphere is refused
+        if not torch.isfinite(spheres).all() or not torch.isfinite(z_um).all():
+            raise ValueError("cannot convert float NaN to integer")
+        out = torch.stack([z_um - 20.0, 10.0 * (spheres[:, 0] - 0.5), spheres[:, 1] - 0.26], dim=1)
+        return torch.where((spheres[:, :1] > 0.0), out, torch.full_like(out, float("nan")))
+
+    monkeypatch.setattr(_rings, "_ring_residuals", residuals)
+    rings = SimpleNamespace(map=lambda change: rings)
+    model = SimpleNamespace(optics={"wavelength_um": WAVELENGTH_UM, "medium_index": WATER})
+    start = torch.tensor([[19.6, 0.05, 0.26], [19.6, 0.8, 0.26]], dtype=torch.float64)
+    low = torch.tensor([[1.0, 0.05, -0.9]] * 2, dtype=torch.float64)
+    high = torch.tensor([[60.0, 500.0, 2.5]] * 2, dtype=torch.float64)
+    free = torch.ones(2, 3, dtype=torch.bool)
+    fitted, cost = _rings._ring_fit(rings, start, free, torch.zeros(2, dtype=torch.float64), torch.ones(2, dtype=torch.float64), low, high,
+                                    model=model, iterations=8, depth_reach_um=1.0)
+    assert torch.isfinite(fitted).all()
+    # the sphere whose stencil stays physical still goes down its bowl
+    assert abs(float(fitted[1, 1]) - 0.5) < 0.05 and abs(float(fitted[1, 0]) - 20.0) < 0.5
+
+
+
+def test_a_singular_step_is_rejected_without_evaluating_a_nan_sphere():
+    """A patch whose normal equations are not finite keeps its parameters; Lorenz–Mie theory, which refuses NaN spheres, never sees its trial."""
+    from types import SimpleNamespace
+
+    from napari_lbs._core.refine import RefineSettings
+    from napari_lbs._core.refine._levenberg_marquardt import levenberg_marquardt
+
+    generator = torch.Generator().manual_seed(0)
+    design = torch.randn(40, 9, generator=generator, dtype=torch.float64)
+    truth = torch.randn(2, 9, generator=generator, dtype=torch.float64)
+
+    class Linear:
+        def __init__(self, rows):
+            self.rows = rows
+            self.patches = SimpleNamespace(data=truth[rows] @ design.T, mask=torch.ones(len(rows), 40, dtype=torch.float64))
+
+        def select(self, which):
+            return Linear(self.rows[which])
+
+        def __call__(self, params):
+            if not torch.isfinite(params).all():
+                raise ValueError("cannot convert float NaN to integer")
+            return params @ design.T
+
+        def jacobian(self, params, free):
+            jac = design.expand(len(self.rows), -1, -1).clone()
+            jac[self.rows == 0] = float("nan")  # the first patch's system is singular
+            return self(params), jac
+
+    start = torch.zeros(2, 9, dtype=torch.float64)
+    free = torch.ones(2, 9, dtype=torch.bool)
+    infinite = torch.full((2, 9), float("inf"), dtype=torch.float64)
+    fitted, _ = levenberg_marquardt(Linear(torch.arange(2)), start, free, -infinite, infinite, scale=torch.ones(2, dtype=torch.float64),
+                                    settings=RefineSettings(), iterations=20)
+    assert torch.equal(fitted[0], start[0])
+    assert torch.allclose(fitted[1], truth[1], atol=1e-6)

@@ -135,8 +135,12 @@ def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of
     _, fit_cost = huber(residual, scale, fine.mask, settings.huber)
     jac = jac * free_t.to(torch.float64)[:, None, :]
     normal = (jac.transpose(1, 2) * weight[:, None, :]) @ jac + torch.diag_embed((~free_t).to(torch.float64))
+    # a fit whose neighbourhood holds no finite hologram (a sphere of 0.05 µm, the size bound,
+    # whose secants reach below zero) has no curvature: not a fit, and no error bars
+    curved = torch.isfinite(normal).all(dim=2).all(dim=1)
+    normal = torch.where(curved[:, None, None], normal, torch.eye(normal.shape[1], dtype=normal.dtype, device=device))
     inflation = residual_inflation(residual, fine.mask, fine.shape)
-    covariance = torch.linalg.pinv(normal) * (sigma**2 * inflation)[:, None, None]
+    covariance = torch.linalg.pinv(normal) * torch.where(curved, sigma**2 * inflation, math.nan)[:, None, None]
     errors = torch.sqrt(torch.clamp(torch.diagonal(covariance, dim1=1, dim2=2), min=0.0)) * free_t
     spread = torch.full((count, 2), math.nan, dtype=torch.float64, device=device)
     if profile is not None:
@@ -150,7 +154,7 @@ def _fit_batch(image: np.ndarray, start: np.ndarray, free: np.ndarray, others_of
         "spread": spread.cpu().numpy(),
         "gain": (free_cost - fit_cost).cpu().numpy(),
         "residual": residual_rms.cpu().numpy(),
-        "ok": torch.isfinite(final).all(dim=1).cpu().numpy() & np.array([s[0] > 0 for s in fine.shape]) & ~_on_bound(final, free_t, low, high).cpu().numpy(),
+        "ok": (torch.isfinite(final).all(dim=1) & curved).cpu().numpy() & np.array([s[0] > 0 for s in fine.shape]) & ~_on_bound(final, free_t, low, high).cpu().numpy(),
     }
 
 

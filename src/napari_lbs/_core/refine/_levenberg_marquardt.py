@@ -71,12 +71,15 @@ def levenberg_marquardt(model: Model, params: torch.Tensor, free: torch.Tensor, 
         for _attempt in range(4):
             system = normal[rows] + torch.diag_embed(lam[rows, None] * torch.where(f[rows], diagonal[rows], torch.zeros_like(diagonal[rows])))
             # solve_ex: no check of the result on the host (a wait for the device); a singular
-            # system gives a non-finite step, whose cost no patch accepts
+            # system gives a non-finite step, which its patch rejects without evaluating it
+            # (Lorenz–Mie theory has no sphere of NaN size)
             delta = torch.linalg.solve_ex(system, gradient[rows, :, None])[0][:, :, 0]
             trial = clamp(p[rows] + delta * freef[rows], low[active][rows], high[active][rows])
+            finite = torch.isfinite(trial).all(dim=1)
+            trial = torch.where(finite[:, None], trial, p[rows])
             subset = sub if rows.numel() == active.numel() else sub.select(rows)
             _, trial_cost = huber(data[rows] - subset(trial), s[rows], mask[rows], settings.huber)
-            better = trial_cost < current[rows]
+            better = (trial_cost < current[rows]) & finite
             p[rows[better]] = trial[better]
             current[rows[better]] = trial_cost[better]
             lam[rows] = torch.where(better, lam[rows] * 0.3, lam[rows] * 10.0).clamp(1e-7, 1e7)

@@ -225,9 +225,11 @@ def _ring_fit(rings: Rings, start: torch.Tensor, free: torch.Tensor, kappa: torc
             stacked[(2 * axis + 1) * count : (2 * axis + 2) * count, axis] += steps[:, axis]
             stacked[(2 * axis + 2) * count : (2 * axis + 3) * count, axis] -= steps[:, axis]
         res = residuals(stacked, 7 * count).reshape(7, count, -1)
-        # the stencil's mean residual and cost: the envelope, the ripple averaged out
+        # the stencil's mean residual and cost: the envelope, the ripple averaged out. A
+        # stencil point past a bound of physics (a size or index below zero beside a sphere
+        # of 0.05 µm) has no finite hologram: that point's cost is infinite and its step none
         base = res.mean(dim=0)
-        cost = 0.5 * (res**2).sum(dim=2).mean(dim=0)
+        cost = torch.nan_to_num(0.5 * (res**2).sum(dim=2).mean(dim=0), nan=math.inf)
         jac = torch.stack([(res[2 * axis + 1] - res[2 * axis + 2]) / (2.0 * steps[:, axis:axis + 1]) for axis in range(3)], dim=-1) * freef[:, None, :]
         better = cost < best_cost
         best_cost = torch.where(better, cost, best_cost)
@@ -241,7 +243,7 @@ def _ring_fit(rings: Rings, start: torch.Tensor, free: torch.Tensor, kappa: torc
         delta = torch.linalg.solve_ex(normal, gradient[:, :, None])[0][:, :, 0] * freef  # no host check (`levenberg_marquardt`)
         reach = _RING_REACH * steps
         reach[:, 0] = depth_reach_um
-        delta = torch.maximum(torch.minimum(delta, reach), -reach)
+        delta = torch.maximum(torch.minimum(torch.nan_to_num(delta, nan=0.0, posinf=0.0, neginf=0.0), reach), -reach)
         params = torch.maximum(torch.minimum(params + delta, high), low)
     return best, best_cost
 
