@@ -805,3 +805,23 @@ def test_a_singular_step_is_rejected_without_evaluating_a_nan_sphere():
                                     settings=RefineSettings(), iterations=20)
     assert torch.equal(fitted[0], start[0])
     assert torch.allclose(fitted[1], truth[1], atol=1e-6)
+
+
+def test_a_fit_with_no_finite_curvature_is_not_a_fit_and_has_no_error_bars(monkeypatch):
+    """Where the final Jacobian holds no finite number (a sphere on the size bound, its secants below zero) the fit is refused, not the batch."""
+    from napari_lbs._core import RefineSettings, refine_particles
+    from napari_lbs._core.refine import _model
+
+    truth = (36.3 * PIXEL_UM, 35.6 * PIXEL_UM, 900.0, 18.0)
+    hologram = sphere_scene([truth])
+    start = guess_table([(truth[0] + 1.2, truth[1] - 0.9, truth[2] + 60.0, truth[3] + 0.6)])
+    jacobian = _model.Model.jacobian
+
+    def no_curvature(self, params, free, *, envelope=False):
+        prediction, jac = jacobian(self, params, free, envelope=envelope)
+        return prediction, (torch.full_like(jac, float("nan")) if envelope else jac)
+
+    monkeypatch.setattr(_model.Model, "jacobian", no_curvature)
+    out = refine_particles(hologram, start, default_config(), fixed={"absorption": 0.0}, settings=RefineSettings(**FAST))
+    assert len(out) == 1 and not bool(out.refined[0])
+    assert np.isnan(out.z_err_um[0]) and np.isnan(out.diameter_err_um[0])
