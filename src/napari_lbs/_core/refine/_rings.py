@@ -227,9 +227,9 @@ def _ring_fit(rings: Rings, start: torch.Tensor, free: torch.Tensor, kappa: torc
         res = residuals(stacked, 7 * count).reshape(7, count, -1)
         # the stencil's mean residual and cost: the envelope, the ripple averaged out. A
         # stencil point past a bound of physics (a size or index below zero beside a sphere
-        # of 0.05 µm) has no finite hologram: that point's cost is infinite and its step none
+        # of 0.05 µm) has no finite hologram: its NaN cost is never the best, its step none
         base = res.mean(dim=0)
-        cost = torch.nan_to_num(0.5 * (res**2).sum(dim=2).mean(dim=0), nan=math.inf)
+        cost = 0.5 * (res**2).sum(dim=2).mean(dim=0)
         jac = torch.stack([(res[2 * axis + 1] - res[2 * axis + 2]) / (2.0 * steps[:, axis:axis + 1]) for axis in range(3)], dim=-1) * freef[:, None, :]
         better = cost < best_cost
         best_cost = torch.where(better, cost, best_cost)
