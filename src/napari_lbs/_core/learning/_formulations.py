@@ -23,6 +23,7 @@ returned with the scores of all.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -66,6 +67,24 @@ def _metrics(totals: dict) -> dict:
     n_truth = totals["tp"] + totals["fn"]
     matched = totals["tp"] + totals["fp"] + totals["fn"]
     return {**totals, "er": 1.0 - totals["fn"] / n_truth if n_truth else 1.0, "ji": totals["tp"] / matched if matched else 1.0}
+
+
+def _upper_edge(ji_by_threshold: Sequence[float], best: int, *, counted: int) -> int:
+    """The highest threshold index reached from ``best`` upwards without the JI falling a standard error below it.
+
+    The one-standard-error rule (Hastie, Tibshirani & Friedman, *The Elements of Statistical
+    Learning*, 2nd ed., §7.10): of the settings validation cannot tell from the best, the one
+    that detects least. Validation is synthetic; a real hologram adds structure the network
+    never saw, and its false candidates score in the middle of the range, so the upper edge
+    of the validation plateau keeps fewer of them for the same true ones. ``counted`` is the
+    best setting's TP + FP + FN; the error is the binomial one of its JI.
+    """
+    ji = ji_by_threshold[best]
+    tolerance = math.sqrt(ji * (1.0 - ji) / counted) if counted else 0.0
+    edge = best
+    while edge + 1 < len(ji_by_threshold) and ji_by_threshold[edge + 1] >= ji - tolerance:
+        edge += 1
+    return edge
 
 
 class _SeedFormulation:
@@ -124,8 +143,10 @@ class _SeedFormulation:
                 for key in ("tp", "fp", "fn"):
                     totals[fraction][key] += metrics[key]
         by_threshold = [{"threshold": fraction * self.full_value, **_metrics(t)} for fraction, t in totals.items()]
-        best = max(by_threshold, key=lambda m: (m["ji"], m["er"]))
-        return {"loss": squared / max(count, 1), **best, "by_threshold": by_threshold}
+        best = max(range(len(by_threshold)), key=lambda i: (by_threshold[i]["ji"], by_threshold[i]["er"]))
+        counted = sum(by_threshold[best][key] for key in ("tp", "fp", "fn"))
+        chosen = by_threshold[_upper_edge([m["ji"] for m in by_threshold], best, counted=counted)]
+        return {"loss": squared / max(count, 1), **chosen, "peak_threshold": by_threshold[best]["threshold"], "peak_ji": by_threshold[best]["ji"], "by_threshold": by_threshold}
 
     def meta(self) -> dict:
         return {"output_scale": self.output_scale, "full_value": self.full_value, "in_channels": 1, "out_channels": 1}
@@ -259,18 +280,19 @@ class _FocusFormulation:
         def rank(i: int) -> tuple:
             return by_setting[i]["ji"], by_setting[i]["er"], -(by_setting[i]["axial_um"] or 1e9)
 
-        # of the thresholds that tie for the best, the middle one: the farthest from both edges
-        # of the plateau when real scores sit a little above or below synthetic ones
-        top = max(rank(i) for i in range(len(settings)))
-        tied = [i for i in range(len(settings)) if rank(i) == top]
-        best_index = tied[len(tied) // 2]
-        threshold, axial = settings[best_index]
+        peak = max(range(len(settings)), key=rank)
+        axial = settings[peak][1]
+        # along the peak's suppression radius, the upper edge of the thresholds within a standard error of it
+        along = [i for i in range(len(settings)) if settings[i][1] == axial]
+        counted = sum(by_setting[peak][key] for key in ("tp", "fp", "fn"))
+        best_index = along[_upper_edge([by_setting[i]["ji"] for i in along], along.index(peak), counted=counted)]
+        threshold = settings[best_index][0]
         depth_errors, diameter_errors = [], []
         for kept, truth in kept_by_group:
             found = _at_least(kept[axial], threshold)
             depth_errors.extend(depth_errors_um(found, truth))
             diameter_errors.extend(diameter_errors_um(found, truth))
-        best = {**by_setting[best_index],
+        best = {**by_setting[best_index], "peak_threshold": settings[peak][0], "peak_ji": by_setting[peak]["ji"],
                 "median_abs_dz_um": float(np.median(np.abs(depth_errors))) if depth_errors else None,
                 "median_abs_dd_um": float(np.median(np.abs(diameter_errors))) if diameter_errors else None}
         logged = [m for i, m in enumerate(by_setting) if settings[i][0] in _LOGGED_THRESHOLDS or settings[i][0] == threshold]

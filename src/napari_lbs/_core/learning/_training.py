@@ -215,7 +215,8 @@ def train_model(
         record = {"epoch": epoch, "train_loss": float(np.mean(losses)) if losses else None, "validation": validation_metrics, "seconds": round(time.perf_counter() - start, 2),
                   "train_seconds": round(train_seconds, 3)}
         log["epochs"].append(record)
-        score = (validation_metrics["ji"], validation_metrics["er"])
+        # epochs ranked by their validation peak; the kept setting is the peak's upper edge (`_formulations`)
+        score = (validation_metrics["peak_ji"], validation_metrics["er"])
         if score > best_score or log["best"] is None:
             best_score = score
             decoding = formulation.decoding(validation_metrics)
