@@ -62,8 +62,8 @@ def validated(model: Path, data: Path) -> dict:
     return {key: metrics[key] for key in ("threshold", "ji", "peak_threshold", "peak_ji", "axial_um")}
 
 
-def curve(tables: list[tuple[dict, dict]], *, lateral_tol_um: float, axial_tol_um: float) -> dict[float, dict]:
-    """Pooled TP/FP/FN and JI at every threshold of `THRESHOLDS` of tables made at the decoder's floor."""
+def curve(tables: list[tuple[dict, dict]], **tolerances: float) -> dict[float, dict]:
+    """Pooled TP/FP/FN and JI at every threshold of `THRESHOLDS` of tables made at the decoder's floor (``tolerances``: `score_particles`' own where not given)."""
     from napari_lbs._core import score_particles
 
     out = {}
@@ -71,7 +71,7 @@ def curve(tables: list[tuple[dict, dict]], *, lateral_tol_um: float, axial_tol_u
         totals = np.zeros(3, int)
         for table, truth in tables:
             keep = table["score"] >= threshold - 1e-9
-            metrics = score_particles({k: v[keep] for k, v in table.items()}, truth, lateral_tol_um=lateral_tol_um, axial_tol_um=axial_tol_um)
+            metrics = score_particles({k: v[keep] for k, v in table.items()}, truth, **tolerances)
             totals += [metrics["tp"], metrics["fp"], metrics["fn"]]
         out[threshold] = {"tp": int(totals[0]), "fp": int(totals[1]), "fn": int(totals[2]), "ji": float(totals[0] / max(totals.sum(), 1))}
     return out

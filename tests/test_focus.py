@@ -171,10 +171,23 @@ def test_the_validation_finds_a_threshold_between_the_tenths():
     formulation.dataset = type("Groups", (), {"read_group": staticmethod(lambda group: (None, None, {"particles": truth}))})()
     formulation.candidates = lambda network, stack: candidates
     metrics = formulation.validate(None, [0], lambda: False)
-    # 0.25 and 0.26 tie: the upper of the two middle ones
+    # 0.25 and 0.26 tie at JI 1, which has no binomial error: the upper edge of the two
     assert metrics["threshold"] == 0.26 and (metrics["tp"], metrics["fp"], metrics["fn"]) == (3, 0, 0)
+    assert metrics["peak_threshold"] == 0.25 and metrics["peak_ji"] == 1.0
     assert metrics["median_abs_dz_um"] == 0.0
     assert any(m["threshold"] == 0.2 for m in metrics["by_threshold"]) and any(m["threshold"] == metrics["threshold"] for m in metrics["by_threshold"])
+
+
+def test_the_kept_threshold_is_the_upper_edge_of_the_peak_within_a_standard_error():
+    from napari_lbs._core.learning._formulations import _upper_edge
+
+    # JI 0.8 of 100 counted: a binomial error of 0.04, so 0.79 and 0.77 are the peak's plateau, 0.70 is not
+    assert _upper_edge([0.5, 0.80, 0.79, 0.77, 0.70, 0.78], 1, counted=100) == 3
+    # a dip below the plateau ends the walk even when a later threshold comes back within it
+    assert _upper_edge([0.80, 0.70, 0.79], 0, counted=100) == 0
+    # ten times the counts: an error of 0.0126, and only 0.79 is within it
+    assert _upper_edge([0.5, 0.80, 0.79, 0.77, 0.70], 1, counted=1000) == 2
+    assert _upper_edge([0.9], 0, counted=0) == 0
 
 
 def test_a_plateau_or_a_peak_on_the_last_plane_is_still_one_particle():

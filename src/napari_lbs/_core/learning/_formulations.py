@@ -16,8 +16,9 @@ Two formulations (`napari_lbs._core.learning._network`):
 
 A formulation validates a network on held-out groups: their outputs go through the same
 decoding as any prediction and one-to-one scoring (`score_particles`), at every decoding
-setting tried (threshold, and for ``focus`` the axial suppression radius); the best one is
-returned with the scores of all.
+setting tried (threshold, and for ``focus`` the axial suppression radius). The kept setting is
+the upper edge of the best one's plateau (`_upper_edge`); it is returned with the peak's JI and
+the scores of all.
 """
 
 from __future__ import annotations
