@@ -10,7 +10,8 @@ early stopping on the synthetic validation JI (``patience``), resume.
 Validation never looks at real data or test labels: the last ``validation_groups`` groups of
 the set are held out, the network's outputs on them go through the same decoding as any
 prediction and one-to-one scoring (`score_particles`); the decoding settings (threshold, and for
-``focus`` the axial suppression radius) are chosen there, with the best epoch (by JI, then ER).
+``focus`` the axial suppression radius) are chosen there, with the best epoch (by its peak JI,
+then ER; the threshold kept is the peak's upper edge within a standard error, `_formulations`).
 
 Files written (all atomically, so a stop or a crash never leaves a broken one):
 
