@@ -24,8 +24,14 @@ seed 0) and the microscope recipe's epochs 1, 2 and 3 (training seed 0) — elev
 test set) pairs. The kept rule is adopted when its JI is higher than the peak rule's in more
 pairs than it is lower, and lower by more than 0.02 in none.
 
-    python benchmarks/bench_threshold_transfer.py --work /tmp/threshold-transfer \\
-        --lensless DEMO_DATA E4.pt E5.pt ... --microscope MICRO_DATA WORK E1.pt ... --out F.json
+The networks, every validated epoch of a training written as its own model file (``epochs``
+mode; the demo's data set is ``napari-lbs demo``'s ``data`` folder, the microscope's
+``bench_microscopy_lbs.py``'s ``data_g96``), then the scoring:
+
+    python benchmarks/bench_threshold_transfer.py epochs DEMO_DATA /tmp/demo-s1 --epochs 5 --seed 1 --validate-last 2
+    python benchmarks/bench_threshold_transfer.py epochs MICRO_DATA /tmp/micro-s0 --epochs 3 --seed 0
+    python benchmarks/bench_threshold_transfer.py score --work /tmp/threshold-transfer \\
+        --lensless DEMO_DATA E4.pt E5.pt ... --microscope MICRO_DATA E1.pt ... --out F.json
 """
 
 from __future__ import annotations
@@ -52,14 +58,58 @@ def validated(model: Path, data: Path) -> dict:
     from napari_lbs._core import TrainingSettings, load_model, open_dataset
     from napari_lbs._core.learning import _formulations
 
+    from napari_lbs._core.learning._training import split_groups
+
     loaded = load_model(model)
     dataset = open_dataset(data)
-    groups = list(dataset.groups)
-    validation = groups[-max(1, len(groups) // 8):]
+    training, validation = split_groups(dataset, validation_groups=loaded.meta["settings"]["validation_groups"])
     settings = TrainingSettings(context=tuple(loaded.meta["context"]))
-    formulation = _formulations._FocusFormulation(dataset, groups[:1], settings, torch.device("cpu"))
+    formulation = _formulations._FocusFormulation(dataset, training[:1], settings, torch.device("cpu"))
     metrics = formulation.validate(loaded.network, validation, lambda: False)
     return {key: metrics[key] for key in ("threshold", "ji", "peak_threshold", "peak_ji", "axial_um")}
+
+
+def write_epoch_models(data: Path, out_dir: Path, *, epochs: int, seed: int, validate_last: int) -> list[Path]:
+    """Train as `train_model` does and write every validated epoch's network as ``epochN.pt`` (its own kept threshold in it).
+
+    `train_model` keeps one model; the network object is taken from the formulation that builds
+    it, and each validated epoch's weights are copied in the ``report`` callback (called right
+    after that epoch's validation).
+    """
+    import io
+
+    import torch
+
+    from napari_lbs._core import TrainingSettings, train_model
+    from napari_lbs._core.learning import _formulations
+
+    held, states = {}, {}
+    build = _formulations._FocusFormulation.network
+
+    def network(self):
+        held["network"] = build(self)
+        return held["network"]
+
+    def report(record: dict) -> None:
+        if "validation" in record:
+            states[record["epoch"]] = ({k: v.detach().cpu().clone() for k, v in held["network"].state_dict().items()}, record["validation"])
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    kept = out_dir / "kept.pt"
+    _formulations._FocusFormulation.network = network
+    try:
+        train_model(data, kept, settings=TrainingSettings(epochs=epochs, seed=seed, device="cpu", validate_last=validate_last), force=True, report=report)
+    finally:
+        _formulations._FocusFormulation.network = build
+    payload = torch.load(kept, weights_only=True)
+    paths = []
+    for epoch, (state, validation) in sorted(states.items()):
+        meta = json.loads(payload["meta"]) | {"epoch": epoch, "threshold": validation["threshold"], "axial_um": validation["axial_um"]}
+        buffer = io.BytesIO()
+        torch.save({**payload, "state_dict": state, "meta": json.dumps(meta)}, buffer)
+        paths.append(out_dir / f"epoch{epoch}.pt")
+        paths[-1].write_bytes(buffer.getvalue())
+    return paths
 
 
 def curve(tables: list[tuple[dict, dict]], **tolerances: float) -> dict[float, dict]:
@@ -98,11 +148,23 @@ def test_sets(work: Path) -> dict[str, list[tuple[str, list[tuple[np.ndarray, di
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--work", type=Path, required=True, help="test holograms cached here")
-    parser.add_argument("--lensless", nargs="+", default=[], metavar="DATA_OR_MODEL", help="the demo's data set folder, then its models")
-    parser.add_argument("--microscope", nargs="+", default=[], metavar="DATA_OR_MODEL", help="the microscope data set folder, then its models")
-    parser.add_argument("--out", type=Path, required=True)
+    modes = parser.add_subparsers(dest="mode", required=True)
+    epochs = modes.add_parser("epochs", help="train and write every validated epoch's model")
+    epochs.add_argument("data", type=Path)
+    epochs.add_argument("out_dir", type=Path)
+    epochs.add_argument("--epochs", type=int, required=True)
+    epochs.add_argument("--seed", type=int, default=0)
+    epochs.add_argument("--validate-last", type=int, default=0)
+    score = modes.add_parser("score", help="score the models at the peak and the kept threshold")
+    score.add_argument("--work", type=Path, required=True, help="test holograms cached here")
+    score.add_argument("--lensless", nargs="+", default=[], metavar="DATA_OR_MODEL", help="the demo's data set folder, then its models")
+    score.add_argument("--microscope", nargs="+", default=[], metavar="DATA_OR_MODEL", help="the microscope data set folder, then its models")
+    score.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
+    if args.mode == "epochs":
+        for path in write_epoch_models(args.data, args.out_dir, epochs=args.epochs, seed=args.seed, validate_last=args.validate_last):
+            print(path, flush=True)
+        return
     from napari_lbs._core import predict_particles
     from napari_lbs._core.foundation import process_threads
 

@@ -768,7 +768,6 @@ def test_a_ring_fit_whose_stencil_leaves_physics_keeps_finite_parameters(monkeyp
     assert abs(float(fitted[1, 1]) - 0.5) < 0.05 and abs(float(fitted[1, 0]) - 20.0) < 0.5
 
 
-
 def test_a_singular_step_is_rejected_without_evaluating_a_nan_sphere():
     """A patch whose normal equations are not finite keeps its parameters; Lorenz–Mie theory, which refuses NaN spheres, never sees its trial."""
     from types import SimpleNamespace

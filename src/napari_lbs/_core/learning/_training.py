@@ -51,7 +51,7 @@ from napari_lbs._core.learning._formulations import _FocusFormulation, _SeedForm
 from napari_lbs._core.learning._network import PRESETS, resolve_device, save_model, weights_sha256
 from napari_lbs._core.learning._training_settings import TrainingSettings, training_precision
 
-__all__ = ["TrainingResult", "train_model"]
+__all__ = ["TrainingResult", "split_groups", "train_model"]
 
 # Batch losses come to the host (one wait for the device) and are reported at most this often.
 _REPORT_S = 0.5
@@ -69,6 +69,15 @@ class TrainingResult:
     def best(self) -> dict | None:
         return self.log.get("best")
 
+
+
+def split_groups(dataset: SyntheticDataset, *, validation_groups: int = 0) -> tuple[list[int], list[int]]:
+    """The data set's training and validation groups: the last ``validation_groups`` (0: an eighth, at least one) are held out."""
+    groups = list(dataset.groups)
+    n_validation = validation_groups or max(1, len(groups) // 8)
+    if len(groups) < n_validation + 1:
+        raise InputError(f"{dataset.path}: expected at least {n_validation + 1} groups (training + {n_validation} for validation), got {len(groups)}")
+    return groups[:-n_validation], groups[-n_validation:]
 
 
 def _save_state(path: Path, network, optimizer, schedule, *, epoch: int, log: dict, rng: np.random.Generator) -> None:
@@ -134,11 +143,7 @@ def train_model(
     log_path, state_path = out.with_suffix(".json"), out.with_suffix(".last.pt")
     for path in (out, log_path):
         check_target(path, force=force or resume)
-    groups = list(dataset.groups)
-    n_validation = settings.validation_groups or max(1, len(groups) // 8)
-    if len(groups) < n_validation + 1:
-        raise InputError(f"{dataset.path}: expected at least {n_validation + 1} groups (training + {n_validation} for validation), got {len(groups)}")
-    validation, training = groups[-n_validation:], groups[:-n_validation]
+    training, validation = split_groups(dataset, validation_groups=settings.validation_groups)
     config = dataset.config
     size = dataset.spec["tile_size"]
     if settings.patch_size > size:
