@@ -20,7 +20,8 @@ the frame and 10–60 µm deep, diameters uniform in 0.5–3 µm, index contrast
 `FRAMES` frames), where the pipeline was looked at; ``frozen`` (`FROZEN`, `FRAMES` frames,
 fixed before its first run); ``frozen-2`` (`FROZEN_2`, 6 frames, fixed before its first run,
 for the designs chosen after ``frozen`` had been scored); ``frozen-3`` (`FROZEN_3`, 6 frames,
-fixed before its first run, for those chosen after ``frozen-2`` had been scored).
+fixed before its first run, for those chosen after ``frozen-2`` had been scored); ``frozen-4``
+(`FROZEN_4`, 6 frames, fixed before its first run, for those chosen after ``frozen-3``).
 
 The pipeline, the public API of the commands (``napari-lbs generate / train / predict
 --refine``): `generate_dataset` of ``--groups`` groups with transparent spheres
@@ -74,7 +75,9 @@ FROZEN = {"seed": 20261128, **DESIGN}  # fixed before the frozen set's first run
 FROZEN_2 = {**DESIGN, "seed": 20261129, "frames": 6}
 # a third, fixed before its first run, for designs chosen after the second was scored
 FROZEN_3 = {**DESIGN, "seed": 20261130, "frames": 6}
-SETS = {"development": {"seed": 1, **DESIGN}, "frozen": FROZEN, "frozen-2": FROZEN_2, "frozen-3": FROZEN_3}
+# a fourth, fixed before its first run, for designs chosen after the third was scored
+FROZEN_4 = {**DESIGN, "seed": 20261201, "frames": 6}
+SETS = {"development": {"seed": 1, **DESIGN}, "frozen": FROZEN, "frozen-2": FROZEN_2, "frozen-3": FROZEN_3, "frozen-4": FROZEN_4}
 CONFIG = {"optics": {"wavelength_um": bench_microscopy.WAVELENGTH_UM, "camera_pixel_um": 6.0, "magnification": 60.0, "medium_index": bench_microscopy.N_MEDIUM},
           "volume": {"z_min_um": 5.0, "z_max_um": 65.0, "z_step_um": 0.5},
           "particles": {"diameter_min_um": 0.5, "diameter_max_um": 3.0, "per_tile": 9, "layer_step_um": 5.0},
