@@ -69,8 +69,10 @@ def validated(model: Path, data: Path) -> dict:
     return {key: metrics[key] for key in ("threshold", "ji", "peak_threshold", "peak_ji", "axial_um")}
 
 
-def write_epoch_models(data: Path, out_dir: Path, *, epochs: int, seed: int, validate_last: int) -> list[Path]:
+def write_epoch_models(data: Path, out_dir: Path, *, epochs: int, seed: int, validate_last: int, average_last: int = 0) -> list[Path]:
     """Train as `train_model` does and write every validated epoch's network as ``epochN.pt`` (its own kept threshold in it).
+
+    ``kept.pt`` is the model `train_model` keeps (with ``average_last``, the epochs' mean).
 
     `train_model` keeps one model; the network object is taken from the formulation that builds
     it, and each validated epoch's weights are copied in the ``report`` callback (called right
@@ -98,13 +100,16 @@ def write_epoch_models(data: Path, out_dir: Path, *, epochs: int, seed: int, val
     kept = out_dir / "kept.pt"
     _formulations._FocusFormulation.network = network
     try:
-        train_model(data, kept, settings=TrainingSettings(epochs=epochs, seed=seed, device="cpu", validate_last=validate_last), force=True, report=report)
+        train_model(data, kept, settings=TrainingSettings(epochs=epochs, seed=seed, device="cpu", validate_last=validate_last, average_last=average_last),
+                    force=True, report=report)
     finally:
         _formulations._FocusFormulation.network = build
     payload = torch.load(kept, weights_only=True)
     paths = []
     for epoch, (state, validation) in sorted(states.items()):
-        meta = json.loads(payload["meta"]) | {"epoch": epoch, "threshold": validation["threshold"], "axial_um": validation["axial_um"]}
+        meta = {k: v for k, v in json.loads(payload["meta"]).items() if k != "averaged_epochs"} | {
+            "epoch": epoch, "threshold": validation["threshold"], "axial_um": validation["axial_um"],
+            "validation": {k: v for k, v in validation.items() if k != "by_threshold"}}
         buffer = io.BytesIO()
         torch.save({**payload, "state_dict": state, "meta": json.dumps(meta)}, buffer)
         paths.append(out_dir / f"epoch{epoch}.pt")

@@ -209,6 +209,50 @@ def test_validating_only_the_last_epochs_trains_the_same_weights(tiny_data, tiny
     assert [r["epoch"] for r in records if "batch" not in r] == [1, 2, 3]
 
 
+def test_averaging_the_last_epochs_keeps_their_mean_with_batch_norm_measured_again(tiny_data, tiny_model, tmp_path):
+    import torch
+
+    from napari_lbs._core import TrainingSettings, load_model, train_model
+
+    settings = TrainingSettings(formulation="seed", epochs=3, batch_size=4, device="cpu", validation_groups=1, foreground_weight=20.0, average_last=2)
+    state_path = tmp_path / "mean.last.pt"
+    epoch_two = {}
+
+    def report(record):
+        if record.get("epoch") == 3 and "validation" in record:  # the state file still holds epoch 2
+            epoch_two.update(torch.load(state_path, weights_only=True)["state_dict"])
+
+    result = train_model(tiny_data, tmp_path / "mean.pt", settings=settings, report=report)
+    epoch_three = torch.load(state_path, weights_only=True)["state_dict"]
+    assert [e["train_loss"] for e in result.log["epochs"]] == [e["train_loss"] for e in tiny_model.log["epochs"]]  # the same training
+    assert result.log["average"]["epochs"] == [2, 3] and result.log["best"]["averaged_epochs"] == [2, 3]
+    kept = load_model(tmp_path / "mean.pt")
+    assert kept.meta["averaged_epochs"] == [2, 3] and kept.meta["threshold"] > 0
+    assert kept.weights_sha256 == result.log["best"]["weights_sha256"]
+    weights = kept.network.state_dict()
+    convolutions = [name for name, value in weights.items() if name.endswith("weight") and value.ndim == 4]
+    assert convolutions and not torch.equal(epoch_two[convolutions[0]], epoch_three[convolutions[0]])
+    for name in convolutions:
+        assert torch.allclose(weights[name], (epoch_two[name].double() + epoch_three[name].double()).div(2).float(), atol=1e-7)
+    # the batch norms' statistics are the mean network's own, not the epochs' mean
+    running = [name for name in weights if name.endswith("running_var")]
+    assert running and not torch.allclose(weights[running[0]], (epoch_two[running[0]] + epoch_three[running[0]]) / 2, rtol=1e-3)
+
+
+def test_averaging_resumes_to_the_same_mean_and_a_stop_keeps_the_best_epoch(tiny_data, tmp_path):
+    from napari_lbs._core import TrainingSettings, load_model, train_model
+
+    settings = TrainingSettings(formulation="seed", epochs=3, batch_size=4, device="cpu", validation_groups=1, foreground_weight=20.0, average_last=2)
+    straight = train_model(tiny_data, tmp_path / "s.pt", settings=settings)
+    batches_per_epoch = -(-5 * 3 // 4)
+    done = []
+    first = train_model(tiny_data, tmp_path / "r.pt", settings=settings, progress=lambda d, t: done.append(d), should_stop=lambda: len(done) > 2 * batches_per_epoch)
+    assert first.stopped and "average" not in first.log and "averaged_epochs" not in load_model(tmp_path / "r.pt").meta
+    resumed = train_model(tiny_data, tmp_path / "r.pt", settings=settings, resume=True)
+    assert resumed.log["average"]["epochs"] == [2, 3]
+    assert resumed.log["best"]["weights_sha256"] == straight.log["best"]["weights_sha256"]
+
+
 def _stop_after(batches: int):
     """progress and should_stop callbacks asking to stop once ``batches`` batches are done; ``asked[0]`` is when."""
     import time

@@ -187,7 +187,8 @@ def _cmd_train(args) -> None:
 
     settings = _settings(TrainingSettings, formulation=args.formulation, preset=args.preset, epochs=args.epochs, minutes=args.minutes, patience=args.patience,
                          augment=not args.no_augment, batch_size=args.batch_size, learning_rate=args.learning_rate, device=args.device, seed=args.seed,
-                         validation_groups=args.validation_groups, patch_size=args.patch_size, foreground_weight=args.foreground_weight, precision=args.precision)
+                         validation_groups=args.validation_groups, patch_size=args.patch_size, foreground_weight=args.foreground_weight, precision=args.precision,
+                         average_last=args.average_last)
     _run(pipeline.train, _checked(args, pipeline.TrainRequest(args.data, Path(args.out), settings=settings, resume=args.resume, replace=args.force)), "train", log=_summary)
 
 
@@ -325,6 +326,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--epochs", type=_integer(1), default=10)
     p.add_argument("--minutes", type=_number(0.0), default=0.0, help="stop after M minutes of training, keeping the best model so far (default: no limit)")
     p.add_argument("--patience", type=_integer(0), default=0, help="stop after this many epochs without a better validation JI (default: never)")
+    p.add_argument("--average-last", type=_integer(0), default=0, metavar="K",
+                   help="keep the mean of the last K epochs' weights instead of the best validated epoch (default 0: off)")
     p.add_argument("--batch-size", type=_integer(1), default=8)
     p.add_argument("--learning-rate", type=_number(0.0, 1.0, above=True), help="AdamW's peak rate (default: 2e-3 small, 1e-3 medium, 3e-4 paper)")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")

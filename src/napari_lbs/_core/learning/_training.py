@@ -12,11 +12,14 @@ the set are held out, the network's outputs on them go through the same decoding
 prediction and one-to-one scoring (`score_particles`); the decoding settings (threshold, and for
 ``focus`` the axial suppression radius) are chosen there, with the best epoch (by its peak JI,
 then ER; the threshold kept is the peak's upper edge within a standard error, `_formulations`).
+With ``average_last``, the kept network is instead the mean of the last epochs' weights, its
+batch-norm statistics measured again on training crops (`_measure_batch_norm`) and its decoding
+settings chosen on the same validation groups.
 
 Files written (all atomically, so a stop or a crash never leaves a broken one):
 
 ``MODEL.pt``
-    the best epoch's weights plus everything prediction needs (see `napari_lbs._core.learning._network`);
+    the best epoch's (or the epochs' mean's) weights plus everything prediction needs (see `napari_lbs._core.learning._network`);
 ``MODEL.json``
     the training log: settings, data set, per-epoch loss and validation metrics, timings;
 ``MODEL.last.pt``
@@ -55,6 +58,8 @@ __all__ = ["TrainingResult", "split_groups", "train_model"]
 
 # Batch losses come to the host (one wait for the device) and are reported at most this often.
 _REPORT_S = 0.5
+# Training crops the averaged network's batch-norm statistics are measured on (batches; at most an epoch's).
+_BATCH_NORM_BATCHES = 64
 
 
 @dataclass(frozen=True)
@@ -80,7 +85,7 @@ def split_groups(dataset: SyntheticDataset, *, validation_groups: int = 0) -> tu
     return groups[:-n_validation], groups[-n_validation:]
 
 
-def _save_state(path: Path, network, optimizer, schedule, *, epoch: int, log: dict, rng: np.random.Generator) -> None:
+def _save_state(path: Path, network, optimizer, schedule, *, epoch: int, log: dict, rng: np.random.Generator, mean: _WeightMean) -> None:
     buffer = io.BytesIO()
     torch.save({
         "state_dict": {k: v.detach().cpu() for k, v in network.state_dict().items()},
@@ -90,8 +95,72 @@ def _save_state(path: Path, network, optimizer, schedule, *, epoch: int, log: di
         "log": json.dumps(log),
         "numpy_rng": json.dumps(rng.bit_generator.state),
         "torch_rng": torch.get_rng_state(),
+        **mean.state(),
     }, buffer)
     atomic_write_bytes(path, buffer.getvalue())
+
+
+class _WeightMean:
+    """The running mean of the weights of the epochs from ``first`` on (None: no averaging)."""
+
+    def __init__(self, first: int | None) -> None:
+        self.first = first
+        self.epochs: list[int] = []
+        self.mean: dict[str, torch.Tensor] = {}
+
+    def add(self, epoch: int, network) -> None:
+        if self.first is None or epoch < self.first:
+            return
+        count = len(self.epochs)
+        for name, value in network.state_dict().items():
+            value = value.detach().cpu()
+            # floats averaged in float64 (an exact mean of a few epochs); counters kept as the latest
+            self.mean[name] = (self.mean[name] + (value.double() - self.mean[name]) / (count + 1)) if count and value.is_floating_point() else (
+                value.double() if value.is_floating_point() else value.clone())
+        self.epochs.append(epoch)
+
+    def state(self) -> dict:
+        return {"average_epochs": json.dumps(self.epochs), "average_state": self.mean} if self.epochs else {}
+
+    def restore(self, state: dict) -> None:
+        """The mean a training state carries, where its epochs all lie in this run's window (else it starts afresh)."""
+        epochs = json.loads(state.get("average_epochs", "[]"))
+        if self.first is not None and epochs and min(epochs) >= self.first and isinstance(state.get("average_state"), dict):
+            self.epochs, self.mean = [int(e) for e in epochs], dict(state["average_state"])
+
+    def network(self, formulation, device: torch.device, precision: str):
+        built = formulation.network().to(device)
+        built.precision = precision
+        reference = built.state_dict()
+        built.load_state_dict({name: value.to(reference[name].dtype) for name, value in self.mean.items()})
+        return built
+
+
+def _measure_batch_norm(network, formulation, *, seed: int, batch_size: int, batches: int, device: torch.device, stop: StopCallback) -> bool:
+    """Set ``network``'s batch-norm statistics to their means over ``batches`` training batches; False when a stop came first.
+
+    An average of weights is not an average of the activations they produce, so the running
+    statistics the epochs' batch norms kept do not fit the mean network; they are measured
+    again as `torch.optim.swa_utils.update_bn` does, on crops drawn from their own seed.
+    """
+    norms = [m for m in network.modules() if isinstance(m, torch.nn.modules.batchnorm._BatchNorm)]
+    momenta = [m.momentum for m in norms]
+    for m in norms:
+        m.reset_running_stats()
+        m.momentum = None  # a cumulative mean over the batches
+    rng = np.random.default_rng([seed, 1])
+    network.train()
+    try:
+        with torch.no_grad():
+            for _ in range(batches):
+                if stop():
+                    return False
+                network(formulation.batch(np.arange(batch_size), rng, device)[0])
+    finally:
+        for m, momentum in zip(norms, momenta, strict=True):
+            m.momentum = momentum
+        network.eval()
+    return True
 
 
 def train_model(
@@ -177,9 +246,10 @@ def train_model(
         "model": str(out),
     }
     first_epoch = 0
+    mean = _WeightMean(max(1, settings.epochs - settings.average_last + 1) if settings.average_last else None)
     if resume and state_path.is_file():
         state = load_resume_state(state_path)  # corrupt, foreign or code-carrying files are refused, naming the file
-        check_resume_matches(state, log, name=str(state_path), free=("epochs", "minutes", "patience", "validate_last"))
+        check_resume_matches(state, log, name=str(state_path), free=("epochs", "minutes", "patience", "validate_last", "average_last"))
         previous = json.loads(state["log"])
         network.load_state_dict(state["state_dict"])
         optimizer.load_state_dict(state["optimizer"])
@@ -188,6 +258,7 @@ def train_model(
         schedule.load_state_dict(state["schedule"])
         first_epoch = int(state["epoch"])
         log = previous | {"settings": log["settings"]}
+        mean.restore(state)
 
     steps = Steps((settings.epochs - first_epoch) * batches, progress=progress, should_stop=should_stop)
     meta_base = {
@@ -297,11 +368,27 @@ def train_model(
             if report is not None:
                 report(record)
             write_json(log_path, log)
-        _save_state(state_path, network, optimizer, schedule, epoch=epoch, log=log, rng=rng)
+        mean.add(epoch, network)
+        _save_state(state_path, network, optimizer, schedule, epoch=epoch, log=log, rng=rng, mean=mean)
         if out_of_patience():
             log["early_stop"] = f"no better validation JI for {settings.patience} epochs"
             break
 
+    if mean.epochs and not stopped and "early_stop" not in log and mean.epochs[-1] == settings.epochs:
+        averaged = mean.network(formulation, device, network.precision)
+        measured = _measure_batch_norm(averaged, formulation, seed=settings.seed, batch_size=settings.batch_size, batches=min(batches, _BATCH_NORM_BATCHES),
+                                       device=device, stop=steps.stop_requested)
+        validation_metrics = formulation.validate(averaged, validation, steps.stop_requested) if measured else None
+        if validation_metrics is None:  # a stop: the best validated epoch stays
+            stopped, log["stop_reason"] = True, "stopped by you"
+        else:
+            decoding = formulation.decoding(validation_metrics)
+            meta = meta_base | decoding | {"epoch": settings.epochs, "averaged_epochs": mean.epochs,
+                                           "validation": {k: v for k, v in validation_metrics.items() if k != "by_threshold"}}
+            digest = save_model(out, averaged, meta)
+            log["average"] = {"epochs": mean.epochs, "validation": validation_metrics}
+            log["best"] = {"epoch": settings.epochs, "averaged_epochs": mean.epochs, "score": [validation_metrics["peak_ji"], validation_metrics["er"]], **decoding,
+                           "sha256": digest, "weights_sha256": weights_sha256(averaged)}
     log["stopped"] = stopped
     log["seconds"] = round(time.perf_counter() - start, 2)
     log["planes_per_second"] = round(steps.done * settings.batch_size / max(batch_seconds, 1e-9), 2)

@@ -57,6 +57,16 @@ class TrainingSettings:
         Validate (and keep the best of) only the last this many epochs; 0 = every epoch. A
         validation pass costs about a fifth of an epoch, and with the cosine decay the best
         epoch is nearly always among the last.
+    average_last : int
+        Keep the mean of the last this many epochs' weights (at most all of them) instead of
+        the best validated epoch; 0 = off. The mean's batch-norm statistics are measured
+        again on training crops, and it is validated for its decoding settings like an
+        epoch. Averaging the end of a training finds a flatter optimum that generalises
+        better (stochastic weight averaging: Izmailov et al., UAI 2018): epochs that
+        synthetic validation cannot tell apart transfer very differently to holograms of
+        another forward model, and their mean transfers better than the epoch validation
+        picks (docs/learning.md). It needs the planned epochs: a stop, the ``minutes``
+        budget or ``patience`` keeps the best validated epoch.
     precision : {"float32", "auto", "bfloat16"}
         The network's arithmetic (`training_precision`: ``auto`` is bfloat16 on a CUDA GPU that
         has it natively and float32 on a CPU). Training in bfloat16 ran 1.6x faster per
@@ -86,6 +96,7 @@ class TrainingSettings:
     minutes: float = 0.0
     patience: int = 0
     validate_last: int = 0
+    average_last: int = 0
     augment: bool = True
     diameter_weight: float = 4.0
     precision: str = "float32"
@@ -106,8 +117,8 @@ class TrainingSettings:
             raise InputError(f"diameter_weight: expected a value in (0, 1000), got {self.diameter_weight}")
         if self.foreground_weight < 1:
             raise InputError(f"foreground_weight: expected >= 1, got {self.foreground_weight}")
-        if self.minutes < 0 or self.patience < 0 or self.validate_last < 0:
-            raise InputError(f"minutes / patience / validate_last: expected >= 0, got {self.minutes} / {self.patience} / {self.validate_last}")
+        if self.minutes < 0 or self.patience < 0 or self.validate_last < 0 or self.average_last < 0:
+            raise InputError(f"minutes / patience / validate_last / average_last: expected >= 0, got {self.minutes} / {self.patience} / {self.validate_last} / {self.average_last}")
         FocusSpec(context=tuple(self.context))
         training_precision(self.precision, resolve_device(self.device))
 
