@@ -36,7 +36,9 @@ class TrainingWidget(StepWidget):
         self.foreground_weight = FloatSpinBox(label="foreground weight (seed)", name="foreground_weight", value=30.0, min=1.0, max=1000.0, tooltip=tip("foreground_weight"))
         self.patch = SpinBox(label="patch px (0: tile)", name="patch", value=0, min=0, max=8192, tooltip=tip("patch_size"))
         self.seed = SpinBox(label="seed", name="seed", value=0, min=0, max=2**31 - 1, tooltip=tip("seed"))
-        super().__init__(napari_viewer, [self.data, self.output, self.formulation, self.preset, self.epochs, self.minutes, self.learning_rate, self.device, self.foreground_weight, self.patch, self.seed])
+        self.average_last = SpinBox(label="average last epochs (0: best)", name="average_last", value=0, min=0, max=10000, tooltip=tip("average_last"))
+        super().__init__(napari_viewer, [self.data, self.output, self.formulation, self.preset, self.epochs, self.minutes, self.learning_rate, self.device, self.foreground_weight,
+                                         self.patch, self.seed, self.average_last])
         self._plot = LossPlot()
         self.add_view(self._plot.canvas)
         self.result = None
@@ -67,6 +69,7 @@ class TrainingWidget(StepWidget):
             foreground_weight=self.foreground_weight.value,
             patch_size=self.patch.value,
             seed=self.seed.value,
+            average_last=self.average_last.value,
         )
         request = TrainRequest(Path(self.data.value), Path(self.output.value), settings=settings)
         # the model, its log and resume state are replaced only once `caution` is confirmed
@@ -85,4 +88,5 @@ class TrainingWidget(StepWidget):
         self.result = result
         best = result.log["best"]
         ended = f" ({result.log['stop_reason']})" if result.stopped else ""
-        self.done(f"best epoch {best['epoch']}: validation JI {best['score'][0]:.3f}, ER {100 * best['score'][1]:.1f} %{ended} → {result.model_path.name}", result.model_path)
+        kept = f"mean of epochs {best['averaged_epochs'][0]}–{best['averaged_epochs'][-1]}" if best.get("averaged_epochs") else f"best epoch {best['epoch']}"
+        self.done(f"{kept}: validation JI {best['score'][0]:.3f}, ER {100 * best['score'][1]:.1f} %{ended} → {result.model_path.name}", result.model_path)
