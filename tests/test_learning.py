@@ -239,6 +239,17 @@ def test_averaging_the_last_epochs_keeps_their_mean_with_batch_norm_measured_aga
     assert running and not torch.allclose(weights[running[0]], (epoch_two[running[0]] + epoch_three[running[0]]) / 2, rtol=1e-3)
 
 
+def test_a_negative_average_is_refused_naming_it(tmp_path):
+    from napari_lbs._cli import main
+    from napari_lbs._core import InputError, TrainingSettings
+
+    with pytest.raises(InputError, match="average_last: expected >= 0"):
+        TrainingSettings(average_last=-1)
+    with pytest.raises(SystemExit) as exit_info:
+        main(["train", str(tmp_path), "--out", str(tmp_path / "m.pt"), "--average-last", "-1"])
+    assert exit_info.value.code == 2
+
+
 def test_averaging_resumes_to_the_same_mean_and_a_stop_keeps_the_best_epoch(tiny_data, tmp_path):
     from napari_lbs._core import TrainingSettings, load_model, train_model
 
