@@ -18,7 +18,8 @@ Modes:
 * ``pseudo``: holograms of an independent forward model (`pseudoreal.mie_intensity`,
   pylorenzmie) of 60 spheres of 20–30 µm, polystyrene (n 1.59, contrast 0.26 in water) and
   n 1.45 (0.12), unblurred and blurred by 1.03 px, through `pseudoreal.camera` (photons, 8 bits),
-  read with the spheres' true places;
+  read with the spheres' true places, and for polystyrene through the blur once more with the
+  rendered table's depths and diameters off by a fit's errors (σ 5 µm and 0.5 µm);
 * ``real``: the built-in hologram with a table of its spheres (``--table``: e.g. the
   ``particles.csv`` of ``napari-lbs demo``; the spheres of 20–30 µm are read, every sphere of
   15 µm or more is rendered).
@@ -117,6 +118,21 @@ def pseudo(config) -> list[dict]:
                    "seconds": round(time.perf_counter() - started, 1)}
             rows.append(row)
             print(f"{name}, blur {blur}: read {row['best']} ({row['bootstrap_share']}), {row['spheres']} spheres", flush=True)
+            if index is None and blur:
+                rows += perturbed(frame, table, config, blur_px=blur)
+    return rows
+
+
+def perturbed(frame: np.ndarray, table, config, *, blur_px: float) -> list[dict]:
+    """Readings with the rendered table's depths and diameters off by a fit's errors (normal, σ as given), the frame unchanged."""
+    rows = []
+    for z_sd_um, d_sd_um in ((5.0, 0.0), (0.0, 0.5), (10.0, 0.5)):
+        errors = np.random.default_rng(3)
+        fitted = table.assign(z_um=table["z_um"] + errors.normal(0.0, z_sd_um, len(table)), diameter_um=table["diameter_um"] + errors.normal(0.0, d_sd_um, len(table)))
+        row = {"frame": "polystyrene (contrast 0.26), rendered table perturbed", "camera_blur_px": blur_px, "z_sd_um": z_sd_um, "diameter_sd_um": d_sd_um,
+               **reading(frame, rendered_materials(frame.shape, fitted, config), inside(fitted, frame.shape, config), config, blurs_px=(blur_px,))}
+        rows.append(row)
+        print(f"  table off by z σ {z_sd_um} µm, d σ {d_sd_um} µm: read {row['best']} ({row['bootstrap_share']})", flush=True)
     return rows
 
 
