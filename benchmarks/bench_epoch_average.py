@@ -55,33 +55,10 @@ def validated_epoch(run: Path) -> Path:
     return best
 
 
-def test_sets(work: Path) -> dict[str, list[tuple[str, list[tuple[np.ndarray, dict]], dict]]]:
-    """Per setup: (name, [(hologram, truth)], tolerances)."""
-    import bench_microscopy_lbs
-    import bench_pseudoreal
-
-    from napari_lbs._core import read_hologram, read_particles
-
-    lensless_dir = work / "lensless"
-    lensless_dir.mkdir(parents=True, exist_ok=True)
-    count = bench_pseudoreal.DENSITIES["real density"]
-    lensless = [
-        ("real density", [bench_pseudoreal._hologram(lensless_dir, "real_density", count, seed=LENSLESS_SEED)], {}),
-        ("with distractors", [bench_pseudoreal._hologram(lensless_dir, "real_density_distractors", count, seed=LENSLESS_SEED, distractors=bench_pseudoreal.WITH_DISTRACTORS)], {}),
-    ]
-    frames = [(read_hologram(image), {k: np.asarray(v) for k, v in read_particles(truth).items()}) for image, truth in bench_microscopy_lbs.frames_of("frozen-4", work / "microscope")]
-    tolerances = {"lateral_tol_um": bench_microscopy_lbs.LATERAL_TOL_UM, "axial_tol_um": bench_microscopy_lbs.AXIAL_TOL_UM}
-    return {"lensless": lensless, "microscope": [("frozen-4", frames, tolerances)]}
-
-
 def scored(model: Path, data: Path, holograms: list, tolerances: dict) -> dict:
     """The model's table scored at its own kept threshold (validated again under the current code), and its best threshold on the test."""
-    from napari_lbs._core import predict_particles
-
     rule = bench_threshold_transfer.validated(model, data)
-    tables = [({k: np.asarray(v) for k, v in predict_particles(h, model, device="cpu", threshold=bench_threshold_transfer.THRESHOLDS[0]).particles.items()}, truth)
-              for h, truth in holograms]
-    by_threshold = bench_threshold_transfer.curve(tables, **tolerances)
+    by_threshold = bench_threshold_transfer.model_curve(model, holograms, tolerances)
     kept = by_threshold[round(rule["threshold"], 2)]
     best = max(by_threshold, key=lambda t: by_threshold[t]["ji"])
     return {"model": str(model), "validation": rule, "kept": kept, "best_on_test": {"threshold": best, **by_threshold[best]},
@@ -113,7 +90,7 @@ def main() -> None:
     from napari_lbs._core.foundation import process_threads
 
     load_before = os.getloadavg()
-    sets = test_sets(args.work)
+    sets = bench_threshold_transfer.test_sets(args.work, lensless_seed=LENSLESS_SEED, microscope_set="frozen-4")
     rows, higher, lower = [], 0, 0
     for setup, given in (("lensless", args.lensless), ("microscope", args.microscope)):
         if not given:

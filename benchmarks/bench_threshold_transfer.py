@@ -132,8 +132,17 @@ def curve(tables: list[tuple[dict, dict]], **tolerances: float) -> dict[float, d
     return out
 
 
-def test_sets(work: Path) -> dict[str, list[tuple[str, list[tuple[np.ndarray, dict]], dict]]]:
-    """Per setup: (name, [(hologram, truth)], tolerances)."""
+def model_curve(model: Path, holograms: list[tuple[np.ndarray, dict]], tolerances: dict) -> dict[float, dict]:
+    """`curve` of the model's tables (`predict_particles`, no refinement) made once at the decoder's floor."""
+    from napari_lbs._core import predict_particles
+
+    tables = [({k: np.asarray(v) for k, v in predict_particles(hologram, model, device="cpu", threshold=THRESHOLDS[0]).particles.items()}, truth)
+              for hologram, truth in holograms]
+    return curve(tables, **tolerances)
+
+
+def test_sets(work: Path, *, lensless_seed: int = LENSLESS_SEED, microscope_set: str = "frozen-3") -> dict[str, list[tuple[str, list[tuple[np.ndarray, dict]], dict]]]:
+    """Per setup: (name, [(hologram, truth)], tolerances): pseudo-real holograms of ``lensless_seed``, the microscope set ``microscope_set``."""
     import bench_microscopy_lbs
     import bench_pseudoreal
 
@@ -143,12 +152,12 @@ def test_sets(work: Path) -> dict[str, list[tuple[str, list[tuple[np.ndarray, di
     lensless_dir.mkdir(parents=True, exist_ok=True)
     count = bench_pseudoreal.DENSITIES["real density"]
     lensless = [
-        ("real density", [bench_pseudoreal._hologram(lensless_dir, "real_density", count, seed=LENSLESS_SEED)], {}),
-        ("with distractors", [bench_pseudoreal._hologram(lensless_dir, "real_density_distractors", count, seed=LENSLESS_SEED, distractors=bench_pseudoreal.WITH_DISTRACTORS)], {}),
+        ("real density", [bench_pseudoreal._hologram(lensless_dir, "real_density", count, seed=lensless_seed)], {}),
+        ("with distractors", [bench_pseudoreal._hologram(lensless_dir, "real_density_distractors", count, seed=lensless_seed, distractors=bench_pseudoreal.WITH_DISTRACTORS)], {}),
     ]
-    frames = [(read_hologram(image), {k: np.asarray(v) for k, v in read_particles(truth).items()}) for image, truth in bench_microscopy_lbs.frames_of("frozen-3", work / "microscope")]
+    frames = [(read_hologram(image), {k: np.asarray(v) for k, v in read_particles(truth).items()}) for image, truth in bench_microscopy_lbs.frames_of(microscope_set, work / "microscope")]
     tolerances = {"lateral_tol_um": bench_microscopy_lbs.LATERAL_TOL_UM, "axial_tol_um": bench_microscopy_lbs.AXIAL_TOL_UM}
-    return {"lensless": lensless, "microscope": [("frozen-3", frames, tolerances)]}
+    return {"lensless": lensless, "microscope": [(microscope_set, frames, tolerances)]}
 
 
 def main() -> None:
@@ -170,7 +179,6 @@ def main() -> None:
         for path in write_epoch_models(args.data, args.out_dir, epochs=args.epochs, seed=args.seed, validate_last=args.validate_last):
             print(path, flush=True)
         return
-    from napari_lbs._core import predict_particles
     from napari_lbs._core.foundation import process_threads
 
     load_before = os.getloadavg()
@@ -184,11 +192,7 @@ def main() -> None:
             rule = validated(model, data)
             for name, holograms, tolerances in sets[setup]:
                 started = time.perf_counter()
-                tables = []
-                for hologram, truth in holograms:
-                    table = predict_particles(hologram, model, device="cpu", threshold=THRESHOLDS[0]).particles
-                    tables.append(({k: np.asarray(v) for k, v in table.items()}, truth))
-                by_threshold = curve(tables, **tolerances)
+                by_threshold = model_curve(model, holograms, tolerances)
                 peak, kept = by_threshold[round(rule["peak_threshold"], 2)], by_threshold[round(rule["threshold"], 2)]
                 best = max(by_threshold, key=lambda t: by_threshold[t]["ji"])
                 better += kept["ji"] > peak["ji"]

@@ -115,8 +115,12 @@ class _WeightMean:
         for name, value in network.state_dict().items():
             value = value.detach().cpu()
             # floats averaged in float64 (an exact mean of a few epochs); counters kept as the latest
-            self.mean[name] = (self.mean[name] + (value.double() - self.mean[name]) / (count + 1)) if count and value.is_floating_point() else (
-                value.double() if value.is_floating_point() else value.clone())
+            if not value.is_floating_point():
+                self.mean[name] = value.clone()
+            elif count:
+                self.mean[name] += (value.double() - self.mean[name]) / (count + 1)
+            else:
+                self.mean[name] = value.double()
         self.epochs.append(epoch)
 
     def state(self) -> dict:
