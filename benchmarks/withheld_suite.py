@@ -42,7 +42,7 @@ judged on only: its design and seed were written and committed before its first 
 lengths, motion beside a round blur, astigmatism, pixel gain, a column pattern) likewise,
 written after the test for a blur by direction was chosen on the development sets.
 
-Run ``python benchmarks/withheld_suite.py make frozen DIR`` (or ``frozen-2`` … ``frozen-17``, ``development``,
+Run ``python benchmarks/withheld_suite.py make frozen DIR`` (or ``frozen-2`` … ``frozen-18``, ``development``,
 ``outside-development``, ``outside-frozen``, ``outside-frozen-2``) to write the holograms and ``design.json`` (a few
 minutes on 2 cores); ``bench_diagnosis.py suite DIR`` scores the catalog sets and
 ``bench_scene_diagnosis.py suite DIR`` every set, the outside ones included.
@@ -552,6 +552,35 @@ FROZEN_17 = (
     Case("crosstalk-5", 512, {"sensor_blur": {"kernel": "binomial5"}}),
 )
 
+# an eighteenth frozen set, written once the particle optics were read through focus beside
+# their fine rings' spectrum: transparent spheres of three index contrasts alone, of four
+# beside photon noise and of two behind a crosstalk, photon noise alone twice, and six effects
+# alone; the strengths drawn with the seed 20261213; committed before its first run, scored
+# once per design
+FROZEN_18_SEED = 20261213
+FROZEN_18 = (
+    Case("control-a18", 512, spheres_per_512=22, level=161, read_noise=1.3), Case("control-b18", 512, spheres_per_512=33, level=165, read_noise=1.4),
+    Case("control-c18", 512, spheres_per_512=26, level=149, read_noise=2.2), Case("control-d18", 512, spheres_per_512=22, level=152, read_noise=1.3),
+    Case("control-e18", 512, spheres_per_512=30, level=145, read_noise=1.6), Case("control-f18", 512, spheres_per_512=26, level=141, read_noise=2.4),
+    Case("index-155", 512, {"particle_phase": {"index": 1.55}}),
+    Case("index-149", 512, {"particle_phase": {"index": 1.49}}),
+    Case("index-151", 512, {"particle_phase": {"index": 1.51}}),
+    Case("index-149+photons-91", 512, {"particle_phase": {"index": 1.49}, "shot_noise": {"photons": 91.0}}),
+    Case("index-156+photons-152", 512, {"particle_phase": {"index": 1.56}, "shot_noise": {"photons": 152.0}}),
+    Case("index-151+photons-168", 512, {"particle_phase": {"index": 1.51}, "shot_noise": {"photons": 168.0}}),
+    Case("index-155+photons-163", 512, {"particle_phase": {"index": 1.55}, "shot_noise": {"photons": 163.0}}),
+    Case("index-149+crosstalk-3", 512, {"particle_phase": {"index": 1.49}, "sensor_blur": {"kernel": "binomial3"}}),
+    Case("index-149+crosstalk-5", 512, {"particle_phase": {"index": 1.49}, "sensor_blur": {"kernel": "binomial5"}}),
+    Case("photons-67", 512, {"shot_noise": {"photons": 67.0}}),
+    Case("photons-168", 512, {"shot_noise": {"photons": 168.0}}),
+    Case("vignetting", 512, {"illumination": {"falloff": 0.49, "centre": (0.64, 0.53)}}),
+    Case("etalon", 512, {"parasitic_fringes": {"etalon": 0.046, "period_px": 15.6, "angle_rad": 1.42, "phase_rad": 2.9}}),
+    Case("bits", 512, {"quantization": {"step_counts": 5}}),
+    Case("saturated", 512, {"quantization": {"step_counts": 1}}, level=205, read_noise=2.0),
+    Case("crosstalk-3", 512, {"sensor_blur": {"kernel": "binomial3"}}),
+    Case("source-disc", 512, {"coherence": {"source_mrad": 2.1}}),
+)
+
 DEVELOPMENT_SEED = 1234
 DEVELOPMENT = (
     Case("control-1", 512), Case("control-2", 512, spheres_per_512=35, level=160, read_noise=2.0), Case("control-3", 512, spheres_per_512=22, level=140, read_noise=1.2),
@@ -641,7 +670,7 @@ SUITES = {
     "frozen-10": (FROZEN_10, FROZEN_10_SEED), "frozen-11": (FROZEN_11, FROZEN_11_SEED), "frozen-12": (FROZEN_12, FROZEN_12_SEED),
     "frozen-13": (FROZEN_13, FROZEN_13_SEED), "frozen-14": (FROZEN_14, FROZEN_14_SEED),
     "frozen-15": (FROZEN_15, FROZEN_15_SEED), "frozen-16": (FROZEN_16, FROZEN_16_SEED),
-    "frozen-17": (FROZEN_17, FROZEN_17_SEED),
+    "frozen-17": (FROZEN_17, FROZEN_17_SEED), "frozen-18": (FROZEN_18, FROZEN_18_SEED),
     "development": (DEVELOPMENT, DEVELOPMENT_SEED),
     "outside-frozen": (OUTSIDE_FROZEN, OUTSIDE_FROZEN_SEED), "outside-frozen-2": (OUTSIDE_FROZEN_2, OUTSIDE_FROZEN_2_SEED),
     "outside-development": (OUTSIDE_DEVELOPMENT, OUTSIDE_DEVELOPMENT_SEED),
