@@ -70,7 +70,8 @@ def test_diagnose_writes_the_contract_report_its_figures_and_summary(diagnosed):
     # the file's levels: a converter of 6 bits at 1.6 times the mean light; the spheres: transparent, of index contrast 0.26
     assert verdict["id"] == "particle_phase+quantization"
     optics = report["particle_optics"]
-    assert optics["model"] == "transparent" and optics["index_contrast"] == 0.26 and optics["transparent_better"] == 9
+    assert optics["model"] == "transparent" and optics["index_contrast"] == 0.26 and optics["power_spectrum"]["transparent_better"] == 9
+    assert optics["through_focus"]["spheres"] == 2 and optics["through_focus"]["transparent_better"] == 2
     bits = next(e for e in effects if e["id"] == "quantization")["params"]
     assert abs(bits["bits"] - 6.0) < 0.1 and abs(bits["saturation"] - 1.6) < 0.1
     assert sum(report["posterior"].values()) == pytest.approx(1.0)

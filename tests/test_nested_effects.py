@@ -490,25 +490,52 @@ def test_scene_diagnosis_settings_refuse_what_cannot_decide(changes, culprit):
         SceneDiagnosisSettings(**changes)
 
 
-@pytest.mark.parametrize(("index_contrast", "absorption", "expected"), [(0.12, 0.0, "transparent"), (0.26, 0.0, "transparent"), (0.2, 0.5, "opaque")])
-def test_transparent_spheres_are_told_from_opaque_ones_by_their_fine_rings_spectrum(index_contrast, absorption, expected):
-    """Spheres rendered to 1 cycle per pixel with a little noise: the optics test names their optics and the index contrast of the grid's nearest model, from the places and sizes alone."""
+def _spheres_of(index_contrast: float, absorption: float, *, count: int, photons: float | None = None):
+    """``count`` spheres of 20–30 µm at 1.9–3.5 mm rendered to 1 cycle per pixel with the given optics, a little read noise or photon noise."""
     import pandas as pd
 
     from napari_lbs._core import ExperimentConfig, particle_hologram
-    from napari_lbs._core.gap._optics_power import optics_power_test
 
     config = ExperimentConfig()
     rng = np.random.default_rng(5)
-    places = pd.DataFrame({"x_um": rng.uniform(60, 500, 8), "y_um": rng.uniform(60, 500, 8), "z_um": rng.uniform(1900, 3500, 8), "diameter_um": rng.uniform(20, 30, 8)})
+    places = pd.DataFrame({"x_um": rng.uniform(60, 500, count), "y_um": rng.uniform(60, 500, count), "z_um": rng.uniform(1900, 3500, count),
+                           "diameter_um": rng.uniform(20, 30, count)})
     frame = particle_hologram((SIZE, SIZE), places.assign(index_contrast=index_contrast, absorption=absorption), config, reach_cycles_per_px=1.0)
-    frame = frame + rng.normal(0.0, 0.01, frame.shape)
-    result = optics_power_test(frame, places, config, TileSplit.of(frame.shape), index_grid=(0.12, 0.26, 0.40))
+    frame = frame + rng.normal(0.0, 0.01, frame.shape) if photons is None else rng.poisson(np.maximum(frame, 0.0) * photons) / photons
+    return frame, places, config
+
+
+@pytest.mark.parametrize(("index_contrast", "absorption", "expected"), [(0.12, 0.0, "transparent"), (0.26, 0.0, "transparent"), (0.2, 0.5, "opaque")])
+def test_transparent_spheres_are_told_from_opaque_ones_by_their_fine_rings_spectrum(index_contrast, absorption, expected):
+    """Spheres rendered to 1 cycle per pixel with a little noise: the spectrum names their optics and the index contrast of the grid's nearest model, from the places and sizes alone."""
+    from napari_lbs._core.gap._optics_power import optics_power_test
+    from napari_lbs._core.gap._particle_models import particle_models
+
+    frame, places, config = _spheres_of(index_contrast, absorption, count=8)
+    result = optics_power_test(frame, particle_models(frame.shape, places, config, index_grid=(0.12, 0.26, 0.40)), TileSplit.of(frame.shape))
     assert result["model"] == expected, result
     if expected == "transparent":
         assert result["index_contrast"] == index_contrast and abs(result["slope"][f"{index_contrast:g}"] - 1.0) < 0.2
     else:
         assert result["z"] <= -3.0 and abs(result["slope"]["opaque"] - 1.0) < 0.2
+
+
+@pytest.mark.parametrize(("index_contrast", "absorption", "expected"), [(0.12, 0.0, "transparent"), (0.26, 0.0, "transparent"), (0.2, 0.5, "opaque")])
+def test_through_focus_each_sphere_votes_for_the_optics_that_light_its_axis_under_strong_photon_noise(index_contrast, absorption, expected):
+    """Twelve spheres under 40 photons a pixel (where the fine rings' spectrum leaves opaque spheres undecided): back-propagated, each sphere's axis is bright behind a ball lens and dark behind an
+    opaque sphere, and each votes for its own optics; the nearest transparent model is the grid's nearest contrast."""
+    from napari_lbs._core.gap._particle_models import particle_models
+    from napari_lbs._core.gap._through_focus import through_focus_test
+
+    frame, places, config = _spheres_of(index_contrast, absorption, count=12, photons=40.0)
+    split = TileSplit.of(frame.shape)
+    result = through_focus_test(frame, particle_models(frame.shape, places, config, index_grid=(0.12, 0.26, 0.40)), places, config, split)
+    assert result["model"] == expected and result["spheres"] == 12, result
+    assert result["sphere_tiles"].tolist() == split.labels()[(places["y_um"] / 2.2).round().astype(int), (places["x_um"] / 2.2).round().astype(int)].tolist()
+    if expected == "transparent":
+        assert result["transparent_better"] == 12 and result["index_contrast"] == index_contrast
+    else:
+        assert result["transparent_worse"] == 12
 
 
 def _six_depths() -> Scene:

@@ -93,6 +93,20 @@ def test_a_verdict_that_names_no_particle_optics_is_sure_only_where_the_tiles_ca
     shot = {"white": False, "log10_photons": None}
     opaque = -np.ones(16)  # every tile: the opaque model predicts the fine rings better
     undecided = np.where(np.arange(16) < 9, 1.0, -1.0)  # 9 tiles for transparent, 7 for opaque: z 0.5
-    sure = verdict_probability(_decisions(selection, shot, opaque, False, None, level_z=3.0), level_z=3.0)["probability"]
-    doubtful = verdict_probability(_decisions(selection, shot, undecided, False, None, level_z=3.0), level_z=3.0)["probability"]
+    sure = verdict_probability(_decisions(selection, shot, (opaque, ()), False, None, level_z=3.0), level_z=3.0)["probability"]
+    doubtful = verdict_probability(_decisions(selection, shot, (undecided, ()), False, None, level_z=3.0), level_z=3.0)["probability"]
     assert sure > 0.99 and doubtful < 0.05, (sure, doubtful)
+
+
+def test_a_view_over_other_units_is_combined_by_stouffer_and_drawn_with_its_units_tiles():
+    """Tiles below the level (z 2.0) and 25 spheres of which 23 vote the same way (z 4.2): (2.0 + 4.2) / √2 = 4.4, above the level in most draws;
+    the spheres alone in one tile weigh as that tile does, so a draw that lightens the tile lightens them."""
+    tiles = _votes(12)  # (12 - 4) / 4 = 2.0
+    spheres = np.where(np.arange(25) < 23, 1.0, -1.0)
+    spread = np.arange(25) % 16  # every tile holds a sphere or two
+    combined = verdict_probability([Decision("optics", tiles, 1, needs_gain=False, three_way=True, views=((spheres, spread),))], level_z=3.0)
+    alone = verdict_probability([Decision("optics", tiles, 1, needs_gain=False, three_way=True)], level_z=3.0)
+    assert alone["probability"] < 0.2 and combined["probability"] > 0.8
+    # the same votes piled into one tile: the draws that weigh that tile down take the spheres' z with it
+    piled = verdict_probability([Decision("optics", tiles, 1, needs_gain=False, three_way=True, views=((spheres, np.zeros(25, int)),))], level_z=3.0)
+    assert piled["probability"] < combined["probability"] - 0.2

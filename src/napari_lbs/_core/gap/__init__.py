@@ -8,8 +8,12 @@ One concern per module:
     `TileSplit`, `whittle_loglik`, `model_probabilities`: the held-out likelihood of a frame's model, tile by tile.
 `_nested`
     `select_effects`: the catalog's camera effects as nested models of the frame, forward selection.
+`_particle_models`
+    `particle_models`: the scene's particles rendered as opaque spheres and as transparent ones, for the optics tests.
 `_optics_power`
     `optics_power_test`: opaque against transparent spheres by the power spectrum of their fine rings.
+`_through_focus`
+    `through_focus_test`: opaque against transparent spheres by the light on each sphere's axis, back-propagated through its depth.
 `_levels`
     `levels_test`: quantization and saturation read from the levels a frame of integer counts uses.
 `_scene_diagnosis`

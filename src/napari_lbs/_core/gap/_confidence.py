@@ -41,7 +41,11 @@ class Decision:
     its place is decided at a z of 2). ``gate``: for a test taken only where a condition on
     the same tiles holds (photon noise, only where its slope reads white), the condition on
     each draw: ``gate(weights)`` is a (draws,) bool array, and the effect is taken on a draw
-    where both the sign test and the gate hold.
+    where both the sign test and the gate hold. ``views``: further sign tests of the same
+    question over other units (the particles' optics through focus votes sphere by sphere),
+    each ``(votes, tile of each vote)``; a unit takes its tile's weight, and the decision's z
+    is the views' z summed with the tiles' and divided by the root of their number
+    (Stouffer's combination of independent tests).
     """
 
     name: str
@@ -51,16 +55,28 @@ class Decision:
     three_way: bool = False
     level_z: float | None = None
     gate: Callable[[np.ndarray], np.ndarray] | None = None
+    views: tuple[tuple[np.ndarray, np.ndarray], ...] = ()
+
+
+def _sign_z(votes: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Each draw's sign-test z of ``votes`` (one per tile, or one per unit with its tile's weight: ``weights`` (draws, votes))."""
+    gaining = weights.shape[1] * weights @ (votes > 0)  # each vote weighted by its tile's draw, one vote apiece on even weights
+    losing = weights.shape[1] * weights @ (votes < 0)
+    either = gaining + losing
+    return np.divide(gaining - losing, np.sqrt(either), out=np.zeros_like(either), where=either > 0)
 
 
 def _outcomes(decision: Decision, weights: np.ndarray, level_z: float) -> np.ndarray:
     """Each draw's outcome of ``decision`` (+1, 0, −1) at ``level_z``, the tiles weighted by each row of ``weights``."""
     differences = np.asarray(decision.differences, dtype=np.float64)
-    tiles = differences.size
-    gaining = tiles * weights @ (differences > 0)  # the tiles' votes, each weighted by its draw's weight
-    losing = tiles * weights @ (differences < 0)
-    either = gaining + losing
-    z = np.divide(gaining - losing, np.sqrt(either), out=np.zeros_like(either), where=either > 0)
+    z = _sign_z(differences, weights)
+    if decision.views:
+        # Stouffer's sum of the views' z: each a sign test of its own units, clustered by tile
+        tiles = weights.shape[1]
+        for votes, tile_of in decision.views:
+            # a unit's weight is its tile's, scaled so that even weights count each unit once
+            z = z + _sign_z(np.asarray(votes, np.float64), weights[:, np.asarray(tile_of, int)] * tiles / max(len(votes), 1))
+        z = z / np.sqrt(1 + len(decision.views))
     level_z = level_z if decision.level_z is None else decision.level_z
     taken = z >= level_z
     if decision.needs_gain:

@@ -35,14 +35,11 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import nnls
 
-from napari_lbs._core.foundation import ExperimentConfig, Steps
 from napari_lbs._core.gap._heldout import TileSplit, tile_spectra
-from napari_lbs._core.physics import gaussian_blur
-from napari_lbs._core.refine import RefineSettings, particle_holograms
+from napari_lbs._core.gap._particle_models import OPAQUE
 
-__all__ = ["OPAQUE_KAPPA", "optics_power_test"]
+__all__ = ["optics_power_test"]
 
-OPAQUE_KAPPA = 1.0  # an absorption length λ/(4πκ) of 0.05 µm at 660 nm: opaque for a sphere of microns
 _BAND_CYCLES_PER_PX = (0.08, 0.70)  # the fine rings' band: above the coarse rings and an envelope, to the pixel grid's corner
 _BINS = 24
 
@@ -77,31 +74,23 @@ def _design(model_power: np.ndarray, light: float, blur_transfer: np.ndarray | N
     return np.stack(columns, axis=1)
 
 
-def optics_power_test(data: np.ndarray, table, config: ExperimentConfig, split: TileSplit, *, index_grid, blur_px: float = 0.0,
-                      settings: RefineSettings | None = None, level_z: float = 3.0, steps: Steps | None = None) -> dict:
+def optics_power_test(data: np.ndarray, models: dict[str, np.ndarray], split: TileSplit, *, blur_px: float = 0.0, level_z: float = 3.0) -> dict:
     """Opaque against transparent spheres by the power spectrum each puts into the fine rings' band (module docstring).
 
     Parameters
     ----------
     data : (rows, cols) array
         The frame, unobstructed light 1.
-    table : pandas.DataFrame
-        The frame's fitted particles (``x_um, y_um, z_um, diameter_um``): only their places
-        and sizes are used, each model sets the optics.
-    config : ExperimentConfig
+    models : dict
+        The scene under each particle model (`particle_models`: ``"opaque"`` and one per
+        transparent index contrast), through the camera's blur.
     split : TileSplit
         The held-out checkerboard.
-    index_grid : sequence of float
-        Index contrasts ``n_p - n_m`` of the transparent models.
     blur_px : float
-        The camera's blur (σ, pixels) the frame's effects hold, applied to every model.
-    settings : RefineSettings, optional
-        The medium's index and the pixel integration of the renders.
+        The camera's blur (σ, pixels) the models went through: the noise's terms go through
+        it too.
     level_z : float
         The sign test's z from which transparent spheres are named.
-    steps : Steps, optional
-        Advanced by each particle rendered (under every model at once, `particle_holograms`)
-        and checked for a stop before each.
 
     Returns
     -------
@@ -111,12 +100,10 @@ def optics_power_test(data: np.ndarray, table, config: ExperimentConfig, split: 
         ``transparent_better`` and ``transparent_worse`` (tiles), ``index_contrast`` (the
         best transparent model's), ``heldout_error`` (the mean squared log ratio of the
         tiles' spectra) and ``slope`` per model (the fitted scale of its power: near 1 for
-        the model the frame holds, through its camera), ``particles``, ``band_cycles_per_px``;
+        the model the frame holds, through its camera), ``band_cycles_per_px``;
         ``tile_differences``, each tile's held-out error of the opaque model less the best
-        transparent one's, whose signs the sign test counts (`_confidence`); ``rendered``,
-        the best transparent model's frame through the camera's blur.
+        transparent one's, whose signs the sign test counts (`_confidence`).
     """
-    settings = settings or RefineSettings()
     edges = _band_edges()
     centres = 0.5 * (edges[1:] + edges[:-1])
     windows, colours = split.windows(), split.colours()
@@ -126,17 +113,8 @@ def optics_power_test(data: np.ndarray, table, config: ExperimentConfig, split: 
     light = np.array([float(data[w].mean()) for w in windows])
     # a Gaussian blur of σ passes power as exp(-(2πfσ)²)
     blur_transfer = np.exp(-((2 * np.pi * centres * blur_px) ** 2)) if blur_px > 0 else None
-    check = (lambda: bool(steps.check())) if steps is not None else None
-    heard = (lambda done, total: steps.advance()) if steps is not None else None
-    models = {"opaque": {"index_contrast": 0.0, "absorption": OPAQUE_KAPPA}}
-    models.update({f"{v:g}": {"index_contrast": float(v), "absorption": 0.0} for v in index_grid})
-    renders = particle_holograms(data.shape, table, config, materials=list(models.values()), settings=settings, reach_cycles_per_px=1.0,
-                                 progress=heard, should_stop=check)
-    errors, slopes, seen = {}, {}, {}
-    for name, rendered in zip(models, renders, strict=True):
-        if blur_px > 0:
-            rendered = gaussian_blur(rendered, blur_px)
-        seen[name] = rendered
+    errors, slopes = {}, {}
+    for name, rendered in models.items():
         predicted = _ring_powers(rendered, split, edges)[0]
         error = np.zeros(len(windows))
         fitted_slopes = []
@@ -150,15 +128,13 @@ def optics_power_test(data: np.ndarray, table, config: ExperimentConfig, split: 
                 model_power = np.maximum(_design(predicted[k], light[k], blur_transfer) @ coefficients, 1e-30)
                 error[k] = float(np.sum(weights * np.log(measured[k] / model_power) ** 2))
         errors[name], slopes[name] = error, float(np.mean(fitted_slopes))
-    transparent = [name for name in errors if name != "opaque"]
+    transparent = [name for name in errors if name != OPAQUE]
     best = min(transparent, key=lambda name: float(errors[name].mean()))
-    difference = errors["opaque"] - errors[best]  # > 0: the transparent model predicts the tile's spectrum better
+    difference = errors[OPAQUE] - errors[best]  # > 0: the transparent model predicts the tile's spectrum better
     better, worse = int(np.sum(difference > 0)), int(np.sum(difference < 0))
     z = float((better - worse) / np.sqrt(better + worse)) if better + worse else 0.0
     return {
-        "method": "power spectrum",
         "band_cycles_per_px": list(_BAND_CYCLES_PER_PX),
-        "particles": int(len(table)),
         "model": "transparent" if z >= level_z else "opaque" if z <= -level_z else "undecided",
         "z": z,
         "transparent_better": better,
@@ -167,5 +143,4 @@ def optics_power_test(data: np.ndarray, table, config: ExperimentConfig, split: 
         "index_contrast": float(best),
         "heldout_error": {name: float(e.mean()) for name, e in errors.items()},
         "slope": slopes,
-        "rendered": seen[best],
     }

@@ -170,6 +170,26 @@ def _effects_figure(report: dict, levels: SceneDiagnosisSettings):
     return figure
 
 
+def _optics_lines(optics: dict, level_z: float) -> list[str]:
+    """``report.md``'s particle optics: the decision, each view's votes and errors, the sizes."""
+    spectrum, focus = optics.get("power_spectrum") or {}, optics.get("through_focus") or {}
+    lines = [f"- {optics['particles']} of the scene's particles rendered as opaque spheres and as transparent ones, through a camera blur of "
+             f"{_text(optics.get('camera_blur_px'))} px: **{optics['model']}** (combined z {_text(optics['z'], '.2f')}; named from ±{level_z:g}).",
+             f"- Index contrast n_p − n_m {_text(optics.get('index_contrast'))} (the spectrum's best transparent model); diameter "
+             f"{_text(optics['diameter_median_um'])} µm (quartiles {_range(optics['diameter_quartiles_um'])} µm)."]
+    if spectrum:
+        lines.append(f"- Fine rings' spectrum: the transparent model predicts {spectrum['transparent_better']} held-out tiles better and "
+                     f"{spectrum['transparent_worse']} worse (z {_text(spectrum['z'], '.2f')}); mean squared log ratio (slope: near 1 for the "
+                     "model the frame holds): " + "; ".join(f"{'opaque' if name == 'opaque' else 'transparent ' + name} {_text(value)} "
+                                                           f"(slope {_text(spectrum['slope'].get(name))})" for name, value in spectrum["heldout_error"].items()) + ".")
+    if focus:
+        lines.append(f"- Through focus: {focus['transparent_better']} of {focus['spheres']} spheres within the config's sizes are nearer a "
+                     f"transparent model, {focus['transparent_worse']} nearer the opaque one (z {_text(focus['z'], '.2f')}; nearest contrast "
+                     f"{_text(focus.get('index_contrast'))}); mean summed squared difference of the axis profiles: "
+                     + "; ".join(f"{'opaque' if name == 'opaque' else 'transparent ' + name} {_text(value)}" for name, value in focus["profile_distance"].items()) + ".")
+    return lines
+
+
 def _summary(report: dict, levels: SceneDiagnosisSettings) -> list[str]:
     """``report.md``'s lines: the verdict and why, each effect, the particles' optics, what is left, what was not tested."""
     verdict, gap, optics = report["verdict"], report["gap"], report["particle_optics"]
@@ -211,17 +231,9 @@ def _summary(report: dict, levels: SceneDiagnosisSettings) -> list[str]:
         *_noise_lines(report["effects"]),
         *_blur_lines(report.get("blur_by_depth"), levels),
         *_scene_lines(report.get("scene"), levels),
-        "## Particle optics (opaque against transparent spheres, by the power spectrum of their fine rings)",
+        "## Particle optics (opaque against transparent spheres, by their fine rings' spectrum and through focus)",
         "",
-        f"- {optics['particles']} of the scene's particles rendered as opaque spheres and as transparent ones, through a camera blur of "
-        f"{_text(optics.get('camera_blur_px'))} px; the transparent model predicts the fine rings' power spectrum of {optics.get('transparent_better', '—')} "
-        f"held-out tiles better and of {optics.get('transparent_worse', '—')} worse: **{optics['model']}** (sign test z {_text(optics['z'], '.2f')}; "
-        f"named from ±{levels.level_z:g}).",
-        f"- Best transparent index contrast n_p − n_m {_text(optics.get('index_contrast'))}; diameter {_text(optics['diameter_median_um'])} µm "
-        f"(quartiles {_range(optics['diameter_quartiles_um'])} µm).",
-        "- Held-out error of the tiles' spectra, mean squared log ratio (slope: near 1 for the model the frame holds): "
-        + "; ".join(f"{'opaque' if name == 'opaque' else 'transparent ' + name} {_text(value)} (slope {_text(optics.get('slope', {}).get(name))})"
-                    for name, value in optics.get("heldout_error", {}).items()) + ".",
+        *_optics_lines(optics, levels.level_z),
         "",
         "## What is left",
         "",

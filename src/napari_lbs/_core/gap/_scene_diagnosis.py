@@ -10,12 +10,15 @@
    test over the held-out tiles' gains; then the shot-noise test on the final model.
    Coherence (a source's size) blurs each depth group of the scene by its own depth. Quantization and saturation are read from the levels the
    frame's counts use (`levels_test`).
-3. **Particle optics** (``particle_phase``, `optics_power_test`): the strongest
-   ``particles`` of the scene rendered as opaque spheres and as transparent ones at each
-   index contrast of ``index_grid``, to 1 cycle per pixel and through the camera's blur the
-   effects found; the power spectrum of their fine rings against each tile's, judged held
-   out tile by tile (a transparent sphere throws its refracted light into fine rings far
-   from its centre, at frequencies that follow its index contrast; an opaque one does not).
+3. **Particle optics** (``particle_phase``, `_optics`): the strongest ``particles`` of the
+   scene rendered as opaque spheres and as transparent ones at each index contrast of
+   ``index_grid``, to 1 cycle per pixel and through the camera's blur the effects found
+   (`particle_models`), and read two ways: the power spectrum of their fine rings against
+   each tile's, judged held out tile by tile (`optics_power_test`: a transparent sphere
+   throws its refracted light into fine rings far from its centre, at frequencies that
+   follow its index contrast; an opaque one does not), and the light on each sphere's axis
+   back-propagated through its depth (`through_focus_test`: a ball lens's focus keeps it
+   bright, an opaque sphere's shadow dark). Their sign tests' z are combined.
 4. **What is left**, tile by tile: the structured power of the held-out residual (its power
    less its white floor, the median power above ``0.35`` cycles per pixel, where neither
    particles nor structure reach after the camera's blur) over the structured power of the
@@ -51,7 +54,9 @@ from napari_lbs._core.gap._heldout import TileSplit, tile_spectra
 from napari_lbs._core.gap._levels import levels_test
 from napari_lbs._core.gap._nested import DECIDED_Z, MEAN_EFFECTS, Scene, far_ring_power, select_effects, shot_noise_test, whiteness_draws
 from napari_lbs._core.gap._optics_power import optics_power_test
+from napari_lbs._core.gap._particle_models import particle_models
 from napari_lbs._core.gap._population import scene_population
+from napari_lbs._core.gap._through_focus import through_focus_test
 from napari_lbs._core.physics import gaussian_blur
 from napari_lbs._core.refine import RefineSettings, particle_hologram, refine_particles
 
@@ -157,7 +162,14 @@ class SceneDiagnosis:
 
 
 def _optics(data: np.ndarray, table, selection, config: ExperimentConfig, split: TileSplit, settings: SceneDiagnosisSettings, progress, should_stop) -> dict:
-    """The particle optics test (`optics_power_test`) on the scene's strongest particles, through the camera's blur the effects found; their sizes."""
+    """The particles' optics on the scene's strongest particles, through the camera's blur the effects found: two views, one decision.
+
+    The fine rings' power spectrum (`optics_power_test`, a sign test over the tiles) and the
+    light on each sphere's axis through focus (`through_focus_test`, a sign test over the
+    spheres), from the same renders (`particle_models`); their z summed and divided by √2
+    (Stouffer's combination of independent tests) decides at ``level_z``. Where no sphere
+    votes through focus, the spectrum decides alone. The index contrast is the spectrum's.
+    """
     final = selection.fits["+".join(selection.chosen) or "baseline"].params
     blur_px = 0.0
     if "sensor_blur" in selection.chosen:
@@ -167,16 +179,20 @@ def _optics(data: np.ndarray, table, selection, config: ExperimentConfig, split:
         theta = float(np.mean([fit["coherence.theta_mrad"] for fit in final]))
         blur_px = float(np.hypot(blur_px, theta * 1e-3 * float(np.median(table["z_um"])) / config.optics.pixel_um))
     tested = table.iloc[: settings.particles]
-    record = {"method": "power spectrum", "particles": 0, "model": "undecided", "z": 0.0, "transparent_better": 0, "transparent_worse": 0,
-              "index_contrast": None, "heldout_error": {}, "slope": {}}
+    record = {"particles": int(len(tested)), "model": "undecided", "z": 0.0, "index_contrast": None, "camera_blur_px": blur_px}
     if len(tested):
-        begin_phase(progress, f"particle optics: {len(tested)} particles rendered as opaque and as transparent spheres")
-        steps = Steps(len(tested), progress=progress, should_stop=should_stop, heartbeat_s=0.5)
-        record = optics_power_test(data, tested, config, split, index_grid=settings.index_grid, blur_px=blur_px, settings=settings.refine,
-                                   level_z=settings.level_z, steps=steps)
+        begin_phase(progress, f"particle optics: {len(tested)} particles rendered as opaque and as transparent spheres, read by their spectrum and through focus")
+        steps = Steps(2 * len(tested), progress=progress, should_stop=should_stop, heartbeat_s=0.5)
+        models = particle_models(data.shape, tested, config, index_grid=settings.index_grid, blur_px=blur_px, settings=settings.refine, steps=steps)
+        spectrum = optics_power_test(data, models, split, blur_px=blur_px, level_z=settings.level_z)
+        focus = through_focus_test(data, models, tested, config, split, level_z=settings.level_z, steps=steps)
+        views = ((focus.pop("sphere_differences"), focus.pop("sphere_tiles")),) if focus["spheres"] else ()
+        z = (spectrum["z"] + focus["z"]) / np.sqrt(2.0) if views else spectrum["z"]
+        record.update({"model": "transparent" if z >= settings.level_z else "opaque" if z <= -settings.level_z else "undecided", "z": float(z),
+                       "index_contrast": spectrum["index_contrast"], "power_spectrum": spectrum, "through_focus": focus,
+                       "votes": (spectrum.pop("tile_differences"), views), "rendered": models[f"{spectrum['index_contrast']:g}"]})
     diameters = tested["diameter_um"].to_numpy(np.float64)
-    record.update({"camera_blur_px": blur_px,
-                   "diameter_median_um": float(np.median(diameters)) if diameters.size else None,
+    record.update({"diameter_median_um": float(np.median(diameters)) if diameters.size else None,
                    "diameter_quartiles_um": np.percentile(diameters, [25, 75]).tolist() if diameters.size else None})
     return record
 
@@ -230,7 +246,8 @@ def _decisions(selection, shot: dict, optics_votes, phase_selected: bool, blur_p
         # a verdict that does not name the particles' optics claims the simulator's opaque
         # particles: where the optics test left them undecided, that claim holds only on the
         # draws where the tiles call them opaque
-        decisions.append(Decision("particle_phase", optics_votes, 1 if phase_selected else -1, needs_gain=False, three_way=True))
+        tiles, views = optics_votes
+        decisions.append(Decision("particle_phase", tiles, 1 if phase_selected else -1, needs_gain=False, three_way=True, views=views))
     return decisions
 
 
@@ -501,7 +518,7 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
     selection, blur_profile = attribute_blur(data, scene, split, selection, level_z=settings.level_z, check=steps.check)
     steps.advance()
     optics = _optics(data, table, selection, config, split, settings, progress, should_stop)
-    optics_votes = optics.pop("tile_differences", None)  # each tile's vote, for the verdict's probability
+    optics_votes = optics.pop("votes", None)  # each tile's and each sphere's vote, for the verdict's probability
     rendered = optics.pop("rendered", None)
     if optics["model"] == "transparent":
         # the named spheres' far rings, which the fitted scene does not render, stay in the
@@ -566,8 +583,9 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
                     "reason": (f"selected by held-out gain (z >= {settings.level_z:g}): {', '.join(n for n in named if n != 'quantization') or 'nothing'}"
                                + ("; quantization or saturation read from the frame's levels" if levels["selected"] else "")
                                + (f"; undecided between {between}" if between else "")
-                               + (f"; particle optics undecided (z {optics['z']:.1f}: transparent and opaque spheres predict the held-out tiles "
-                                  f"about as well)" if optics["model"] == "undecided" and optics["particles"] else "") + f"; {left}")},
+                               + (f"; particle optics undecided (z {optics['z']:.1f}: neither the fine rings' spectrum nor the light on the spheres' "
+                                  f"axes through focus tells transparent spheres from opaque ones)" if optics["model"] == "undecided" and optics["particles"] else "")
+                               + f"; {left}")},
         "posterior": posterior,
         "confidence": confidence["decisions"],
         "particle_optics": optics,
