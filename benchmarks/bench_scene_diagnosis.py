@@ -49,6 +49,7 @@ def _case_line(name: str, report: dict, seconds: float) -> dict:
         "directional_blur": {k: round(float(v), 3) for k, v in report["gap"].get("directional_blur", {}).items()},
         "z": {k: (None if v["z"] is None else round(float(v["z"]), 2)) for k, v in effects.items()},
         "particles": report["gap"]["particles"],
+        "optics": _optics_line(report["particle_optics"]),
         "levels": {k: _rounded(v) for k, v in effects["quantization"].get("levels", {}).items()},
         "photon_band_ratios": [_rounded(v) for v in effects["shot_noise"].get("band_ratios", [])],
         "photon_noise_blur_px": _rounded(effects["shot_noise"].get("noise_blur_px")),
@@ -56,6 +57,13 @@ def _case_line(name: str, report: dict, seconds: float) -> dict:
                    for k, v in effects.items() if v["params"]},
         "seconds": round(seconds, 1),
     }
+
+
+def _optics_line(optics: dict) -> dict:
+    """The particle optics' call, its combined z and each view's z and index contrast."""
+    views = {name: {"z": _rounded(optics[name]["z"]), "index_contrast": optics[name].get("index_contrast")}
+             for name in ("power_spectrum", "through_focus") if name in optics}
+    return {"model": optics["model"], "z": _rounded(optics["z"]), "index_contrast": optics.get("index_contrast"), **views}
 
 
 def _rounded(value) -> float | None:
