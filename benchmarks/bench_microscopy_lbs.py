@@ -125,28 +125,41 @@ def frames_of(which: str, work: Path) -> list[tuple[Path, Path]]:
     return paths
 
 
-def trained_model(work: Path, *, groups: int, epochs: int, margin_px: int = 0, average_last: int = 0) -> tuple[Path, dict]:
+def log_uniform_sizes():
+    """Diameters uniform in their logarithm over the config's 0.5–3 µm: 39 % below 1 µm, where a uniform draw puts 20 %."""
+    from napari_lbs._core.physics import SizeDistribution
+
+    low, high = CONFIG["particles"]["diameter_min_um"], CONFIG["particles"]["diameter_max_um"]
+    levels = tuple(float(p) for p in np.linspace(0.05, 0.95, 19))
+    return SizeDistribution(levels, tuple(float(low * (high / low) ** p) for p in levels))
+
+
+def trained_model(work: Path, *, groups: int, epochs: int, margin_px: int = 0, average_last: int = 0, sizes: str = "uniform") -> tuple[Path, dict]:
     """The model trained on the microscope config's synthetic data (made where missing) and what making it cost (s).
 
     ``margin_px``: each group simulated with unlabelled spheres in a margin of that many pixels
     around its window (``generate --neighbours-margin-px``), as a window of a larger frame is.
     ``average_last``: keep the mean of the last epochs' weights (``train --average-last``).
+    ``sizes``: ``"uniform"`` over the config's diameters, or ``"log-uniform"`` (`log_uniform_sizes`).
     """
     from napari_lbs._core import Distractors, ExperimentConfig, TrainingSettings, generate_dataset, train_model
 
     margin = f"_m{margin_px}" if margin_px else ""
     mean = f"_a{average_last}" if average_last else ""
-    model = work / f"model_g{groups}_e{epochs}{margin}{mean}.pt"
+    drawn = "_logd" if sizes == "log-uniform" else ""
+    model = work / f"model_g{groups}_e{epochs}{margin}{mean}{drawn}.pt"
     costs_path = model.with_suffix(".costs.json")
     if costs_path.is_file():  # written once the training finished
         return model, json.loads(costs_path.read_text())
     config = ExperimentConfig.from_dict(CONFIG)
     started = time.perf_counter()
-    dataset = generate_dataset(work / f"data_g{groups}{margin}", config, groups=groups, effects=EFFECTS, seed=0, distractors=Distractors(neighbours_margin_px=margin_px))
+    dataset = generate_dataset(work / f"data_g{groups}{margin}{drawn}", config, groups=groups, effects=EFFECTS, seed=0, distractors=Distractors(neighbours_margin_px=margin_px),
+                               sizes=log_uniform_sizes() if sizes == "log-uniform" else None)
     generate_s = time.perf_counter() - started
     started = time.perf_counter()
     log = train_model(dataset, model, settings=TrainingSettings(epochs=epochs, seed=0, device="cpu", average_last=average_last), force=True).log
     costs = {"generate_s": generate_s, "train_s": time.perf_counter() - started, "groups": groups, "epochs": epochs, "neighbours_margin_px": margin_px, "average_last": average_last,
+             "sizes": sizes,
              "best_epoch": log["best"]["epoch"], "averaged_epochs": log["best"].get("averaged_epochs"),
              "validation": log["average"]["validation"] if "average" in log else next(e for e in log["epochs"] if e["epoch"] == log["best"]["epoch"])["validation"]}
     costs_path.write_text(json.dumps(costs, indent=1, default=float) + "\n")
@@ -166,7 +179,7 @@ def matched_errors(pred: dict, truth: dict) -> dict:
     return errors
 
 
-def run(which: str, work: Path, *, groups: int, epochs: int, margin_px: int = 0, average_last: int = 0) -> dict:
+def run(which: str, work: Path, *, groups: int, epochs: int, margin_px: int = 0, average_last: int = 0, sizes: str = "uniform") -> dict:
     import pandas as pd
 
     from napari_lbs._core import predict_particles, read_hologram, read_particles, score_particles
@@ -174,7 +187,7 @@ def run(which: str, work: Path, *, groups: int, epochs: int, margin_px: int = 0,
 
     load_before = os.getloadavg()
     frames = frames_of(which, work)
-    model, costs = trained_model(work, groups=groups, epochs=epochs, margin_px=margin_px, average_last=average_last)
+    model, costs = trained_model(work, groups=groups, epochs=epochs, margin_px=margin_px, average_last=average_last, sizes=sizes)
     rows, tables = [], {"network": [], "refined": []}
     for image, truth_path in frames:
         truth = {name: np.asarray(values) for name, values in read_particles(truth_path).items()}
@@ -220,6 +233,7 @@ def main() -> None:
     parser.add_argument("--epochs", type=int, default=3, help="training epochs (default 3)")
     parser.add_argument("--neighbours-margin-px", type=int, default=0, help="unlabelled spheres in this margin around each training window (default 0)")
     parser.add_argument("--average-last", type=int, default=0, help="keep the mean of the last K epochs' weights (default 0: the best validated epoch)")
+    parser.add_argument("--sizes", choices=("uniform", "log-uniform"), default="uniform", help="the training spheres' diameters over 0.5-3 um (default uniform)")
     parser.add_argument("--threads", type=int, default=1, help="threads of torch, the FFTs and the fits (default 1)")
     args = parser.parse_args()
     os.environ["NAPARI_LBS_THREADS"] = str(args.threads)
@@ -228,7 +242,7 @@ def main() -> None:
     size_threads(args.threads)
     load = os.getloadavg()
     print(f"load average before: {load[0]:.2f} ({'idle' if load[0] < 0.5 else 'loaded'} machine of {os.cpu_count()} cores)", flush=True)
-    result = run(args.set, args.work, groups=args.groups, epochs=args.epochs, margin_px=args.neighbours_margin_px, average_last=args.average_last)
+    result = run(args.set, args.work, groups=args.groups, epochs=args.epochs, margin_px=args.neighbours_margin_px, average_last=args.average_last, sizes=args.sizes)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1, default=float) + "\n")
     load = os.getloadavg()
