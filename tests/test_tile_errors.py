@@ -38,3 +38,13 @@ def test_a_parameter_on_a_bound_has_no_error_and_a_direction_nothing_constrains_
     flat = np.concatenate([design, np.zeros((design.shape[0], 1))], axis=1)
     assert np.isnan(clustered_errors(-flat, y, labels)[2])
     assert np.all(np.isnan(clustered_errors(-design, y, np.zeros_like(labels))))  # one tile cannot tell its own spread
+
+
+def test_two_readings_of_a_phase_either_side_of_its_wrap_average_to_the_wrap_not_to_zero():
+    """A fringe's phase near π reads 3.10 on one colour and −3.12 on the other: the mean is π − 0.01 and its error half their 0.06 apart, not 0 ± 3.1."""
+    from napari_lbs._core.gap._tile_errors import mean_of_halves
+
+    mean, error = mean_of_halves([3.10, -3.12], [0.01, 0.01], period=2 * np.pi)
+    assert mean == pytest.approx(np.pi - 0.01, abs=1e-9) and error == pytest.approx(0.5 * (2 * np.pi - 6.22), abs=1e-9)
+    # away from the wrap a period changes nothing
+    assert mean_of_halves([1.0, 1.2], [0.1, 0.1], period=2 * np.pi) == pytest.approx(mean_of_halves([1.0, 1.2], [0.1, 0.1]))

@@ -137,7 +137,8 @@ class FrameFit:
         The two colours' tiles are disjoint halves of the frame, so their fits are two
         independent measurements.
         """
-        return mean_of_halves([params[name] for params in self.params], [errors.get(name, np.nan) for errors in self.errors])
+        return mean_of_halves([params[name] for params in self.params], [errors.get(name, np.nan) for errors in self.errors],
+                              period=2 * np.pi if name.endswith("phase_rad") else None)
 
 
 @dataclass(frozen=True)

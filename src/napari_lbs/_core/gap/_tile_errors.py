@@ -72,12 +72,20 @@ def clustered_errors(jacobian: np.ndarray, residuals: np.ndarray, clusters: np.n
     return errors
 
 
-def mean_of_halves(values, errors) -> tuple[float, float]:
+def mean_of_halves(values, errors, *, period: float | None = None) -> tuple[float, float]:
     """The mean of two independent measurements (the two colours' fits) and its standard error.
 
     Half their errors' quadrature sum, scaled up where the two disagree by more than that
     (the Particle Data Group's scale factor ``S = √(χ² / (N - 1))`` for N = 2): never below
-    half their difference. NaN where either has no error.
+    half their difference. NaN where either has no error. ``period``: the measurements are
+    angles of that period (a fringe's phase, 2π): the second is taken within half a period of
+    the first, and the mean wrapped into ``(-period/2, period/2]``, so that two readings
+    either side of the wrap (3.1 and −3.1 rad) average to π, not to 0.
     """
     first, second = (float(v) for v in values)
+    if period is not None and np.isfinite(first) and np.isfinite(second):
+        second = first + (second - first + 0.5 * period) % period - 0.5 * period
+        mean = float(np.mean([first, second]))
+        mean = 0.5 * period - (0.5 * period - mean) % period
+        return mean, float(0.5 * max(np.hypot(*errors), abs(first - second)))
     return float(np.mean([first, second])), float(0.5 * max(np.hypot(*errors), abs(first - second)))
