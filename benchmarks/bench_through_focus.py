@@ -47,20 +47,13 @@ CONTRASTS = (None, 0.06, 0.12, 0.16, 0.19, 0.22, 0.26, 0.30, 0.33, 0.40)  # None
 
 
 def profiles(hologram: np.ndarray, table, config) -> np.ndarray:
-    """(spheres, depths): each sphere's centre over its surroundings, back-propagated to its depth + `RELATIVE_DEPTHS_UM`."""
-    from napari_lbs._core import backpropagate
+    """(spheres, depths): each sphere's centre over its surroundings, back-propagated to its depth + `RELATIVE_DEPTHS_UM` (`axis_profile`)."""
+    from napari_lbs._core.gap._through_focus import axis_profile
 
     pixel = config.optics.pixel_um
-    out = []
-    for sphere in table.itertuples():
-        col, row = int(round(sphere.x_um / pixel)), int(round(sphere.y_um / pixel))
-        crop = hologram[row - HALF_PX:row + HALF_PX, col - HALF_PX:col + HALF_PX].astype(np.float32)
-        stack = np.asarray(backpropagate(crop, sphere.z_um + RELATIVE_DEPTHS_UM, wavelength_um=config.optics.wavelength_um, pixel_um=pixel,
-                                         medium_index=config.optics.medium_index))
-        centre = stack[:, HALF_PX - 1:HALF_PX + 2, HALF_PX - 1:HALF_PX + 2].mean((1, 2))
-        around = np.median(stack[:, HALF_PX - 35:HALF_PX + 36, HALF_PX - 35:HALF_PX + 36].reshape(len(RELATIVE_DEPTHS_UM), -1), axis=1)
-        out.append(centre / around)
-    return np.array(out)
+    padded = np.pad(hologram.astype(np.float32), HALF_PX, mode="reflect")  # the spheres read lie inside the margin: their crops are the frame's
+    return np.array([axis_profile(padded, int(round(sphere.y_um / pixel)), int(round(sphere.x_um / pixel)), sphere.z_um + RELATIVE_DEPTHS_UM, config, half_px=HALF_PX)
+                     for sphere in table.itertuples()])
 
 
 def reading(hologram: np.ndarray, rendered, read, config, *, blurs_px, seed: int = 0) -> dict:
@@ -83,11 +76,11 @@ def reading(hologram: np.ndarray, rendered, read, config, *, blurs_px, seed: int
             "profile_data_median": np.median(data, 0).round(3).tolist()}
 
 
-def rendered_materials(shape, table, config) -> np.ndarray:
-    from napari_lbs._core.refine import particle_holograms
+def rendered_materials(shape, table, config) -> list:
+    """The table rendered as each of `CONTRASTS` (``None``: opaque) to 1 cycle per pixel (`particle_models`), unblurred."""
+    from napari_lbs._core.gap._particle_models import particle_models
 
-    materials = [{"index_contrast": 0.0, "absorption": 1.0} if c is None else {"index_contrast": c, "absorption": 0.0} for c in CONTRASTS]
-    return particle_holograms(shape, table, config, materials=materials, reach_cycles_per_px=1.0)
+    return list(particle_models(shape, table, config, index_grid=[c for c in CONTRASTS if c is not None]).values())
 
 
 def inside(table, shape, config):

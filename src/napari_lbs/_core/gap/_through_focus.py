@@ -37,7 +37,7 @@ from napari_lbs._core.gap._heldout import TileSplit
 from napari_lbs._core.gap._particle_models import OPAQUE
 from napari_lbs._core.physics import backpropagate
 
-__all__ = ["RELATIVE_DEPTHS", "through_focus_test"]
+__all__ = ["RELATIVE_DEPTHS", "axis_profile", "through_focus_test"]
 
 RELATIVE_DEPTHS = np.linspace(-8.0, 4.0, 16)  # in the sphere's diameters about its depth, negative towards the sensor (the ball lens's focus)
 _HALF_PX = 128  # half the crop back-propagated about each sphere
@@ -45,13 +45,19 @@ _CENTRE_PX = 1  # the centre's half width: 3 × 3 pixels
 _AROUND_PX = 35  # the half width of the surroundings whose median is the profile's unit
 
 
-def _profile(padded: np.ndarray, row: int, col: int, depths_um: np.ndarray, config: ExperimentConfig) -> np.ndarray:
-    """(depths,): the centre's amplitude over its surroundings' median, the crop about ``(row, col)`` of the ``_HALF_PX``-padded frame back-propagated to ``depths_um``."""
-    crop = padded[row : row + 2 * _HALF_PX, col : col + 2 * _HALF_PX]
+def axis_profile(padded: np.ndarray, row: int, col: int, depths_um: np.ndarray, config: ExperimentConfig, *, half_px: int = _HALF_PX) -> np.ndarray:
+    """(depths,): the centre's amplitude over its surroundings' median, through focus.
+
+    ``padded``: the frame padded by ``half_px`` on every side; the crop of ``2 * half_px``
+    about the frame's pixel ``(row, col)`` is back-propagated to ``depths_um`` (the config's
+    convention), and at each depth the mean amplitude of its centre's 3 × 3 pixels is divided
+    by the median of the 71² about it.
+    """
+    crop = padded[row : row + 2 * half_px, col : col + 2 * half_px]
     stack = backpropagate(crop, depths_um, wavelength_um=config.optics.wavelength_um, pixel_um=config.optics.pixel_um,
                           medium_index=config.optics.medium_index)
-    middle = slice(_HALF_PX - _CENTRE_PX, _HALF_PX + _CENTRE_PX + 1)
-    around = slice(_HALF_PX - _AROUND_PX, _HALF_PX + _AROUND_PX + 1)
+    middle = slice(half_px - _CENTRE_PX, half_px + _CENTRE_PX + 1)
+    around = slice(half_px - _AROUND_PX, half_px + _AROUND_PX + 1)
     return stack[:, middle, middle].mean((1, 2)) / np.maximum(np.median(stack[:, around, around].reshape(len(depths_um), -1), axis=1), 1e-12)
 
 
@@ -104,7 +110,7 @@ def through_focus_test(data: np.ndarray, models: dict[str, np.ndarray], table, c
         # no closer to the sensor than one diameter (a microscope's spheres lie a few diameters from focus)
         depths = np.maximum(table["z_um"].iloc[sphere] + RELATIVE_DEPTHS * diameters[sphere], diameters[sphere])
         for name, image in padded.items():
-            profiles[name][k] = _profile(image, rows[sphere], cols[sphere], depths, config)
+            profiles[name][k] = axis_profile(image, rows[sphere], cols[sphere], depths, config)
         if steps is not None:
             steps.advance()
     measured = profiles.pop("data")
