@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Decision", "verdict_probability"]
+__all__ = ["Decision", "combined_z", "sign_z", "verdict_probability"]
 
 
 @dataclass(frozen=True)
@@ -58,25 +58,45 @@ class Decision:
     views: tuple[tuple[np.ndarray, np.ndarray], ...] = ()
 
 
-def _sign_z(votes: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """Each draw's sign-test z of ``votes`` (one per tile, or one per unit with its tile's weight: ``weights`` (draws, votes))."""
-    gaining = weights.shape[1] * weights @ (votes > 0)  # each vote weighted by its tile's draw, one vote apiece on even weights
+def sign_z(votes, weights: np.ndarray | None = None):
+    """The sign test's z of ``votes``: ``(for - against) / √(for + against)``, 0 where none votes.
+
+    ``weights``: (draws, votes), each vote's weight on each draw, summing to 1 over a draw;
+    gives the (draws,) z of each draw. Without it, the observed z (a float): every vote
+    weighs one.
+    """
+    votes = np.asarray(votes, dtype=np.float64)
+    if weights is None:  # counted, so that a z on the level is exactly on it
+        gaining, losing = int(np.sum(votes > 0)), int(np.sum(votes < 0))
+        return float((gaining - losing) / np.sqrt(gaining + losing)) if gaining + losing else 0.0
+    gaining = weights.shape[1] * weights @ (votes > 0)  # each vote weighted by its draw, one vote apiece on even weights
     losing = weights.shape[1] * weights @ (votes < 0)
     either = gaining + losing
     return np.divide(gaining - losing, np.sqrt(either), out=np.zeros_like(either), where=either > 0)
 
 
+def combined_z(differences, views=(), weights: np.ndarray | None = None):
+    """The z of a decision's sign test over the tiles and its ``views`` (`Decision`), combined by Stouffer's sum.
+
+    ``weights``: (draws, tiles), the tiles' bootstrap weights; a view's unit takes its tile's
+    weight, scaled so that even weights count each unit once. Without it, the observed z
+    (a float).
+    """
+    if weights is None:
+        return float((sign_z(differences) + sum(sign_z(votes) for votes, _ in views)) / np.sqrt(1 + len(views)))
+    z = sign_z(differences, weights)
+    if not views:
+        return z
+    tiles = weights.shape[1]
+    for votes, tile_of in views:
+        z = z + sign_z(votes, weights[:, np.asarray(tile_of, int)] * tiles / max(len(votes), 1))
+    return z / np.sqrt(1 + len(views))
+
+
 def _outcomes(decision: Decision, weights: np.ndarray, level_z: float) -> np.ndarray:
     """Each draw's outcome of ``decision`` (+1, 0, −1) at ``level_z``, the tiles weighted by each row of ``weights``."""
     differences = np.asarray(decision.differences, dtype=np.float64)
-    z = _sign_z(differences, weights)
-    if decision.views:
-        # Stouffer's sum of the views' z: each a sign test of its own units, clustered by tile
-        tiles = weights.shape[1]
-        for votes, tile_of in decision.views:
-            # a unit's weight is its tile's, scaled so that even weights count each unit once
-            z = z + _sign_z(np.asarray(votes, np.float64), weights[:, np.asarray(tile_of, int)] * tiles / max(len(votes), 1))
-        z = z / np.sqrt(1 + len(decision.views))
+    z = combined_z(differences, decision.views, weights)
     level_z = level_z if decision.level_z is None else decision.level_z
     taken = z >= level_z
     if decision.needs_gain:

@@ -43,6 +43,7 @@ from scipy import optimize
 from scipy.signal import fftconvolve
 
 from napari_lbs._core.foundation import ProgressCallback, Steps, StopCallback, Stopped, process_threads, thread_pool
+from napari_lbs._core.gap._confidence import sign_z
 from napari_lbs._core.gap._heldout import TileSplit, model_probabilities, tile_spectra, whittle_loglik
 from napari_lbs._core.gap._tile_errors import clustered_errors, mean_of_halves
 from napari_lbs._core.physics import EFFECTS, gaussian_blur, sensor_image
@@ -307,9 +308,7 @@ def _gain(better: np.ndarray, worse: np.ndarray) -> tuple[float, float]:
     still has to be positive (`select_effects`).
     """
     difference = better - worse
-    gaining, losing = int(np.sum(difference > 0)), int(np.sum(difference < 0))
-    z = (gaining - losing) / np.sqrt(gaining + losing) if gaining + losing else 0.0
-    return float(difference.sum()), float(z)
+    return float(difference.sum()), sign_z(difference)
 
 
 def _high_passed(image: np.ndarray) -> np.ndarray:

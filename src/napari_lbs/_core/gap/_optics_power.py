@@ -35,8 +35,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import nnls
 
+from napari_lbs._core.gap._confidence import sign_z
 from napari_lbs._core.gap._heldout import TileSplit, tile_spectra
-from napari_lbs._core.gap._particle_models import OPAQUE
+from napari_lbs._core.gap._particle_models import OPAQUE, optics_call
 
 __all__ = ["optics_power_test"]
 
@@ -132,10 +133,10 @@ def optics_power_test(data: np.ndarray, models: dict[str, np.ndarray], split: Ti
     best = min(transparent, key=lambda name: float(errors[name].mean()))
     difference = errors[OPAQUE] - errors[best]  # > 0: the transparent model predicts the tile's spectrum better
     better, worse = int(np.sum(difference > 0)), int(np.sum(difference < 0))
-    z = float((better - worse) / np.sqrt(better + worse)) if better + worse else 0.0
+    z = sign_z(difference)
     return {
         "band_cycles_per_px": list(_BAND_CYCLES_PER_PX),
-        "model": "transparent" if z >= level_z else "opaque" if z <= -level_z else "undecided",
+        "model": optics_call(z, level_z=level_z),
         "z": z,
         "transparent_better": better,
         "transparent_worse": worse,

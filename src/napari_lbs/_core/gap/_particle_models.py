@@ -15,10 +15,15 @@ from napari_lbs._core.foundation import ExperimentConfig, Steps
 from napari_lbs._core.physics import gaussian_blur
 from napari_lbs._core.refine import RefineSettings, particle_holograms
 
-__all__ = ["OPAQUE", "OPAQUE_KAPPA", "particle_models"]
+__all__ = ["OPAQUE", "OPAQUE_KAPPA", "optics_call", "particle_models"]
 
 OPAQUE = "opaque"  # the simulator's particle model; every other model is named by its index contrast
 OPAQUE_KAPPA = 1.0  # an absorption length λ/(4πκ) of 0.05 µm at 660 nm: opaque for a sphere of microns
+
+
+def optics_call(z: float, *, level_z: float) -> str:
+    """The particles' optics a sign test's z names: ``"transparent"`` from ``level_z``, ``"opaque"`` to ``-level_z``, else ``"undecided"``."""
+    return "transparent" if z >= level_z else "opaque" if z <= -level_z else "undecided"
 
 
 def particle_models(shape: tuple[int, int], table, config: ExperimentConfig, *, index_grid, blur_px: float = 0.0,

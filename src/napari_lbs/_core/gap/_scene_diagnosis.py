@@ -47,14 +47,14 @@ from threadpoolctl import threadpool_limits
 
 from napari_lbs._core.foundation import ExperimentConfig, InputError, ProgressCallback, Steps, StopCallback, WorkerPool, as_hologram, begin_phase, json_safe
 from napari_lbs._core.gap._blur_depth import BLUR_EFFECTS, attribute_blur
-from napari_lbs._core.gap._confidence import Decision, verdict_probability
+from napari_lbs._core.gap._confidence import Decision, combined_z, verdict_probability
 from napari_lbs._core.gap._detect import find_particles
 from napari_lbs._core.gap._directional import directional_blur_test
 from napari_lbs._core.gap._heldout import TileSplit, tile_spectra
 from napari_lbs._core.gap._levels import levels_test
 from napari_lbs._core.gap._nested import DECIDED_Z, MEAN_EFFECTS, Scene, far_ring_power, select_effects, shot_noise_test, whiteness_draws
 from napari_lbs._core.gap._optics_power import optics_power_test
-from napari_lbs._core.gap._particle_models import particle_models
+from napari_lbs._core.gap._particle_models import optics_call, particle_models
 from napari_lbs._core.gap._population import scene_population
 from napari_lbs._core.gap._through_focus import through_focus_test
 from napari_lbs._core.physics import gaussian_blur
@@ -187,8 +187,8 @@ def _optics(data: np.ndarray, table, selection, config: ExperimentConfig, split:
         spectrum = optics_power_test(data, models, split, blur_px=blur_px, level_z=settings.level_z)
         focus = through_focus_test(data, models, tested, config, split, level_z=settings.level_z, steps=steps)
         views = ((focus.pop("sphere_differences"), focus.pop("sphere_tiles")),) if focus["spheres"] else ()
-        z = (spectrum["z"] + focus["z"]) / np.sqrt(2.0) if views else spectrum["z"]
-        record.update({"model": "transparent" if z >= settings.level_z else "opaque" if z <= -settings.level_z else "undecided", "z": float(z),
+        z = combined_z(spectrum["tile_differences"], views)  # the draws' test (`_decisions`) at even weights
+        record.update({"model": optics_call(z, level_z=settings.level_z), "z": z,
                        "index_contrast": spectrum["index_contrast"], "power_spectrum": spectrum, "through_focus": focus,
                        "votes": (spectrum.pop("tile_differences"), views), "rendered": models[f"{spectrum['index_contrast']:g}"]})
     diameters = tested["diameter_um"].to_numpy(np.float64)

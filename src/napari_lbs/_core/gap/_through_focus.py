@@ -33,8 +33,9 @@ from __future__ import annotations
 import numpy as np
 
 from napari_lbs._core.foundation import ExperimentConfig, Steps
+from napari_lbs._core.gap._confidence import sign_z
 from napari_lbs._core.gap._heldout import TileSplit
-from napari_lbs._core.gap._particle_models import OPAQUE
+from napari_lbs._core.gap._particle_models import OPAQUE, optics_call
 from napari_lbs._core.physics import backpropagate
 
 __all__ = ["RELATIVE_DEPTHS", "axis_profile", "through_focus_test"]
@@ -126,9 +127,9 @@ def through_focus_test(data: np.ndarray, models: dict[str, np.ndarray], table, c
         # bounded to ±1: a sphere every model misfits (a pair fitted as one) is one vote, not its tile's
         votes[mine] = (distance[OPAQUE][mine] - distance[chosen][mine]) / np.maximum(distance[OPAQUE][mine] + distance[chosen][mine], 1e-12)
     better, worse = int(np.sum(votes > 0)), int(np.sum(votes < 0))
-    z = float((better - worse) / np.sqrt(better + worse)) if better + worse else 0.0
+    z = sign_z(votes)
     return {
-        "model": "transparent" if z >= level_z else "opaque" if z <= -level_z else "undecided",
+        "model": optics_call(z, level_z=level_z),
         "z": z,
         "transparent_better": better,
         "transparent_worse": worse,

@@ -83,9 +83,10 @@ def mean_of_halves(values, errors, *, period: float | None = None) -> tuple[floa
     either side of the wrap (3.1 and −3.1 rad) average to π, not to 0.
     """
     first, second = (float(v) for v in values)
-    if period is not None and np.isfinite(first) and np.isfinite(second):
+    turned = period is not None and np.isfinite(first) and np.isfinite(second)
+    if turned:
         second = first + (second - first + 0.5 * period) % period - 0.5 * period
-        mean = float(np.mean([first, second]))
+    mean = 0.5 * (first + second)
+    if turned:
         mean = 0.5 * period - (0.5 * period - mean) % period
-        return mean, float(0.5 * max(np.hypot(*errors), abs(first - second)))
-    return float(np.mean([first, second])), float(0.5 * max(np.hypot(*errors), abs(first - second)))
+    return float(mean), float(0.5 * max(np.hypot(*errors), abs(first - second)))
