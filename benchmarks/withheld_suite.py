@@ -581,6 +581,32 @@ FROZEN_18 = (
     Case("source-disc", 512, {"coherence": {"source_mrad": 2.1}}),
 )
 
+# a nineteenth frozen set, written once dust on a window beyond the volume was looked for as
+# a layer of grains fitted in what the frame's model leaves: dust at six distances (one, 6 mm,
+# nearer than the search's start at 1.5 times the volume's farthest depth), sparse and dense,
+# of small and large grains, dust beside photon noise and beside an envelope, five controls and
+# five other effects alone (none may be taken for dust); committed before its first run
+FROZEN_19_SEED = 20261214
+FROZEN_19 = (
+    Case("control-a19", 512, spheres_per_512=25, level=155, read_noise=1.5), Case("control-b19", 512, spheres_per_512=32, level=168, read_noise=1.9),
+    Case("control-c19", 512, spheres_per_512=22, level=142, read_noise=1.2), Case("control-d19", 512, spheres_per_512=28, level=150, read_noise=2.1),
+    Case("control-e19", 512, spheres_per_512=35, level=160, read_noise=1.4),
+    Case("dust-8mm", 512, {"parasitic_fringes": {"dust_mm": 8.0, "grains_per_mpx": 50.0, "grain_um": (10.0, 50.0)}}),
+    Case("dust-12mm-sparse", 512, {"parasitic_fringes": {"dust_mm": 12.0, "grains_per_mpx": 25.0, "grain_um": (10.0, 40.0)}}),
+    Case("dust-9mm-dense", 512, {"parasitic_fringes": {"dust_mm": 9.0, "grains_per_mpx": 90.0, "grain_um": (10.0, 40.0)}}),
+    Case("dust-14mm-large", 512, {"parasitic_fringes": {"dust_mm": 14.0, "grains_per_mpx": 40.0, "grain_um": (20.0, 80.0)}}),
+    Case("dust-20mm", 512, {"parasitic_fringes": {"dust_mm": 20.0, "grains_per_mpx": 30.0, "grain_um": (15.0, 60.0)}}),
+    Case("dust-6mm", 512, {"parasitic_fringes": {"dust_mm": 6.0, "grains_per_mpx": 50.0, "grain_um": (10.0, 50.0)}}),
+    Case("dust-11mm+photons-120", 512, {"parasitic_fringes": {"dust_mm": 11.0, "grains_per_mpx": 50.0, "grain_um": (10.0, 50.0)}, "shot_noise": {"photons": 120.0}}),
+    Case("dust-16mm+vignetting", 512, {"parasitic_fringes": {"dust_mm": 16.0, "grains_per_mpx": 40.0, "grain_um": (15.0, 60.0)},
+                                       "illumination": {"falloff": 0.45, "centre": (0.42, 0.58)}}),
+    Case("etalon", 512, {"parasitic_fringes": {"etalon": 0.045, "period_px": 14.8, "angle_rad": 0.9, "phase_rad": 1.3}}),
+    Case("vignetting", 512, {"illumination": {"falloff": 0.47, "centre": (0.57, 0.44)}}),
+    Case("crosstalk-3", 512, {"sensor_blur": {"kernel": "binomial3"}}),
+    Case("index-150", 512, {"particle_phase": {"index": 1.50}}),
+    Case("photons-100", 512, {"shot_noise": {"photons": 100.0}}),
+)
+
 DEVELOPMENT_SEED = 1234
 DEVELOPMENT = (
     Case("control-1", 512), Case("control-2", 512, spheres_per_512=35, level=160, read_noise=2.0), Case("control-3", 512, spheres_per_512=22, level=140, read_noise=1.2),
@@ -670,7 +696,7 @@ SUITES = {
     "frozen-10": (FROZEN_10, FROZEN_10_SEED), "frozen-11": (FROZEN_11, FROZEN_11_SEED), "frozen-12": (FROZEN_12, FROZEN_12_SEED),
     "frozen-13": (FROZEN_13, FROZEN_13_SEED), "frozen-14": (FROZEN_14, FROZEN_14_SEED),
     "frozen-15": (FROZEN_15, FROZEN_15_SEED), "frozen-16": (FROZEN_16, FROZEN_16_SEED),
-    "frozen-17": (FROZEN_17, FROZEN_17_SEED), "frozen-18": (FROZEN_18, FROZEN_18_SEED),
+    "frozen-17": (FROZEN_17, FROZEN_17_SEED), "frozen-18": (FROZEN_18, FROZEN_18_SEED), "frozen-19": (FROZEN_19, FROZEN_19_SEED),
     "development": (DEVELOPMENT, DEVELOPMENT_SEED),
     "outside-frozen": (OUTSIDE_FROZEN, OUTSIDE_FROZEN_SEED), "outside-frozen-2": (OUTSIDE_FROZEN_2, OUTSIDE_FROZEN_2_SEED),
     "outside-development": (OUTSIDE_DEVELOPMENT, OUTSIDE_DEVELOPMENT_SEED),
