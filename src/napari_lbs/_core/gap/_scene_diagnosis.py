@@ -28,7 +28,11 @@
    that median is at most ``structure_level``, the residual's column and row means hold no
    fixed pattern (`_line_pattern`: what a camera's column amplifiers and row read-out leave,
    the EMVA 1288 standard's check of non-uniformity) and it holds no blur that differs by
-   direction (`directional_blur_test`: a sample moving during the exposure).
+   direction (`directional_blur_test`: a sample moving during the exposure). Where it holds
+   structure, what the model leaves is searched for dust on a window beyond the volume
+   (`dust_layer`: opaque grains fitted in one plane); a layer on enough tiles is named as
+   the catalog's ``parasitic_fringes``, its grains join the scene's hologram and each
+   selected effect is judged again around them.
 5. **The scene's numbers** (`scene_population`): the fitted particles' count, density, sizes,
    depths and index contrasts, and the small scatterers: the scene's fits below the config's
    sizes and what a search at smaller sizes finds in the residual (`_small_scatterers`).
@@ -50,6 +54,7 @@ from napari_lbs._core.gap._blur_depth import BLUR_EFFECTS, attribute_blur
 from napari_lbs._core.gap._confidence import Decision, combined_z, verdict_probability
 from napari_lbs._core.gap._detect import find_particles
 from napari_lbs._core.gap._directional import directional_blur_test
+from napari_lbs._core.gap._dust_layer import LAYER_TILES, dust_layer
 from napari_lbs._core.gap._heldout import TileSplit, tile_spectra
 from napari_lbs._core.gap._levels import levels_test
 from napari_lbs._core.gap._nested import DECIDED_Z, MEAN_EFFECTS, Scene, far_ring_power, select_effects, shot_noise_test, whiteness_draws
@@ -249,6 +254,16 @@ def _decisions(selection, shot: dict, optics_votes, phase_selected: bool, blur_p
         tiles, views = optics_votes
         decisions.append(Decision("particle_phase", tiles, 1 if phase_selected else -1, needs_gain=False, three_way=True, views=views))
     return decisions
+
+
+def _dust_record(dust: dict) -> dict:
+    """The report's ``dust_layer``: the search's outcome without the fitted table (its grains listed by place, depth and size)."""
+    record = {key: value for key, value in dust.items() if key not in ("table", "tiles")}
+    if "tiles" in dust:
+        record["tiles_with_grains"] = int(np.count_nonzero(dust["tiles"]))
+    if "table" in dust:
+        record["layer_grains"] = dust["table"][["x_um", "y_um", "z_um", "diameter_um", "index_contrast", "absorption"]].to_dict("list") if len(dust["table"]) else {}
+    return record
 
 
 def _found(image: np.ndarray, config: ExperimentConfig, most: int, progress, should_stop) -> dict:
@@ -517,6 +532,26 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
     steps = Steps(1, progress=progress, should_stop=should_stop, heartbeat_s=0.5)
     selection, blur_profile = attribute_blur(data, scene, split, selection, level_z=settings.level_z, check=steps.check)
     steps.advance()
+    frame_spectra = tile_spectra(data - 1.0, split)
+    dust = {"searched": False, "named": False}
+    final = selection.fits["+".join(selection.chosen) or "baseline"]
+    if _structure(final.residuals, split, frame_spectra)[0] > settings.structure_level:
+        # what the model leaves holds structure: a dusty window's grains are looked for in it
+        begin_phase(progress, "dust on a window beyond the volume, looked for in what the model leaves")
+        dust = dust_layer(data / np.maximum(0.5 * (final.means[0] + final.means[1]), 1e-6), config, split, settings=settings.refine, pool=pool,
+                          progress=progress, should_stop=should_stop)
+        if dust["named"]:
+            # the window's rings multiply the light the particles scatter: part of the scene,
+            # and each selected effect is judged again around it (one the dust explains drops
+            # out); none is added, since what the rendered grains misfit is not the frame's
+            window = particle_hologram(data.shape, dust["table"], config, settings=settings.refine, reach_cycles_per_px=settings.reach_cycles_per_px,
+                                       should_stop=should_stop)
+            scene = replace(scene, image=scene.image * window)
+            begin_phase(progress, "the selected effects judged again, the window's dust in the scene")
+            selection = select_effects(data, scene, split, candidates=selection.chosen, level_z=settings.level_z, progress=progress, should_stop=should_stop)
+            steps = Steps(1, progress=progress, should_stop=should_stop, heartbeat_s=0.5)
+            selection, blur_profile = attribute_blur(data, scene, split, selection, level_z=settings.level_z, check=steps.check)
+            steps.advance()
     optics = _optics(data, table, selection, config, split, settings, progress, should_stop)
     optics_votes = optics.pop("votes", None)  # each tile's and each sphere's vote, for the verdict's probability
     rendered = optics.pop("rendered", None)
@@ -526,7 +561,6 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
         final_fit = selection.fits["+".join(selection.chosen) or "baseline"]
         selection = replace(selection, shot_noise=shot_noise_test(final_fit, split, nuisance=far_ring_power(rendered)))
     small = _small_scatterers(data, table, scene, config, settings, progress, should_stop, pool)
-    frame_spectra = tile_spectra(data - 1.0, split)
     baseline_share = _structure(selection.fits["baseline"].residuals, split, frame_spectra)[0]
     final = selection.fits["+".join(selection.chosen) or "baseline"]
     share, bands, tile_map, floor_variance = _structure(final.residuals, split, frame_spectra)
@@ -546,6 +580,14 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
                         "params": {name: value for name, (value, _) in estimates.items()},
                         "params_err": {name: (error if np.isfinite(error) else None) for name, (_, error) in estimates.items()},
                         "heldout_gain_nats": gain.get("gain_nats"), "z": gain.get("z"), "selected": effect in selection.chosen})
+    if dust["named"]:
+        # the catalog's dust is its static fringes' second source: named with the window's
+        # numbers, and the straight fringe's only where it was selected too
+        fringes = next(entry for entry in effects if entry["id"] == "parasitic_fringes")
+        etalon = fringes["selected"]
+        fringes.update({"selected": True, "dust_z": dust["z"],
+                        "params": {**(fringes["params"] if etalon else {}), **dust["params"]},
+                        "params_err": {**(fringes["params_err"] if etalon else {}), **{name: None for name in dust["params"]}}})
     phase_selected = bool(optics["model"] == "transparent")
     # the particles' optics and the camera's noise and levels leave the fitted mean, so the gap, as it is
     effects.append({"id": "particle_phase", "gap_after": baseline_share, "shrink": 0.0, "z": optics["z"], "selected": phase_selected,
@@ -571,8 +613,12 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
             + (f"; a blur that differs by direction, outside the catalog (motion during the exposure, astigmatism: z {directional['z']:.1f}, "
                f"{directional['variance_difference_px2']:.2f} px² more along {np.degrees(directional['angle_rad']):.0f}°)" if streaked else ""))
     posterior = {("null" if name == "baseline" else name): p for name, p in selection.probabilities.items()}
-    confidence = verdict_probability(_decisions(selection, shot, optics_votes, phase_selected, blur_profile, level_z=settings.level_z),
-                                     level_z=settings.level_z)
+    decisions = _decisions(selection, shot, optics_votes, phase_selected, blur_profile, level_z=settings.level_z)
+    if dust["searched"]:
+        # the window's grains counted by tile: named on a draw where they lie on LAYER_TILES tiles or more
+        decisions.append(Decision("parasitic_fringes: dust on a window", dust["tiles"], int(dust["named"]), needs_gain=False,
+                                  level_z=float(np.sqrt(LAYER_TILES)) - 1e-9))
+    confidence = verdict_probability(decisions, level_z=settings.level_z)
     report = {
         "method": "scene",
         "gap": {"metric": "unexplained share of the frame's structure (median over the held-out tiles)", "baseline": baseline_share, "by_band": bands,
@@ -582,6 +628,8 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
                     "residual": share, "undecided": undecided, "catalog_explains": bool(catalog_explains), "probability": confidence["probability"],
                     "reason": (f"selected by held-out gain (z >= {settings.level_z:g}): {', '.join(n for n in named if n != 'quantization') or 'nothing'}"
                                + ("; quantization or saturation read from the frame's levels" if levels["selected"] else "")
+                               + (f"; dust on a window {dust['depth_um'] / 1000:.1f} mm away: {dust['in_layer']} grains in one plane on "
+                                  f"{int(np.count_nonzero(dust['tiles']))} tiles" if dust["named"] else "")
                                + (f"; undecided between {between}" if between else "")
                                + (f"; particle optics undecided (z {optics['z']:.1f}: neither the fine rings' spectrum nor the light on the spheres' "
                                   f"axes through focus tells transparent spheres from opaque ones)" if optics["model"] == "undecided" and optics["particles"] else "")
@@ -591,6 +639,7 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
         "particle_optics": optics,
         "scene": scene_population(table, config, data.shape, small=small),
         "blur_by_depth": blur_profile,
+        "dust_layer": _dust_record(dust),
         "selection": selection.steps,
         "undecided": list(selection.undecided),
         "not_tested": _NOT_TESTED,
