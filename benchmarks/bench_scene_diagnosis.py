@@ -50,6 +50,7 @@ def _case_line(name: str, report: dict, seconds: float) -> dict:
         "z": {k: (None if v["z"] is None else round(float(v["z"]), 2)) for k, v in effects.items()},
         "particles": report["gap"]["particles"],
         "optics": _optics_line(report["particle_optics"]),
+        "dust": {k: _rounded(v) if isinstance(v, float) else v for k, v in report.get("dust_layer", {}).items() if k in ("searched", "named", "grains", "in_layer", "depth_um", "tiles_with_grains")},
         "levels": {k: _rounded(v) for k, v in effects["quantization"].get("levels", {}).items()},
         "photon_band_ratios": [_rounded(v) for v in effects["shot_noise"].get("band_ratios", [])],
         "photon_noise_blur_px": _rounded(effects["shot_noise"].get("noise_blur_px")),
