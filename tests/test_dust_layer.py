@@ -75,3 +75,22 @@ def test_a_microscope_s_rings_leave_no_depth_beyond_the_volume_to_search():
     assert dust_search_range_um(microscope) is None
     found = dust_layer(np.ones((SIZE, SIZE)), microscope, TileSplit.of((SIZE, SIZE)), settings=_settings())
     assert not found["searched"] and not found["named"]
+
+
+def test_report_md_says_where_the_dusty_window_is_and_what_its_rings_are(tmp_path):
+    import pandas as pd
+    from scene_reports import scene_report
+
+    from napari_lbs._core import SceneDiagnosis, write_report
+
+    report = scene_report("parasitic_fringes", explains=False)
+    report["dust_layer"] = {"searched": True, "named": True, "z": 2.0, "grains": 6, "in_layer": 5, "depth_um": 12345.0, "tiles_with_grains": 4,
+                            "params": {"dust_per_mpx": 20.0, "dust_zone_px": 39.4, "dust_grain_px": 6.5}, "layer_grains": {}}
+    table = pd.DataFrame({"x_um": [10.0], "y_um": [10.0], "z_um": [2000.0], "diameter_um": [25.0]})
+    write_report(SceneDiagnosis(report, np.zeros((2, 2)), table), tmp_path / "r")
+    text = (tmp_path / "r" / "report.md").read_text()
+    assert "5 of 6 significant grains lie in one plane 12.35 mm away, on 4 tiles" in text and "**named**" in text
+    assert "first Fresnel zone 39.4 px" in text
+    del report["dust_layer"]
+    write_report(SceneDiagnosis(report, np.zeros((2, 2)), table), tmp_path / "r", force=True)
+    assert "Dust on a window" not in (tmp_path / "r" / "report.md").read_text()

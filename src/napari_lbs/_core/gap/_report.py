@@ -230,6 +230,7 @@ def _summary(report: dict, levels: SceneDiagnosisSettings) -> list[str]:
         "",
         *_noise_lines(report["effects"]),
         *_blur_lines(report.get("blur_by_depth"), levels),
+        *_dust_lines(report.get("dust_layer")),
         *_scene_lines(report.get("scene"), levels),
         "## Particle optics (opaque against transparent spheres, by their fine rings' spectrum and through focus)",
         "",
@@ -316,6 +317,24 @@ def _blur_lines(profile: dict | None, levels: SceneDiagnosisSettings) -> list[st
         "| depth (mm) | σ (px), tiles of one colour | σ (px), the other |",
         "|---|---|---|",
         *[f"| {depth / 1000:.2f} | {_text(first)} | {_text(second)} |" for depth, first, second in zip(profile["depths_um"], *profile["sigma_px"], strict=True)],
+        "",
+    ]
+
+
+def _dust_lines(dust: dict | None) -> list[str]:
+    """The search for a dusty window (`dust_layer`), where it ran: the layer's grains, depth and tiles, and whether it was named."""
+    if not dust or not dust.get("searched"):
+        return []
+    if not dust.get("in_layer"):
+        return ["## Dust on a window beyond the volume", "", f"- Searched in what the model leaves: {dust.get('grains', 0)} significant grains; none named.", ""]
+    params = dust.get("params") or {}
+    return [
+        "## Dust on a window beyond the volume",
+        "",
+        f"- {dust['in_layer']} of {dust['grains']} significant grains lie in one plane {dust['depth_um'] / 1000:.2f} mm away, on "
+        f"{dust['tiles_with_grains']} tiles (named from 3): **{'named' if dust['named'] else 'not named'}**.",
+        f"- The window's rings: first Fresnel zone {_text(params.get('dust_zone_px'))} px, {_text(params.get('dust_per_mpx'))} grains a megapixel "
+        f"in the frame (grains outside it send rings in too), median radius {_text(params.get('dust_grain_px'))} px.",
         "",
     ]
 
