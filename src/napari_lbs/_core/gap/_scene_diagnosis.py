@@ -603,6 +603,8 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
                     "levels": {k: levels[k] for k in ("integer", "step_counts", "noise_share", "saturated_share", "saturation_noise_share")}})
     effects.sort(key=lambda entry: -(entry["z"] if entry["z"] is not None and np.isfinite(entry["z"]) else -np.inf))
     named = sorted([e["id"] for e in effects if e["selected"]])
+    # what the tiles' gains chose: not the converter's levels, nor a window's dust (counted by its grains' tiles)
+    gained = {e for e in named if e != "quantization" and not (e == "parasitic_fringes" and "parasitic_fringes" not in selection.chosen)}
     undecided = sorted({name for pair in selection.undecided for name in (pair["selected"], pair["rival"])})
     between = "; ".join(f"{pair['selected']} or {pair['rival']} (z {pair['z']:.1f} in its favour)" for pair in selection.undecided)
     patterned = [name for name, ratio in lines.items() if ratio > settings.line_level]
@@ -626,7 +628,7 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
         "effects": effects,
         "verdict": {"id": None if undecided else "+".join(named) or None, "shrink": 1.0 - share / baseline_share if baseline_share > 0 else 0.0,
                     "residual": share, "undecided": undecided, "catalog_explains": bool(catalog_explains), "probability": confidence["probability"],
-                    "reason": (f"selected by held-out gain (z >= {settings.level_z:g}): {', '.join(n for n in named if n != 'quantization') or 'nothing'}"
+                    "reason": (f"selected by held-out gain (z >= {settings.level_z:g}): {', '.join(n for n in named if n in gained) or 'nothing'}"
                                + ("; quantization or saturation read from the frame's levels" if levels["selected"] else "")
                                + (f"; dust on a window {dust['depth_um'] / 1000:.1f} mm away: {dust['in_layer']} grains in one plane on "
                                   f"{int(np.count_nonzero(dust['tiles']))} tiles" if dust["named"] else "")
