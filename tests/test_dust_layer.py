@@ -50,6 +50,7 @@ def test_a_dusty_window_is_named_at_its_distance_with_its_rings_zone():
     assert found["depth_um"] == pytest.approx(distance_um, rel=0.05)
     zone_px = np.sqrt(config.optics.wavelength_um * distance_um) / config.optics.pixel_um
     assert found["params"]["dust_zone_px"] == pytest.approx(zone_px, rel=0.03)
+    assert abs(found["params"]["dust_zone_px"] - zone_px) <= 3.0 * found["params_err"]["dust_zone_px"] + 0.01 * zone_px
     assert found["z"] == pytest.approx(np.sqrt(np.count_nonzero(found["tiles"])))
 
 

@@ -82,13 +82,14 @@ def dust_layer(ratio: np.ndarray, config: ExperimentConfig, split: TileSplit, *,
         its layer grains: the verdict's bootstrap), ``grains`` (significant fits beyond the
         volume), ``in_layer``, ``depth_um`` (the layer's median depth), ``params`` (the
         catalog's ``dust_per_mpx`` in the frame, ``dust_zone_px`` = √(λ z)/pixel,
-        ``dust_grain_px``: the median radius) and ``table`` (the layer's grains, for their
-        hologram), or ``searched`` False where the config leaves no depth to search.
+        ``dust_grain_px``: the median radius) with ``params_err`` (from the layer's own scatter:
+        the depths' and radii's standard errors, Poisson's for the count) and ``table`` (the
+        layer's grains, for their hologram), or ``searched`` False where the config leaves no depth to search.
     """
     import pandas as pd
 
     reach = dust_search_range_um(config)
-    empty = {"named": False, "z": 0.0, "tiles": np.zeros(split.grid * split.grid), "grains": 0, "in_layer": 0, "depth_um": None, "params": {},
+    empty = {"named": False, "z": 0.0, "tiles": np.zeros(split.grid * split.grid), "grains": 0, "in_layer": 0, "depth_um": None, "params": {}, "params_err": {},
              "table": pd.DataFrame(columns=["x_um", "y_um", "z_um", "diameter_um"])}
     if reach is None:
         return {**empty, "searched": False}
@@ -117,6 +118,12 @@ def dust_layer(ratio: np.ndarray, config: ExperimentConfig, split: TileSplit, *,
     tiles = np.bincount(tile[tile >= 0], minlength=split.grid * split.grid).astype(np.float64)
     held = int(np.count_nonzero(tiles))
     depth = float(np.median(layer["z_um"]))
+    count = len(layer)
+    zone = float(np.sqrt(wavelength * depth) / pixel)
+    radii = layer["diameter_um"].to_numpy(np.float64) / 2.0 / pixel
+    # the layer's own scatter: the zone follows √z, so its relative error is half the depth's;
+    # the density's is Poisson's
+    depth_err = float(np.std(layer["z_um"], ddof=1) / np.sqrt(count)) if count > 1 else float("nan")
     return {
         "searched": True,
         "named": held >= LAYER_TILES,
@@ -125,7 +132,8 @@ def dust_layer(ratio: np.ndarray, config: ExperimentConfig, split: TileSplit, *,
         "grains": int(len(grains)),
         "in_layer": int(len(layer)),
         "depth_um": depth,
-        "params": {"dust_per_mpx": float(len(layer) / (ratio.size / 1e6)), "dust_zone_px": float(np.sqrt(wavelength * depth) / pixel),
-                   "dust_grain_px": float(np.median(layer["diameter_um"]) / 2.0 / pixel)},
+        "params": {"dust_per_mpx": float(count / (ratio.size / 1e6)), "dust_zone_px": zone, "dust_grain_px": float(np.median(radii))},
+        "params_err": {"dust_per_mpx": float(np.sqrt(count) / (ratio.size / 1e6)), "dust_zone_px": 0.5 * zone * depth_err / depth,
+                       "dust_grain_px": float(np.std(radii, ddof=1) / np.sqrt(count)) if count > 1 else float("nan")},
         "table": layer,
     }

@@ -587,7 +587,8 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
         etalon = fringes["selected"]
         fringes.update({"selected": True, "dust_z": dust["z"],
                         "params": {**(fringes["params"] if etalon else {}), **dust["params"]},
-                        "params_err": {**(fringes["params_err"] if etalon else {}), **{name: None for name in dust["params"]}}})
+                        "params_err": {**(fringes["params_err"] if etalon else {}),
+                                       **{name: (error if np.isfinite(error) else None) for name, error in dust["params_err"].items()}}})
     phase_selected = bool(optics["model"] == "transparent")
     # the particles' optics and the camera's noise and levels leave the fitted mean, so the gap, as it is
     effects.append({"id": "particle_phase", "gap_after": baseline_share, "shrink": 0.0, "z": optics["z"], "selected": phase_selected,
