@@ -607,6 +607,24 @@ FROZEN_19 = (
     Case("photons-100", 512, {"shot_noise": {"photons": 100.0}}),
 )
 
+# a twentieth frozen set, written once a spectrum's width could take a named blur's place:
+# LEDs of 12, 25 and 40 nm, one beside an envelope and one beside photon noise; crosstalks
+# and disc sources that must keep their names; three controls; committed before its first run
+FROZEN_20_SEED = 20261215
+FROZEN_20 = (
+    Case("control-a20", 512, spheres_per_512=27, level=158, read_noise=1.6), Case("control-b20", 512, spheres_per_512=31, level=146, read_noise=1.3),
+    Case("control-c20", 512, spheres_per_512=24, level=164, read_noise=2.0),
+    Case("led-12nm", 512, {"coherence": {"bandwidth_nm": 12.0}}),
+    Case("led-25nm", 512, {"coherence": {"bandwidth_nm": 25.0}}),
+    Case("led-40nm", 512, {"coherence": {"bandwidth_nm": 40.0}}),
+    Case("led-30nm+vignetting", 512, {"coherence": {"bandwidth_nm": 30.0}, "illumination": {"falloff": 0.44, "centre": (0.58, 0.41)}}),
+    Case("led-20nm+photons-130", 512, {"coherence": {"bandwidth_nm": 20.0}, "shot_noise": {"photons": 130.0}}),
+    Case("crosstalk-3", 512, {"sensor_blur": {"kernel": "binomial3"}}),
+    Case("crosstalk-5", 512, {"sensor_blur": {"kernel": "binomial5"}}),
+    Case("source-disc-1.8", 512, {"coherence": {"source_mrad": 1.8}}),
+    Case("source-disc-2.6", 512, {"coherence": {"source_mrad": 2.6}}),
+)
+
 DEVELOPMENT_SEED = 1234
 DEVELOPMENT = (
     Case("control-1", 512), Case("control-2", 512, spheres_per_512=35, level=160, read_noise=2.0), Case("control-3", 512, spheres_per_512=22, level=140, read_noise=1.2),
@@ -697,6 +715,7 @@ SUITES = {
     "frozen-13": (FROZEN_13, FROZEN_13_SEED), "frozen-14": (FROZEN_14, FROZEN_14_SEED),
     "frozen-15": (FROZEN_15, FROZEN_15_SEED), "frozen-16": (FROZEN_16, FROZEN_16_SEED),
     "frozen-17": (FROZEN_17, FROZEN_17_SEED), "frozen-18": (FROZEN_18, FROZEN_18_SEED), "frozen-19": (FROZEN_19, FROZEN_19_SEED),
+    "frozen-20": (FROZEN_20, FROZEN_20_SEED),
     "development": (DEVELOPMENT, DEVELOPMENT_SEED),
     "outside-frozen": (OUTSIDE_FROZEN, OUTSIDE_FROZEN_SEED), "outside-frozen-2": (OUTSIDE_FROZEN_2, OUTSIDE_FROZEN_2_SEED),
     "outside-development": (OUTSIDE_DEVELOPMENT, OUTSIDE_DEVELOPMENT_SEED),
