@@ -97,9 +97,9 @@ def main() -> None:
                 "source_size": fit_frame(data, scene, split, ("coherence",)), "spectrum_width": _spectrum_fit(data, scene, split)}
         row = {"frame": path.name}
         for name in ("sensor_blur", "source_size", "spectrum_width"):
-            gain, z = nested._gain(fits[name].loglik, fits["baseline"].loglik)
+            gain, z = nested.gain_and_z(fits[name].loglik, fits["baseline"].loglik)
             row[name] = {"gain_nats": round(gain, 1), "z": round(z, 2), "params": {k: round(v, 4) for k, v in fits[name].params[0].items() if "." in k}}
-        gain, z = nested._gain(fits["spectrum_width"].loglik, fits["sensor_blur"].loglik)
+        gain, z = nested.gain_and_z(fits["spectrum_width"].loglik, fits["sensor_blur"].loglik)
         row["spectrum_over_sensor"] = {"gain_nats": round(gain, 1), "z": round(z, 2)}
         print(json.dumps(row), flush=True)
         rows.append(row)

@@ -108,13 +108,13 @@ def test_a_wrong_effect_gains_nothing_held_out():
 
 def test_a_tile_the_scene_misfits_is_one_vote_in_the_held_out_test():
     """14 of 16 tiles gaining 200 nats and two losing 1 300 each (a misfit particle's tiles) pass the sign test at z 3; their sum over its tile-to-tile error would not."""
-    from napari_lbs._core.gap._nested import _gain
+    from napari_lbs._core.gap._nested import gain_and_z
 
     gains = np.array([200.0] * 14 + [-1300.0] * 2)
-    total, z = _gain(gains, np.zeros_like(gains))
+    total, z = gain_and_z(gains, np.zeros_like(gains))
     assert total == pytest.approx(200.0) and z == pytest.approx(3.0)
     assert total / (gains.std(ddof=1) * np.sqrt(gains.size)) < 0.2
-    assert _gain(-gains, np.zeros_like(gains))[1] == pytest.approx(-3.0) and _gain(np.zeros(16), np.zeros(16)) == (0.0, 0.0)
+    assert gain_and_z(-gains, np.zeros_like(gains))[1] == pytest.approx(-3.0) and gain_and_z(np.zeros(16), np.zeros(16)) == (0.0, 0.0)
 
 
 def test_whittle_likelihood_prefers_the_residual_that_is_noise():
@@ -707,3 +707,44 @@ def test_photon_noise_blurred_by_the_camera_is_read_through_the_fitted_blur():
     result = shot_noise_test(fit, split)
     assert result["z"] > 2.0 and result["white"] and result["noise_blur_px"] > 0.8  # blurred noise holds fewer independent samples: z 2.5–3.5 over seeds
     assert all(6.0 < ratio < 24.0 for ratio in result["band_ratios"]) and abs(result["log10_photons"] - np.log10(100.0 * 4 * np.pi)) < 0.3
+
+
+def _flat_spectrum(scene: Scene, width_nm: float, wavelength_um: float = 0.66) -> np.ndarray:
+    """Each depth group's rings summed over 7 wavelengths of a flat spectrum ``width_nm`` wide: at λ' a
+    group at depth z shows the rings it shows at λ from z λ'/λ, the real part of Fresnel's kernel
+    for the difference (written here, apart from `Scene.spectral_blur`'s Gaussian law)."""
+    f2 = np.fft.fftfreq(SIZE, scene.pixel_um)[:, None] ** 2 + np.fft.fftfreq(SIZE, scene.pixel_um)[None, :] ** 2
+    image = np.ones((SIZE, SIZE))
+    for group, depth in zip(scene.groups, scene.depths_um, strict=True):
+        spectrum = np.fft.fft2(group)
+        for offset_um in np.linspace(-0.5, 0.5, 7) * width_nm * 1e-3:
+            image += np.fft.ifft2(spectrum * np.cos(np.pi * wavelength_um * depth * (offset_um / wavelength_um) * f2)).real / 7
+    return image
+
+
+@pytest.mark.parametrize("source", ["spectrum", "sensor", "source"])
+def test_a_spectrum_s_width_takes_the_named_blur_s_place_only_where_the_frame_holds_one(source):
+    """A flat spectrum washes deep groups' fine rings out (f⁴ · z²): read as coherence with its width; a
+    sensor's blur and a source's size keep their names."""
+    from napari_lbs._core.gap._blur_depth import attribute_blur, spectrum_width_test
+
+    scene = _six_depths()
+    effects = {}
+    if source == "spectrum":
+        blurred = _flat_spectrum(scene, 30.0)
+    elif source == "sensor":
+        blurred, effects = scene.image, {"sensor_blur": {"sigma_px": 1.2}}
+    else:
+        blurred = scene.coherent_blur(1.2)
+    noise = np.random.default_rng(3).standard_normal((SIZE, SIZE)).astype(np.float32)
+    image = sensor_image(np.asarray(blurred, np.float32), {"contrast": 1.0, "sigma": 0.01, "gamma": 1.0}, effects, noise=noise).astype(np.float64)
+    data = image / image.mean()
+    split = TileSplit.of(data.shape)
+    selection, _ = attribute_blur(data, scene, split, select_effects(data, scene, split))
+    swapped, test = spectrum_width_test(data, scene, split, selection)
+    assert test is not None and test["replaces"] == [e for e in selection.chosen if e in ("coherence", "sensor_blur")]
+    if source == "spectrum":
+        assert test["named"] and swapped.chosen == ("coherence",)
+        assert "coherence.bandwidth_nm" in swapped.fits["coherence"].params[0] and 15.0 <= test["bandwidth_nm"] <= 36.0
+    else:
+        assert not test["named"] and swapped is selection and test["z"] < 0

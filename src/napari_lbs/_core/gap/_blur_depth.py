@@ -27,10 +27,10 @@ import numpy as np
 from scipy import optimize, stats
 
 from napari_lbs._core.gap._heldout import TileSplit, model_probabilities
-from napari_lbs._core.gap._nested import EVERY_OTHER, MEAN_EFFECTS, Scene, Selection, both_colours, fit_frame, last_two
+from napari_lbs._core.gap._nested import EVERY_OTHER, MEAN_EFFECTS, Scene, Selection, both_colours, fit_frame, gain_and_z, last_two
 from napari_lbs._core.physics import EFFECTS, gaussian_blur, sensor_image
 
-__all__ = ["BLUR_EFFECTS", "blur_by_depth", "attribute_blur"]
+__all__ = ["BLUR_EFFECTS", "blur_by_depth", "attribute_blur", "spectrum_width_test"]
 
 BLUR_EFFECTS = ("coherence", "sensor_blur")
 _MIN_GROUPS = 4  # the line's two coefficients leave two degrees of freedom to four groups' scatter
@@ -159,3 +159,43 @@ def attribute_blur(data: np.ndarray, scene: Scene, split: TileSplit, selection: 
     undecided = tuple(u for u in selection.undecided if u not in pair_undecided)
     probabilities = model_probabilities({name: fit.loglik for name, fit in fits.items()})
     return replace(selection, chosen=chosen, fits=fits, undecided=undecided, probabilities=probabilities), profile
+
+
+def spectrum_width_test(data: np.ndarray, scene: Scene, split: TileSplit, selection: Selection, *, level_z: float = 3.0,
+                        check=None) -> tuple[Selection, dict | None]:
+    """The named blur against a spectrum's width in its place (`Scene.spectral_blur`): the selection with the better, and the test.
+
+    A spectrum's width (an LED, a laser diode) washes a fringe out with its order (f⁴) and
+    with depth; a sensor's blur takes f² from every depth and a source's size a Gaussian
+    growing with depth. Where the selection names a blur (``sensor_blur``, ``coherence`` or
+    both), the model with coherence as a spectrum's width in their place is fitted on each
+    colour and judged on the other against the selection's final model; it replaces them
+    where it gains on the held-out tiles at ``level_z`` with a positive sum. The depth
+    profile's reading (`attribute_blur`) assumes Gaussian blurs, so the swap is judged after
+    it, on the model it left.
+
+    Returns
+    -------
+    (Selection, dict or None)
+        The selection (``coherence``, fitted as ``coherence.bandwidth_nm``, in the blurs'
+        place where the spectrum's width wins) and the test: ``replaces`` (the blurs),
+        ``gain_nats``, ``z``, ``bandwidth_nm`` and its error, ``named``, ``tile_gains`` (for the
+        verdict's bootstrap); None where no blur is named or the scene has too few depth groups.
+    """
+    blurs = [e for e in selection.chosen if e in BLUR_EFFECTS]
+    if not blurs or scene.groups is None or len(scene.depths_um) < _MIN_GROUPS:
+        return selection, None
+    final = selection.fits["+".join(selection.chosen)]
+    model = tuple(sorted((*(e for e in selection.chosen if e not in BLUR_EFFECTS), "coherence")))
+    fit = fit_frame(data, scene, split, model, starts=final.params, check=check, parameters={"coherence": ("bandwidth_nm",)})
+    gain, z = gain_and_z(fit.loglik, final.loglik)
+    width, width_err = fit.estimate("coherence.bandwidth_nm")
+    record = {"replaces": blurs, "gain_nats": gain, "z": z, "bandwidth_nm": width, "bandwidth_nm_err": width_err if np.isfinite(width_err) else None,
+              "named": bool(z >= level_z and gain > 0), "tile_gains": fit.loglik - final.loglik}
+    if not record["named"]:
+        return selection, record
+    fits = dict(selection.fits)
+    fits["+".join(model)] = fit  # the coherence of the verdict is now the spectrum's width
+    undecided = tuple(u for u in selection.undecided if not {u["selected"], u["rival"]} <= set(BLUR_EFFECTS))
+    probabilities = model_probabilities({name: f.loglik for name, f in fits.items()})
+    return replace(selection, chosen=model, fits=fits, undecided=undecided, probabilities=probabilities), record

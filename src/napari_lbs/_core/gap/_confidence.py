@@ -1,6 +1,6 @@
 """How sure a verdict is: the share of resampled frames on which each of its decisions comes out the same.
 
-A verdict is a set of decisions, each a sign test over the held-out tiles (`_nested._gain`):
+A verdict is a set of decisions, each a sign test over the held-out tiles (`_nested.gain_and_z`):
 each selected effect kept against the model without it, each effect left out not added to
 the final model, each selected effect ahead of a rival in its place (at the rivals' own
 level), photon noise named or not, transparent or opaque particles.

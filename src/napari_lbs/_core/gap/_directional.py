@@ -27,7 +27,7 @@ from __future__ import annotations
 import numpy as np
 
 from napari_lbs._core.gap._heldout import TileSplit, tile_spectra, whittle_loglik
-from napari_lbs._core.gap._nested import _gain
+from napari_lbs._core.gap._nested import gain_and_z
 
 __all__ = ["directional_blur_test"]
 
@@ -58,7 +58,7 @@ def directional_blur_test(residuals: tuple[np.ndarray, np.ndarray], means: tuple
     Returns
     -------
     dict
-        ``gain_nats``, ``z`` (the sign test over the judged tiles, `_gain`'s), and the fitted
+        ``gain_nats``, ``z`` (the sign test over the judged tiles, `gain_and_z`'s), and the fitted
         ``variance_difference_px2`` and ``angle_rad``.
     """
     spectra, differences, angles = [], [], []
@@ -70,7 +70,7 @@ def directional_blur_test(residuals: tuple[np.ndarray, np.ndarray], means: tuple
         spectra.append(tile_spectra(residual - a * columns[0] - b * columns[1], split))
         differences.append(2.0 * float(np.hypot(2.0 * a, b)))
         angles.append(0.5 * float(np.arctan2(b, 2.0 * a)))
-    gain, z = _gain(whittle_loglik(tuple(spectra), split), baseline_loglik)
+    gain, z = gain_and_z(whittle_loglik(tuple(spectra), split), baseline_loglik)
     # the two colours' axes averaged as directions (an angle and the same angle + π are one axis)
     angle = 0.5 * float(np.angle(np.mean(np.exp(2j * np.asarray(angles)))))
     return {"gain_nats": gain, "z": z, "variance_difference_px2": float(np.mean(differences)), "angle_rad": angle % np.pi}

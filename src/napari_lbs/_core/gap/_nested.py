@@ -48,7 +48,7 @@ from napari_lbs._core.gap._heldout import TileSplit, model_probabilities, tile_s
 from napari_lbs._core.gap._tile_errors import clustered_errors, mean_of_halves
 from napari_lbs._core.physics import EFFECTS, gaussian_blur, sensor_image
 
-__all__ = ["DECIDED_Z", "EVERY_OTHER", "MEAN_EFFECTS", "FrameFit", "Scene", "Selection", "both_colours", "fit_frame", "last_two", "far_ring_power", "select_effects", "shot_noise_test", "whiteness_draws"]
+__all__ = ["DECIDED_Z", "EVERY_OTHER", "MEAN_EFFECTS", "FrameFit", "gain_and_z", "Scene", "Selection", "both_colours", "fit_frame", "last_two", "far_ring_power", "select_effects", "shot_noise_test", "whiteness_draws"]
 
 # the parameters each effect of the mean fits (the others of its catalog entry stay neutral)
 MEAN_EFFECTS = {
@@ -95,6 +95,27 @@ class Scene:
         for depth, group in zip(self.depths_um, self.groups, strict=True):
             sigma_px = theta_mrad * 1e-3 * depth / self.pixel_um
             image += gaussian_blur(group, sigma_px) - group
+        return image
+
+    def spectral_blur(self, bandwidth_nm: float) -> np.ndarray:
+        """The scene with each depth group's fringes washed out by a spectrum of full width ``bandwidth_nm`` at half maximum.
+
+        A Gaussian spectrum of standard deviation σ_λ averages each group's fringes over the
+        wavelengths, which in Fresnel's transfer function ``exp(iπλzf²)`` is the factor
+        ``exp(−½ (π σ_λ z f²)²)`` on the group's spectrum (f in cycles per µm, z the group's
+        depth in the config's convention): a fringe fades with its order, f⁴, and with depth,
+        where a sensor's blur takes f² from every depth alike (`superpose` simulates with
+        the same law).
+        """
+        image = self.image.astype(np.float32)
+        if bandwidth_nm <= 0 or self.groups is None:
+            return image
+        image = image.copy()
+        f2 = np.fft.fftfreq(image.shape[0], self.pixel_um)[:, None] ** 2 + np.fft.fftfreq(image.shape[1], self.pixel_um)[None, :] ** 2
+        sigma_um = bandwidth_nm * 1e-3 / (2.0 * np.sqrt(2.0 * np.log(2.0)))
+        for depth, group in zip(self.depths_um, self.groups, strict=True):
+            washed = np.fft.irfft2(np.fft.rfft2(group) * np.exp(-0.5 * (np.pi * sigma_um * depth * f2[:, : group.shape[1] // 2 + 1]) ** 2), s=group.shape)
+            image += (washed - group).astype(np.float32)
         return image
 _BASELINE = (("gain", 1.0, (0.2, 5.0)), ("contrast", 1.0, (0.0, 3.0)), ("gamma", 1.0, (0.3, 3.0)))
 _STEPS = 12  # least-squares steps per fit: the starts are the simpler model's optimum
@@ -204,13 +225,22 @@ def _fringe_start(residual: np.ndarray) -> dict:
 def _starts(effect: str, residual: np.ndarray) -> dict:
     if effect == "parasitic_fringes":
         return _fringe_start(residual)
-    return {"illumination": {"depth": 0.1, "waist": EFFECTS["illumination"].neutral["waist"], "x0": 0.0, "y0": 0.0}, "sensor_blur": {"sigma_px": 0.6}, "coherence": {"theta_mrad": 0.5}}[effect]
+    return {"illumination": {"depth": 0.1, "waist": EFFECTS["illumination"].neutral["waist"], "x0": 0.0, "y0": 0.0}, "sensor_blur": {"sigma_px": 0.6},
+            "coherence": {"theta_mrad": 0.5, "bandwidth_nm": 5.0}}[effect]
 
 
 def _mean(scene: Scene, values: dict, effects: tuple[str, ...], zeros: np.ndarray, *, keep: tuple[slice, slice] | None = None,
           blurred=None) -> np.ndarray:
-    """The model's frame (``keep``: its kept rows and columns, `sensor_image`); ``blurred(θ)`` stands for `Scene.coherent_blur`."""
-    image = (blurred or scene.coherent_blur)(values["coherence.theta_mrad"]) if "coherence" in effects else scene.image
+    """The model's frame (``keep``: its kept rows and columns, `sensor_image`); ``blurred(value)`` stands for the coherence's law.
+
+    Coherence is a source's size (``coherence.theta_mrad``, `Scene.coherent_blur`) or, where
+    the model holds ``coherence.bandwidth_nm`` instead, a spectrum's width (`Scene.spectral_blur`).
+    """
+    image = scene.image
+    if "coherence" in effects:
+        spectral = "coherence.bandwidth_nm" in values
+        law = blurred or (scene.spectral_blur if spectral else scene.coherent_blur)
+        image = law(values["coherence.bandwidth_nm" if spectral else "coherence.theta_mrad"])
     camera = [e for e in effects if e not in _BY_DEPTH]
     chosen = {e: {**EFFECTS[e].neutral, **{p: values[f"{e}.{p}"] for p in MEAN_EFFECTS[e]}} for e in camera}
     baseline = {"contrast": values["contrast"], "sigma": 0.0, "gamma": values["gamma"]}
@@ -218,15 +248,16 @@ def _mean(scene: Scene, values: dict, effects: tuple[str, ...], zeros: np.ndarra
 
 
 def _fit(data: np.ndarray, scene: Scene, mask: np.ndarray, effects: tuple[str, ...], start: dict, zeros: np.ndarray, check,
-         tiles: np.ndarray) -> tuple[dict, dict]:
+         tiles: np.ndarray, parameters: dict) -> tuple[dict, dict]:
     """The least-squares fit on ``mask``'s pixels (every other one) and its parameters' errors, ``tiles`` (`TileSplit.labels`) their clusters."""
-    names = [name for name, _, _ in _BASELINE] + [f"{e}.{p}" for e in effects for p in MEAN_EFFECTS[e]]
+    names = [name for name, _, _ in _BASELINE] + [f"{e}.{p}" for e in effects for p in parameters[e]]
     bounds = {name: limits for name, _, limits in _BASELINE}
-    bounds.update({f"{e}.{p}": EFFECTS[e].bounds[p] for e in effects for p in MEAN_EFFECTS[e]})
+    bounds.update({f"{e}.{p}": EFFECTS[e].bounds[p] for e in effects for p in parameters[e]})
     x0 = np.array([float(np.clip(start[name], *bounds[name])) for name in names])
     sample = mask[EVERY_OTHER]
     target = data[EVERY_OTHER][sample]
-    blurred = last_two(scene.coherent_blur)  # the source's blur is redone for θ's own moves only
+    # the coherence's blur is redone for its own parameter's moves only
+    blurred = last_two(scene.spectral_blur if "coherence.bandwidth_nm" in names else scene.coherent_blur)
 
     def residual(x: np.ndarray) -> np.ndarray:
         if check is not None:
@@ -240,12 +271,16 @@ def _fit(data: np.ndarray, scene: Scene, mask: np.ndarray, effects: tuple[str, .
     return dict(zip(names, (float(v) for v in result.x), strict=True)), dict(zip(names, (float(e) for e in errors), strict=True))
 
 
-def fit_frame(data: np.ndarray, scene, split: TileSplit, effects: tuple[str, ...], *, starts: tuple[dict, dict] | None = None, check=None) -> FrameFit:
+def fit_frame(data: np.ndarray, scene, split: TileSplit, effects: tuple[str, ...], *, starts: tuple[dict, dict] | None = None, check=None,
+              parameters: dict | None = None) -> FrameFit:
     """Fit ``effects`` (and the baseline) on each colour's tiles; the held-out log-likelihood of every tile.
 
     ``scene``: a `Scene`, or the particles' hologram as an array (no depth-dependent effect then).
     ``check``: called before each evaluation of the model (`Steps.check`: raises `Stopped`).
+    ``parameters``: an effect's fitted parameters where they are not `MEAN_EFFECTS`' (a
+    spectrum's width for coherence: ``{"coherence": ("bandwidth_nm",)}``).
     """
+    parameters = {**MEAN_EFFECTS, **(parameters or {})}
     zeros = np.zeros(data.shape, np.float32)
     scene = Scene.of(scene)
     scene32 = replace(scene, image=scene.image.astype(np.float32))
@@ -255,10 +290,10 @@ def fit_frame(data: np.ndarray, scene, split: TileSplit, effects: tuple[str, ...
         if starts is not None:
             start.update(starts[colour])
         for effect in effects:
-            if not all(f"{effect}.{p}" in start for p in MEAN_EFFECTS[effect]):
+            if not all(f"{effect}.{p}" in start for p in parameters[effect]):
                 guess = _starts(effect, np.where(split.mask(colour), data - start["gain"] * scene.image, 0.0))
-                start.update({f"{effect}.{p}": v for p, v in guess.items()})
-        fitted, errors = _fit(data, scene32, split.mask(colour), effects, start, zeros, heard, tiles)
+                start.update({f"{effect}.{p}": v for p, v in guess.items() if p in parameters[effect]})
+        fitted, errors = _fit(data, scene32, split.mask(colour), effects, start, zeros, heard, tiles, parameters)
         mean = _mean(scene32, fitted, effects, zeros)
         return fitted, errors, mean, data - mean, tile_spectra(data - mean, split)
 
@@ -297,7 +332,7 @@ def both_colours(on_colour, check) -> tuple:
     return first, other.result()
 
 
-def _gain(better: np.ndarray, worse: np.ndarray) -> tuple[float, float]:
+def gain_and_z(better: np.ndarray, worse: np.ndarray) -> tuple[float, float]:
     """Summed held-out gain (nats) and its sign test's z over the tiles.
 
     ``z = (tiles gaining - tiles losing) / sqrt(tiles either way)``: an effect the frame holds
@@ -428,7 +463,7 @@ def shot_noise_test(fit: FrameFit, split: TileSplit, *, nuisance: tuple[np.ndarr
             v0 = np.maximum(x_t @ null, least)
             v1 = np.maximum(x_t @ alternative[:-1] + alternative[-1] * m_t, least)
             gains[k] = -0.5 * float(np.sum(h**2 / v1 + np.log(v1)) - np.sum(h**2 / v0 + np.log(v0)))
-    total, z = _gain(gains, np.zeros_like(gains))
+    total, z = gain_and_z(gains, np.zeros_like(gains))
     whiteness = {"tiles": [np.flatnonzero(colours == colour) for colour in (0, 1)], "expected": {sigma: kept_band[sigma] / kept[sigma] for sigma in kept},
                  "normal": {key: np.stack(value) for key, value in normal.items()}, "moments": {key: np.stack(value) for key, value in moments.items()}}
     band_ratios = {sigma: ratios[0] for sigma, ratios in _band_ratios(whiteness, np.ones((1, len(colours)))).items()}
@@ -520,7 +555,7 @@ def select_effects(data: np.ndarray, scene, split: TileSplit, *, candidates=tupl
             fit = fit_frame(data, scene, split, model, starts=base.params, check=steps.check)
             steps.advance()
             fits["+".join(model)] = fit
-            round_gains[effect] = _gain(fit.loglik, base.loglik)
+            round_gains[effect] = gain_and_z(fit.loglik, base.loglik)
         if not round_gains:
             break
         # the sign test saturates once every tile gains: among equal votes the larger gain leads
@@ -541,7 +576,7 @@ def select_effects(data: np.ndarray, scene, split: TileSplit, *, candidates=tupl
             key = "+".join(reduced)
             if key not in fits:
                 fits[key] = fit_frame(data, scene, split, reduced, starts=full.params, check=steps.check)
-            kept_gains[effect] = _gain(full.loglik, fits[key].loglik)
+            kept_gains[effect] = gain_and_z(full.loglik, fits[key].loglik)
         weakest = min(kept_gains, key=lambda e: kept_gains[e][1])
         record.append({"given": [e for e in chosen if e != weakest], "gains": {e: {"gain_nats": g, "z": z} for e, (g, z) in kept_gains.items()},
                        "removed": None})
@@ -562,7 +597,7 @@ def select_effects(data: np.ndarray, scene, split: TileSplit, *, candidates=tupl
             key = "+".join(swapped)
             if key not in fits:
                 fits[key] = fit_frame(data, scene, split, swapped, starts=final.params, check=steps.check)
-            gain, z = _gain(final.loglik, fits[key].loglik)
+            gain, z = gain_and_z(final.loglik, fits[key].loglik)
             if z < DECIDED_Z:
                 undecided.append({"selected": effect, "rival": rival, "gain_nats": gain, "z": z})
     probabilities = model_probabilities({name: fit.loglik for name, fit in fits.items()})

@@ -50,7 +50,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from napari_lbs._core.foundation import ExperimentConfig, InputError, ProgressCallback, Steps, StopCallback, WorkerPool, as_hologram, begin_phase, json_safe
-from napari_lbs._core.gap._blur_depth import BLUR_EFFECTS, attribute_blur
+from napari_lbs._core.gap._blur_depth import BLUR_EFFECTS, attribute_blur, spectrum_width_test
 from napari_lbs._core.gap._confidence import Decision, combined_z, verdict_probability
 from napari_lbs._core.gap._detect import find_particles
 from napari_lbs._core.gap._directional import directional_blur_test
@@ -72,7 +72,6 @@ _FLOOR_CYCLES = 0.35  # cycles per pixel above which the residual's power is its
 _BANDS = (0.0, 0.02, 0.05, 0.1, 0.2, 0.35, 0.5)  # cycles per pixel, the report's frequency bands
 _SMALL_FRACTION = 0.2  # small scatterers are looked for from this fraction of the sample's least diameter up to it
 _NOT_TESTED = {
-    "coherence.bandwidth_nm": "a spectrum's width washes fringes out with their order; not modelled by this engine yet",
     "spherical_wave": "on one frame a point source's magnification is a change of each particle's depth and size",
     "multiple_scattering": "not modelled by this engine yet",
 }
@@ -181,7 +180,7 @@ def _optics(data: np.ndarray, table, selection, config: ExperimentConfig, split:
         blur_px = float(np.mean([fit["sensor_blur.sigma_px"] for fit in final]))
     if "coherence" in selection.chosen and len(table):
         # a source's blur at the particles' median depth, added in quadrature to the sensor's
-        theta = float(np.mean([fit["coherence.theta_mrad"] for fit in final]))
+        theta = float(np.mean([fit.get("coherence.theta_mrad", 0.0) for fit in final]))  # a spectrum's width leaves no Gaussian blur
         blur_px = float(np.hypot(blur_px, theta * 1e-3 * float(np.median(table["z_um"])) / config.optics.pixel_um))
     tested = table.iloc[: settings.particles]
     record = {"particles": int(len(tested)), "model": "undecided", "z": 0.0, "index_contrast": None, "camera_blur_px": blur_px}
@@ -552,6 +551,10 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
             steps = Steps(1, progress=progress, should_stop=should_stop, heartbeat_s=0.5)
             selection, blur_profile = attribute_blur(data, scene, split, selection, level_z=settings.level_z, check=steps.check)
             steps.advance()
+    begin_phase(progress, "the named blur against a spectrum's width in its place")
+    steps = Steps(1, progress=progress, should_stop=should_stop, heartbeat_s=0.5)
+    selection, spectrum = spectrum_width_test(data, scene, split, selection, level_z=settings.level_z, check=steps.check)
+    steps.advance()
     optics = _optics(data, table, selection, config, split, settings, progress, should_stop)
     optics_votes = optics.pop("votes", None)  # each tile's and each sphere's vote, for the verdict's probability
     rendered = optics.pop("rendered", None)
@@ -617,6 +620,9 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
                f"{directional['variance_difference_px2']:.2f} px² more along {np.degrees(directional['angle_rad']):.0f}°)" if streaked else ""))
     posterior = {("null" if name == "baseline" else name): p for name, p in selection.probabilities.items()}
     decisions = _decisions(selection, shot, optics_votes, phase_selected, blur_profile, level_z=settings.level_z)
+    if spectrum is not None:
+        decisions.append(Decision(f"coherence as a spectrum's width rather than {' and '.join(spectrum['replaces'])}", spectrum["tile_gains"],
+                                  int(spectrum["named"])))
     if dust["searched"]:
         # the window's grains counted by tile: named on a draw where they lie on LAYER_TILES tiles or more
         decisions.append(Decision("parasitic_fringes: dust on a window", dust["tiles"], int(dust["named"]), needs_gain=False,
@@ -643,6 +649,7 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
         "scene": scene_population(table, config, data.shape, small=small),
         "blur_by_depth": blur_profile,
         "dust_layer": _dust_record(dust),
+        "spectrum_width": None if spectrum is None else {key: value for key, value in spectrum.items() if key != "tile_gains"},
         "selection": selection.steps,
         "undecided": list(selection.undecided),
         "not_tested": _NOT_TESTED,
