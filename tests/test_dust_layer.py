@@ -1,4 +1,4 @@
-"""Dust on a window beyond the volume, found as a layer of opaque grains in what the frame's model leaves (`dust_layer`)."""
+"""Dust on a window beyond the volume, found as a layer of opaque grains in what the frame's model leaves (`dust_layer`); report.md's sections of the tests run after the selection."""
 
 import dataclasses
 
@@ -78,7 +78,7 @@ def test_a_microscope_s_rings_leave_no_depth_beyond_the_volume_to_search():
     assert not found["searched"] and not found["named"]
 
 
-def test_report_md_says_where_the_dusty_window_is_and_what_its_rings_are(tmp_path):
+def test_report_md_says_where_the_dusty_window_is_and_whether_a_spectrum_took_the_blur_s_place(tmp_path):
     import pandas as pd
     from scene_reports import scene_report
 
@@ -92,6 +92,10 @@ def test_report_md_says_where_the_dusty_window_is_and_what_its_rings_are(tmp_pat
     text = (tmp_path / "r" / "report.md").read_text()
     assert "5 of 6 significant grains lie in one plane 12.35 mm away, on 4 tiles" in text and "**named**" in text
     assert "first Fresnel zone 39.4 px" in text
-    del report["dust_layer"]
+    report["spectrum_width"] = {"replaces": ["sensor_blur"], "gain_nats": 7934.0, "z": 4.0, "bandwidth_nm": 17.2, "bandwidth_nm_err": 0.5, "named": True}
+    write_report(SceneDiagnosis(report, np.zeros((2, 2)), table), tmp_path / "r", force=True)
+    assert "In place of sensor_blur: held-out gain 7934 nats, z 4.0, full width 17.2 nm; **coherence as a spectrum's width takes its place**" in (
+        tmp_path / "r" / "report.md").read_text()
+    del report["dust_layer"], report["spectrum_width"]
     write_report(SceneDiagnosis(report, np.zeros((2, 2)), table), tmp_path / "r", force=True)
     assert "Dust on a window" not in (tmp_path / "r" / "report.md").read_text()

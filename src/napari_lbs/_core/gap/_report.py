@@ -230,6 +230,7 @@ def _summary(report: dict, levels: SceneDiagnosisSettings) -> list[str]:
         "",
         *_noise_lines(report["effects"]),
         *_blur_lines(report.get("blur_by_depth"), levels),
+        *_spectrum_lines(report.get("spectrum_width")),
         *_dust_lines(report.get("dust_layer")),
         *_scene_lines(report.get("scene"), levels),
         "## Particle optics (opaque against transparent spheres, by their fine rings' spectrum and through focus)",
@@ -319,6 +320,16 @@ def _blur_lines(profile: dict | None, levels: SceneDiagnosisSettings) -> list[st
         *[f"| {depth / 1000:.2f} | {_text(first)} | {_text(second)} |" for depth, first, second in zip(profile["depths_um"], *profile["sigma_px"], strict=True)],
         "",
     ]
+
+
+def _spectrum_lines(test: dict | None) -> list[str]:
+    """The named blur against a spectrum's width in its place (`spectrum_width`), where a blur was named."""
+    if not test:
+        return []
+    outcome = "**coherence as a spectrum's width takes its place**" if test["named"] else "the named blur stays"
+    return ["## The blur against a spectrum's width (an LED's: fringes washed out with their order and depth)", "",
+            f"- In place of {' and '.join(test['replaces'])}: held-out gain {_text(test['gain_nats'], '.4g')} nats, z {_text(test['z'], '.1f')}, "
+            f"full width {_text(test['bandwidth_nm'])} nm; {outcome} (from z 3 with a positive gain).", ""]
 
 
 def _dust_lines(dust: dict | None) -> list[str]:
