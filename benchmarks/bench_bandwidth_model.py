@@ -28,7 +28,8 @@ from napari_lbs._core import load_config, read_hologram
 from napari_lbs._core.foundation import available_threads
 from napari_lbs._core.gap import SceneDiagnosisSettings, diagnose_scene
 from napari_lbs._core.gap._heldout import TileSplit
-from napari_lbs._core.gap._nested import Scene, fit_frame
+from napari_lbs._core.gap._nested import fit_frame
+from napari_lbs._core.gap._scene_image import Scene
 from napari_lbs._core.refine import RefineSettings
 
 def _scene_of(image: np.ndarray, workers: int) -> tuple[np.ndarray, Scene]:

@@ -268,7 +268,7 @@ def test_the_unexplained_share_is_told_by_the_particles_depth():
     import pandas as pd
 
     from napari_lbs._core.gap._heldout import TileSplit
-    from napari_lbs._core.gap._scene_diagnosis import _by_depth
+    from napari_lbs._core.gap._unexplained import share_by_depth
 
     rng = np.random.default_rng(0)
     yy, xx = np.mgrid[0:256, 0:256]
@@ -277,7 +277,7 @@ def test_the_unexplained_share_is_told_by_the_particles_depth():
     noise = rng.normal(0.0, 0.002, (256, 256))
     data = 1.0 + sum(rings) + noise
     left = rings[2] + rings[3] + noise  # the two deep particles' rings are not explained
-    groups = _by_depth((data - 1.0, data - 1.0), (left, left), data, table, TileSplit.of((256, 256), grid=4), 0.002**2, pixel_um=1.0, reach_px=30)
+    groups = share_by_depth((data - 1.0, data - 1.0), (left, left), data, table, TileSplit.of((256, 256), grid=4), 0.002**2, pixel_um=1.0, reach_px=30)
     assert [g["z_um"] for g in groups] == [1000.0, 2000.0, 3000.0, 4000.0] and all(g["particles"] == 1 and g["pixels"] > 1000 for g in groups)
     assert all(g["baseline"] == pytest.approx(1.0, abs=0.05) for g in groups)
     assert [g["after"] for g in groups][:2] == pytest.approx([0.0, 0.0], abs=0.02) and [g["after"] for g in groups][2:] == pytest.approx([1.0, 1.0], abs=0.05)

@@ -5,7 +5,8 @@ import pytest
 
 from napari_lbs._core.gap._heldout import TileSplit, model_probabilities, tile_spectra, whittle_loglik
 from napari_lbs._core.gap._levels import levels_test
-from napari_lbs._core.gap._nested import Scene, fit_frame, select_effects
+from napari_lbs._core.gap._nested import fit_frame, select_effects
+from napari_lbs._core.gap._scene_image import Scene
 from napari_lbs._core.physics import gaussian_blur, sensor_image
 
 SIZE = 256
@@ -343,30 +344,30 @@ def test_the_scene_population_counts_the_sample_and_the_small_scatterers_beside_
 def test_the_unexplained_share_is_nothing_for_white_noise_and_a_quarter_for_half_the_frame_s_fringe():
     """A white residual leaves none of the frame's structure unexplained (a floor bin by bin would call half of it structure); half the fringe's amplitude leaves a quarter of its power."""
     from napari_lbs._core.gap._heldout import tile_spectra
-    from napari_lbs._core.gap._scene_diagnosis import _structure
+    from napari_lbs._core.gap._unexplained import unexplained_share
 
     split = TileSplit.of((SIZE, SIZE), grid=4)
     rng = np.random.default_rng(0)
     white = (rng.normal(0.0, 0.01, (SIZE, SIZE)), rng.normal(0.0, 0.01, (SIZE, SIZE)))
     fringe = 0.05 * np.sin(np.arange(SIZE) / 7.0)[None, :]
     frame = tile_spectra(fringe + rng.normal(0.0, 0.01, (SIZE, SIZE)), split)
-    share, _, tiles, floor = _structure(white, split, frame)
+    share, _, tiles, floor = unexplained_share(white, split, frame)
     assert share < 0.01 and tiles.max() < 0.03 and abs(floor - 1e-4) < 1e-5
-    share, _, tiles, _ = _structure(tuple(w + 0.5 * fringe for w in white), split, frame)
+    share, _, tiles, _ = unexplained_share(tuple(w + 0.5 * fringe for w in white), split, frame)
     assert abs(share - 0.25) < 0.03 and np.ptp(tiles) < 0.05
 
 
 def test_a_column_pattern_is_found_and_white_noise_or_a_smooth_envelope_hold_none():
     """Offsets per column (a camera's column amplifiers) stand far above white noise in the column means; an envelope and white noise do not."""
-    from napari_lbs._core.gap._scene_diagnosis import _line_pattern
+    from napari_lbs._core.gap._unexplained import line_pattern
 
     rng = np.random.default_rng(1)
     yy, xx = np.mgrid[0:SIZE, 0:SIZE] / SIZE
     plain = tuple(rng.normal(0.0, 0.01, (SIZE, SIZE)) + 0.05 * ((xx - 0.4) ** 2 + (yy - 0.6) ** 2) for _ in range(2))
-    ratios = _line_pattern(plain)
+    ratios = line_pattern(plain)
     assert max(ratios.values()) < 2.0
     columns = rng.normal(0.0, 0.005, SIZE)[None, :]
-    ratios = _line_pattern(tuple(r + columns for r in plain))
+    ratios = line_pattern(tuple(r + columns for r in plain))
     assert ratios["columns"] > 20.0 and ratios["rows"] < 2.0
 
 

@@ -6,6 +6,10 @@ One concern per module:
     `find_particles`: the experiment's particles without a trained model (focus in the back-propagated volume).
 `_heldout`
     `TileSplit`, `whittle_loglik`, `model_probabilities`: the held-out likelihood of a frame's model, tile by tile.
+`_scene_image`
+    `Scene`: the fitted particles' hologram, whole and in depth groups, and the blurs that act on it by depth.
+`_unexplained`
+    `unexplained_share`, `share_by_depth`, `line_pattern`: what a frame's model leaves, by tile, band and depth.
 `_nested`
     `select_effects`: the catalog's camera effects as nested models of the frame, forward selection.
 `_particle_models`

@@ -27,7 +27,8 @@ import numpy as np
 from scipy import optimize, stats
 
 from napari_lbs._core.gap._heldout import TileSplit, model_probabilities
-from napari_lbs._core.gap._nested import EVERY_OTHER, MEAN_EFFECTS, Scene, Selection, both_colours, fit_frame, gain_and_z, last_two
+from napari_lbs._core.gap._nested import EVERY_OTHER, MEAN_EFFECTS, Selection, both_colours, fit_frame, gain_and_z, last_two
+from napari_lbs._core.gap._scene_image import Scene
 from napari_lbs._core.physics import EFFECTS, gaussian_blur, sensor_image
 
 __all__ = ["BLUR_EFFECTS", "blur_by_depth", "attribute_blur", "spectrum_width_test"]

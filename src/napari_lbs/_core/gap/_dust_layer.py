@@ -36,7 +36,7 @@ from napari_lbs._core.gap._detect import find_particles
 from napari_lbs._core.gap._heldout import TileSplit
 from napari_lbs._core.refine import RefineSettings, refine_particles
 
-__all__ = ["GRAIN_PX", "LAYER_TILES", "dust_layer", "dust_search_range_um"]
+__all__ = ["GRAIN_PX", "LAYER_TILES", "dust_layer", "dust_record", "dust_search_range_um"]
 
 GRAIN_PX = (4.0, 28.0)  # grains searched for, pixels across (9–62 µm at 2.2 µm: dust on windows is 5–100 µm)
 LAYER_TILES = 3  # tiles holding a grain of the layer from which the frame's dust is named
@@ -137,3 +137,13 @@ def dust_layer(ratio: np.ndarray, config: ExperimentConfig, split: TileSplit, *,
                        "dust_grain_px": float(np.std(radii, ddof=1) / np.sqrt(count)) if count > 1 else float("nan")},
         "table": layer,
     }
+
+
+def dust_record(dust: dict) -> dict:
+    """The report's ``dust_layer`` of a `dust_layer` outcome: without the fitted table and the tile counts (its grains listed by place, depth, size and optics)."""
+    record = {key: value for key, value in dust.items() if key not in ("table", "tiles")}
+    if "tiles" in dust:
+        record["tiles_with_grains"] = int(np.count_nonzero(dust["tiles"]))
+    if "table" in dust:
+        record["layer_grains"] = dust["table"][["x_um", "y_um", "z_um", "diameter_um", "index_contrast", "absorption"]].to_dict("list") if len(dust["table"]) else {}
+    return record

@@ -45,10 +45,11 @@ from scipy.signal import fftconvolve
 from napari_lbs._core.foundation import ProgressCallback, Steps, StopCallback, Stopped, process_threads, thread_pool
 from napari_lbs._core.gap._confidence import sign_z
 from napari_lbs._core.gap._heldout import TileSplit, model_probabilities, tile_spectra, whittle_loglik
+from napari_lbs._core.gap._scene_image import Scene
 from napari_lbs._core.gap._tile_errors import clustered_errors, mean_of_halves
 from napari_lbs._core.physics import EFFECTS, gaussian_blur, sensor_image
 
-__all__ = ["DECIDED_Z", "EVERY_OTHER", "MEAN_EFFECTS", "FrameFit", "gain_and_z", "Scene", "Selection", "both_colours", "fit_frame", "last_two", "far_ring_power", "select_effects", "shot_noise_test", "whiteness_draws"]
+__all__ = ["DECIDED_Z", "EVERY_OTHER", "MEAN_EFFECTS", "FrameFit", "gain_and_z", "Selection", "both_colours", "fit_frame", "last_two", "far_ring_power", "select_effects", "shot_noise_test", "whiteness_draws"]
 
 # the parameters each effect of the mean fits (the others of its catalog entry stay neutral)
 MEAN_EFFECTS = {
@@ -60,63 +61,6 @@ MEAN_EFFECTS = {
 _BY_DEPTH = ("coherence",)  # effects that need the scene's depth groups
 
 
-@dataclass(frozen=True)
-class Scene:
-    """The hologram of the frame's fitted particles, whole and in depth groups.
-
-    Attributes
-    ----------
-    image : (rows, cols) array
-        Every particle rendered together (unobstructed light 1).
-    depths_um : tuple of float
-        Each group's mean depth (µm, the config's convention).
-    groups : (groups, rows, cols) array
-        Each group's particles rendered alone, less 1: what a depth-dependent effect acts on.
-    pixel_um : float
-        Pixel pitch (µm).
-    """
-
-    image: np.ndarray = field(repr=False)
-    depths_um: tuple[float, ...] = ()
-    groups: np.ndarray | None = field(default=None, repr=False)
-    pixel_um: float = 1.0
-
-    @classmethod
-    def of(cls, scene) -> "Scene":
-        """``scene`` as a `Scene`; an array is a scene without depth groups."""
-        return scene if isinstance(scene, Scene) else cls(np.asarray(scene, np.float64))
-
-    def coherent_blur(self, theta_mrad: float) -> np.ndarray:
-        """The scene with each depth group blurred by σ = θ·z (a source of angular size θ)."""
-        image = self.image.astype(np.float32)
-        if theta_mrad <= 0 or self.groups is None:
-            return image
-        image = image.copy()
-        for depth, group in zip(self.depths_um, self.groups, strict=True):
-            sigma_px = theta_mrad * 1e-3 * depth / self.pixel_um
-            image += gaussian_blur(group, sigma_px) - group
-        return image
-
-    def spectral_blur(self, bandwidth_nm: float) -> np.ndarray:
-        """The scene with each depth group's fringes washed out by a spectrum of full width ``bandwidth_nm`` at half maximum.
-
-        A Gaussian spectrum of standard deviation σ_λ averages each group's fringes over the
-        wavelengths, which in Fresnel's transfer function ``exp(iπλzf²)`` is the factor
-        ``exp(−½ (π σ_λ z f²)²)`` on the group's spectrum (f in cycles per µm, z the group's
-        depth in the config's convention): a fringe fades with its order, f⁴, and with depth,
-        where a sensor's blur takes f² from every depth alike (`superpose` simulates with
-        the same law).
-        """
-        image = self.image.astype(np.float32)
-        if bandwidth_nm <= 0 or self.groups is None:
-            return image
-        image = image.copy()
-        f2 = np.fft.fftfreq(image.shape[0], self.pixel_um)[:, None] ** 2 + np.fft.fftfreq(image.shape[1], self.pixel_um)[None, :] ** 2
-        sigma_um = bandwidth_nm * 1e-3 / (2.0 * np.sqrt(2.0 * np.log(2.0)))
-        for depth, group in zip(self.depths_um, self.groups, strict=True):
-            washed = np.fft.irfft2(np.fft.rfft2(group) * np.exp(-0.5 * (np.pi * sigma_um * depth * f2[:, : group.shape[1] // 2 + 1]) ** 2), s=group.shape)
-            image += (washed - group).astype(np.float32)
-        return image
 _BASELINE = (("gain", 1.0, (0.2, 5.0)), ("contrast", 1.0, (0.0, 3.0)), ("gamma", 1.0, (0.3, 3.0)))
 _STEPS = 12  # least-squares steps per fit: the starts are the simpler model's optimum
 _HIGH_PASS_PX = 1.5  # the shot-noise test's high pass: the residual less its Gaussian blur of this σ

@@ -26,7 +26,7 @@
    is the gap: a pair fitted as one particle or a particle cut by the frame's edge spoils a
    few tiles, an effect the model lacks spoils them all. The catalog explains the frame where
    that median is at most ``structure_level``, the residual's column and row means hold no
-   fixed pattern (`_line_pattern`: what a camera's column amplifiers and row read-out leave,
+   fixed pattern (`line_pattern`: what a camera's column amplifiers and row read-out leave,
    the EMVA 1288 standard's check of non-uniformity) and it holds no blur that differs by
    direction (`directional_blur_test`: a sample moving during the exposure). Where it holds
    structure, what the model leaves is searched for dust on a window beyond the volume
@@ -54,22 +54,20 @@ from napari_lbs._core.gap._blur_depth import BLUR_EFFECTS, attribute_blur, spect
 from napari_lbs._core.gap._confidence import Decision, combined_z, verdict_probability
 from napari_lbs._core.gap._detect import find_particles
 from napari_lbs._core.gap._directional import directional_blur_test
-from napari_lbs._core.gap._dust_layer import LAYER_TILES, dust_layer
+from napari_lbs._core.gap._dust_layer import LAYER_TILES, dust_layer, dust_record
 from napari_lbs._core.gap._heldout import TileSplit, tile_spectra
 from napari_lbs._core.gap._levels import levels_test
-from napari_lbs._core.gap._nested import DECIDED_Z, MEAN_EFFECTS, Scene, far_ring_power, select_effects, shot_noise_test, whiteness_draws
+from napari_lbs._core.gap._nested import DECIDED_Z, MEAN_EFFECTS, far_ring_power, select_effects, shot_noise_test, whiteness_draws
+from napari_lbs._core.gap._scene_image import Scene
+from napari_lbs._core.gap._unexplained import depth_groups, line_pattern, share_by_depth, unexplained_share
 from napari_lbs._core.gap._optics_power import optics_power_test
 from napari_lbs._core.gap._particle_models import optics_call, particle_models
 from napari_lbs._core.gap._population import scene_population
 from napari_lbs._core.gap._through_focus import through_focus_test
-from napari_lbs._core.physics import gaussian_blur
 from napari_lbs._core.refine import RefineSettings, particle_hologram, refine_particles
 
 __all__ = ["SceneDiagnosisSettings", "SceneDiagnosis", "diagnose_scene"]
 
-_DEPTH_GROUPS = 6  # depth groups of the scene's particles for a depth-dependent effect
-_FLOOR_CYCLES = 0.35  # cycles per pixel above which the residual's power is its white floor
-_BANDS = (0.0, 0.02, 0.05, 0.1, 0.2, 0.35, 0.5)  # cycles per pixel, the report's frequency bands
 _SMALL_FRACTION = 0.2  # small scatterers are looked for from this fraction of the sample's least diameter up to it
 _NOT_TESTED = {
     "spherical_wave": "on one frame a point source's magnification is a change of each particle's depth and size",
@@ -201,7 +199,8 @@ def _optics(data: np.ndarray, table, selection, config: ExperimentConfig, split:
     return record
 
 
-def _decisions(selection, shot: dict, optics_votes, phase_selected: bool, blur_profile: dict | None, *, level_z: float) -> list[Decision]:
+def _decisions(selection, shot: dict, optics_votes, phase_selected: bool, blur_profile: dict | None, *, level_z: float,
+               spectrum: dict | None = None, dust: dict | None = None) -> list[Decision]:
     """The verdict's sign tests over the tiles (`verdict_probability`): each effect kept, each left out, each rival beaten, photon noise, the optics.
 
     Each selected effect of the mean against the model without it; each other one against
@@ -212,7 +211,9 @@ def _decisions(selection, shot: dict, optics_votes, phase_selected: bool, blur_p
     names them, else opaque, the simulator's: an undecided optics test is a doubt). A blur whose origin was read from the
     depth groups (`attribute_blur`) is counted as any named effect: the line through the
     depth groups' blurs chose it, and the tiles must still gain from it; the other blur is
-    then not its rival on the tiles (the groups, not the tiles, told them apart).
+    then not its rival on the tiles (the groups, not the tiles, told them apart). Where a
+    blur was named, the spectrum's width against it (`spectrum_width_test`); where a dusty
+    window was looked for, its grains' tiles (named from `LAYER_TILES`).
     """
     fits = selection.fits
     chosen = selection.chosen
@@ -252,17 +253,14 @@ def _decisions(selection, shot: dict, optics_votes, phase_selected: bool, blur_p
         # draws where the tiles call them opaque
         tiles, views = optics_votes
         decisions.append(Decision("particle_phase", tiles, 1 if phase_selected else -1, needs_gain=False, three_way=True, views=views))
+    if spectrum is not None:
+        decisions.append(Decision(f"coherence as a spectrum's width rather than {' and '.join(spectrum['replaces'])}", spectrum["tile_gains"],
+                                  int(spectrum["named"])))
+    if dust is not None and dust["searched"]:
+        # the window's grains counted by tile: named on a draw where they lie on LAYER_TILES tiles or more
+        decisions.append(Decision("parasitic_fringes: dust on a window", dust["tiles"], int(dust["named"]), needs_gain=False,
+                                  level_z=float(np.sqrt(LAYER_TILES)) - 1e-9))
     return decisions
-
-
-def _dust_record(dust: dict) -> dict:
-    """The report's ``dust_layer``: the search's outcome without the fitted table (its grains listed by place, depth and size)."""
-    record = {key: value for key, value in dust.items() if key not in ("table", "tiles")}
-    if "tiles" in dust:
-        record["tiles_with_grains"] = int(np.count_nonzero(dust["tiles"]))
-    if "table" in dust:
-        record["layer_grains"] = dust["table"][["x_um", "y_um", "z_um", "diameter_um", "index_contrast", "absorption"]].to_dict("list") if len(dust["table"]) else {}
-    return record
 
 
 def _found(image: np.ndarray, config: ExperimentConfig, most: int, progress, should_stop) -> dict:
@@ -314,7 +312,7 @@ def _scene(data: np.ndarray, found, config: ExperimentConfig, settings: SceneDia
             break
         table = pd.concat([table, new], ignore_index=True)
     # depth groups of about equal counts, each rendered alone: what a depth-dependent effect (coherence) blurs
-    bins = _depth_groups(table)
+    bins = depth_groups(table)
     begin_phase(progress, f"the scene of {len(table)} particles rendered, whole and in {len(bins)} depth groups")
     steps = Steps(1 + len(bins), progress=progress, should_stop=should_stop)
     scene = render(table, settings.reach_cycles_per_px)
@@ -363,84 +361,6 @@ def _small_scatterers(data: np.ndarray, table, scene: Scene, config: ExperimentC
     return fitted[fitted["refined"] & (fitted["diameter_um"] < low)].reset_index(drop=True)
 
 
-def _structure(residuals: tuple[np.ndarray, np.ndarray], split: TileSplit, frame_spectra: np.ndarray) -> tuple[float, list, np.ndarray, float]:
-    """The unexplained share of the frame's structure: its median over the tiles, per band, per tile; and the white floor's variance.
-
-    ``frame_spectra`` are the frame's own tile spectra (`tile_spectra` of the frame less its
-    mean). The floor is the residual's mean power per frequency above ``_FLOOR_CYCLES`` (a
-    white residual's variance); a tile's structured power is what it holds beyond the floor
-    times its frequencies, for the residual and for the frame alike. Sums, not bin by bin: a
-    periodogram's bins scatter exponentially about their mean, and clipping each at a floor
-    would call half of pure white noise structure. The bands split the residual's own
-    structured power.
-    """
-    colours = split.colours()
-    spectra = np.empty((len(colours), split.size, split.size))
-    for fitted_on, residual in enumerate(residuals):
-        judged = colours != fitted_on
-        spectra[judged] = tile_spectra(residual, split)[judged]
-    f = np.hypot(*np.meshgrid(np.fft.fftfreq(split.size), np.fft.fftfreq(split.size), indexing="ij"))
-    high = (f >= _FLOOR_CYCLES) & (f <= 0.5)
-    floors = spectra[:, high].mean(axis=1)
-    structured = spectra.sum(axis=(1, 2)) - floors * f.size
-    frame = np.maximum(frame_spectra.sum(axis=(1, 2)) - floors * f.size, 1e-30)
-    per_tile = np.clip(structured / frame, 0.0, None)
-    grand = max(float(spectra.sum()), 1e-30)
-    bands = []
-    for low, high_f in zip(_BANDS[:-1], _BANDS[1:], strict=True):
-        inside = (f >= low) & (f < high_f)
-        power = float(spectra[:, inside].sum())
-        bands.append({"cycles_per_px": [low, high_f], "share_of_power": power / grand,
-                      "structured": max(power - float(floors.sum()) * int(inside.sum()), 0.0) / grand})
-    return float(np.median(per_tile)), bands, per_tile.reshape(split.grid, split.grid), float(np.mean(floors))
-
-
-def _depth_groups(table) -> list[np.ndarray]:
-    """The rows of each of the scene's depth groups: about equal counts, shallow to deep (none for fewer than two particles)."""
-    return np.array_split(np.argsort(table["z_um"].to_numpy()), min(_DEPTH_GROUPS, len(table))) if len(table) >= 2 else []
-
-
-def _by_depth(before: tuple[np.ndarray, np.ndarray], after: tuple[np.ndarray, np.ndarray], data: np.ndarray, table, split: TileSplit,
-              floor_variance: float, *, pixel_um: float, reach_px: int) -> list:
-    """The unexplained share of the structure about the particles of each depth group, before and after the selected effects.
-
-    Each held-out pixel within ``reach_px`` of a particle's centre belongs to its nearest
-    particle, so to that particle's depth group (the scene's: equal counts, by depth). A
-    group's share is the held-out residual's power there beyond the white floor over the
-    frame's own beyond it, as the tiles' share (`_structure`) but summed over the group's
-    pixels: a source's size leaves the deep groups' rings, a sensor's blur every group's.
-    """
-    from scipy.spatial import cKDTree
-
-    if len(table) < 2:
-        return []
-    colour_of = np.append(split.colours(), -1)[split.labels()]  # -1: outside the tiles
-    centres = np.stack([table["y_um"].to_numpy(), table["x_um"].to_numpy()], axis=1) / pixel_um
-    rows, cols = np.nonzero(colour_of >= 0)
-    distance, nearest = cKDTree(centres).query(np.stack([rows, cols], axis=1), distance_upper_bound=reach_px)
-    near = np.isfinite(distance)
-    rows, cols, nearest = rows[near], cols[near], nearest[near]
-    group_of = np.empty(len(table), int)
-    bins = _depth_groups(table)
-    for index, members in enumerate(bins):
-        group_of[members] = index
-
-    def held_out(residuals):  # each pixel from the fit on the other colour's tiles
-        return np.where(colour_of[rows, cols] == 1, residuals[0][rows, cols], residuals[1][rows, cols])
-
-    frame = (data[rows, cols] - 1.0) ** 2
-    left_before, left_after = held_out(before) ** 2, held_out(after) ** 2
-    out = []
-    for index, members in enumerate(bins):
-        inside = group_of[nearest] == index
-        count = int(inside.sum())
-        structure = max(float(frame[inside].sum()) - count * floor_variance, 1e-30)
-        shares = [max(float(left[inside].sum()) - count * floor_variance, 0.0) / structure if count else None for left in (left_before, left_after)]
-        out.append({"z_um": float(table["z_um"].to_numpy()[members].mean()), "particles": int(len(members)), "pixels": count,
-                    "baseline": shares[0], "after": shares[1]})
-    return out
-
-
 def _estimates(effect: str, selection) -> dict:
     """``{parameter: (value, standard error)}`` of a catalog effect of the mean (`FrameFit.estimate`); empty where it was not tried.
 
@@ -451,23 +371,6 @@ def _estimates(effect: str, selection) -> dict:
     if source is None:
         return {}
     return {name.split(".", 1)[1]: source.estimate(name) for name in source.params[0] if name.startswith(f"{effect}.")}
-
-
-def _line_pattern(residuals: tuple[np.ndarray, np.ndarray]) -> dict:
-    """Fixed column and row patterns: the variance of the high-passed residual's column and row means over what white noise gives.
-
-    A camera's column amplifiers and row read-out add an offset per column or row, white
-    along the other axis; particles, illumination and fringes at an angle average out in a
-    column's mean, and the high pass (less a Gaussian blur of 1.5 px) keeps a smooth envelope
-    out. White noise gives a ratio near 1.
-    """
-    ratios = {"columns": [], "rows": []}
-    for residual in residuals:
-        high = residual - gaussian_blur(residual, 1.5)
-        white = float(high.var())
-        for axis, name in ((0, "columns"), (1, "rows")):
-            ratios[name].append(float(high.mean(axis=axis).var() / max(white / residual.shape[axis], 1e-30)))
-    return {name: float(np.mean(values)) for name, values in ratios.items()}
 
 
 def diagnose_scene(hologram: np.ndarray, config: ExperimentConfig, *, settings: SceneDiagnosisSettings | None = None,
@@ -534,7 +437,7 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
     frame_spectra = tile_spectra(data - 1.0, split)
     dust = {"searched": False, "named": False}
     final = selection.fits["+".join(selection.chosen) or "baseline"]
-    if _structure(final.residuals, split, frame_spectra)[0] > settings.structure_level:
+    if unexplained_share(final.residuals, split, frame_spectra)[0] > settings.structure_level:
         # what the model leaves holds structure: a dusty window's grains are looked for in it
         begin_phase(progress, "dust on a window beyond the volume, looked for in what the model leaves")
         dust = dust_layer(data / np.maximum(0.5 * (final.means[0] + final.means[1]), 1e-6), config, split, settings=settings.refine, pool=pool,
@@ -564,19 +467,19 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
         final_fit = selection.fits["+".join(selection.chosen) or "baseline"]
         selection = replace(selection, shot_noise=shot_noise_test(final_fit, split, nuisance=far_ring_power(rendered)))
     small = _small_scatterers(data, table, scene, config, settings, progress, should_stop, pool)
-    baseline_share = _structure(selection.fits["baseline"].residuals, split, frame_spectra)[0]
+    baseline_share = unexplained_share(selection.fits["baseline"].residuals, split, frame_spectra)[0]
     final = selection.fits["+".join(selection.chosen) or "baseline"]
-    share, bands, tile_map, floor_variance = _structure(final.residuals, split, frame_spectra)
-    lines = _line_pattern(final.residuals)
+    share, bands, tile_map, floor_variance = unexplained_share(final.residuals, split, frame_spectra)
+    lines = line_pattern(final.residuals)
     directional = directional_blur_test(final.residuals, final.means, split, final.loglik)
-    by_depth = _by_depth(selection.fits["baseline"].residuals, final.residuals, data, table, split, floor_variance,
+    by_depth = share_by_depth(selection.fits["baseline"].residuals, final.residuals, data, table, split, floor_variance,
                          pixel_um=config.optics.pixel_um, reach_px=settings.refine.patch_px // 2)
     effects = []
     first_round = selection.steps[0]["gains"] if selection.steps else {}
     for effect in MEAN_EFFECTS:
         fit = selection.fits.get(effect)
         # an effect not tried (coherence without two particles to group by depth) leaves the gap as it is
-        after = _structure(fit.residuals, split, frame_spectra)[0] if fit is not None else baseline_share
+        after = unexplained_share(fit.residuals, split, frame_spectra)[0] if fit is not None else baseline_share
         estimates = _estimates(effect, selection)
         gain = first_round.get(effect, {})
         effects.append({"id": effect, "gap_after": after, "shrink": 1.0 - after / baseline_share if baseline_share > 0 else 0.0,
@@ -619,15 +522,8 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
             + (f"; a blur that differs by direction, outside the catalog (motion during the exposure, astigmatism: z {directional['z']:.1f}, "
                f"{directional['variance_difference_px2']:.2f} px² more along {np.degrees(directional['angle_rad']):.0f}°)" if streaked else ""))
     posterior = {("null" if name == "baseline" else name): p for name, p in selection.probabilities.items()}
-    decisions = _decisions(selection, shot, optics_votes, phase_selected, blur_profile, level_z=settings.level_z)
-    if spectrum is not None:
-        decisions.append(Decision(f"coherence as a spectrum's width rather than {' and '.join(spectrum['replaces'])}", spectrum["tile_gains"],
-                                  int(spectrum["named"])))
-    if dust["searched"]:
-        # the window's grains counted by tile: named on a draw where they lie on LAYER_TILES tiles or more
-        decisions.append(Decision("parasitic_fringes: dust on a window", dust["tiles"], int(dust["named"]), needs_gain=False,
-                                  level_z=float(np.sqrt(LAYER_TILES)) - 1e-9))
-    confidence = verdict_probability(decisions, level_z=settings.level_z)
+    confidence = verdict_probability(_decisions(selection, shot, optics_votes, phase_selected, blur_profile, level_z=settings.level_z, spectrum=spectrum, dust=dust),
+                                     level_z=settings.level_z)
     report = {
         "method": "scene",
         "gap": {"metric": "unexplained share of the frame's structure (median over the held-out tiles)", "baseline": baseline_share, "by_band": bands,
@@ -648,7 +544,7 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
         "particle_optics": optics,
         "scene": scene_population(table, config, data.shape, small=small),
         "blur_by_depth": blur_profile,
-        "dust_layer": _dust_record(dust),
+        "dust_layer": dust_record(dust),
         "spectrum_width": None if spectrum is None else {key: value for key, value in spectrum.items() if key != "tile_gains"},
         "selection": selection.steps,
         "undecided": list(selection.undecided),
