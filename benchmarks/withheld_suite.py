@@ -625,6 +625,30 @@ FROZEN_20 = (
     Case("source-disc-2.6", 512, {"coherence": {"source_mrad": 2.6}}),
 )
 
+# a twenty-first frozen set, written once a dusty window was looked for on both sides of the
+# volume (from the sensor's cover glass to far behind it) and among the scene's particles
+# fitted outside the volume: dust 1.0 and 1.4 mm from the sensor, 5.8 and 6.8 mm (just behind
+# the volume), 9 and 16 mm; dust near the sensor beside an envelope; four controls and five
+# other effects alone (none may be taken for dust); committed before its first run
+FROZEN_21_SEED = 20261216
+FROZEN_21 = (
+    Case("control-a21", 512, spheres_per_512=26, level=152, read_noise=1.5), Case("control-b21", 512, spheres_per_512=33, level=166, read_noise=1.9),
+    Case("control-c21", 512, spheres_per_512=22, level=140, read_noise=1.2), Case("control-d21", 512, spheres_per_512=29, level=158, read_noise=2.1),
+    Case("dust-1.0mm", 512, {"parasitic_fringes": {"dust_mm": 1.0, "grains_per_mpx": 60.0, "grain_um": (8.0, 25.0)}}),
+    Case("dust-1.4mm", 512, {"parasitic_fringes": {"dust_mm": 1.4, "grains_per_mpx": 50.0, "grain_um": (10.0, 35.0)}}),
+    Case("dust-5.8mm", 512, {"parasitic_fringes": {"dust_mm": 5.8, "grains_per_mpx": 50.0, "grain_um": (10.0, 50.0)}}),
+    Case("dust-6.8mm", 512, {"parasitic_fringes": {"dust_mm": 6.8, "grains_per_mpx": 40.0, "grain_um": (15.0, 50.0)}}),
+    Case("dust-9mm", 512, {"parasitic_fringes": {"dust_mm": 9.0, "grains_per_mpx": 50.0, "grain_um": (10.0, 50.0)}}),
+    Case("dust-16mm", 512, {"parasitic_fringes": {"dust_mm": 16.0, "grains_per_mpx": 40.0, "grain_um": (15.0, 60.0)}}),
+    Case("dust-1.2mm+vignetting", 512, {"parasitic_fringes": {"dust_mm": 1.2, "grains_per_mpx": 50.0, "grain_um": (10.0, 30.0)},
+                                        "illumination": {"falloff": 0.42, "centre": (0.45, 0.6)}}),
+    Case("etalon", 512, {"parasitic_fringes": {"etalon": 0.05, "period_px": 12.5, "angle_rad": 2.4, "phase_rad": 0.4}}),
+    Case("vignetting", 512, {"illumination": {"falloff": 0.5, "centre": (0.38, 0.52)}}),
+    Case("crosstalk-3", 512, {"sensor_blur": {"kernel": "binomial3"}}),
+    Case("photons-90", 512, {"shot_noise": {"photons": 90.0}}),
+    Case("polystyrene", 512, {"particle_phase": {"index": 1.59}}),
+)
+
 DEVELOPMENT_SEED = 1234
 DEVELOPMENT = (
     Case("control-1", 512), Case("control-2", 512, spheres_per_512=35, level=160, read_noise=2.0), Case("control-3", 512, spheres_per_512=22, level=140, read_noise=1.2),
@@ -665,6 +689,11 @@ DEVELOPMENT = (
     Case("vignetting-centre", 512, {"illumination": {"falloff": 0.45, "centre": (0.5, 0.5)}}),
     Case("vignetting-48", 512, {"illumination": {"falloff": 0.48, "centre": (0.4, 0.55)}}),
     Case("vignetting-42", 512, {"illumination": {"falloff": 0.42, "centre": (0.6, 0.45)}}),
+    # added later: dust on a window nearer than the far search began, on the sensor's cover
+    # glass (in front of the volume) and just behind the volume
+    Case("dust-0.7mm", 512, {"parasitic_fringes": {"dust_mm": 0.7, "grains_per_mpx": 60.0, "grain_um": (10.0, 50.0)}}),
+    Case("dust-1.3mm", 512, {"parasitic_fringes": {"dust_mm": 1.3, "grains_per_mpx": 50.0, "grain_um": (10.0, 40.0)}}),
+    Case("dust-6.5mm", 512, {"parasitic_fringes": {"dust_mm": 6.5, "grains_per_mpx": 60.0, "grain_um": (10.0, 50.0)}}),
 )
 
 # effects outside the catalog, alone and beside a catalog effect (512²)
@@ -715,7 +744,7 @@ SUITES = {
     "frozen-13": (FROZEN_13, FROZEN_13_SEED), "frozen-14": (FROZEN_14, FROZEN_14_SEED),
     "frozen-15": (FROZEN_15, FROZEN_15_SEED), "frozen-16": (FROZEN_16, FROZEN_16_SEED),
     "frozen-17": (FROZEN_17, FROZEN_17_SEED), "frozen-18": (FROZEN_18, FROZEN_18_SEED), "frozen-19": (FROZEN_19, FROZEN_19_SEED),
-    "frozen-20": (FROZEN_20, FROZEN_20_SEED),
+    "frozen-20": (FROZEN_20, FROZEN_20_SEED), "frozen-21": (FROZEN_21, FROZEN_21_SEED),
     "development": (DEVELOPMENT, DEVELOPMENT_SEED),
     "outside-frozen": (OUTSIDE_FROZEN, OUTSIDE_FROZEN_SEED), "outside-frozen-2": (OUTSIDE_FROZEN_2, OUTSIDE_FROZEN_2_SEED),
     "outside-development": (OUTSIDE_DEVELOPMENT, OUTSIDE_DEVELOPMENT_SEED),
