@@ -1,4 +1,4 @@
-"""Dust on a window beyond the volume, found as a layer of opaque grains in what the frame's model leaves (`dust_layer`); report.md's sections of the tests run after the selection."""
+"""Dust on a window outside the volume, found as a layer of grains in what the frame's model leaves and among the scene's particles (`dust_layer`); report.md's sections of the tests run after the selection."""
 
 import dataclasses
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from napari_lbs._core import load_config
-from napari_lbs._core.gap._dust_layer import LAYER_TILES, dust_layer, dust_search_range_um
+from napari_lbs._core.gap._dust_layer import LAYER_TILES, dust_layer, dust_search_ranges_um, outside_volume
 from napari_lbs._core.gap._heldout import TileSplit
 from napari_lbs._core.refine import RefineSettings
 
@@ -61,19 +61,46 @@ def test_a_frame_of_noise_holds_no_dust():
     assert found["in_layer"] == 0 and found["z"] == 0.0
 
 
-def test_dust_nearer_than_the_search_is_not_named():
-    """A window within 1.5 times the volume's farthest depth is the volume's, not the search's: not named (a limit, docs/diagnosis.md)."""
+def test_a_window_within_the_volume_s_depths_is_not_named():
+    """A plane of grains at the volume's own depths is the sample's business: the window search looks outside it."""
     config = load_config()
-    near_um = 1.2 * config.volume.z_max_um
-    found = dust_layer(_dusty_window(near_um, grains=14, seed=3), config, TileSplit.of((SIZE, SIZE)), settings=_settings())
-    assert near_um < dust_search_range_um(config)[0]
+    middle_um = 0.5 * (config.volume.z_min_um + config.volume.z_max_um)
+    found = dust_layer(_dusty_window(middle_um, grains=14, seed=3), config, TileSplit.of((SIZE, SIZE)), settings=_settings())
+    assert all(not (near <= middle_um <= far) for near, far in dust_search_ranges_um(config))
     assert not found["named"]
 
 
-def test_a_microscope_s_rings_leave_no_depth_beyond_the_volume_to_search():
+def test_the_scene_s_particles_fitted_outside_the_volume_in_one_plane_are_a_window_s_grains():
+    """Grains near the volume focus within the finder's depths and their fits take them out: the scene's such particles make a layer without a search."""
+    import pandas as pd
+
+    config = load_config()
+    split = TileSplit.of((SIZE, SIZE))
+    pixel = config.optics.pixel_um
+    near_um = 0.6 * config.volume.z_min_um  # in front of the volume, between it and the sensor
+    # four grains in one plane, each on its own tile, among six of the sample's particles
+    corners = [(0.1, 0.1), (0.1, 0.9), (0.9, 0.1), (0.9, 0.9)]
+    grains = pd.DataFrame({"x_um": [c * SIZE * pixel for c, _ in corners], "y_um": [r * SIZE * pixel for _, r in corners],
+                           "z_um": near_um * np.array([1.0, 1.01, 0.99, 1.02]), "diameter_um": 20.0, "index_contrast": 0.3, "absorption": 0.5})
+    sample = pd.DataFrame({"x_um": np.linspace(50, 700, 6), "y_um": np.linspace(80, 600, 6), "z_um": np.linspace(config.volume.z_min_um, config.volume.z_max_um, 6),
+                           "diameter_um": 25.0, "index_contrast": 0.26, "absorption": 0.0})
+    scene = pd.concat([sample.iloc[:3], grains, sample.iloc[3:]], ignore_index=True)
+    assert outside_volume(scene, config).tolist() == [False] * 3 + [True] * 4 + [False] * 3
+    found = dust_layer(np.ones((SIZE, SIZE)), config, split, settings=_settings(), scene=scene, search=False)
+    assert found["named"] and not found["searched"]
+    assert sorted(found["scene_rows"].tolist()) == [3, 4, 5, 6]
+    assert found["depth_um"] == pytest.approx(near_um, rel=0.02) and found["in_layer"] == 4
+    assert found["table"]["in_scene"].all()
+    # three of them on one tile are not a window
+    crowded = grains.assign(x_um=[10.0, 30.0, 50.0, 500.0], y_um=[10.0, 30.0, 50.0, 500.0])
+    found = dust_layer(np.ones((SIZE, SIZE)), config, split, settings=_settings(), scene=crowded, search=False)
+    assert not found["named"] and found["in_layer"] == 4
+
+
+def test_a_microscope_s_rings_leave_no_depth_outside_the_volume_to_search():
     config = load_config()
     microscope = dataclasses.replace(config, optics=dataclasses.replace(config.optics, pixel_um=0.1))
-    assert dust_search_range_um(microscope) is None
+    assert dust_search_ranges_um(microscope) == ()
     found = dust_layer(np.ones((SIZE, SIZE)), microscope, TileSplit.of((SIZE, SIZE)), settings=_settings())
     assert not found["searched"] and not found["named"]
 

@@ -19,7 +19,7 @@ One concern per module:
 `_through_focus`
     `through_focus_test`: opaque against transparent spheres by the light on each sphere's axis, back-propagated through its depth.
 `_dust_layer`
-    `dust_layer`: dust on a window beyond the volume, a layer of opaque grains fitted in what the frame's model leaves.
+    `dust_layer`: dust on a window outside the volume, a layer of grains fitted in what the frame's model leaves and among the scene's particles.
 `_levels`
     `levels_test`: quantization and saturation read from the levels a frame of integer counts uses.
 `_scene_diagnosis`

@@ -333,17 +333,19 @@ def _spectrum_lines(test: dict | None) -> list[str]:
 
 
 def _dust_lines(dust: dict | None) -> list[str]:
-    """The search for a dusty window (`dust_layer`), where it ran: the layer's grains, depth and tiles, and whether it was named."""
-    if not dust or not dust.get("searched"):
+    """The look for a dusty window (`dust_layer`), where it ran: the layer's grains, depth and tiles, and whether it was named."""
+    if not dust or not (dust.get("searched") or dust.get("in_layer")):
         return []
     if not dust.get("in_layer"):
-        return ["## Dust on a window beyond the volume", "", f"- Searched in what the model leaves: {dust.get('grains', 0)} significant grains; none named.", ""]
+        return ["## Dust on a window outside the volume", "", f"- Searched in what the model leaves: {dust.get('grains', 0)} significant grains; none named.", ""]
     params = dust.get("params") or {}
+    in_scene = sum(bool(v) for v in (dust.get("layer_grains") or {}).get("in_scene", []))
     return [
-        "## Dust on a window beyond the volume",
+        "## Dust on a window outside the volume",
         "",
         f"- {dust['in_layer']} of {dust['grains']} significant grains lie in one plane {dust['depth_um'] / 1000:.2f} mm away, on "
-        f"{dust['tiles_with_grains']} tiles (named from 3): **{'named' if dust['named'] else 'not named'}**.",
+        f"{dust['tiles_with_grains']} tiles (named from 3): **{'named' if dust['named'] else 'not named'}**."
+        + (f" {in_scene} of them were fitted among the scene's particles{', which leave its table' if dust['named'] else ''}." if in_scene else ""),
         f"- The window's rings: first Fresnel zone {_text(params.get('dust_zone_px'))} px, {_text(params.get('dust_per_mpx'))} grains a megapixel "
         f"in the frame (grains outside it send rings in too), median radius {_text(params.get('dust_grain_px'))} px.",
         "",

@@ -29,10 +29,11 @@
    fixed pattern (`line_pattern`: what a camera's column amplifiers and row read-out leave,
    the EMVA 1288 standard's check of non-uniformity) and it holds no blur that differs by
    direction (`directional_blur_test`: a sample moving during the exposure). Where it holds
-   structure, what the model leaves is searched for dust on a window beyond the volume
-   (`dust_layer`: opaque grains fitted in one plane); a layer on enough tiles is named as
-   the catalog's ``parasitic_fringes``, its grains join the scene's hologram and each
-   selected effect is judged again around them.
+   structure, what the model leaves is searched for dust on a window on either side of the
+   volume, and the scene's particles fitted outside it are looked at too (`dust_layer`:
+   grains fitted in one plane); a layer on enough tiles is named as the catalog's
+   ``parasitic_fringes``, the scene's grains leave its table, the searched ones join its
+   hologram and each selected effect is judged again around them.
 5. **The scene's numbers** (`scene_population`): the fitted particles' count, density, sizes,
    depths and index contrasts, and the small scatterers: the scene's fits below the config's
    sizes and what a search at smaller sizes finds in the residual (`_small_scatterers`).
@@ -54,7 +55,7 @@ from napari_lbs._core.gap._blur_depth import BLUR_EFFECTS, attribute_blur, spect
 from napari_lbs._core.gap._confidence import Decision, combined_z, verdict_probability
 from napari_lbs._core.gap._detect import find_particles
 from napari_lbs._core.gap._directional import directional_blur_test
-from napari_lbs._core.gap._dust_layer import LAYER_TILES, dust_layer, dust_record
+from napari_lbs._core.gap._dust_layer import LAYER_TILES, dust_layer, dust_record, outside_volume
 from napari_lbs._core.gap._heldout import TileSplit, tile_spectra
 from napari_lbs._core.gap._levels import levels_test
 from napari_lbs._core.gap._nested import DECIDED_Z, MEAN_EFFECTS, far_ring_power, select_effects, shot_noise_test, whiteness_draws
@@ -437,16 +438,23 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
     frame_spectra = tile_spectra(data - 1.0, split)
     dust = {"searched": False, "named": False}
     final = selection.fits["+".join(selection.chosen) or "baseline"]
-    if unexplained_share(final.residuals, split, frame_spectra)[0] > settings.structure_level:
-        # what the model leaves holds structure: a dusty window's grains are looked for in it
-        begin_phase(progress, "dust on a window beyond the volume, looked for in what the model leaves")
-        dust = dust_layer(data / np.maximum(0.5 * (final.means[0] + final.means[1]), 1e-6), config, split, settings=settings.refine, pool=pool,
-                          progress=progress, should_stop=should_stop)
+    structured = unexplained_share(final.residuals, split, frame_spectra)[0] > settings.structure_level
+    if structured or np.count_nonzero(outside_volume(table, config)) >= LAYER_TILES:
+        # what the model leaves holds structure, or the scene holds particles fitted outside the
+        # volume: a dusty window's grains are looked for in it, and among them
+        begin_phase(progress, "dust on a window outside the volume, looked for in what the model leaves and in the scene")
+        dust = dust_layer(data / np.maximum(0.5 * (final.means[0] + final.means[1]), 1e-6), config, split, settings=settings.refine, scene=table,
+                          search=structured, pool=pool, progress=progress, should_stop=should_stop)
         if dust["named"]:
+            # the window's grains the scene fitted as particles stay in its image (a grain's
+            # hologram is a particle's) and leave its table: they are not the sample
+            table = table.drop(index=table.index[dust["scene_rows"]]).reset_index(drop=True)
+            searched = dust["table"][~dust["table"]["in_scene"].astype(bool)]
+        if dust["named"] and len(searched):
             # the window's rings multiply the light the particles scatter: part of the scene,
             # and each selected effect is judged again around it (one the dust explains drops
             # out); none is added, since what the rendered grains misfit is not the frame's
-            window = particle_hologram(data.shape, dust["table"], config, settings=settings.refine, reach_cycles_per_px=settings.reach_cycles_per_px,
+            window = particle_hologram(data.shape, searched, config, settings=settings.refine, reach_cycles_per_px=settings.reach_cycles_per_px,
                                        should_stop=should_stop)
             scene = replace(scene, image=scene.image * window)
             begin_phase(progress, "the selected effects judged again, the window's dust in the scene")
