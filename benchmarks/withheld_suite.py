@@ -694,6 +694,11 @@ DEVELOPMENT = (
     Case("dust-0.7mm", 512, {"parasitic_fringes": {"dust_mm": 0.7, "grains_per_mpx": 60.0, "grain_um": (10.0, 50.0)}}),
     Case("dust-1.3mm", 512, {"parasitic_fringes": {"dust_mm": 1.3, "grains_per_mpx": 50.0, "grain_um": (10.0, 40.0)}}),
     Case("dust-6.5mm", 512, {"parasitic_fringes": {"dust_mm": 6.5, "grains_per_mpx": 60.0, "grain_um": (10.0, 50.0)}}),
+    # added later: dust far behind the volume beside an envelope and beside a crosstalk
+    Case("dust-12mm+vignetting", 512, {"parasitic_fringes": {"dust_mm": 12.0, "grains_per_mpx": 50.0, "grain_um": (10.0, 50.0)},
+                                       "illumination": {"falloff": 0.45, "centre": (0.4, 0.6)}}),
+    Case("dust-9mm+crosstalk", 512, {"parasitic_fringes": {"dust_mm": 9.0, "grains_per_mpx": 50.0, "grain_um": (10.0, 50.0)},
+                                     "sensor_blur": {"kernel": "binomial3"}}),
 )
 
 # effects outside the catalog, alone and beside a catalog effect (512²)

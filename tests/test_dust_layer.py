@@ -112,6 +112,7 @@ def test_report_md_says_where_the_dusty_window_is_and_whether_a_spectrum_took_th
     from napari_lbs._core import SceneDiagnosis, write_report
 
     report = scene_report("parasitic_fringes", explains=False)
+    next(e for e in report["effects"] if e["id"] == "parasitic_fringes")["dust_z"] = 2.0
     report["dust_layer"] = {"searched": True, "named": True, "z": 2.0, "grains": 6, "in_layer": 5, "depth_um": 12345.0, "tiles_with_grains": 4,
                             "params": {"dust_per_mpx": 20.0, "dust_zone_px": 39.4, "dust_grain_px": 6.5}, "layer_grains": {}}
     table = pd.DataFrame({"x_um": [10.0], "y_um": [10.0], "z_um": [2000.0], "diameter_um": [25.0]})
@@ -119,6 +120,7 @@ def test_report_md_says_where_the_dusty_window_is_and_whether_a_spectrum_took_th
     text = (tmp_path / "r" / "report.md").read_text()
     assert "5 of 6 significant grains lie in one plane 12.35 mm away, on 4 tiles" in text and "**named**" in text
     assert "first Fresnel zone 39.4 px" in text
+    assert "| parasitic_fringes | yes (a window's dust: z 2.00 from its grains' tiles) |" in text
     report["spectrum_width"] = {"replaces": ["sensor_blur"], "gain_nats": 7934.0, "z": 4.0, "bandwidth_nm": 17.2, "bandwidth_nm_err": 0.5, "named": True}
     write_report(SceneDiagnosis(report, np.zeros((2, 2)), table), tmp_path / "r", force=True)
     assert "In place of sensor_blur: held-out gain 7934 nats, z 4.0, full width 17.2 nm; **coherence as a spectrum's width takes its place**" in (

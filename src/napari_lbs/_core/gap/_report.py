@@ -221,7 +221,7 @@ def _summary(report: dict, levels: SceneDiagnosisSettings) -> list[str]:
         "| effect | selected | z | held-out gain (nats) | gap after | shrink | parameters |",
         "|---|---|---|---|---|---|---|",
         *[
-            f"| {e['id']} | {'yes' if e['selected'] else 'no'} | {_text(e.get('z'), '.2f')} | {_text(e.get('heldout_gain_nats'), '.4g')} | {_text(e.get('gap_after'))} | "
+            f"| {e['id']} | {'yes' if e['selected'] else 'no'}{_dust_named(e)} | {_text(e.get('z'), '.2f')} | {_text(e.get('heldout_gain_nats'), '.4g')} | {_text(e.get('gap_after'))} | "
             f"{_text(100 * _value(e.get('shrink')), '.0f')} % | " + (parameter_text(e) or "—") + " |"
             for e in report["effects"]
         ],
@@ -330,6 +330,11 @@ def _spectrum_lines(test: dict | None) -> list[str]:
     return ["## The blur against a spectrum's width (an LED's: fringes washed out with their order and depth)", "",
             f"- In place of {' and '.join(test['replaces'])}: held-out gain {_text(test['gain_nats'], '.4g')} nats, z {_text(test['z'], '.1f')}, "
             f"full width {_text(test['bandwidth_nm'])} nm; {outcome} (from z 3 with a positive gain).", ""]
+
+
+def _dust_named(effect: dict) -> str:
+    """The selected column's note where a window's dust named the effect: its own z, from the tiles holding its grains (the row's z is the straight fringe's)."""
+    return f" (a window's dust: z {effect['dust_z']:.2f} from its grains' tiles)" if effect.get("dust_z") is not None else ""
 
 
 def _dust_lines(dust: dict | None) -> list[str]:
