@@ -649,6 +649,32 @@ FROZEN_21 = (
     Case("polystyrene", 512, {"particle_phase": {"index": 1.59}}),
 )
 
+# a twenty-second frozen set, written once a named window's searched grains were divided out of
+# the frame and its particles fitted and its effects judged again on the light without them:
+# dust alone at 7, 11 and 18 mm, and beside an envelope (10 and 6 mm), a crosstalk, an LED, a
+# disc source and photon noise, near dust beside an envelope; three controls, an envelope and
+# a disc source alone; committed before its first run
+FROZEN_22_SEED = 20261217
+FROZEN_22 = (
+    Case("control-a22", 512, spheres_per_512=28, level=150, read_noise=1.7), Case("control-b22", 512, spheres_per_512=24, level=162, read_noise=1.3),
+    Case("control-c22", 512, spheres_per_512=32, level=144, read_noise=2.0),
+    Case("dust-7mm", 512, {"parasitic_fringes": {"dust_mm": 7.0, "grains_per_mpx": 50.0, "grain_um": (10.0, 50.0)}}),
+    Case("dust-11mm", 512, {"parasitic_fringes": {"dust_mm": 11.0, "grains_per_mpx": 45.0, "grain_um": (12.0, 50.0)}}),
+    Case("dust-18mm", 512, {"parasitic_fringes": {"dust_mm": 18.0, "grains_per_mpx": 40.0, "grain_um": (15.0, 60.0)}}),
+    Case("dust-10mm+vignetting", 512, {"parasitic_fringes": {"dust_mm": 10.0, "grains_per_mpx": 50.0, "grain_um": (10.0, 50.0)},
+                                       "illumination": {"falloff": 0.44, "centre": (0.55, 0.42)}}),
+    Case("dust-6mm+vignetting", 512, {"parasitic_fringes": {"dust_mm": 6.0, "grains_per_mpx": 50.0, "grain_um": (10.0, 45.0)},
+                                      "illumination": {"falloff": 0.4, "centre": (0.4, 0.45)}}),
+    Case("dust-13mm+crosstalk", 512, {"parasitic_fringes": {"dust_mm": 13.0, "grains_per_mpx": 45.0, "grain_um": (10.0, 50.0)}, "sensor_blur": {"kernel": "binomial3"}}),
+    Case("dust-9mm+led-30nm", 512, {"parasitic_fringes": {"dust_mm": 9.0, "grains_per_mpx": 50.0, "grain_um": (10.0, 50.0)}, "coherence": {"bandwidth_nm": 30.0}}),
+    Case("dust-12mm+source-2.5", 512, {"parasitic_fringes": {"dust_mm": 12.0, "grains_per_mpx": 45.0, "grain_um": (10.0, 50.0)}, "coherence": {"source_mrad": 2.5}}),
+    Case("dust-10mm+photons-110", 512, {"parasitic_fringes": {"dust_mm": 10.0, "grains_per_mpx": 50.0, "grain_um": (10.0, 50.0)}, "shot_noise": {"photons": 110.0}}),
+    Case("dust-1.1mm+vignetting", 512, {"parasitic_fringes": {"dust_mm": 1.1, "grains_per_mpx": 50.0, "grain_um": (10.0, 30.0)},
+                                        "illumination": {"falloff": 0.46, "centre": (0.6, 0.55)}}),
+    Case("vignetting", 512, {"illumination": {"falloff": 0.43, "centre": (0.47, 0.38)}}),
+    Case("source-disc-2.0", 512, {"coherence": {"source_mrad": 2.0}}),
+)
+
 DEVELOPMENT_SEED = 1234
 DEVELOPMENT = (
     Case("control-1", 512), Case("control-2", 512, spheres_per_512=35, level=160, read_noise=2.0), Case("control-3", 512, spheres_per_512=22, level=140, read_noise=1.2),
@@ -749,7 +775,7 @@ SUITES = {
     "frozen-13": (FROZEN_13, FROZEN_13_SEED), "frozen-14": (FROZEN_14, FROZEN_14_SEED),
     "frozen-15": (FROZEN_15, FROZEN_15_SEED), "frozen-16": (FROZEN_16, FROZEN_16_SEED),
     "frozen-17": (FROZEN_17, FROZEN_17_SEED), "frozen-18": (FROZEN_18, FROZEN_18_SEED), "frozen-19": (FROZEN_19, FROZEN_19_SEED),
-    "frozen-20": (FROZEN_20, FROZEN_20_SEED), "frozen-21": (FROZEN_21, FROZEN_21_SEED),
+    "frozen-20": (FROZEN_20, FROZEN_20_SEED), "frozen-21": (FROZEN_21, FROZEN_21_SEED), "frozen-22": (FROZEN_22, FROZEN_22_SEED),
     "development": (DEVELOPMENT, DEVELOPMENT_SEED),
     "outside-frozen": (OUTSIDE_FROZEN, OUTSIDE_FROZEN_SEED), "outside-frozen-2": (OUTSIDE_FROZEN_2, OUTSIDE_FROZEN_2_SEED),
     "outside-development": (OUTSIDE_DEVELOPMENT, OUTSIDE_DEVELOPMENT_SEED),
