@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from napari_lbs._core import load_config
-from napari_lbs._core.gap._dust_layer import LAYER_TILES, dust_layer, dust_search_ranges_um, outside_volume
+from napari_lbs._core.gap._dust_layer import LAYER_TILES, dust_layer, dust_search_ranges_um, in_window, outside_volume
 from napari_lbs._core.gap._heldout import TileSplit
 from napari_lbs._core.refine import RefineSettings
 
@@ -88,7 +88,7 @@ def test_the_scene_s_particles_fitted_outside_the_volume_in_one_plane_are_a_wind
     assert outside_volume(scene, config).tolist() == [False] * 3 + [True] * 4 + [False] * 3
     found = dust_layer(np.ones((SIZE, SIZE)), config, split, settings=_settings(), scene=scene, search=False)
     assert found["named"] and not found["searched"]
-    assert sorted(found["scene_rows"].tolist()) == [3, 4, 5, 6]
+    assert in_window(scene, found, config).tolist() == [False] * 3 + [True] * 4 + [False] * 3
     assert found["depth_um"] == pytest.approx(near_um, rel=0.02) and found["in_layer"] == 4
     assert found["table"]["in_scene"].all()
     # three of them on one tile are not a window

@@ -48,7 +48,7 @@ from napari_lbs._core.gap._detect import find_particles
 from napari_lbs._core.gap._heldout import TileSplit
 from napari_lbs._core.refine import RefineSettings, refine_particles
 
-__all__ = ["GRAIN_PX", "LAYER_TILES", "dust_layer", "dust_record", "dust_search_ranges_um", "outside_volume"]
+__all__ = ["GRAIN_PX", "LAYER_TILES", "dust_layer", "dust_record", "dust_search_ranges_um", "in_window", "outside_volume"]
 
 GRAIN_PX = (4.0, 28.0)  # grains searched for, pixels across (9–62 µm at 2.2 µm: dust on windows is 5–100 µm)
 LAYER_TILES = 3  # tiles holding a grain of the layer from which the frame's dust is named
@@ -83,6 +83,14 @@ def outside_volume(table, config: ExperimentConfig) -> np.ndarray:
     if not dust_search_ranges_um(config):
         return np.zeros(depths.size, bool)
     return (depths < config.volume.z_min_um / _OUTSIDE_FACTOR) | (depths > _OUTSIDE_FACTOR * config.volume.z_max_um)
+
+
+def in_window(table, dust: dict, config: ExperimentConfig) -> np.ndarray:
+    """(rows,) bool: the particles of ``table`` in a named window's plane (`dust_layer`): outside the volume, within 5 % of the layer's depth."""
+    if not dust.get("named") or not len(table):
+        return np.zeros(len(table), bool)
+    depths = np.asarray(table["z_um"], dtype=np.float64)
+    return outside_volume(table, config) & (np.abs(np.log(np.maximum(depths, 1e-9) / dust["depth_um"])) <= _LAYER_SPREAD)
 
 
 def _searched(ratio: np.ndarray, config: ExperimentConfig, settings: RefineSettings, pool, progress, should_stop):
@@ -155,20 +163,20 @@ def dust_layer(ratio: np.ndarray, config: ExperimentConfig, split: TileSplit, *,
         √(λ z)/pixel, ``dust_grain_px``: the median radius) with ``params_err`` (from the
         layer's own scatter: the depths' and radii's standard errors, Poisson's for the
         count), ``table`` (the layer's grains, for their hologram; ``in_scene`` marks those
-        the scene holds), ``scene_rows`` (their rows of ``scene``), and ``searched``: whether
-        the residual was searched (not where the config leaves no depth to search).
+        the scene holds: `in_window` finds them in a table), and ``searched``: whether the
+        residual was searched (not where the config leaves no depth to search).
     """
     import pandas as pd
 
     columns = ["x_um", "y_um", "z_um", "diameter_um", "index_contrast", "absorption"]
     empty = {"named": False, "z": 0.0, "tiles": np.zeros(split.grid * split.grid), "grains": 0, "in_layer": 0, "depth_um": None, "params": {}, "params_err": {},
-             "table": pd.DataFrame(columns=[*columns, "in_scene"]), "scene_rows": np.zeros(0, int)}
+             "table": pd.DataFrame(columns=[*columns, "in_scene"])}
     searched = bool(search and dust_search_ranges_um(config))
     found = _searched(ratio, config, settings, pool, progress, should_stop) if searched else pd.DataFrame(columns=columns)
-    parts = [found.reindex(columns=columns).assign(in_scene=False, scene_row=-1)]
+    parts = [found.reindex(columns=columns).assign(in_scene=False)]
     if scene is not None and len(scene):
         outside = np.flatnonzero(outside_volume(scene, config))
-        parts.append(scene.iloc[outside].reindex(columns=columns).assign(in_scene=True, scene_row=outside))
+        parts.append(scene.iloc[outside].reindex(columns=columns).assign(in_scene=True))
     grains = pd.concat([part for part in parts if len(part)], ignore_index=True) if any(len(part) for part in parts) else None
     if grains is None:
         return {**empty, "searched": searched}
@@ -199,14 +207,13 @@ def dust_layer(ratio: np.ndarray, config: ExperimentConfig, split: TileSplit, *,
         "params": {"dust_per_mpx": float(count / (ratio.size / 1e6)), "dust_zone_px": zone, "dust_grain_px": float(np.median(radii))},
         "params_err": {"dust_per_mpx": float(np.sqrt(count) / (ratio.size / 1e6)), "dust_zone_px": 0.5 * zone * depth_err / depth,
                        "dust_grain_px": float(np.std(radii, ddof=1) / np.sqrt(count)) if count > 1 else float("nan")},
-        "table": layer.drop(columns="scene_row"),
-        "scene_rows": layer.loc[layer["in_scene"].astype(bool), "scene_row"].to_numpy(int),
+        "table": layer,
     }
 
 
 def dust_record(dust: dict) -> dict:
     """The report's ``dust_layer`` of a `dust_layer` outcome: without the fitted table and the tile counts (its grains listed by place, depth, size and optics)."""
-    record = {key: value for key, value in dust.items() if key not in ("table", "tiles", "scene_rows")}
+    record = {key: value for key, value in dust.items() if key not in ("table", "tiles")}
     if "tiles" in dust:
         record["tiles_with_grains"] = int(np.count_nonzero(dust["tiles"]))
     if "table" in dust:

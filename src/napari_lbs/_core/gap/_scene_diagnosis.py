@@ -55,7 +55,7 @@ from napari_lbs._core.gap._blur_depth import BLUR_EFFECTS, attribute_blur, spect
 from napari_lbs._core.gap._confidence import Decision, combined_z, verdict_probability
 from napari_lbs._core.gap._detect import find_particles
 from napari_lbs._core.gap._directional import directional_blur_test
-from napari_lbs._core.gap._dust_layer import LAYER_TILES, dust_layer, dust_record, outside_volume
+from napari_lbs._core.gap._dust_layer import LAYER_TILES, dust_layer, dust_record, in_window, outside_volume
 from napari_lbs._core.gap._heldout import TileSplit, tile_spectra
 from napari_lbs._core.gap._levels import levels_test
 from napari_lbs._core.gap._nested import DECIDED_Z, MEAN_EFFECTS, far_ring_power, select_effects, shot_noise_test, whiteness_draws
@@ -70,6 +70,7 @@ from napari_lbs._core.refine import RefineSettings, particle_hologram, refine_pa
 __all__ = ["SceneDiagnosisSettings", "SceneDiagnosis", "diagnose_scene"]
 
 _SMALL_FRACTION = 0.2  # small scatterers are looked for from this fraction of the sample's least diameter up to it
+_WINDOW_FLOOR = 0.2  # the window's hologram divides the frame down to this much light (a grain's deepest shadow holds little but noise)
 _NOT_TESTED = {
     "spherical_wave": "on one frame a point source's magnification is a change of each particle's depth and size",
     "multiple_scattering": "not modelled by this engine yet",
@@ -420,21 +421,32 @@ def diagnose_scene(hologram: np.ndarray, config: ExperimentConfig, *, settings: 
         return _diagnosed(data, np.asarray(hologram), config, settings, progress, should_stop, started, fits)
 
 
-def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig, settings: SceneDiagnosisSettings, progress, should_stop,
-               started: float, pool: WorkerPool) -> SceneDiagnosis:
-    """`diagnose_scene` of the frame ``data`` (divided by its background and mean; ``hologram`` as recorded, for its levels)."""
+def _judged(data: np.ndarray, config: ExperimentConfig, split: TileSplit, settings: SceneDiagnosisSettings, progress, should_stop, pool: WorkerPool, *,
+            again: bool = False) -> tuple:
+    """The frame's particles found and fitted (`_scene`), the effects selected around them and the blur's origin: ``(table, scene, selection, blur_profile)``.
+
+    ``again``: the frame is the light without a window's grains (the phases say so).
+    """
     import pandas as pd
 
-    begin_phase(progress, "particles found in the back-propagated volume")
+    cleared = "the frame without the window's grains: " if again else ""
+    begin_phase(progress, f"{cleared}particles found in the back-propagated volume")
     found = pd.DataFrame(_found(data, config, max(settings.particles, settings.scene_particles), progress, should_stop)).drop(columns="focus")
     table, scene = _scene(data, found, config, settings, progress, should_stop, pool)
-    split = TileSplit.of(data.shape, grid=settings.grid)
-    begin_phase(progress, f"the catalog's effects around {len(table)} fitted particles")
+    begin_phase(progress, f"{cleared}the catalog's effects around {len(table)} fitted particles")
     selection = select_effects(data, scene, split, level_z=settings.level_z, progress=progress, should_stop=should_stop)
-    begin_phase(progress, "the blur's origin read from each depth group's blur")
+    begin_phase(progress, f"{cleared}the blur's origin read from each depth group's blur")
     steps = Steps(1, progress=progress, should_stop=should_stop, heartbeat_s=0.5)
     selection, blur_profile = attribute_blur(data, scene, split, selection, level_z=settings.level_z, check=steps.check)
     steps.advance()
+    return table, scene, selection, blur_profile
+
+
+def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig, settings: SceneDiagnosisSettings, progress, should_stop,
+               started: float, pool: WorkerPool) -> SceneDiagnosis:
+    """`diagnose_scene` of the frame ``data`` (divided by its background and mean; ``hologram`` as recorded, for its levels)."""
+    split = TileSplit.of(data.shape, grid=settings.grid)
+    table, scene, selection, blur_profile = _judged(data, config, split, settings, progress, should_stop, pool)
     frame_spectra = tile_spectra(data - 1.0, split)
     dust = {"searched": False, "named": False}
     final = selection.fits["+".join(selection.chosen) or "baseline"]
@@ -445,23 +457,22 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
         begin_phase(progress, "dust on a window outside the volume, looked for in what the model leaves and in the scene")
         dust = dust_layer(data / np.maximum(0.5 * (final.means[0] + final.means[1]), 1e-6), config, split, settings=settings.refine, scene=table,
                           search=structured, pool=pool, progress=progress, should_stop=should_stop)
+        searched = dust["table"][~dust["table"]["in_scene"].astype(bool)] if dust["named"] else ()
+        if len(searched):
+            # the window's rings multiply the light: the frame divided by the searched grains'
+            # hologram is the light without them, on which the particles are fitted again and
+            # every effect judged again (fits made through the rings bend to them, and what
+            # they leave grows with depth like a source's blur)
+            window = particle_hologram(data.shape, searched, config, settings=settings.refine, reach_cycles_per_px=settings.reach_cycles_per_px,
+                                       should_stop=should_stop)
+            data = data / np.maximum(window, _WINDOW_FLOOR)
+            data = data / float(np.mean(data))
+            table, scene, selection, blur_profile = _judged(data, config, split, settings, progress, should_stop, pool, again=True)
+            frame_spectra = tile_spectra(data - 1.0, split)
         if dust["named"]:
             # the window's grains the scene fitted as particles stay in its image (a grain's
             # hologram is a particle's) and leave its table: they are not the sample
-            table = table.drop(index=table.index[dust["scene_rows"]]).reset_index(drop=True)
-            searched = dust["table"][~dust["table"]["in_scene"].astype(bool)]
-        if dust["named"] and len(searched):
-            # the window's rings multiply the light the particles scatter: part of the scene,
-            # and each selected effect is judged again around it (one the dust explains drops
-            # out); none is added, since what the rendered grains misfit is not the frame's
-            window = particle_hologram(data.shape, searched, config, settings=settings.refine, reach_cycles_per_px=settings.reach_cycles_per_px,
-                                       should_stop=should_stop)
-            scene = replace(scene, image=scene.image * window)
-            begin_phase(progress, "the selected effects judged again, the window's dust in the scene")
-            selection = select_effects(data, scene, split, candidates=selection.chosen, level_z=settings.level_z, progress=progress, should_stop=should_stop)
-            steps = Steps(1, progress=progress, should_stop=should_stop, heartbeat_s=0.5)
-            selection, blur_profile = attribute_blur(data, scene, split, selection, level_z=settings.level_z, check=steps.check)
-            steps.advance()
+            table = table[~in_window(table, dust, config)].reset_index(drop=True)
     begin_phase(progress, "the named blur against a spectrum's width in its place")
     steps = Steps(1, progress=progress, should_stop=should_stop, heartbeat_s=0.5)
     selection, spectrum = spectrum_width_test(data, scene, split, selection, level_z=settings.level_z, check=steps.check)
