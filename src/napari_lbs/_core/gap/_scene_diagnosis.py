@@ -32,8 +32,9 @@
    structure, what the model leaves is searched for dust on a window on either side of the
    volume, and the scene's particles fitted outside it are looked at too (`dust_layer`:
    grains fitted in one plane); a layer on enough tiles is named as the catalog's
-   ``parasitic_fringes``, the scene's grains leave its table, the searched ones join its
-   hologram and each selected effect is judged again around them.
+   ``parasitic_fringes``, the frame is divided by the searched grains' hologram, its
+   particles are found and fitted again and every effect is judged again on the light
+   without them, and the scene's grains leave its table.
 5. **The scene's numbers** (`scene_population`): the fitted particles' count, density, sizes,
    depths and index contrasts, and the small scatterers: the scene's fits below the config's
    sizes and what a search at smaller sizes finds in the residual (`_small_scatterers`).
