@@ -128,3 +128,32 @@ def test_report_md_says_where_the_dusty_window_is_and_whether_a_spectrum_took_th
     del report["dust_layer"], report["spectrum_width"]
     write_report(SceneDiagnosis(report, np.zeros((2, 2)), table), tmp_path / "r", force=True)
     assert "Dust on a window" not in (tmp_path / "r" / "report.md").read_text()
+
+
+def test_a_named_window_is_divided_out_and_the_frame_fitted_and_judged_again(monkeypatch):
+    """Where searched grains name a window, the second pass sees the frame divided by their hologram (floored), and the report names the dust."""
+    import pandas as pd
+
+    import napari_lbs._core.gap._scene_diagnosis as scene_diagnosis
+    from napari_lbs._core import ExperimentConfig, particle_hologram
+    from napari_lbs._core.gap import SceneDiagnosisSettings, diagnose_scene
+
+    config = ExperimentConfig.from_dict({"volume": {"z_min_um": 1800.0, "z_max_um": 2600.0, "z_step_um": 50.0}})
+    spheres = pd.DataFrame({"x_um": [150.0, 420.0], "y_um": [160.0, 400.0], "z_um": [2000.0, 2400.0], "diameter_um": [24.0, 26.0], "index_contrast": [0.26, 0.26]})
+    grain = pd.DataFrame({"x_um": [300.0], "y_um": [250.0], "z_um": [12000.0], "diameter_um": [40.0], "index_contrast": [0.3], "absorption": [1.0], "in_scene": [False]})
+    frame = particle_hologram((256, 256), spheres, config) + np.random.default_rng(2).normal(0.0, 0.01, (256, 256))
+    settings = SceneDiagnosisSettings(particles=4, scene_particles=8, index_grid=(0.26,), grid=2, level_z=2.0, structure_level=0.0)
+    window = {"searched": True, "named": True, "z": 2.0, "tiles": np.array([1.0, 1.0, 1.0, 1.0]), "grains": 1, "in_layer": 1, "depth_um": 12000.0,
+              "params": {"dust_per_mpx": 15.0, "dust_zone_px": 40.0, "dust_grain_px": 9.0}, "params_err": {"dust_per_mpx": 15.0, "dust_zone_px": 0.1, "dust_grain_px": 0.5},
+              "table": grain}
+    monkeypatch.setattr(scene_diagnosis, "dust_layer", lambda *args, **kwargs: window)
+    seen = []
+    judged = scene_diagnosis._judged
+    monkeypatch.setattr(scene_diagnosis, "_judged", lambda data, *args, **kwargs: (seen.append(data.copy()), judged(data, *args, **kwargs))[1])
+    report = diagnose_scene(frame, config, settings=settings).report
+    assert len(seen) == 2
+    light = frame / frame.mean()
+    cleared = light / np.maximum(particle_hologram(frame.shape, grain, config, settings=settings.refine), 0.2)
+    np.testing.assert_allclose(seen[1], cleared / cleared.mean(), rtol=1e-6)
+    assert report["dust_layer"]["named"] and "parasitic_fringes" in report["verdict"]["id"].split("+")
+    assert report["scene"]["particles"] == 2
