@@ -29,7 +29,7 @@ range, so it is found and fitted the same way (`find_particles`, `refine_particl
    grain outside it.
 
 On the development frames (independent Lorenz–Mie spheres at 1.8–4.8 mm, 512², 2.2 µm
-pixels), dust of 10–60 µm on a window 10 mm away gave 17 significant grains, 10 of them in
+pixels), dust of 10–60 µm on a window 10 mm away gave 15 significant grains, 10 of them in
 one plane at 10.01 mm on 10 tiles; 6.5 mm away, 11 in one plane at 6.50 mm on 8 tiles; 1.3 mm
 away, in front of the volume, the scene had fitted 10 grains as particles at 1.30 mm, on 7
 tiles. Grains of 10–50 µm 0.7 mm away are larger than their first Fresnel zone (26 µm): their
