@@ -131,7 +131,7 @@ def test_report_md_says_where_the_dusty_window_is_and_whether_a_spectrum_took_th
 
 
 def test_a_named_window_is_divided_out_and_the_frame_fitted_and_judged_again(monkeypatch):
-    """Where searched grains name a window, the second pass sees the frame divided by their hologram (floored), and the report names the dust."""
+    """Where searched grains name a window, the frame is fitted and judged again divided by their hologram (floored), and the report names the dust."""
     import pandas as pd
 
     import napari_lbs._core.gap._scene_diagnosis as scene_diagnosis

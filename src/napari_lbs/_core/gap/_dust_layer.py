@@ -175,11 +175,11 @@ def dust_layer(ratio: np.ndarray, config: ExperimentConfig, split: TileSplit, *,
     found = _searched(ratio, config, settings, pool, progress, should_stop) if searched else pd.DataFrame(columns=columns)
     parts = [found.reindex(columns=columns).assign(in_scene=False)]
     if scene is not None and len(scene):
-        outside = np.flatnonzero(outside_volume(scene, config))
-        parts.append(scene.iloc[outside].reindex(columns=columns).assign(in_scene=True))
-    grains = pd.concat([part for part in parts if len(part)], ignore_index=True) if any(len(part) for part in parts) else None
-    if grains is None:
+        parts.append(scene[outside_volume(scene, config)].reindex(columns=columns).assign(in_scene=True))
+    parts = [part for part in parts if len(part)]
+    if not parts:
         return {**empty, "searched": searched}
+    grains = pd.concat(parts, ignore_index=True)
     layer = grains[_layer(np.log(grains["z_um"].to_numpy(np.float64)))].reset_index(drop=True)
     optics = config.optics
     wavelength = optics.wavelength_um / optics.medium_index
