@@ -53,6 +53,7 @@ def _case_line(name: str, report: dict, seconds: float) -> dict:
         "dust": {k: _rounded(v) if isinstance(v, float) else v for k, v in report.get("dust_layer", {}).items() if k in ("searched", "named", "grains", "in_layer", "depth_um", "tiles_with_grains")},
         "levels": {k: _rounded(v) for k, v in effects["quantization"].get("levels", {}).items()},
         "photon_band_ratios": [_rounded(v) for v in effects["shot_noise"].get("band_ratios", [])],
+        "photon_fine_ratios": [_rounded(v) for v in effects["shot_noise"].get("fine_ratios", [])],
         "photon_noise_blur_px": _rounded(effects["shot_noise"].get("noise_blur_px")),
         "params": {k: {name: [_rounded(value), _rounded(v.get("params_err", {}).get(name))] for name, value in v["params"].items()}
                    for k, v in effects.items() if v["params"]},

@@ -81,7 +81,7 @@ def test_diagnose_writes_the_contract_report_its_figures_and_summary(diagnosed):
     assert report["provenance"]["seed"] == 3 and report["provenance"]["source"] == str(diagnosed / "frame.tif") and report["settings"]["grid"] == 3
     summary = (diagnosed / "report" / "report.md").read_text()
     assert "Verdict: **particle_phase+quantization**" in summary and "bits 6" in summary and "## Not tested" in summary
-    assert "- Levels: a converter step of 4 counts" in summary and "Photon noise's slope in a band pass" in summary
+    assert "- Levels: a converter step of 4 counts" in summary and "Photon noise's slope in the finest filter (a second difference along each axis)" in summary
     for name in ("gap_where.png", "gap_effects.png"):
         with Image.open(diagnosed / "report" / name) as image:
             assert image.size[0] > 1000 and image.size[1] > 400

@@ -39,7 +39,7 @@ import threading
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy import optimize
+from scipy import ndimage, optimize
 from scipy.signal import fftconvolve
 
 from napari_lbs._core.foundation import ProgressCallback, Steps, StopCallback, Stopped, process_threads, thread_pool
@@ -64,7 +64,8 @@ _BY_DEPTH = ("coherence",)  # effects that need the scene's depth groups
 _BASELINE = (("gain", 1.0, (0.2, 5.0)), ("contrast", 1.0, (0.0, 3.0)), ("gamma", 1.0, (0.3, 3.0)))
 _STEPS = 12  # least-squares steps per fit: the starts are the simpler model's optimum
 _HIGH_PASS_PX = 1.5  # the shot-noise test's high pass: the residual less its Gaussian blur of this σ
-_BAND_PX = (1.0, 3.0)  # its band pass, for the whiteness check: the residual's blur of the first σ less that of the second
+_BAND_PX = (1.0, 3.0)  # its band pass, for blurred noise's whiteness check: the residual's blur of the first σ less that of the second
+_FINE_TAPS = np.array([1.0, -2.0, 1.0])  # its finest filter, for white noise's: the second difference along rows, then along columns
 _SMOOTH_LIGHT_PX = 8.0  # the light's smooth part, about which the fringes vary: the Gaussian blur of the mean of this σ
 WHITE_RATIO = 2.0  # photon noise's slope in the band over that in the high pass lies within this factor of its hypothesis's (white or blurred noise) on each colour
 DECIDED_Z = 2.0  # the sign test's z by which a selected effect must beat a rival in its place
@@ -296,19 +297,28 @@ def _high_passed(image: np.ndarray) -> np.ndarray:
 
 
 def far_ring_power(rendered: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The local power of a scene's rings in the shot-noise test's high pass and band pass (``blur(filtered², 3 px)``).
+    """The local power of a scene's rings in each of the shot-noise test's filters (``blur(filtered², 3 px)``: the high pass, the band pass, the finest).
 
     ``rendered``: the scene rendered to 1 cycle per pixel under the particle model the optics
     test named (transparent spheres' far rings, aliased as the pixels record them); the
     fitted scene reaches the Nyquist disc only, so those rings stay in the residual, and
     their power, which grows with the light about them, is a nuisance of `shot_noise_test`.
     """
-    return gaussian_blur(_high_passed(rendered) ** 2, 3.0), gaussian_blur(_band_passed(rendered) ** 2, 3.0)
+    return tuple(gaussian_blur(passed(rendered) ** 2, 3.0) for passed in _FILTERS)
 
 
 def _band_passed(image: np.ndarray) -> np.ndarray:
-    """Its band pass, for the whiteness check: ``image``'s blurs of the two σ of ``_BAND_PX``, the wider subtracted."""
+    """Its band pass, for blurred noise's whiteness check: ``image``'s blurs of the two σ of ``_BAND_PX``, the wider subtracted."""
     return gaussian_blur(image, _BAND_PX[0]) - gaussian_blur(image, _BAND_PX[1])
+
+
+def _fine_passed(image: np.ndarray) -> np.ndarray:
+    """Its finest filter, for white noise's whiteness check: ``image``'s second difference along each axis in turn (the spectrum's corners)."""
+    return ndimage.correlate1d(ndimage.correlate1d(image, _FINE_TAPS, axis=0, mode="reflect"), _FINE_TAPS, axis=1, mode="reflect")
+
+
+_FILTERS = (_high_passed, _band_passed, _fine_passed)  # the test's filters, in the order of its slopes: the high pass first, the slope's own
+_BAND, _FINE = 1, 2  # their places in `_FILTERS`
 
 
 def shot_noise_test(fit: FrameFit, split: TileSplit, *, nuisance: tuple[np.ndarray, ...] = ()) -> dict:
@@ -327,20 +337,29 @@ def shot_noise_test(fit: FrameFit, split: TileSplit, *, nuisance: tuple[np.ndarr
     tiles the slope was fitted on its clusters (`clustered_errors`).
 
     Photon noise is white: per unit of the white noise each filter keeps, its slope is the
-    same in a band pass (``_BAND_PX``: the blur of σ 1 px less that of σ 3 px) as in the high
-    pass. What the fitted particles leave is not: it holds 4–10 times the read noise in the
-    high pass and more in the band, or, where it is the refracted light's finest rings, less.
-    A camera that blurs its charge (crosstalk, a colour sensor's interpolation) blurs its
-    noise too: where the model holds a sensor blur, noise blurred by it is the other
-    hypothesis, whose band ratio is larger (12 for σ 1 px). ``band_ratios`` are each colour's
-    slope in the band over its slope in the high pass, per unit of white noise's (each on the
+    same in every filter. What the fitted particles leave is red — misfit rings, a window's
+    rings from grains outside the field, a blur's or an envelope's misfit: its power falls
+    with the spatial frequency — so white noise's slope is compared between the two finest
+    filters, the high pass and the second difference along each axis (``_FINE_TAPS``, the
+    spectrum's corners), where the leftovers hold least. On the development frames photon
+    noise reads a fine ratio of 0.85–1.06 alone and 0.70–0.94 beside a window's dust or
+    transparent spheres of n 1.46 (whose band ratios, 1.9–4.4 and 0.4–3.4, read it as
+    not white), and the leftovers alone 0.0–0.45. A camera that blurs its charge (crosstalk,
+    a colour sensor's interpolation) blurs its noise too: where the model holds a sensor
+    blur, noise blurred by it is the other hypothesis, read on the band pass (``_BAND_PX``: the
+    blur of σ 1 px less that of σ 3 px) against the high pass (blurred noise's band ratio is
+    12 for σ 1 px of white's 1), since the second difference keeps under 2 % of it, and that
+    share hangs on the kernel's shape near the Nyquist frequency, which a Gaussian does not
+    model. ``band_ratios`` and ``fine_ratios`` are each colour's slope in the band and in the
+    finest filter over its slope in the high pass, per unit of white noise's (each on the
     light weighted by its filter's kernel squared about each pixel, which is what a filtered
     pixel's variance follows: on the pixel's own light, fringes a few pixels apart dilute the
     band's slope, to 0.67–0.75 of photon noise's on a test frame; and each within
     neighbourhoods, the light's smooth part ``blur(mean, 8 px)`` a nuisance regressor: under
     an envelope the misfit it scales follows the smooth light, and read on it one colour's
     ratio fell to −0.3–0.5 where photon noise alone gives 1);
-    ``noise_blur_px`` the hypothesis they lie nearer (0: white), whose filters' shares give
+    ``noise_blur_px`` the hypothesis whose ratios (the fine ones for white noise, the band's
+    for blurred noise) lie nearer it (0: white), whose filters' shares give
     ``log10_photons``, per unit of the noise's variance in a pixel as recorded (blurred noise
     of that variance came from 1 / Σg² fewer photons, g the blur's kernel: 12.6 for σ 1 px);
     ``white`` whether both lie within a factor ``WHITE_RATIO`` of it; ``tile_gains`` the
@@ -348,32 +367,32 @@ def shot_noise_test(fit: FrameFit, split: TileSplit, *, nuisance: tuple[np.ndarr
     ``whiteness`` each tile's normal equations of the filtered slopes' regressions, from
     which `whiteness_draws` reads ``white`` again on reweighted tiles.
 
-    ``nuisance``: more maps of what the residual holds besides noise, regressors of both
-    filters' variance beside the misfit's (the local power of transparent spheres' far rings,
+    ``nuisance``: more maps of what the residual holds besides noise, regressors of every
+    filter's variance beside the misfit's (the local power of transparent spheres' far rings,
     which the fitted scene does not render: `far_ring_power`).
     """
     # white noise, and noise blurred by the camera's fitted blur (a colour sensor's
     # interpolation, charge shared between pixels): each filter's share of its variance
     blur_px = float(np.mean([params["sensor_blur.sigma_px"] for params in fit.params])) if "sensor_blur" in fit.effects else 0.0
-    kept, kept_band, light_weights = {}, {}, {}  # light_weights: the high pass's and the band's
+    kept, light_weights = {}, {}  # per hypothesis, each filter's (`_FILTERS`) share and its kernel squared
     for sigma in {0.0, blur_px}:
         impulse = np.zeros((41, 41))
         impulse[20, 20] = 1.0
         noise = gaussian_blur(impulse, sigma) if sigma > 0 else impulse
         # per unit of the noise's variance in a pixel, as recorded (the catalog's photon noise is added per pixel)
-        in_high, in_band = _high_passed(noise), _band_passed(noise)
-        kept[sigma] = float(np.sum(in_high**2) / np.sum(noise**2))
-        kept_band[sigma] = float(np.sum(in_band**2) / np.sum(noise**2))
+        passed = [filtered(noise) for filtered in _FILTERS]
+        kept[sigma] = np.array([np.sum(p**2) / np.sum(noise**2) for p in passed])
         # a filtered pixel's variance is the light about it weighted by the filter's kernel squared
-        light_weights[sigma] = (in_high**2 / np.sum(in_high**2), in_band**2 / np.sum(in_band**2))
+        light_weights[sigma] = [p**2 / np.sum(p**2) for p in passed]
     colours = split.colours()
     gains = np.zeros(len(colours))
     slopes, slope_errors = [], []
-    normal = {(colour, sigma): [] for colour in (0, 1) for sigma in kept}  # per colour and hypothesis: the high pass's, then the band's
+    normal = {(colour, sigma): [] for colour in (0, 1) for sigma in kept}  # per colour and hypothesis: each filter's, in `_FILTERS`' order
     moments = {(colour, sigma): [] for colour in (0, 1) for sigma in kept}
     for fitted_on in (0, 1):
         residual, mean = fit.residuals[fitted_on], fit.means[fitted_on]
-        high, band = _high_passed(residual), _band_passed(residual)
+        filtered = [passed(residual) for passed in _FILTERS]
+        high = filtered[0]
         smooth_light = gaussian_blur(mean, _SMOOTH_LIGHT_PX)
         misfit = (np.abs(mean - smooth_light), gaussian_blur(_high_passed(mean) ** 2, 3.0), *nuisance)
         # per tile: the high-passed residual, the null's regressors (1 and the misfit's), the mean
@@ -387,18 +406,18 @@ def shot_noise_test(fit: FrameFit, split: TileSplit, *, nuisance: tuple[np.ndarr
         alternative, *_ = np.linalg.lstsq(x_photon, h2, rcond=None)
         slopes.append(float(alternative[-1]))
         own = [w for w, c in zip(split.windows(), colours, strict=True) if c == fitted_on]
-        b2 = np.concatenate([band[w][::2, ::2].ravel() for w in own]) ** 2
+        squares = [h2] + [np.concatenate([image[w][::2, ::2].ravel() for w in own]) ** 2 for image in filtered[1:]]
         # the slope within neighbourhoods: what follows the frame's smooth light (the misfit an
         # envelope scales) is a nuisance; photon noise follows the light fringe by fringe
         smooth = np.concatenate([smooth_light[w][::2, ::2].ravel() for w in own])[:, None]
         tile_of = np.concatenate([np.full(s[0].size, k) for k, s in enumerate(fitted)])
         for sigma, weights in light_weights.items():
-            for squares, weight in zip((h2, b2), weights, strict=True):
+            for filtered_squares, weight in zip(squares, weights, strict=True):
                 light = fftconvolve(mean, weight, mode="same")
                 x_light = np.concatenate([x_null, smooth, np.concatenate([light[w][::2, ::2].ravel() for w in own])[:, None]], axis=1)
                 # each tile's normal equations: their sum gives the slope, a reweighting of the tiles refits it (`whiteness_draws`)
                 normal[(fitted_on, sigma)].append(np.stack([x_light[tile_of == k].T @ x_light[tile_of == k] for k in range(len(own))]))
-                moments[(fitted_on, sigma)].append(np.stack([x_light[tile_of == k].T @ squares[tile_of == k] for k in range(len(own))]))
+                moments[(fitted_on, sigma)].append(np.stack([x_light[tile_of == k].T @ filtered_squares[tile_of == k] for k in range(len(own))]))
         slope_errors.append(float(clustered_errors(x_photon, h2 - x_photon @ alternative, tile_of)[-1]))
         least = 0.1 * float(np.mean(h2))  # a linear variance may fall below zero off the fitted range: a tenth of the mean bounds it
         for k, (h, x_t, m_t, colour) in enumerate(samples):
@@ -408,24 +427,29 @@ def shot_noise_test(fit: FrameFit, split: TileSplit, *, nuisance: tuple[np.ndarr
             v1 = np.maximum(x_t @ alternative[:-1] + alternative[-1] * m_t, least)
             gains[k] = -0.5 * float(np.sum(h**2 / v1 + np.log(v1)) - np.sum(h**2 / v0 + np.log(v0)))
     total, z = gain_and_z(gains, np.zeros_like(gains))
-    whiteness = {"tiles": [np.flatnonzero(colours == colour) for colour in (0, 1)], "expected": {sigma: kept_band[sigma] / kept[sigma] for sigma in kept},
+    # each hypothesis read on its filter: white noise on the finest, blurred noise on the band
+    read_on = {sigma: (_FINE if sigma == 0 else _BAND) for sigma in kept}
+    whiteness = {"tiles": [np.flatnonzero(colours == colour) for colour in (0, 1)], "read_on": read_on,
+                 "expected": {sigma: kept[sigma][read_on[sigma]] / kept[sigma][0] for sigma in kept},
                  "normal": {key: np.stack(value) for key, value in normal.items()}, "moments": {key: np.stack(value) for key, value in moments.items()}}
-    band_ratios = {sigma: ratios[0] for sigma, ratios in _band_ratios(whiteness, np.ones((1, len(colours)))).items()}
-    noise_blur = min(kept, key=lambda sigma: _off(band_ratios[sigma], whiteness["expected"][sigma]))
-    white = bool(_off(band_ratios[noise_blur], whiteness["expected"][noise_blur]) <= np.log(WHITE_RATIO))
+    ratios = {sigma: per_filter[0] for sigma, per_filter in _slope_ratios(whiteness, np.ones((1, len(colours)))).items()}  # (filters, colours)
+    noise_blur = min(kept, key=lambda sigma: _off(ratios[sigma][read_on[sigma]], whiteness["expected"][sigma]))
+    white = bool(_off(ratios[noise_blur][read_on[noise_blur]], whiteness["expected"][noise_blur]) <= np.log(WHITE_RATIO))
     mean_slope, slope_error = mean_of_halves(slopes, slope_errors)
-    slope = mean_slope / kept[noise_blur]
+    slope = mean_slope / kept[noise_blur][0]
     if slope <= 0:
         total, z = min(total, 0.0), min(z, 0.0)  # a variance that falls with the light is no photon noise
     relative = slope_error / mean_slope if slope > 0 else np.nan  # log10(1/slope) moves by its relative error over ln 10
+    per_white = kept[0.0][0] / kept[0.0]  # a ratio per unit of white noise's
     return {"gain": total, "z": z, "log10_photons": float(np.log10(1.0 / slope)) if slope > 0 else None,
             "log10_photons_err": float(relative / np.log(10.0)) if np.isfinite(relative) else None,
-            "band_ratios": [float(r * kept[0.0] / kept_band[0.0]) for r in band_ratios[noise_blur]], "noise_blur_px": noise_blur, "white": white,
+            "band_ratios": [float(r * per_white[_BAND]) for r in ratios[noise_blur][_BAND]],
+            "fine_ratios": [float(r * per_white[_FINE]) for r in ratios[noise_blur][_FINE]], "noise_blur_px": noise_blur, "white": white,
             "tile_gains": gains, "whiteness": whiteness}
 
 
-def _band_ratios(whiteness: dict, weights: np.ndarray) -> dict[float, np.ndarray]:
-    """Per noise hypothesis, each colour's band-pass slope over its high-pass slope (draws, colours), the tiles weighted by each row of ``weights``; NaN where the high pass's slope is not positive."""
+def _slope_ratios(whiteness: dict, weights: np.ndarray) -> dict[float, np.ndarray]:
+    """Per noise hypothesis, each filter's slope over the high pass's, on each colour (draws, filters, colours), the tiles weighted by each row of ``weights``; NaN where the high pass's slope is not positive."""
     ratios = {}
     for sigma in whiteness["expected"]:
         per_colour = []
@@ -436,13 +460,13 @@ def _band_ratios(whiteness: dict, weights: np.ndarray) -> dict[float, np.ndarray
             rhs = np.einsum("dt,fti->dfi", w, whiteness["moments"][(colour, sigma)])
             slope = np.linalg.solve(system, rhs[..., None])[..., -1, 0]
             with np.errstate(divide="ignore", invalid="ignore"):
-                per_colour.append(np.where(slope[:, 0] > 0, slope[:, 1] / slope[:, 0], np.nan))
+                per_colour.append(np.where(slope[:, :1] > 0, slope / slope[:, :1], np.nan))
         ratios[sigma] = np.stack(per_colour, axis=-1)
     return ratios
 
 
 def _off(ratios: np.ndarray, expected: float) -> np.ndarray:
-    """How far the colours' band ratios (last axis) lie from a hypothesis's ``expected`` ratio: the larger logged factor, infinite for a ratio that is not positive."""
+    """How far the colours' ratios (last axis) lie from a hypothesis's ``expected`` ratio: the larger logged factor, infinite for a ratio that is not positive."""
     with np.errstate(divide="ignore", invalid="ignore"):
         distance = np.where(np.isfinite(ratios) & (ratios > 0), np.abs(np.log(ratios / expected)), np.inf)
     return np.max(distance, axis=-1)
@@ -451,15 +475,15 @@ def _off(ratios: np.ndarray, expected: float) -> np.ndarray:
 def whiteness_draws(whiteness: dict, weights: np.ndarray) -> np.ndarray:
     """Whether photon noise's slope reads white (`shot_noise_test`'s ``white``) on each draw of the tiles' weights.
 
-    ``whiteness``: the test's ``whiteness`` record (each tile's normal equations of the two
+    ``whiteness``: the test's ``whiteness`` record (each tile's normal equations of the
     filters' slope regressions, per colour and noise hypothesis). ``weights``: (draws, tiles),
     each row the tiles' weights of one draw (`verdict_probability`). Each draw refits every
-    slope on its weighted tiles, takes the hypothesis its colours' band ratios lie nearer,
-    and reads white where both lie within ``WHITE_RATIO`` of it, as the test does on the
-    tiles weighted alike.
+    slope on its weighted tiles, takes the hypothesis whose colours' ratios (on its own
+    filter) lie nearer it, and reads white where both lie within ``WHITE_RATIO`` of it, as
+    the test does on the tiles weighted alike.
     """
-    ratios = _band_ratios(whiteness, np.asarray(weights, dtype=np.float64))
-    nearest = np.min(np.stack([_off(ratios[sigma], expected) for sigma, expected in whiteness["expected"].items()]), axis=0)
+    ratios = _slope_ratios(whiteness, np.asarray(weights, dtype=np.float64))
+    nearest = np.min(np.stack([_off(ratios[sigma][:, whiteness["read_on"][sigma]], expected) for sigma, expected in whiteness["expected"].items()]), axis=0)
     return nearest <= np.log(WHITE_RATIO)
 
 

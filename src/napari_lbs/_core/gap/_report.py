@@ -270,9 +270,14 @@ def _noise_lines(effects: list) -> list[str]:
     shot = by_id.get("shot_noise", {})
     if shot.get("band_ratios"):
         blur = _value(shot.get("noise_blur_px"))
-        nearer = f"nearer noise blurred by the camera's fitted {blur:.2f} px" if blur > 0 else "nearer white noise (1)"
-        lines.append(f"- Photon noise's slope in a band pass over its slope in the high pass, per colour of the tiles: "
-                     f"{', '.join(_text(r, '.2f') for r in shot['band_ratios'])}, {nearer}; named within a factor of {WHITE_RATIO:g} of it.")
+        if blur > 0:
+            lines.append(f"- Photon noise's slope in a band pass over its slope in the high pass, per colour of the tiles: "
+                         f"{', '.join(_text(r, '.2f') for r in shot['band_ratios'])}, nearer noise blurred by the camera's fitted {blur:.2f} px; "
+                         f"named within a factor of {WHITE_RATIO:g} of it.")
+        else:
+            lines.append(f"- Photon noise's slope in the finest filter (a second difference along each axis) over its slope in the high pass, per colour of "
+                         f"the tiles: {', '.join(_text(r, '.2f') for r in shot.get('fine_ratios') or ())}, nearer white noise (1); named within a factor of "
+                         f"{WHITE_RATIO:g} of it (in a band pass: {', '.join(_text(r, '.2f') for r in shot['band_ratios'])}, which what the fits leave raises).")
     levels = by_id.get("quantization", {}).get("levels") or {}
     if levels.get("integer"):
         lines.append(f"- Levels: a converter step of {levels['step_counts']} count{'' if levels['step_counts'] == 1 else 's'}, its noise {_text(levels['noise_share'], '.2g')} of the white floor's; "

@@ -522,7 +522,7 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
     shot = selection.shot_noise
     shot_selected = bool(shot["z"] >= settings.level_z and shot["gain"] > 0 and shot["white"])
     effects.append({"id": "shot_noise", "gap_after": baseline_share, "shrink": 0.0, "z": shot["z"], "heldout_gain_nats": shot["gain"], "selected": shot_selected,
-                    "band_ratios": shot["band_ratios"], "noise_blur_px": shot["noise_blur_px"],
+                    "band_ratios": shot["band_ratios"], "fine_ratios": shot["fine_ratios"], "noise_blur_px": shot["noise_blur_px"],
                     "params": {"log10_photons": shot["log10_photons"]} if shot["log10_photons"] is not None else {},
                     "params_err": {"log10_photons": shot["log10_photons_err"]} if shot["log10_photons"] is not None else {}})
     levels = levels_test(hologram, 0.5 * (final.means[0] + final.means[1]) - data, floor_variance=floor_variance)
