@@ -699,6 +699,28 @@ FROZEN_23 = (
     Case("dust-10mm+led-25nm", 512, {"parasitic_fringes": {"dust_mm": 10.0, "grains_per_mpx": 50.0, "grain_um": (10.0, 50.0)}, "coherence": {"bandwidth_nm": 25.0}}),
 )
 
+# a twenty-fourth frozen set, written once photon noise was judged again on the model where a
+# spectrum's width took a named blur's place (an LED blurs the light, not the camera's noise):
+# LEDs alone and beside photon noise, an envelope and dust; a crosstalk and a disc source
+# beside photon noise; photon noise alone and beside dust; a crosstalk alone; three
+# controls; committed before its first run
+FROZEN_24_SEED = 20261219
+FROZEN_24 = (
+    Case("control-a24", 512, spheres_per_512=27, level=150, read_noise=1.4), Case("control-b24", 512, spheres_per_512=32, level=162, read_noise=1.9),
+    Case("control-c24", 512, spheres_per_512=23, level=145, read_noise=1.7),
+    Case("led-20nm", 512, {"coherence": {"bandwidth_nm": 20.0}}),
+    Case("led-35nm", 512, {"coherence": {"bandwidth_nm": 35.0}}),
+    Case("led-25nm+photons-100", 512, {"coherence": {"bandwidth_nm": 25.0}, "shot_noise": {"photons": 100.0}}),
+    Case("led-30nm+photons-130", 512, {"coherence": {"bandwidth_nm": 30.0}, "shot_noise": {"photons": 130.0}}),
+    Case("led-28nm+vignetting", 512, {"coherence": {"bandwidth_nm": 28.0}, "illumination": {"falloff": 0.43, "centre": (0.56, 0.45)}}),
+    Case("dust-9mm+led-30nm", 512, {"parasitic_fringes": {"dust_mm": 9.0, "grains_per_mpx": 50.0, "grain_um": (10.0, 50.0)}, "coherence": {"bandwidth_nm": 30.0}}),
+    Case("crosstalk-3+photons-90", 512, {"sensor_blur": {"kernel": "binomial3"}, "shot_noise": {"photons": 90.0}}),
+    Case("source-disc-2.2+photons-120", 512, {"coherence": {"source_mrad": 2.2}, "shot_noise": {"photons": 120.0}}),
+    Case("photons-100", 512, {"shot_noise": {"photons": 100.0}}),
+    Case("dust-12mm+photons-110", 512, {"parasitic_fringes": {"dust_mm": 12.0, "grains_per_mpx": 50.0, "grain_um": (10.0, 50.0)}, "shot_noise": {"photons": 110.0}}),
+    Case("crosstalk-5", 512, {"sensor_blur": {"kernel": "binomial5"}}),
+)
+
 DEVELOPMENT_SEED = 1234
 DEVELOPMENT = (
     Case("control-1", 512), Case("control-2", 512, spheres_per_512=35, level=160, read_noise=2.0), Case("control-3", 512, spheres_per_512=22, level=140, read_noise=1.2),
@@ -753,6 +775,8 @@ DEVELOPMENT = (
     Case("dust-8mm+photons-100", 512, {"parasitic_fringes": {"dust_mm": 8.0, "grains_per_mpx": 50.0, "grain_um": (10.0, 50.0)}, "shot_noise": {"photons": 100.0}}),
     Case("dust-14mm+photons-130", 512, {"parasitic_fringes": {"dust_mm": 14.0, "grains_per_mpx": 45.0, "grain_um": (12.0, 50.0)}, "shot_noise": {"photons": 130.0}}),
     Case("dust-11mm+led-25nm", 512, {"parasitic_fringes": {"dust_mm": 11.0, "grains_per_mpx": 50.0, "grain_um": (10.0, 50.0)}, "coherence": {"bandwidth_nm": 25.0}}),
+    # added later: an LED beside photon noise
+    Case("led-22nm+photons-110", 512, {"coherence": {"bandwidth_nm": 22.0}, "shot_noise": {"photons": 110.0}}),
 )
 
 # effects outside the catalog, alone and beside a catalog effect (512²)
@@ -803,7 +827,7 @@ SUITES = {
     "frozen-13": (FROZEN_13, FROZEN_13_SEED), "frozen-14": (FROZEN_14, FROZEN_14_SEED),
     "frozen-15": (FROZEN_15, FROZEN_15_SEED), "frozen-16": (FROZEN_16, FROZEN_16_SEED),
     "frozen-17": (FROZEN_17, FROZEN_17_SEED), "frozen-18": (FROZEN_18, FROZEN_18_SEED), "frozen-19": (FROZEN_19, FROZEN_19_SEED),
-    "frozen-20": (FROZEN_20, FROZEN_20_SEED), "frozen-21": (FROZEN_21, FROZEN_21_SEED), "frozen-22": (FROZEN_22, FROZEN_22_SEED), "frozen-23": (FROZEN_23, FROZEN_23_SEED),
+    "frozen-20": (FROZEN_20, FROZEN_20_SEED), "frozen-21": (FROZEN_21, FROZEN_21_SEED), "frozen-22": (FROZEN_22, FROZEN_22_SEED), "frozen-23": (FROZEN_23, FROZEN_23_SEED), "frozen-24": (FROZEN_24, FROZEN_24_SEED),
     "development": (DEVELOPMENT, DEVELOPMENT_SEED),
     "outside-frozen": (OUTSIDE_FROZEN, OUTSIDE_FROZEN_SEED), "outside-frozen-2": (OUTSIDE_FROZEN_2, OUTSIDE_FROZEN_2_SEED),
     "outside-development": (OUTSIDE_DEVELOPMENT, OUTSIDE_DEVELOPMENT_SEED),
