@@ -772,5 +772,7 @@ def test_a_spectrum_s_width_takes_the_named_blur_s_place_only_where_the_frame_ho
     if source == "spectrum":
         assert test["named"] and swapped.chosen == ("coherence",)
         assert "coherence.bandwidth_nm" in swapped.fits["coherence"].params[0] and 15.0 <= test["bandwidth_nm"] <= 36.0
+        # photon noise judged again on the swapped model, where no sensor blur blurs the camera's noise
+        assert swapped.shot_noise is not selection.shot_noise and swapped.shot_noise["noise_blur_px"] == 0.0
     else:
         assert not test["named"] and swapped is selection and test["z"] < 0

@@ -27,7 +27,7 @@ import numpy as np
 from scipy import optimize, stats
 
 from napari_lbs._core.gap._heldout import TileSplit, model_probabilities
-from napari_lbs._core.gap._nested import EVERY_OTHER, MEAN_EFFECTS, Selection, both_colours, fit_frame, gain_and_z, last_two
+from napari_lbs._core.gap._nested import EVERY_OTHER, MEAN_EFFECTS, Selection, both_colours, fit_frame, gain_and_z, last_two, shot_noise_test
 from napari_lbs._core.gap._scene_image import Scene
 from napari_lbs._core.physics import EFFECTS, gaussian_blur, sensor_image
 
@@ -179,7 +179,7 @@ def spectrum_width_test(data: np.ndarray, scene: Scene, split: TileSplit, select
     -------
     (Selection, dict or None)
         The selection (``coherence``, fitted as ``coherence.bandwidth_nm``, in the blurs'
-        place where the spectrum's width wins) and the test: ``replaces`` (the blurs),
+        place where the spectrum's width wins, and photon noise's test on that model) and the test: ``replaces`` (the blurs),
         ``gain_nats``, ``z``, ``bandwidth_nm`` and its error, ``named``, ``tile_gains`` (for the
         verdict's bootstrap); None where no blur is named or the scene has too few depth groups.
     """
@@ -199,4 +199,6 @@ def spectrum_width_test(data: np.ndarray, scene: Scene, split: TileSplit, select
     fits["+".join(model)] = fit  # the coherence of the verdict is now the spectrum's width
     undecided = tuple(u for u in selection.undecided if not {u["selected"], u["rival"]} <= set(BLUR_EFFECTS))
     probabilities = model_probabilities({name: f.loglik for name, f in fits.items()})
-    return replace(selection, chosen=model, fits=fits, undecided=undecided, probabilities=probabilities), record
+    # photon noise is judged on the final model again: a spectrum's width blurs the light, not
+    # the camera's noise, so noise blurred by the replaced sensor blur is no longer a hypothesis
+    return replace(selection, chosen=model, fits=fits, undecided=undecided, probabilities=probabilities, shot_noise=shot_noise_test(fit, split)), record
