@@ -157,3 +157,6 @@ def test_a_named_window_is_divided_out_and_the_frame_fitted_and_judged_again(mon
     np.testing.assert_allclose(seen[1], cleared / cleared.mean(), rtol=1e-6)
     assert report["dust_layer"]["named"] and "parasitic_fringes" in report["verdict"]["id"].split("+")
     assert report["scene"]["particles"] == 2
+    # the scene alone on the recorded frame, beside the frame divided by the window
+    recorded = report["gap"]["baseline_recorded_frame"]
+    assert isinstance(recorded, float) and 0.0 <= recorded <= 1.0 and recorded != report["gap"]["baseline"]

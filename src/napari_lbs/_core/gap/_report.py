@@ -200,8 +200,10 @@ def _summary(report: dict, levels: SceneDiagnosisSettings) -> list[str]:
         f"- Probability of the verdict: {_text(verdict.get('probability'), '.2f')} (the share of the tiles' bootstrap draws on which each of its "
         f"sign tests comes out the same).",
         f"- The catalog {'explains' if verdict['catalog_explains'] else 'does not explain'} the frame.",
-        f"- Gap ({gap['metric']}): {_text(gap['baseline'])} with the scene alone, {_text(verdict['residual'])} with the verdict "
-        f"(shrink {_text(100 * _value(verdict['shrink']), '.0f')} %).",
+        f"- Gap ({gap['metric']}): "
+        + (f"{_text(gap['baseline_recorded_frame'])} with the scene alone on the recorded frame, " if gap.get("baseline_recorded_frame") is not None else "")
+        + f"{_text(gap['baseline'])} with the scene alone{' on the frame without the window' if gap.get('baseline_recorded_frame') is not None else ''}, "
+        f"{_text(verdict['residual'])} with the verdict (shrink {_text(100 * _value(verdict['shrink']), '.0f')} %).",
         f"- Data: {gap['particles']} particles' optics tested, {gap['tiles']} tiles of {gap['tile_px']} px; {_text(report.get('seconds'), '.0f')} s.",
         "",
     ]

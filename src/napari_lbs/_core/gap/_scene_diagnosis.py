@@ -450,6 +450,7 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
     table, scene, selection, blur_profile = _judged(data, config, split, settings, progress, should_stop, pool)
     frame_spectra = tile_spectra(data - 1.0, split)
     dust = {"searched": False, "named": False}
+    recorded_share = None  # the scene alone on the recorded frame, where a window is divided out of it
     final = selection.fits["+".join(selection.chosen) or "baseline"]
     structured = unexplained_share(final.residuals, split, frame_spectra)[0] > settings.structure_level
     if structured or np.count_nonzero(outside_volume(table, config)) >= LAYER_TILES:
@@ -464,6 +465,7 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
             # hologram is the light without them, on which the particles are fitted again and
             # every effect judged again (fits made through the rings bend to them, and what
             # they leave grows with depth like a source's blur)
+            recorded_share = unexplained_share(selection.fits["baseline"].residuals, split, frame_spectra)[0]
             window = particle_hologram(data.shape, searched, config, settings=settings.refine, reach_cycles_per_px=settings.reach_cycles_per_px,
                                        should_stop=should_stop)
             data = data / np.maximum(window, _WINDOW_FLOOR)
@@ -546,7 +548,8 @@ def _diagnosed(data: np.ndarray, hologram: np.ndarray, config: ExperimentConfig,
                                      level_z=settings.level_z)
     report = {
         "method": "scene",
-        "gap": {"metric": "unexplained share of the frame's structure (median over the held-out tiles)", "baseline": baseline_share, "by_band": bands,
+        "gap": {"metric": "unexplained share of the frame's structure (median over the held-out tiles)", "baseline": baseline_share,
+                "baseline_recorded_frame": recorded_share, "by_band": bands,
                 "by_depth": by_depth, "line_pattern": lines, "directional_blur": directional, "particles": optics["particles"], "tiles": split.grid**2, "tile_px": split.size},
         "effects": effects,
         "verdict": {"id": None if undecided else "+".join(named) or None, "shrink": 1.0 - share / baseline_share if baseline_share > 0 else 0.0,

@@ -207,7 +207,10 @@ def diagnose(request: DiagnoseRequest, *, progress: ProgressCallback | None = No
     optics = diagnosis.report.get("particle_optics") or {}
     if optics.get("model") == "undecided" and optics.get("particles"):
         probability += "; particle optics undecided"
-    summary = (f"verdict: {named}{probability}; unexplained share {gap['baseline']:.3f} (the scene alone) -> {verdict['residual']:.3f}, the catalog "
+    recorded = gap.get("baseline_recorded_frame")
+    window = f"{recorded:.3f} (the scene alone on the recorded frame) -> " if recorded is not None else ""
+    alone = "the scene alone without the window's grains" if recorded is not None else "the scene alone"
+    summary = (f"verdict: {named}{probability}; unexplained share {window}{gap['baseline']:.3f} ({alone}) -> {verdict['residual']:.3f}, the catalog "
                f"{'explains' if verdict['catalog_explains'] else 'does not explain'} it; {len(frames)} frame(s) in {diagnosis.seconds:.0f} s -> {paths[0]}")
     return StepResult(summary, diagnosis, tuple(Path(p) for p in paths))
 
