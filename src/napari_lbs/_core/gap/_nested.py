@@ -344,7 +344,7 @@ def shot_noise_test(fit: FrameFit, split: TileSplit, *, nuisance: tuple[np.ndarr
     spectrum's corners), where the leftovers hold least. On the development frames photon
     noise reads a fine ratio of 0.85–1.06 alone and 0.70–0.94 beside a window's dust or
     transparent spheres of n 1.46 (whose band ratios, 1.9–4.4 and 0.4–3.4, read it as
-    not white), and the leftovers alone 0.0–0.45. A camera that blurs its charge (crosstalk,
+    not white), and the leftovers alone at most 0.45. A camera that blurs its charge (crosstalk,
     a colour sensor's interpolation) blurs its noise too: where the model holds a sensor
     blur, noise blurred by it is the other hypothesis, read on the band pass (``_BAND_PX``: the
     blur of σ 1 px less that of σ 3 px) against the high pass (blurred noise's band ratio is
