@@ -67,7 +67,7 @@ _HIGH_PASS_PX = 1.5  # the shot-noise test's high pass: the residual less its Ga
 _BAND_PX = (1.0, 3.0)  # its band pass, for blurred noise's whiteness check: the residual's blur of the first σ less that of the second
 _FINE_TAPS = np.array([1.0, -2.0, 1.0])  # its finest filter, for white noise's: the second difference along rows, then along columns
 _SMOOTH_LIGHT_PX = 8.0  # the light's smooth part, about which the fringes vary: the Gaussian blur of the mean of this σ
-WHITE_RATIO = 2.0  # photon noise's slope in the band over that in the high pass lies within this factor of its hypothesis's (white or blurred noise) on each colour
+WHITE_RATIO = 2.0  # photon noise's slope in its hypothesis's filter (the finest for white noise, the band for blurred) over that in the high pass lies within this factor of the hypothesis's on each colour
 DECIDED_Z = 2.0  # the sign test's z by which a selected effect must beat a rival in its place
 # the pixels a fit compares: every other row and column of the fitted tiles (neighbours add little but cost)
 EVERY_OTHER = (slice(0, None, 2), slice(0, None, 2))
@@ -296,7 +296,7 @@ def _high_passed(image: np.ndarray) -> np.ndarray:
     return image - gaussian_blur(image, _HIGH_PASS_PX)
 
 
-def far_ring_power(rendered: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def far_ring_power(rendered: np.ndarray) -> tuple[np.ndarray, ...]:
     """The local power of a scene's rings in each of the shot-noise test's filters (``blur(filtered², 3 px)``: the high pass, the band pass, the finest).
 
     ``rendered``: the scene rendered to 1 cycle per pixel under the particle model the optics
